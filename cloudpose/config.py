@@ -1,0 +1,297 @@
+"""Configuration: frozen dataclasses for the base system, and the registry that applies deltas.
+
+The base config is the paper's proposed system with its training settings. A variant
+(``ablations/variants.toml``) and a preset (``ablations/presets.toml``) each list only the fields
+they change. :func:`resolve` applies preset, then variant, then explicit overrides, and returns
+one :class:`Config` that every checkpoint and every MLflow run stores in full.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from functools import cache
+from typing import Any
+
+from ablations import PRESETS_FILE, VARIANTS_FILE
+
+ROTATIONS = ("axis_angle", "quaternion", "rot6d")
+ROTATION_LOSSES = ("geodesic", "l2")
+SHARED_CHOICES = (0, 1, 2, 3, 4, 5, "all")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Network architecture (DESIGN.md, "BaseNet" and "The pose networks").
+
+    Attributes:
+        shared_layers: 0-5 = how many leading per-point layers the rotation and translation
+            branches share as one module; 5 also shares the pooled feature; "all" = one BaseNet
+            with a 6- (or 7-, 9-) number output.
+        width: multiplier on every hidden width (per-point MLP and regression head).
+        rotation: rotation output: axis-angle (3), unit quaternion (4) or 6D (6).
+        point_mlp: per-point MLP widths before the max pool.
+        head: hidden widths of the regression MLP after the max pool.
+        num_classes: k of the one-hot class input (21 for YCB-Video).
+        bn_momentum: PyTorch BatchNorm momentum (the released code's decay 0.99 = 0.01).
+    """
+
+    shared_layers: int | str = 0
+    width: float = 1.0
+    rotation: str = "axis_angle"
+    point_mlp: tuple[int, ...] = (64, 64, 64, 128, 1024)
+    head: tuple[int, ...] = (512, 256)
+    num_classes: int = 21
+    bn_momentum: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.shared_layers not in SHARED_CHOICES:
+            raise ValueError(
+                f"model.shared_layers must be one of {SHARED_CHOICES}, got {self.shared_layers!r}"
+            )
+        if self.rotation not in ROTATIONS:
+            raise ValueError(f"model.rotation must be one of {ROTATIONS}, got {self.rotation!r}")
+        if not self.width > 0:
+            raise ValueError(f"model.width must be > 0, got {self.width!r}")
+        object.__setattr__(self, "point_mlp", tuple(self.point_mlp))
+        object.__setattr__(self, "head", tuple(self.head))
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Training loss: ``alpha * l_t + l_r`` (paper eq. 6).
+
+    Attributes:
+        rotation: "geodesic" (angle between rotations, rad) or "l2" (|r - r_gt|_2 on axis-angle).
+        alpha: weight of the translation loss (metres) against the rotation loss (radians).
+    """
+
+    rotation: str = "geodesic"
+    alpha: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.rotation not in ROTATION_LOSSES:
+            raise ValueError(
+                f"loss.rotation must be one of {ROTATION_LOSSES}, got {self.rotation!r}"
+            )
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings; defaults are the paper's (Sec. V-A and the released code).
+
+    Attributes:
+        epochs: passes over the training segments.
+        batch_size: segments per step.
+        lr: Adam learning rate.
+        n_points: network input points, the first n of the cached FPS order.
+        val_fraction: share of training *frames* held out for per-epoch validation.
+        precision: "fp32" or "bf16" (autocast; never on unless asked).
+        device: "auto" (CUDA if available, else CPU), "cpu" or "cuda[:i]".
+    """
+
+    epochs: int = 90
+    batch_size: int = 128
+    lr: float = 0.0008
+    n_points: int = 256
+    val_fraction: float = 0.1
+    precision: str = "fp32"
+    device: str = "auto"
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Dataset and segment settings (DESIGN.md, "Data flow" and "Data").
+
+    Attributes:
+        root: dataset root in YCB-Video layout; "" = the synthetic default under ``data/``.
+        train_frames: synthetic training frames to render.
+        test_frames: synthetic test frames to render (listed in its keyframe.txt).
+        synth_seed: seed of the synthetic scenes (independent of the training seed).
+        noise: apply the depth-sensor noise model when rendering.
+        uniform_rotation: objects float in full SO(3) instead of resting on a table.
+        n_fps: points kept per segment by farthest point sampling.
+        outlier_radius: drop segment points farther than this from the segment mean, metres.
+        segmentation: where segment masks come from; "gt" = ground-truth labels.
+    """
+
+    root: str = ""
+    train_frames: int = 2000
+    test_frames: int = 400
+    synth_seed: int = 0
+    noise: bool = True
+    uniform_rotation: bool = False
+    n_fps: int = 1024
+    outlier_radius: float = 0.2
+    segmentation: str = "gt"
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything that determines a run. Stored whole with every checkpoint and MLflow run."""
+
+    variant: str = "shared-0"
+    preset: str = "paper"
+    seed: int = 1
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Nested plain dict (JSON/TOML-safe)."""
+        return dataclasses.asdict(self)
+
+    def flat(self) -> dict[str, Any]:
+        """Flat ``section.field`` dict, as logged to MLflow params."""
+        out: dict[str, Any] = {}
+        for key, value in self.to_dict().items():
+            if isinstance(value, dict):
+                out.update({f"{key}.{k}": v for k, v in value.items()})
+            else:
+                out[key] = value
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Config:
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        sections = {f.name: f.type for f in dataclasses.fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in d.items():
+            if key not in sections:
+                raise ValueError(f"unknown config key {key!r}; expected one of {sorted(sections)}")
+            kwargs[key] = _SECTIONS[key](**value) if key in _SECTIONS else value
+        return cls(**kwargs)
+
+
+_SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One registry entry: a name, why it exists, and the fields it changes."""
+
+    name: str
+    why: str
+    delta: dict[str, dict[str, Any]]
+
+    def describe(self) -> str:
+        """``model.shared_layers=3, loss.rotation=l2``; "(base)" for no change."""
+        parts = [f"{s}.{k}={v}" for s, fields in self.delta.items() for k, v in fields.items()]
+        return ", ".join(parts) or "(base)"
+
+
+@dataclass(frozen=True)
+class Group:
+    """An ablation group: one MLflow experiment and one report table."""
+
+    name: str
+    members: tuple[str, ...]
+    labels: dict[str, str]
+
+
+def _check_delta(where: str, delta: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for section, fields in delta.items():
+        if section not in _SECTIONS or not isinstance(fields, dict):
+            raise ValueError(f"{where}: unknown section {section!r}; expected {sorted(_SECTIONS)}")
+        valid = {f.name for f in dataclasses.fields(_SECTIONS[section])}
+        for key in fields:
+            if key not in valid:
+                raise ValueError(f"{where}: unknown field {section}.{key}; valid: {sorted(valid)}")
+        out[section] = dict(fields)
+    return out
+
+
+@cache
+def _load_variants() -> tuple[dict[str, Variant], dict[str, Group]]:
+    raw = tomllib.loads(VARIANTS_FILE.read_text())
+    variants = {}
+    for name, entry in raw.get("variant", {}).items():
+        entry = dict(entry)
+        why = entry.pop("why", "")
+        if not why:
+            raise ValueError(f"{VARIANTS_FILE}: variant {name!r} has no 'why'")
+        variants[name] = Variant(name, why, _check_delta(f"{VARIANTS_FILE} [{name}]", entry))
+    groups = {}
+    for name, entry in raw.get("group", {}).items():
+        missing = [m for m in entry["members"] if m not in variants]
+        if missing:
+            raise ValueError(f"{VARIANTS_FILE}: group {name!r} names unknown variants {missing}")
+        groups[name] = Group(name, tuple(entry["members"]), dict(entry.get("labels", {})))
+    return variants, groups
+
+
+@cache
+def _load_presets() -> dict[str, tuple[str, dict[str, dict[str, Any]]]]:
+    raw = tomllib.loads(PRESETS_FILE.read_text())
+    presets = {}
+    for name, entry in raw.get("preset", {}).items():
+        entry = dict(entry)
+        why = entry.pop("why", "")
+        presets[name] = (why, _check_delta(f"{PRESETS_FILE} [{name}]", entry))
+    return presets
+
+
+def variants() -> dict[str, Variant]:
+    """All registered variants by name, in registry order."""
+    return _load_variants()[0]
+
+
+def groups() -> dict[str, Group]:
+    """All ablation groups by name."""
+    return _load_variants()[1]
+
+
+def presets() -> dict[str, str]:
+    """Preset name -> its one-line why."""
+    return {name: why for name, (why, _) in _load_presets().items()}
+
+
+def get_variant(name: str) -> Variant:
+    """The registered variant ``name``; unknown names raise with the list of valid ones."""
+    table = variants()
+    if name not in table:
+        raise ValueError(f"unknown variant {name!r}; valid variants: {', '.join(table)}")
+    return table[name]
+
+
+def get_group(name: str) -> Group:
+    """The ablation group ``name``; unknown names raise with the list of valid ones."""
+    table = groups()
+    if name not in table:
+        raise ValueError(f"unknown group {name!r}; valid groups: {', '.join(table)}")
+    return table[name]
+
+
+def groups_of(variant: str) -> list[str]:
+    """Names of the groups that list ``variant``."""
+    return [g.name for g in groups().values() if variant in g.members]
+
+
+def _apply(cfg: Config, delta: dict[str, dict[str, Any]]) -> Config:
+    changes = {s: dataclasses.replace(getattr(cfg, s), **f) for s, f in delta.items()}
+    return dataclasses.replace(cfg, **changes)
+
+
+def resolve(
+    variant: str = "shared-0",
+    preset: str = "cpu",
+    seed: int = 1,
+    overrides: dict[str, dict[str, Any]] | None = None,
+) -> Config:
+    """The full config of ``variant`` trained with ``preset`` and ``seed``.
+
+    Order: base defaults, then the preset's delta, then the variant's, then ``overrides``
+    (``{"train": {"epochs": 3}}``).
+    """
+    table = _load_presets()
+    if preset not in table:
+        raise ValueError(f"unknown preset {preset!r}; valid presets: {', '.join(table)}")
+    cfg = Config(variant=variant, preset=preset, seed=seed)
+    cfg = _apply(cfg, table[preset][1])
+    cfg = _apply(cfg, get_variant(variant).delta)
+    if overrides:
+        cfg = _apply(cfg, _check_delta("overrides", overrides))
+    return cfg
