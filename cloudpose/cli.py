@@ -1,0 +1,193 @@
+"""The ``cloudpose`` command line: every stage of the pipeline, and the ablation suite.
+
+The Makefile's targets are thin calls of these commands.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+app = typer.Typer(
+    help="Depth-only 6D pose regression on point clouds (Gao et al., ICRA 2020): "
+    "synthetic data, training, ICP, evaluation and the paper's ablations.",
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+)
+
+VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
+PresetOpt = Annotated[str, typer.Option(help="Preset: smoke, cpu or paper.")]
+SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
+DataOpt = Annotated[
+    str, typer.Option("--data", help="YCB-Video-layout root; empty = the synthetic default.")
+]
+ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
+
+
+@app.callback()
+def _main() -> None:
+    from cloudpose import perf
+
+    perf.reexec_with_allocator()
+    perf.configure_threads()
+
+
+def _config(variant: str, preset: str, seed: int, data: str = "", **train):
+    from cloudpose.config import resolve
+
+    overrides: dict = {"data": {"root": data}} if data else {}
+    train = {k: v for k, v in train.items() if v is not None}
+    if train:
+        overrides["train"] = train
+    return resolve(variant, preset, seed, overrides or None)
+
+
+def _fail(exc: Exception) -> None:
+    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(2) from exc
+
+
+@app.command()
+def variants() -> None:
+    """Print the variant registry: name, groups, what it changes, parameter count."""
+    from cloudpose.models import variant_table
+
+    rows = variant_table()
+    header = f"{'variant':<18} {'groups':<22} {'parameters':>11}  changes"
+    typer.echo(header)
+    typer.echo("-" * len(header))
+    for r in rows:
+        groups = ",".join(r["groups"])
+        typer.echo(f"{r['name']:<18} {groups:<22} {r['parameters']:>11,}  {r['changes']}")
+
+
+@app.command()
+def synth(
+    out: Annotated[Path, typer.Option(help="Output root (YCB-Video layout).")] = Path(
+        "data/synth-seed0"
+    ),
+    train_frames: Annotated[int, typer.Option(help="Training frames.")] = 400,
+    test_frames: Annotated[int, typer.Option(help="Test frames (listed in keyframe.txt).")] = 100,
+    seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
+    noise: Annotated[bool, typer.Option("--noise/--no-noise", help="Depth-sensor noise.")] = True,
+    uniform_rotation: Annotated[
+        bool, typer.Option("--uniform-rotation/--table", help="Objects in full SO(3).")
+    ] = False,
+    workers: Annotated[int | None, typer.Option(help="Processes (default: all cores).")] = None,
+    progress: ProgressOpt = True,
+) -> None:
+    """Render a synthetic YCB-Video-layout dataset from the 21 real model point sets (resumable)."""
+    from cloudpose.data.synth import synthesize
+
+    s = synthesize(
+        out, train_frames, test_frames, seed=seed, noise=noise,
+        uniform_rotation=uniform_rotation, workers=workers, progress=progress,
+    )  # fmt: skip
+    typer.echo(f"{out}: {s.frames_written} frames written, {s.frames_skipped} already there, "
+               f"{s.seconds:.1f} s")  # fmt: skip
+
+
+@app.command()
+def prepare(
+    variant: VariantOpt = "shared-0",
+    preset: PresetOpt = "cpu",
+    data: DataOpt = "",
+    progress: ProgressOpt = True,
+) -> None:
+    """Synthesize (if needed) and cache the segments of a preset's train and test sets."""
+    from cloudpose.data.cache import ensure_dataset
+
+    cfg = _config(variant, preset, 1, data)
+    try:
+        train_set, test_set = ensure_dataset(cfg.data, project_dir=Path.cwd(), progress=progress)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    typer.echo(f"train: {len(train_set)} segments, test: {len(test_set)} segments")
+
+
+@app.command()
+def train(
+    variant: VariantOpt = "shared-0",
+    preset: PresetOpt = "cpu",
+    seed: SeedOpt = 1,
+    data: DataOpt = "",
+    epochs: Annotated[int | None, typer.Option(help="Override the preset's epochs.")] = None,
+    precision: Annotated[str | None, typer.Option(help="fp32 or bf16.")] = None,
+    device: Annotated[str | None, typer.Option(help="auto, cpu or cuda.")] = None,
+    group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
+    progress: ProgressOpt = True,
+) -> None:
+    """Train one variant (resumes an interrupted run of the same settings)."""
+    from cloudpose.train import train as train_fn
+
+    cfg = _config(variant, preset, seed, data, epochs=epochs, precision=precision, device=device)
+    try:
+        out = train_fn(cfg, group=group, progress=progress)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    typer.echo(f"run {out.run_id}  {out.run_dir}")
+    for k, v in sorted(out.metrics.items()):
+        typer.echo(f"  {k:<28} {v:.4f}")
+
+
+@app.command()
+def evaluate(
+    run: Annotated[str, typer.Option(help="Run folder, MLflow run id, or variant/preset/seedS.")],
+    data: Annotated[str | None, typer.Option(help="YCB-Video-layout root to test on.")] = None,
+    frames: Annotated[str, typer.Option(help="With --data: keyframe, all, or an image set.")] = (
+        "keyframe"
+    ),
+    icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
+    show_instances: Annotated[bool, typer.Option(help="Print every instance's errors.")] = False,
+    progress: ProgressOpt = True,
+) -> None:
+    """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
+    from cloudpose.evaluate import evaluate as evaluate_fn
+
+    try:
+        out = evaluate_fn(run, data=data, frames=frames, icp=icp, progress=progress)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    _print_summary(out.metrics)
+    if show_instances:
+        typer.echo(out.table.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
+
+
+def _print_summary(metrics: dict[str, float]) -> None:
+    keys = ("ad_auc", "ads_auc", "ads_lt_1cm", "rot_lt_10deg", "trans_lt_1cm")
+    prefixes = sorted({k.split("/")[0] for k in metrics})
+    typer.echo(f"{'':<16}" + "".join(f"{k:>14}" for k in keys))
+    for p in prefixes:
+        vals = [metrics.get(f"{p}/{k}") for k in keys]
+        if all(v is None for v in vals):
+            continue
+        typer.echo(f"{p:<16}" + "".join(f"{100 * v:>14.1f}" if v is not None else f"{'':>14}"
+                                        for v in vals))  # fmt: skip
+
+
+@app.command()
+def run(
+    variant: VariantOpt = "shared-0",
+    preset: PresetOpt = "cpu",
+    seed: SeedOpt = 1,
+    data: DataOpt = "",
+    progress: ProgressOpt = True,
+) -> None:
+    """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP."""
+    from cloudpose.evaluate import evaluate as evaluate_fn
+    from cloudpose.train import train as train_fn
+
+    cfg = _config(variant, preset, seed, data)
+    try:
+        out = train_fn(cfg, progress=progress)
+        ev = evaluate_fn(str(out.run_dir), progress=progress)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    typer.echo(f"run {out.run_id}  {out.run_dir}")
+    _print_summary(ev.metrics)
+
+
+if __name__ == "__main__":
+    app()

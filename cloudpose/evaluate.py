@@ -1,0 +1,249 @@
+"""Evaluation of a trained run on a test set, with and without ICP, logged to MLflow.
+
+Per instance: AD, ADS, rotation error, translation error, occlusion factor, class, and whether it
+was a miss (no usable segment point: every error infinite, as the YCB-Video toolbox counts it).
+Summaries (:func:`cloudpose.metrics.summarize`) are logged as metrics ``{name}/...`` for the
+network alone and ``{name}_icp/...`` after ICP; the per-instance table is an artifact
+``eval/{name}/instances.csv``.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm.auto import tqdm
+
+from cloudpose import tracking
+from cloudpose.metrics import pose_errors, summarize
+from cloudpose.refine import ICPSettings, icp_refine
+
+METHODS = ("net", "icp")
+"""Column prefixes of the per-instance table: the network's estimate, then after ICP."""
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """Poses of every row of a segment set; rows that are misses hold NaN."""
+
+    R: np.ndarray  # (M, 3, 3)
+    t: np.ndarray  # (M, 3) metres
+
+
+@torch.no_grad()
+def estimate_poses(model, segs, n_points: int, device="cpu", batch_size: int = 512) -> Estimates:
+    """Run the pose network on every valid segment of ``segs`` (first ``n_points`` FPS points)."""
+    model.eval()
+    m = len(segs)
+    R = np.full((m, 3, 3), np.nan)
+    t = np.full((m, 3), np.nan)
+    idx = np.flatnonzero(segs.valid)
+    for i in range(0, len(idx), batch_size):
+        rows = idx[i : i + batch_size]
+        pts = torch.from_numpy(np.ascontiguousarray(segs.points[rows, :n_points], np.float32))
+        cls_id = torch.from_numpy(segs.cls_id[rows].astype(np.int64))
+        out = model(pts.to(device), cls_id.to(device))
+        R[rows] = out.R.double().cpu().numpy()
+        t[rows] = out.t.double().cpu().numpy()
+    return Estimates(R, t)
+
+
+def refine_poses(
+    segs,
+    est: Estimates,
+    models_by_class: dict[int, np.ndarray],
+    settings: ICPSettings | None = None,
+    progress: bool = False,
+) -> tuple[Estimates, np.ndarray]:
+    """ICP-refine every valid row; returns the refined poses and Open3D's fitness per row.
+
+    The observed cloud is the segment's cached FPS points without the fill-by-repeat copies
+    (``points[:count]``).
+    """
+    settings = settings or ICPSettings()
+    R, t = est.R.copy(), est.t.copy()
+    fitness = np.full(len(segs), np.nan)
+    for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
+        k = int(min(segs.count[i], segs.points.shape[1]))
+        sol = icp_refine(
+            segs.points[i, :k].astype(np.float64), models_by_class[int(segs.cls_id[i])],
+            est.R[i], est.t[i], settings,
+        )  # fmt: skip
+        R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
+    return Estimates(R, t), fitness
+
+
+def instance_table(
+    segs,
+    estimates: dict[str, Estimates],
+    models_by_class: dict[int, np.ndarray],
+    class_names: list[str],
+) -> pd.DataFrame:
+    """Per-instance errors for each method in ``estimates`` (``net``, ``icp``)."""
+    miss = ~np.asarray(segs.valid, dtype=bool)
+    df = pd.DataFrame(
+        {
+            "frame_id": segs.frame_id,
+            "instance": segs.instance,
+            "cls_id": segs.cls_id.astype(int),
+            "class": [class_names[int(c) - 1] for c in segs.cls_id],
+            "occlusion": segs.occlusion,
+            "points": segs.count,
+            "miss": miss,
+        }
+    )
+    for method, est in estimates.items():
+        R_est = np.where(miss[:, None, None], np.eye(3), est.R)
+        t_est = np.where(miss[:, None], 0.0, est.t)
+        err = pose_errors(
+            models_by_class, segs.cls_id.astype(int), segs.R.astype(np.float64),
+            segs.t.astype(np.float64), R_est, t_est, miss=miss,
+        )  # fmt: skip
+        for key in ("ad", "ads", "rot_err_deg", "trans_err"):
+            df[f"{method}_{key}"] = err[key]
+    return df
+
+
+def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
+    """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
+    out: dict[str, float] = {}
+    for method in METHODS:
+        if f"{method}_ads" not in df:
+            continue
+        prefix = name if method == "net" else f"{name}_icp"
+        sub = df.rename(
+            columns={f"{method}_{k}": k for k in ("ad", "ads", "rot_err_deg", "trans_err")}
+        )
+        s = summarize(sub)
+        for key, value in s["pooled"].items():
+            out[tracking.metric_key(prefix, key)] = value
+        for key, value in s["class_mean"].items():
+            out[tracking.metric_key(prefix, "class_mean", key)] = value
+        for cls_name, row in s["per_class"].iterrows():
+            for key, value in row.items():
+                out[tracking.metric_key(prefix, "class", str(cls_name), str(key))] = float(value)
+    return out
+
+
+@dataclass(frozen=True)
+class EvalOutcome:
+    """Per-instance table, summary metrics and where they were logged."""
+
+    table: pd.DataFrame
+    metrics: dict[str, float]
+    run_id: str | None
+
+
+def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
+    """MLflow run id and local checkpoint of ``run``.
+
+    ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
+    ``variant/preset/seedS`` (the newest finished run of that name).
+    """
+    path = Path(run)
+    if (path / "run.json").exists():
+        info = json.loads((path / "run.json").read_text())
+        return info["run_id"], path / "model.pt"
+    if run.count("/") == 2:
+        variant, preset, seed = run.split("/")
+        found = tracking.find_runs(
+            client, variant=variant, preset=preset, seed=int(seed.removeprefix("seed"))
+        )
+        if not found:
+            raise ValueError(f"no finished run named {run!r} in {tracking.tracking_uri()}")
+        run_id = found[0].info.run_id
+    else:
+        try:
+            run_id = client.get_run(run).info.run_id
+        except Exception as exc:
+            raise ValueError(
+                f"--run {run!r} is neither a run folder, a run name variant/preset/seedS, "
+                f"nor an MLflow run id in {tracking.tracking_uri()}"
+            ) from exc
+    local = Path(client.get_run(run_id).data.tags.get("run_dir", "")) / "model.pt"
+    if not local.exists():
+        import mlflow
+
+        local = Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path="model.pt"))
+    return run_id, local
+
+
+def evaluate(
+    run: str,
+    *,
+    data: str | None = None,
+    frames: str = "keyframe",
+    name: str | None = None,
+    icp: bool = True,
+    icp_settings: ICPSettings | None = None,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    log: bool = True,
+) -> EvalOutcome:
+    """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
+
+    Args:
+        run: run folder, MLflow run id, or run name (:func:`resolve_run`).
+        data: dataset root in YCB-Video layout; None = the run's own test set.
+        frames: with ``data``: image set to read ("keyframe", "all", or an image_sets name).
+        name: metric prefix; default "test" for the run's test set, else the folder's name.
+        icp: also evaluate after ICP refinement.
+        log: log the table and metrics to the run in MLflow.
+    """
+    from cloudpose.data.cache import ensure_dataset, segments_for
+    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.train import load_checkpoint
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    client = tracking.setup(project_dir)
+    run_id, ckpt = resolve_run(client, run, project_dir)
+    model, cfg = load_checkpoint(ckpt)
+    if data is None:
+        _, segs = ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
+        from cloudpose.train import train_set_root
+
+        dataset = YCBVideo(train_set_root(cfg, project_dir))
+        name = name or "test"
+    else:
+        dataset = YCBVideo(data)
+        segs = segments_for(dataset, frames, cfg.data, progress=progress)
+        name = name or tracking.metric_key(Path(data).resolve().name)
+    models_by_class = dataset.models()
+    t0 = time.monotonic()
+    est = {"net": estimate_poses(model, segs, cfg.train.n_points)}
+    t_net = time.monotonic() - t0
+    if icp:
+        t0 = time.monotonic()
+        est["icp"], fitness = refine_poses(
+            segs, est["net"], models_by_class, icp_settings, progress
+        )
+        t_icp = time.monotonic() - t0
+    table = instance_table(segs, est, models_by_class, dataset.classes)
+    if icp:
+        table["icp_fitness"] = fitness
+    metrics = summary_metrics(table, name)
+    n_valid = max(int(np.sum(segs.valid)), 1)
+    metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
+    if icp:
+        metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
+    if log:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "instances.csv"
+            table.to_csv(path, index=False)
+            client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
+        client.log_batch(run_id, metrics=_metrics(metrics))
+    return EvalOutcome(table, metrics, run_id)
+
+
+def _metrics(metrics: dict[str, float]):
+    from mlflow.entities import Metric
+
+    now = int(time.time() * 1000)
+    finite = {k: v for k, v in metrics.items() if np.isfinite(v)}
+    return [Metric(k, float(v), now, 0) for k, v in finite.items()]

@@ -1,0 +1,120 @@
+"""MLflow tracking: where runs live, how they are named, tagged and found again.
+
+- Store: an embedded SQLite database ``mlflow.db`` in the project folder (the current directory),
+  artifacts under ``mlartifacts/``; ``MLFLOW_TRACKING_URI`` points it anywhere else, e.g. a shared
+  tracking server.
+- One experiment per ablation group (``cloudpose-shared``, ``cloudpose-rotation``, ...). A run
+  lives in the experiment of the group it was trained for; a variant listed in several groups
+  (``shared-0``) is trained once and found by tags from every group's report.
+- Run name ``{variant}/{preset}/seed{seed}``; tags ``variant``, ``group``, ``preset``, ``seed``,
+  ``data`` (the data fingerprint), ``git_commit``. Metric keys are split-prefixed
+  (``train/loss``, ``val/ads_auc``, ``test/ads_auc``, ``test_icp/ads_auc``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import warnings
+from pathlib import Path
+from typing import Any
+
+EXPERIMENT_PREFIX = "cloudpose-"
+_KEY_BAD = re.compile(r"[^A-Za-z0-9_\-./ ]")
+
+
+def tracking_uri(project_dir: Path | None = None) -> str:
+    """``MLFLOW_TRACKING_URI`` if set, else SQLite ``mlflow.db`` in ``project_dir`` (cwd)."""
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    if env:
+        return env
+    root = (project_dir or Path.cwd()).resolve()
+    return f"sqlite:///{root / 'mlflow.db'}"
+
+
+def setup(project_dir: Path | None = None):
+    """Point MLflow at the store and return an ``MlflowClient``."""
+    import logging
+
+    import mlflow
+
+    # Alembic prints every schema migration of a new SQLite store at INFO.
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", module="mlflow")
+    mlflow.set_tracking_uri(tracking_uri(project_dir))
+    return mlflow.MlflowClient()
+
+
+def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
+    """Id of the group's experiment, created (with a local artifact folder) if missing."""
+    name = EXPERIMENT_PREFIX + group
+    exp = client.get_experiment_by_name(name)
+    if exp is not None:
+        return exp.experiment_id
+    location = None
+    if not os.environ.get("MLFLOW_TRACKING_URI"):
+        location = ((project_dir or Path.cwd()).resolve() / "mlartifacts" / group).as_uri()
+    return client.create_experiment(name, artifact_location=location, tags={"group": group})
+
+
+def run_name(variant: str, preset: str, seed: int) -> str:
+    """Deterministic run name, ``shared-3/cpu/seed1``."""
+    return f"{variant}/{preset}/seed{seed}"
+
+
+def metric_key(*parts: str) -> str:
+    """Join parts with ``/`` and replace characters MLflow keys do not allow."""
+    return _KEY_BAD.sub("_", "/".join(parts))
+
+
+def git_commit(repo: Path | None = None) -> str:
+    """Short commit of the code, ``+dirty`` when the tree has changes; "unknown" outside git."""
+    cwd = repo or Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short=10", "HEAD"], cwd=cwd, capture_output=True, text=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    except OSError:
+        return "unknown"
+    return (sha + ("+dirty" if dirty else "")) if sha else "unknown"
+
+
+def find_runs(
+    client,
+    *,
+    variant: str | None = None,
+    preset: str | None = None,
+    seed: int | None = None,
+    data: str | None = None,
+    status: str | None = "FINISHED",
+    extra_filter: str = "",
+) -> list[Any]:
+    """Runs of every cloudpose experiment matching the given tags, newest first."""
+    exps = [
+        e.experiment_id for e in client.search_experiments() if e.name.startswith(EXPERIMENT_PREFIX)
+    ]
+    if not exps:
+        return []
+    clauses = []
+    for tag, value in (("variant", variant), ("preset", preset), ("seed", seed), ("data", data)):
+        if value is not None:
+            clauses.append(f"tags.{tag} = '{value}'")
+    if status:
+        clauses.append(f"attributes.status = '{status}'")
+    if extra_filter:
+        clauses.append(extra_filter)
+    return list(
+        client.search_runs(exps, " and ".join(clauses), order_by=["attributes.start_time DESC"])
+    )
+
+
+def flat_params(d: dict[str, Any]) -> dict[str, str]:
+    """MLflow params from a flat config dict: values as strings, keys sanitised."""
+    return {metric_key(k): str(v) for k, v in d.items()}

@@ -1,0 +1,345 @@
+"""Training of one variant from the segment cache, resumable and tracked in MLflow.
+
+Resumability: the run folder ``runs/{variant}/{preset}/seed{S}-{data}`` holds ``last.pt`` (model,
+optimiser, position in the epoch and the epoch's running loss sums), written atomically at the end
+of every epoch and every ``checkpoint_every_s`` seconds within one, and ``run.json`` with the MLflow
+run id. Rerunning the same command after any interruption (``kill -9`` included) continues from
+``last.pt`` into the same MLflow run. The batch order of epoch ``e`` depends only on ``(seed, e)``
+and the model's initial weights only on ``seed``, so a resumed run ends with the same numbers as
+an uninterrupted one (on CPU, with the same thread count).
+
+Validation: a fixed share of the training *frames* (not instances: instances of one frame share a
+scene) is held out, chosen from the frame ids alone so every seed and variant sees the same split.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from cloudpose import tracking
+from cloudpose.config import Config, groups_of
+from cloudpose.losses import pose_loss
+from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
+from cloudpose.models import build_model
+
+
+@dataclass(frozen=True)
+class TrainOutcome:
+    """Where a finished training run lives and what it ended with."""
+
+    run_id: str
+    run_dir: Path
+    checkpoint: Path
+    metrics: dict[str, float]
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """``auto``: CUDA when available, else CPU; anything else is passed to ``torch.device``."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
+    """Boolean (M,) mask of instances whose frame is held out for validation.
+
+    A frame is held out when the first 8 hex digits of its id's SHA-1 fall below
+    ``val_fraction``: fixed by the data alone, independent of seed, variant and frame count.
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"train.val_fraction must be in [0, 1), got {val_fraction}")
+    held = {}
+    for f in np.unique(frame_ids):
+        h = int(hashlib.sha1(str(f).encode()).hexdigest()[:8], 16) / 0x1_0000_0000
+        held[f] = h < val_fraction
+    return np.array([held[f] for f in frame_ids], dtype=bool)
+
+
+@dataclass
+class Batchable:
+    """Training tensors of valid segments: the network's n-point prefix and the targets."""
+
+    points: torch.Tensor  # (M, n, 3) float32, metres
+    cls_id: torch.Tensor  # (M,) int64, 1-based
+    R: torch.Tensor  # (M, 3, 3)
+    t: torch.Tensor  # (M, 3)
+
+    @classmethod
+    def from_segments(cls, segs, n_points: int) -> Batchable:
+        if n_points > segs.points.shape[1]:
+            raise ValueError(
+                f"train.n_points={n_points} exceeds the {segs.points.shape[1]} cached FPS points"
+            )
+        keep = np.asarray(segs.valid, dtype=bool)
+        return cls(
+            points=torch.from_numpy(np.ascontiguousarray(segs.points[keep, :n_points], np.float32)),
+            cls_id=torch.from_numpy(segs.cls_id[keep].astype(np.int64)),
+            R=torch.from_numpy(segs.R[keep].astype(np.float32)),
+            t=torch.from_numpy(segs.t[keep].astype(np.float32)),
+        )
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+
+def _epoch_perm(seed: int, epoch: int, m: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    return torch.randperm(m, generator=g)
+
+
+def _save_atomic(obj: Any, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+@torch.no_grad()
+def validate(
+    model: torch.nn.Module,
+    data: Batchable,
+    models_by_class: dict[int, np.ndarray],
+    cfg: Config,
+    device: torch.device,
+    batch_size: int = 512,
+) -> dict[str, float]:
+    """Validation loss and pose accuracy (no ICP) of ``model`` on ``data``."""
+    if len(data) == 0:
+        return {}
+    model.eval()
+    Rs, ts, totals = [], [], []
+    for i in range(0, len(data), batch_size):
+        sl = slice(i, i + batch_size)
+        out = model(data.points[sl].to(device), data.cls_id[sl].to(device))
+        terms = pose_loss(
+            out.R, out.t, data.R[sl].to(device), data.t[sl].to(device),
+            rotation=cfg.loss.rotation, alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw,
+        )  # fmt: skip
+        totals.append(float(terms.total) * out.R.shape[0])
+        Rs.append(out.R.float().cpu())
+        ts.append(out.t.float().cpu())
+    model.train()
+    R_est, t_est = torch.cat(Rs).numpy(), torch.cat(ts).numpy()
+    R_gt, t_gt = data.R.numpy(), data.t.numpy()
+    cls_id = data.cls_id.numpy()
+    ads = np.empty(len(data))
+    for c in np.unique(cls_id):
+        m = cls_id == c
+        ads[m] = adds_distance(models_by_class[int(c)], R_gt[m], t_gt[m], R_est[m], t_est[m])
+    rot = rotation_error_deg(R_gt, R_est)
+    trans = np.linalg.norm(t_gt - t_est, axis=-1)
+    return {
+        "val/loss": sum(totals) / len(data),
+        "val/ads_auc": voc_ap_auc(ads),
+        "val/rot_err_median_deg": float(np.median(rot)),
+        "val/trans_err_median_mm": float(np.median(trans) * 1000),
+        "val/rot_lt_10deg": float(np.mean(rot < 10)),
+        "val/trans_lt_1cm": float(np.mean(trans < 0.01)),
+    }
+
+
+def run_dir_for(cfg: Config, data_key: str, project_dir: Path) -> Path:
+    """``runs/{variant}/{preset}/seed{S}-{data[:10]}`` under the project folder."""
+    return project_dir / "runs" / cfg.variant / cfg.preset / f"seed{cfg.seed}-{data_key[:10]}"
+
+
+def train(
+    cfg: Config,
+    *,
+    project_dir: Path | None = None,
+    group: str | None = None,
+    progress: bool = True,
+    checkpoint_every_s: float = 60.0,
+    max_steps: int | None = None,
+) -> TrainOutcome:
+    """Train ``cfg`` (resuming if its run folder has a checkpoint) and log it to MLflow.
+
+    Args:
+        cfg: the full resolved config (:func:`cloudpose.config.resolve`).
+        project_dir: folder holding ``data/``, ``runs/`` and the default MLflow store (cwd).
+        group: ablation group whose experiment receives a new run; default the variant's
+            first group.
+        progress: show progress bars.
+        checkpoint_every_s: seconds between mid-epoch checkpoints.
+        max_steps: stop (without finishing the run) after this many optimiser steps in this
+            call; for tests that simulate an interruption.
+
+    Returns:
+        The run's id, folder, final checkpoint and final metrics. A finished run is returned
+        as it is, without training again.
+    """
+    from cloudpose.data.cache import data_fingerprint, ensure_dataset
+    from cloudpose.data.ycb import YCBVideo
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    device = pick_device(cfg.train.device)
+    train_set, _ = ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
+    data_key = data_fingerprint(cfg.data, project_dir=project_dir)
+    rdir = run_dir_for(cfg, data_key, project_dir)
+    rdir.mkdir(parents=True, exist_ok=True)
+    last, final = rdir / "last.pt", rdir / "model.pt"
+    info_path = rdir / "run.json"
+    info = json.loads(info_path.read_text()) if info_path.exists() else {}
+    if info.get("finished") and final.exists():
+        return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
+
+    held = split_frames(train_set.frame_id, cfg.train.val_fraction)
+    fit = Batchable.from_segments(train_set.subset(~held), cfg.train.n_points)
+    val = Batchable.from_segments(train_set.subset(held), cfg.train.n_points)
+    if len(fit) < cfg.train.batch_size:
+        raise ValueError(
+            f"only {len(fit)} valid training segments, fewer than train.batch_size="
+            f"{cfg.train.batch_size}; render more frames (data.train_frames)"
+        )
+    models_by_class = YCBVideo(train_set_root(cfg, project_dir)).models()
+
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    model = build_model(cfg.model).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
+    epoch, batch, sums = 0, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
+    if last.exists():
+        state = torch.load(last, map_location=device, weights_only=True)
+        if state["config"] != cfg.to_dict():
+            raise ValueError(f"{last} was written by another config; delete {rdir} to restart")
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        epoch, batch, sums = state["epoch"], state["batch"], state["sums"]
+
+    client = tracking.setup(project_dir)
+    group = group or (groups_of(cfg.variant) or ["misc"])[0]
+    run_id = info.get("run_id")
+    if run_id is None:
+        exp = tracking.experiment_id(client, group, project_dir)
+        tags = {
+            "variant": cfg.variant, "group": group, "preset": cfg.preset, "seed": str(cfg.seed),
+            "data": data_key, "git_commit": tracking.git_commit(), "run_dir": str(rdir),
+        }  # fmt: skip
+        name = tracking.run_name(cfg.variant, cfg.preset, cfg.seed)
+        run = client.create_run(exp, tags=tags, run_name=name)
+        run_id = run.info.run_id
+        params = tracking.flat_params(cfg.flat())
+        params.update({"data.fingerprint": data_key, "data.train_segments": str(len(fit)),
+                       "data.val_segments": str(len(val)), "device": str(device)})  # fmt: skip
+        for k, v in params.items():
+            client.log_param(run_id, k, v)
+        client.log_text(run_id, json.dumps(cfg.to_dict(), indent=2), "config.json")
+        info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
+        info_path.write_text(json.dumps(info, indent=2))
+    else:
+        client.update_run(run_id, status="RUNNING")
+
+    bs = cfg.train.batch_size
+    n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
+    use_bf16 = cfg.train.precision == "bf16"
+    steps_here, t_ckpt = 0, time.monotonic()
+    model.train()
+    bar = tqdm(total=cfg.train.epochs * n_batches, initial=epoch * n_batches + batch,
+               disable=not progress, desc=tracking.run_name(cfg.variant, cfg.preset, cfg.seed),
+               unit="step", dynamic_ncols=True)  # fmt: skip
+    metrics: dict[str, float] = {}
+    while epoch < cfg.train.epochs:
+        t_epoch = time.monotonic()
+        perm = _epoch_perm(cfg.seed, epoch, len(fit))
+        while batch < n_batches:
+            idx = perm[batch * bs : (batch + 1) * bs]
+            pts, cls_id = fit.points[idx].to(device), fit.cls_id[idx].to(device)
+            R_gt, t_gt = fit.R[idx].to(device), fit.t[idx].to(device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                out = model(pts, cls_id)
+            terms = pose_loss(
+                out.R.float(), out.t.float(), R_gt, t_gt, rotation=cfg.loss.rotation,
+                alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw.float(),
+            )  # fmt: skip
+            opt.zero_grad(set_to_none=True)
+            terms.total.backward()
+            opt.step()
+            if not math.isfinite(float(terms.total)):
+                raise FloatingPointError(f"loss became {float(terms.total)} at epoch {epoch}")
+            sums["loss"] += float(terms.total)
+            sums["rot"] += float(terms.rotation)
+            sums["trans"] += float(terms.translation)
+            sums["n"] += 1
+            batch += 1
+            steps_here += 1
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, loss=f"{sums['loss'] / sums['n']:.3f}")
+            if time.monotonic() - t_ckpt > checkpoint_every_s:
+                _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+                t_ckpt = time.monotonic()
+            if max_steps is not None and steps_here >= max_steps:
+                _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+                bar.close()
+                raise TrainingInterrupted(rdir)
+        n = max(sums["n"], 1)
+        metrics = {
+            "train/loss": sums["loss"] / n,
+            "train/loss_rot": sums["rot"] / n,
+            "train/loss_trans": sums["trans"] / n,
+            "time/epoch_s": time.monotonic() - t_epoch,
+        }
+        metrics.update(validate(model, val, models_by_class, cfg, device))
+        client.log_batch(run_id, metrics=_mlflow_metrics(metrics, epoch + 1))
+        epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
+        _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+        t_ckpt = time.monotonic()
+    bar.close()
+
+    _save_atomic({"model": model.state_dict(), "config": cfg.to_dict()}, final)
+    client.log_artifact(run_id, str(final))
+    final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
+    info.update({"finished": True, "metrics": final_metrics})
+    info_path.write_text(json.dumps(info, indent=2))
+    client.set_terminated(run_id, "FINISHED")
+    return TrainOutcome(run_id, rdir, final, final_metrics)
+
+
+class TrainingInterrupted(RuntimeError):
+    """Raised when ``max_steps`` stops a run before its end (its checkpoint is saved)."""
+
+
+def train_set_root(cfg: Config, project_dir: Path) -> Path:
+    """Dataset root of ``cfg.data`` (the synthetic default or the user's YCB-Video)."""
+    from cloudpose.data.cache import dataset_root
+
+    return dataset_root(cfg.data, project_dir=project_dir)
+
+
+def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sums: dict) -> None:
+    _save_atomic(
+        {"model": model.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
+         "epoch": epoch, "batch": batch, "sums": dict(sums)},
+        path,
+    )  # fmt: skip
+
+
+def _mlflow_metrics(metrics: dict[str, float], step: int):
+    from mlflow.entities import Metric
+
+    now = int(time.time() * 1000)
+    return [Metric(k, float(v), now, step) for k, v in metrics.items()]
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[torch.nn.Module, Config]:
+    """Model (eval mode) and config from a ``model.pt`` or ``last.pt`` checkpoint."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    state = torch.load(path, map_location=device, weights_only=True)
+    if "model" not in state or "config" not in state:
+        raise ValueError(f"{path} is not a cloudpose checkpoint (expected keys 'model', 'config')")
+    cfg = Config.from_dict(state["config"])
+    model = build_model(cfg.model).to(device)
+    model.load_state_dict(state["model"])
+    model.eval()
+    return model, cfg
