@@ -168,6 +168,37 @@ def _print_summary(metrics: dict[str, float]) -> None:
 
 
 @app.command()
+def predict(
+    depth: Annotated[Path, typer.Option(help="Depth PNG (uint16).")],
+    label: Annotated[Path, typer.Option(help="Label PNG (class ids, 0 = background).")],
+    checkpoint: Annotated[str, typer.Option(help="model.pt, run folder, run id or run name.")],
+    color: Annotated[Path | None, typer.Option(help="Color PNG for the overlay.")] = None,
+    meta: Annotated[Path | None, typer.Option(help="YCB-Video meta.mat (intrinsics).")] = None,
+    intrinsics: Annotated[
+        str | None, typer.Option(help="fx,fy,cx,cy when there is no meta (default: YCB-Video).")
+    ] = None,
+    depth_factor: Annotated[float, typer.Option(help="Depth units per metre.")] = 10000.0,
+    icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Refine with ICP.")] = True,
+    overlay: Annotated[Path, typer.Option(help="Where to write the overlay PNG.")] = Path(
+        "prediction.png"
+    ),
+) -> None:
+    """Estimate each labelled object's pose in one frame; print poses, write an overlay picture."""
+    from cloudpose.predict import predict as predict_fn
+
+    try:
+        result = predict_fn(
+            depth, label, checkpoint, color=color, meta=meta, intrinsics=intrinsics,
+            depth_factor=depth_factor, icp=icp, overlay=overlay,
+        )  # fmt: skip
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    for p in result.poses:
+        typer.echo(p.describe())
+    typer.echo(f"overlay: {overlay}")
+
+
+@app.command()
 def run(
     variant: VariantOpt = "shared-0",
     preset: PresetOpt = "cpu",

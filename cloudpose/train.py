@@ -31,7 +31,7 @@ from cloudpose import tracking
 from cloudpose.config import Config, groups_of
 from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
-from cloudpose.models import build_model
+from cloudpose.models import build_model, count_parameters
 
 
 @dataclass(frozen=True)
@@ -204,7 +204,6 @@ def train(
     models_by_class = YCBVideo(train_set_root(cfg, project_dir)).models()
 
     torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
     model = build_model(cfg.model).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     epoch, batch, sums = 0, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
@@ -229,7 +228,8 @@ def train(
         run = client.create_run(exp, tags=tags, run_name=name)
         run_id = run.info.run_id
         params = tracking.flat_params(cfg.flat())
-        params.update({"data.fingerprint": data_key, "data.train_segments": str(len(fit)),
+        params.update({"model.parameters": str(count_parameters(model)),
+                       "data.fingerprint": data_key, "data.train_segments": str(len(fit)),
                        "data.val_segments": str(len(val)), "device": str(device)})  # fmt: skip
         for k, v in params.items():
             client.log_param(run_id, k, v)
