@@ -1,0 +1,152 @@
+"""Pose estimation on one frame from loose files, with an overlay picture.
+
+Input: a depth PNG, a label PNG (class ids; ground-truth or a segmentation network's output), an
+optional color PNG, and intrinsics (a YCB-Video meta.mat, ``fx,fy,cx,cy``, or YCB-Video's camera
+by default). Every labelled object is segmented, sampled and posed as in evaluation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cloudpose.conventions import YCB_INTRINSICS, transform_points
+
+
+@dataclass(frozen=True)
+class ObjectPose:
+    """The estimated pose of one labelled object."""
+
+    cls_id: int
+    name: str
+    R: np.ndarray  # (3, 3)
+    t: np.ndarray  # (3,) metres
+    points: int  # segment points after filtering
+    fitness: float  # ICP fitness (NaN without ICP)
+
+    def describe(self) -> str:
+        """One line: class, translation in metres, rotation as axis-angle in degrees."""
+        from scipy.spatial.transform import Rotation
+
+        rv = Rotation.from_matrix(self.R).as_rotvec()
+        angle = np.degrees(np.linalg.norm(rv))
+        axis = rv / max(np.linalg.norm(rv), 1e-12)
+        t = ", ".join(f"{x:+.4f}" for x in self.t)
+        ax = ", ".join(f"{x:+.3f}" for x in axis)
+        return (
+            f"{self.cls_id:2d} {self.name:<22} t = [{t}] m   R = {angle:6.1f} deg about [{ax}]"
+            f"   ({self.points} points, ICP fitness {self.fitness:.2f})"
+        )
+
+
+@dataclass(frozen=True)
+class PredictResult:
+    """Poses of every object with a usable segment; the frame they came from."""
+
+    poses: list[ObjectPose]
+    skipped: list[int]  # class ids with no usable segment point
+
+
+def parse_intrinsics(text: str | None) -> np.ndarray:
+    """``"fx,fy,cx,cy"`` -> (3, 3) K; None -> YCB-Video's camera."""
+    if text is None:
+        return YCB_INTRINSICS.copy()
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise ValueError(f"--intrinsics expects 'fx,fy,cx,cy' (4 numbers), got {text!r}") from exc
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+
+
+def load_model_for(checkpoint: str):
+    """(model, config) from a ``model.pt``, a run folder, an MLflow run id or a run name."""
+    from cloudpose import tracking
+    from cloudpose.evaluate import resolve_run
+    from cloudpose.train import load_checkpoint
+
+    path = Path(checkpoint)
+    if path.is_file():
+        return load_checkpoint(path)
+    _, ckpt = resolve_run(tracking.setup(), checkpoint, Path.cwd())
+    return load_checkpoint(ckpt)
+
+
+def predict(
+    depth: Path,
+    label: Path,
+    checkpoint: str,
+    *,
+    color: Path | None = None,
+    meta: Path | None = None,
+    intrinsics: str | None = None,
+    depth_factor: float = 10000.0,
+    icp: bool = True,
+    overlay: Path | None = None,
+    seed: int = 0,
+) -> PredictResult:
+    """Estimate the pose of every labelled object in one frame (see the module doc)."""
+    from cloudpose.data.segments import extract_segments
+    from cloudpose.data.ycb import YCBVideo, read_frame
+    from cloudpose.evaluate import estimate_poses, refine_poses
+
+    model, cfg = load_model_for(checkpoint)
+    K = None if meta is not None else parse_intrinsics(intrinsics)
+    frame = read_frame(
+        depth, label, meta_mat=meta, color_png=color, K=K, depth_factor=depth_factor,
+        frame_id=Path(depth).stem,
+    )  # fmt: skip
+    segs = extract_segments(
+        frame, n_fps=cfg.data.n_fps, outlier_radius=cfg.data.outlier_radius,
+        rng=np.random.default_rng(seed), with_gt=False,
+    )  # fmt: skip
+    from cloudpose.data.cache import SegmentSet
+
+    segs = SegmentSet.from_segments(segs)
+    dataset = YCBVideo(Path(depth).parent)  # packaged classes and models unless the folder has them
+    models_by_class = dataset.models()
+    est = estimate_poses(model, segs, cfg.train.n_points)
+    fitness = np.full(len(segs), np.nan)
+    if icp:
+        est, fitness = refine_poses(segs, est, models_by_class)
+    poses = [
+        ObjectPose(int(segs.cls_id[i]), dataset.classes[int(segs.cls_id[i]) - 1], est.R[i],
+                   est.t[i], int(segs.count[i]), float(fitness[i]))  # fmt: skip
+        for i in np.flatnonzero(segs.valid)
+    ]
+    skipped = [int(c) for c in segs.cls_id[~segs.valid]]
+    if overlay is not None:
+        draw_overlay(frame, poses, models_by_class, overlay)
+    return PredictResult(poses, skipped)
+
+
+def draw_overlay(frame, poses: list[ObjectPose], models_by_class, path: Path) -> None:
+    """Model points projected with each estimated pose, one colour per object, on the image."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h, w = frame.depth.shape
+    fig, ax = plt.subplots(figsize=(w / 100, h / 100), dpi=100)
+    if frame.color is not None:
+        ax.imshow(frame.color)
+    else:
+        ax.imshow(np.where(frame.depth > 0, frame.depth, np.nan), cmap="gray")
+    cmap = plt.get_cmap("tab10")
+    for k, p in enumerate(poses):
+        pts = transform_points(models_by_class[p.cls_id], p.R, p.t)
+        pts = pts[pts[:, 2] > 1e-3]
+        uv = pts[:, :2] / pts[:, 2:] * [frame.K[0, 0], frame.K[1, 1]] + [frame.K[0, 2], frame.K[1, 2]]
+        ax.scatter(uv[:, 0], uv[:, 1], s=0.6, color=cmap(k % 10), alpha=0.7, label=p.name)
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.axis("off")
+    if poses:
+        ax.legend(loc="lower left", fontsize=7, markerscale=8, framealpha=0.8)
+    ax.set_title("cloudpose predict: model points at the estimated poses", fontsize=8)
+    fig.tight_layout(pad=0.2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
