@@ -1,0 +1,217 @@
+"""Pose networks built from a variant: rotation and translation BaseNets, shared as asked.
+
+Paper Sec. IV (DESIGN.md "The pose networks" and "The ablation registry"):
+
+- Rotation branch: raw camera-frame xyz + one-hot class -> rotation output (axis-angle 3,
+  unit quaternion 4 or 6D 6 numbers) -> rotation matrix R.
+- Translation branch: xyz - mu + one-hot -> residual dt; t = dt + mu. mu is the mean of the
+  network's n input points (the paper's mean of X), not of the whole segment.
+- ``shared_layers = k`` in 1..5: the first k per-point stages are ONE module (``trunk``) that
+  both branches run through, computed once per forward. Our choice where the paper is silent
+  (DESIGN.md): the trunk takes the translation branch's input, the mean-centred points +
+  one-hot, so for k >= 1 the rotation branch too sees centred points. k = 5 shares the whole
+  per-point MLP and the pooled feature; the branches are then two regression heads.
+- ``shared_layers = "all"``: one BaseNet on the centred input whose output is
+  ``[dt (3), rotation output (3 | 4 | 6)]``.
+
+Class ids are 1-based (0 = background); the one-hot uses ``id - 1`` (cloudpose.conventions).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from cloudpose.config import ModelConfig, groups_of, resolve, variants
+from cloudpose.geometry import normalize_quat, rot6d_to_rotmat, rotvec_to_rotmat, unitquat_to_rotmat
+from cloudpose.models.basenet import BaseNet, point_stages
+
+ROTATION_SIZES = {"axis_angle": 3, "quaternion": 4, "rot6d": 6}
+"""Raw output size of each rotation representation."""
+
+
+class PoseOutput(NamedTuple):
+    """What a pose network returns for a batch of B segments.
+
+    Attributes:
+        R: (B, 3, 3) rotation, model -> camera.
+        t: (B, 3) translation in metres, ``t_residual + mu``.
+        rot_raw: (B, 3 | 4 | 6) raw rotation output: axis-angle in radians, an unnormalised
+            XYZW quaternion, or the 6D vector (first two columns of R, unnormalised).
+        t_residual: (B, 3) regressed translation residual to ``mu``, metres.
+        mu: (B, 3) mean of the n input points, metres.
+    """
+
+    R: torch.Tensor
+    t: torch.Tensor
+    rot_raw: torch.Tensor
+    t_residual: torch.Tensor
+    mu: torch.Tensor
+
+
+def raw_rotation_to_rotmat(rot_raw: torch.Tensor, rotation: str) -> torch.Tensor:
+    """Rotation matrices from a network's raw rotation output.
+
+    Args:
+        rot_raw: (..., 3 | 4 | 6) raw output.
+        rotation: "axis_angle" (exponential map), "quaternion" (normalised, XYZW) or "rot6d"
+            (Gram-Schmidt on the first two columns, Zhou et al. 2019).
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    if rotation not in ROTATION_SIZES:
+        raise ValueError(f"rotation must be one of {tuple(ROTATION_SIZES)}, got {rotation!r}")
+    if rot_raw.shape[-1] != ROTATION_SIZES[rotation]:
+        raise ValueError(
+            f"{rotation} output must have last dimension {ROTATION_SIZES[rotation]}, "
+            f"got shape {tuple(rot_raw.shape)}"
+        )
+    if rotation == "axis_angle":
+        return rotvec_to_rotmat(rot_raw)
+    if rotation == "quaternion":
+        return unitquat_to_rotmat(normalize_quat(rot_raw))
+    return rot6d_to_rotmat(rot_raw)
+
+
+class PoseNet(nn.Module):
+    """Rotation + translation regression from a point-cloud segment, built from a ModelConfig.
+
+    Args:
+        cfg: architecture (shared layers, width multiplier, rotation representation, widths,
+            number of classes, BatchNorm momentum).
+
+    Attributes:
+        trunk: ``nn.Sequential`` of the shared per-point stages (empty for shared_layers 0 and
+            "all"); one module, run once, whose parameters get gradients from both losses.
+        rotation_net, translation_net: the branches' own BaseNets (stages after the trunk and
+            the regression head); both ``None`` for "all".
+        net: the single BaseNet of shared_layers "all" (``None`` otherwise).
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.rot_size = ROTATION_SIZES[cfg.rotation]
+        in_channels = 3 + cfg.num_classes
+        n_stages = len(cfg.point_mlp)
+        common: dict[str, Any] = {
+            "point_mlp": cfg.point_mlp,
+            "head": cfg.head,
+            "width": cfg.width,
+            "bn_momentum": cfg.bn_momentum,
+        }
+        self.trunk = nn.Sequential()
+        self.rotation_net: BaseNet | None = None
+        self.translation_net: BaseNet | None = None
+        self.net: BaseNet | None = None
+        if cfg.shared_layers == "all":
+            self.net = BaseNet(in_channels, 3 + self.rot_size, **common)
+            return
+        k = int(cfg.shared_layers)
+        if k > n_stages:
+            raise ValueError(
+                f"model.shared_layers={k} exceeds the {n_stages} per-point layers of "
+                f"model.point_mlp={cfg.point_mlp}"
+            )
+        if k > 0:
+            stages = point_stages(in_channels, cfg.point_mlp, cfg.width, cfg.bn_momentum)
+            self.trunk = nn.Sequential(*stages[:k])
+        self.rotation_net = BaseNet(in_channels, self.rot_size, first_stage=k, **common)
+        self.translation_net = BaseNet(in_channels, 3, first_stage=k, **common)
+
+    def branch_modules(self, branch: str) -> list[nn.Module]:
+        """The modules a branch's input passes through, in order (trunk stages first).
+
+        Args:
+            branch: "rotation" or "translation".
+
+        Returns:
+            Per-point stages, then the regression head. The first ``shared_layers`` entries
+            (all of them for "all") are the same objects in both branches.
+        """
+        if branch not in ("rotation", "translation"):
+            raise ValueError(f"branch must be 'rotation' or 'translation', got {branch!r}")
+        net = self.net or (self.rotation_net if branch == "rotation" else self.translation_net)
+        assert net is not None
+        return [*self.trunk, *net.stages, net.head]
+
+    def forward(self, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
+        """Regress the pose of each segment.
+
+        Args:
+            points: (B, n, 3) segment points in the camera frame, metres.
+            cls_id: (B,) integer class ids, 1-based (1..num_classes).
+
+        Returns:
+            PoseOutput with R (B, 3, 3), t (B, 3), rot_raw (B, 3|4|6), t_residual (B, 3),
+            mu (B, 3).
+        """
+        k = self.cfg.num_classes
+        if points.ndim != 3 or points.shape[-1] != 3 or 0 in points.shape[:2]:
+            raise ValueError(f"points must have shape (B>0, n>0, 3), got {tuple(points.shape)}")
+        if cls_id.shape != points.shape[:1] or cls_id.is_floating_point():
+            raise ValueError(
+                f"cls_id must be an integer tensor of shape ({points.shape[0]},), "
+                f"got {cls_id.dtype} {tuple(cls_id.shape)}"
+            )
+        # Range check only off-GPU: on CUDA it would force a host sync every step.
+        if cls_id.device.type == "cpu" and (int(cls_id.min()) < 1 or int(cls_id.max()) > k):
+            raise ValueError(f"cls_id must be 1-based class ids in 1..{k}, got {cls_id.tolist()}")
+
+        B, n, _ = points.shape
+        mu = points.mean(dim=1)  # (B, 3)
+        onehot = F.one_hot(cls_id.long() - 1, k).to(points.dtype)  # (B, k)
+        onehot = onehot[:, None, :].expand(B, n, k)  # (B, n, k)
+        centred = torch.cat([points - mu[:, None, :], onehot], dim=-1)  # (B, n, 3+k)
+
+        if self.net is not None:
+            out = self.net(centred)  # (B, 3 + rot)
+            t_residual, rot_raw = out[:, :3], out[:, 3:]
+        else:
+            assert self.rotation_net is not None and self.translation_net is not None
+            if len(self.trunk) == 0:
+                rot_in = torch.cat([points, onehot], dim=-1)  # (B, n, 3+k)
+                trans_in = centred
+            else:
+                rot_in = trans_in = self.trunk(centred)  # (B, n, C_k) or (B, C_L)
+            rot_raw = self.rotation_net(rot_in)  # (B, rot)
+            t_residual = self.translation_net(trans_in)  # (B, 3)
+
+        R = raw_rotation_to_rotmat(rot_raw, self.cfg.rotation)  # (B, 3, 3)
+        return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
+
+
+def build_model(cfg: ModelConfig) -> PoseNet:
+    """The pose network a ModelConfig describes (see :class:`PoseNet`)."""
+    return PoseNet(cfg)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters, each shared tensor counted once (BN buffers excluded)."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def variant_table() -> list[dict[str, Any]]:
+    """One row per registered variant, for ``cloudpose variants``.
+
+    Returns:
+        Dicts with keys ``name``, ``groups`` (list of group names), ``changes``
+        (``Variant.describe()``), ``why`` and ``parameters`` (trainable parameter count).
+    """
+    rows = []
+    for name, variant in variants().items():
+        model = build_model(resolve(name).model)
+        rows.append(
+            {
+                "name": name,
+                "groups": groups_of(name),
+                "changes": variant.describe(),
+                "why": variant.why,
+                "parameters": count_parameters(model),
+            }
+        )
+    return rows

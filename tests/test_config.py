@@ -1,0 +1,235 @@
+"""The config dataclasses and the variant/preset registry (ablations/*.toml)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import textwrap
+
+import pytest
+
+import cloudpose.config as config
+from cloudpose.config import (
+    Config,
+    DataConfig,
+    LossConfig,
+    ModelConfig,
+    TrainConfig,
+    get_group,
+    get_variant,
+    groups,
+    groups_of,
+    presets,
+    resolve,
+    variants,
+)
+
+SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
+
+
+@pytest.fixture
+def registry(tmp_path, monkeypatch):
+    """Point the loader at temporary TOML files; returns a writer ``(variants, presets)``."""
+
+    def write(variants_toml: str, presets_toml: str = "") -> None:
+        (tmp_path / "variants.toml").write_text(textwrap.dedent(variants_toml))
+        (tmp_path / "presets.toml").write_text(textwrap.dedent(presets_toml))
+        config._load_variants.cache_clear()
+        config._load_presets.cache_clear()
+
+    monkeypatch.setattr(config, "VARIANTS_FILE", tmp_path / "variants.toml")
+    monkeypatch.setattr(config, "PRESETS_FILE", tmp_path / "presets.toml")
+    yield write
+    config._load_variants.cache_clear()
+    config._load_presets.cache_clear()
+
+
+# --- resolve: base, then preset, then variant, then overrides ----------------------------------
+
+
+def test_resolve_order_preset_variant_overrides(registry):
+    registry(
+        """
+        [variant.wide]
+        why = "wider"
+        model.width = 2.0
+        [variant.plain]
+        why = "base"
+        """,
+        """
+        [preset.p]
+        why = "touches a model field too"
+        model.width = 3.0
+        model.rotation = "rot6d"
+        train.epochs = 5
+        """,
+    )
+    cfg = resolve("wide", "p")
+    assert cfg.model.width == 2.0  # the variant beats the preset
+    assert cfg.model.rotation == "rot6d"  # the preset beats the base
+    assert cfg.train.epochs == 5
+    assert cfg.train.batch_size == TrainConfig().batch_size  # untouched: base
+    assert resolve("plain", "p").model.width == 3.0
+    over = resolve("wide", "p", overrides={"model": {"width": 0.5}, "train": {"lr": 0.1}})
+    assert over.model.width == 0.5  # overrides beat the variant
+    assert over.model.rotation == "rot6d" and over.train.lr == 0.1 and over.train.epochs == 5
+
+
+def test_resolve_real_registry():
+    cfg = resolve("shared-all-2x", "smoke", seed=7, overrides={"train": {"epochs": 1}})
+    assert (cfg.variant, cfg.preset, cfg.seed) == ("shared-all-2x", "smoke", 7)
+    assert cfg.model.shared_layers == "all" and cfg.model.width == 2.0
+    assert cfg.train.epochs == 1 and cfg.train.n_points == 64  # override, smoke preset
+    assert cfg.model.rotation == "axis_angle" and cfg.loss == LossConfig()  # base
+    assert resolve("l2").loss.rotation == "l2"
+    assert resolve("quaternion").model.rotation == "quaternion"
+
+
+def test_paper_preset_is_the_papers_recipe():
+    cfg = resolve("shared-0", "paper")
+    assert (cfg.train.epochs, cfg.train.batch_size, cfg.train.lr, cfg.train.n_points) == (
+        90, 128, 0.0008, 256,
+    )  # fmt: skip
+    assert cfg.model.bn_momentum == 0.01  # the released code's BN decay 0.99
+    assert cfg.model.point_mlp == (64, 64, 64, 128, 1024) and cfg.model.head == (512, 256)
+    assert cfg.loss.alpha == 10.0 and cfg.loss.rotation == "geodesic"
+    assert {"smoke", "cpu", "paper"} <= set(presets())
+
+
+# --- unknown names -----------------------------------------------------------------------------
+
+
+def test_unknown_names_list_the_valid_ones():
+    with pytest.raises(ValueError, match="unknown variant 'shared-9'") as e:
+        resolve("shared-9")
+    assert all(name in str(e.value) for name in variants())
+    with pytest.raises(ValueError, match="unknown variant") as e:
+        get_variant("nope")
+    assert all(name in str(e.value) for name in variants())
+    with pytest.raises(ValueError, match="unknown preset 'huge'") as e:
+        resolve("shared-0", "huge")
+    assert all(name in str(e.value) for name in presets())
+    with pytest.raises(ValueError, match="unknown group 'widths'") as e:
+        get_group("widths")
+    assert all(name in str(e.value) for name in groups())
+
+
+def test_unknown_fields_and_values_raise():
+    with pytest.raises(ValueError, match=r"model\.depth"):
+        resolve("shared-0", overrides={"model": {"depth": 3}})
+    with pytest.raises(ValueError, match="optim"):
+        resolve("shared-0", overrides={"optim": {"lr": 1.0}})
+    with pytest.raises(ValueError, match="shared_layers"):
+        ModelConfig(shared_layers=6)
+    with pytest.raises(ValueError, match="rotation"):
+        ModelConfig(rotation="euler")
+    with pytest.raises(ValueError, match="width"):
+        ModelConfig(width=0)
+    with pytest.raises(ValueError, match=r"loss\.rotation"):
+        LossConfig(rotation="l1")
+    with pytest.raises(ValueError, match="shared_layers"):
+        resolve("shared-0", overrides={"model": {"shared_layers": "some"}})
+
+
+def test_loader_rejects_bad_registry(registry):
+    registry("[variant.a]\nmodel.width = 2.0\n")
+    with pytest.raises(ValueError, match="'a' has no 'why'"):
+        variants()
+    registry('[variant.a]\nwhy = "x"\n[group.g]\nmembers = ["a", "b"]\n')
+    with pytest.raises(ValueError, match=r"unknown variants \['b'\]"):
+        groups()
+    registry('[variant.a]\nwhy = "x"\nmodel.widht = 2.0\n')
+    with pytest.raises(ValueError, match=r"model\.widht"):
+        variants()
+
+
+# --- the registry's content --------------------------------------------------------------------
+
+
+def test_every_variant_has_a_why_and_a_minimal_delta():
+    base = Config()
+    assert variants()
+    for name, v in variants().items():
+        assert v.name == name and len(v.why) > 10
+        for section, fields in v.delta.items():
+            for key, value in fields.items():
+                # a delta lists only what it changes
+                assert getattr(getattr(base, section), key) != value, f"{name}: {section}.{key}"
+        resolve(name)  # every variant resolves to a valid config
+    assert get_variant("shared-0").describe() == "(base)"
+    assert get_variant("l2").describe() == "loss.rotation=l2"
+
+
+def test_groups_as_the_issue_lists_them():
+    g = groups()
+    for group in g.values():
+        assert all(m in variants() for m in group.members)
+        assert set(group.labels) <= set(group.members)
+    shared = g["shared"].members
+    assert shared[:7] == (
+        "shared-0",
+        "shared-1",
+        "shared-2",
+        "shared-3",
+        "shared-4",
+        "shared-5",
+        "shared-all",
+    )
+    assert "shared-all-2x" in shared and len(shared) == 9
+    assert g["rotation"].members == ("shared-0", "quaternion", "rot6d")
+    assert g["loss"].members == ("shared-0", "l2")
+    assert groups_of("shared-0") == ["shared", "rotation", "loss"]
+    assert groups_of("rot6d") == ["rotation"]
+    # every variant belongs to some group
+    assert all(groups_of(name) for name in variants())
+
+
+def test_variants_match_design_table():
+    for k in range(6):
+        assert resolve(f"shared-{k}").model.shared_layers == k
+    assert resolve("shared-all").model.shared_layers == "all"
+    assert resolve("shared-all").model.width == 1.0
+    assert resolve("rot6d").model.rotation == "rot6d"
+
+
+# --- serialisation -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset", ["smoke", "cpu", "paper"])
+def test_config_round_trip(preset):
+    for name in variants():
+        cfg = resolve(name, preset, seed=3)
+        assert Config.from_dict(cfg.to_dict()) == cfg
+        # through JSON too (tuples become lists), as a checkpoint or MLflow stores it
+        assert Config.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_from_dict_rejects_unknown_keys():
+    d = Config().to_dict()
+    d["optimizer"] = {}
+    with pytest.raises(ValueError, match="optimizer"):
+        Config.from_dict(d)
+
+
+@pytest.mark.xfail(
+    strict=True, raises=TypeError, reason="Config.from_dict passes nested keys to the dataclass"
+)
+def test_from_dict_rejects_unknown_nested_keys():
+    d = Config().to_dict()
+    d["model"]["depth"] = 3
+    with pytest.raises(ValueError, match="depth"):
+        Config.from_dict(d)
+
+
+def test_flat_keys():
+    cfg = resolve("shared-3", "cpu", seed=2)
+    flat = cfg.flat()
+    expected = {"variant", "preset", "seed"} | {
+        f"{s}.{f.name}" for s, cls in SECTIONS.items() for f in dataclasses.fields(cls)
+    }
+    assert set(flat) == expected
+    assert flat["model.shared_layers"] == 3 and flat["seed"] == 2 and flat["variant"] == "shared-3"
+    assert flat["train.batch_size"] == cfg.train.batch_size
+    assert not any(isinstance(v, dict) for v in flat.values())
+    # MLflow keys allow letters, digits and _ - . / space only
+    assert all(set(k) <= set("abcdefghijklmnopqrstuvwxyz0123456789_-./ ") for k in flat)
