@@ -161,7 +161,9 @@ class Config:
         for key, value in d.items():
             if key not in sections:
                 raise ValueError(f"unknown config key {key!r}; expected one of {sorted(sections)}")
-            kwargs[key] = _SECTIONS[key](**value) if key in _SECTIONS else value
+            if key in _SECTIONS:
+                value = _SECTIONS[key](**_check_delta("config", {key: value})[key])
+            kwargs[key] = value
         return cls(**kwargs)
 
 

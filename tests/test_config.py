@@ -211,9 +211,6 @@ def test_from_dict_rejects_unknown_keys():
         Config.from_dict(d)
 
 
-@pytest.mark.xfail(
-    strict=True, raises=TypeError, reason="Config.from_dict passes nested keys to the dataclass"
-)
 def test_from_dict_rejects_unknown_nested_keys():
     d = Config().to_dict()
     d["model"]["depth"] = 3
