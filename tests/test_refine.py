@@ -1,0 +1,233 @@
+"""ICP refinement: the fast model-frame path against ten Open3D calls, and Open3D's semantics."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
+
+from cloudpose.conventions import resource_path
+from cloudpose.refine import (
+    ICPSettings,
+    ICPSolution,
+    ModelIndex,
+    _umeyama_from_moments,
+    icp_refine,
+    icp_refine_batch,
+    icp_refine_open3d,
+    umeyama_rigid,
+)
+
+MODELS = ("025_mug", "003_cracker_box", "024_bowl", "002_master_chef_can", "037_scissors")
+
+
+def load_model(name: str) -> np.ndarray:
+    return np.loadtxt(resource_path("models", name, "points.xyz"))
+
+
+def visible_case(rng, model, n=1024, deg=3.0, mm=3.0, noise=0.001):
+    """Observed = camera-facing part of the model at a random GT pose + noise; init = GT
+    perturbed by ``deg`` degrees and ``mm`` millimetres (random directions)."""
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = np.array([0.05, -0.03, 0.8]) + rng.normal(0, 0.05, 3)
+    cam = model @ R.T + t
+    c = cam.mean(axis=0)
+    visible = (cam - c) @ (-c / np.linalg.norm(c)) > -0.005  # the half facing the camera
+    pts = cam[visible]
+    pts = pts[rng.choice(len(pts), n)] + rng.normal(0, noise, (n, 3))
+    axis = rng.normal(size=3)
+    dR = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.deg2rad(deg)).as_matrix()
+    dt = rng.normal(size=3)
+    return pts, dR @ R, t + dt / np.linalg.norm(dt) * mm / 1000, R, t
+
+
+def assert_same(a: ICPSolution, b: ICPSolution, tol=1e-9):
+    np.testing.assert_allclose(a.R, b.R, atol=tol)
+    np.testing.assert_allclose(a.t, b.t, atol=tol)
+    assert a.fitness == pytest.approx(b.fitness, abs=1e-12)
+    assert a.inlier_rmse == pytest.approx(b.inlier_rmse, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize(("deg", "mm"), [(3.0, 3.0), (10.0, 8.0)])
+def test_fast_matches_ten_open3d_calls(name, deg, mm):
+    model = load_model(name)
+    rng = np.random.default_rng([MODELS.index(name), int(deg)])
+    for _ in range(4):
+        obs, R0, t0, _, _ = visible_case(rng, model, deg=deg, mm=mm)
+        fast = icp_refine(obs, model, R0, t0)
+        ref = icp_refine_open3d(obs, model, R0, t0)
+        assert_same(fast, ref)
+        assert 0 < fast.fitness <= 1
+        np.testing.assert_allclose(fast.R.T @ fast.R, np.eye(3), atol=1e-12)
+        assert np.linalg.det(fast.R) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [ICPSettings(iterations=3), ICPSettings(max_distance=0.02, shrink=1.0), ICPSettings(1, 0.005)],
+)
+def test_other_schedules_match_open3d(settings):
+    model = load_model("006_mustard_bottle")
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        obs, R0, t0, _, _ = visible_case(rng, model, n=500, deg=5, mm=5)
+        assert_same(
+            icp_refine(obs, model, R0, t0, settings),
+            icp_refine_open3d(obs, model, R0, t0, settings),
+        )
+
+
+def test_refinement_moves_towards_ground_truth():
+    model = load_model("003_cracker_box")
+    rng = np.random.default_rng(0)
+    before, after = [], []
+    for _ in range(5):
+        obs, R0, t0, R, t = visible_case(rng, model, deg=3, mm=4, noise=0.0005)
+        sol = icp_refine(obs, model, R0, t0)
+        # AD-style error over the model points, metres
+        before.append(np.linalg.norm(model @ (R0 - R).T + (t0 - t), axis=1).mean())
+        after.append(np.linalg.norm(model @ (sol.R - R).T + (sol.t - t), axis=1).mean())
+    assert np.mean(after) < 0.5 * np.mean(before)
+
+
+def test_exact_pose_is_a_fixed_point():
+    model = load_model("025_mug")
+    rng = np.random.default_rng(1)
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = np.array([0.0, 0.1, 0.7])
+    obs = model[rng.choice(len(model), 600, replace=False)] @ R.T + t
+    sol = icp_refine(obs, model, R, t)
+    np.testing.assert_allclose(sol.R, R, atol=1e-12)
+    np.testing.assert_allclose(sol.t, t, atol=1e-12)
+    assert sol.fitness == 1.0
+    assert sol.inlier_rmse < 1e-12
+
+
+def test_fitness_and_rmse_follow_open3d_definitions():
+    """Fitness = share of observed points with a model point within the last radius at the
+    refined pose; inlier RMSE = RMS of those nearest distances (brute force here)."""
+    model = load_model("021_bleach_cleanser")
+    rng = np.random.default_rng(5)
+    obs, R0, t0, _, _ = visible_case(rng, model, n=800, deg=8, mm=8, noise=0.003)
+    settings = ICPSettings()
+    sol = icp_refine(obs, model, R0, t0, settings)
+    d = cdist(obs, model @ sol.R.T + sol.t).min(axis=1)
+    r = settings.radii()[-1]
+    inl = d < r
+    assert 0 < inl.mean() < 1  # a case that exercises the radius
+    assert sol.fitness == pytest.approx(inl.mean(), abs=1e-12)
+    assert sol.inlier_rmse == pytest.approx(np.sqrt(np.mean(d[inl] ** 2)), rel=1e-9)
+
+
+def test_batch_equals_single_calls():
+    models = {n: load_model(n) for n in ("025_mug", "024_bowl")}
+    rng = np.random.default_rng(7)
+    obs, mps, Rs, ts = [], [], [], []
+    for k in range(6):
+        name = ("025_mug", "024_bowl")[k % 2]
+        o, R0, t0, _, _ = visible_case(rng, models[name], n=300 + 50 * k, deg=5, mm=5)
+        obs.append(o)
+        mps.append(models[name] if k < 4 else ModelIndex(models[name]))
+        Rs.append(R0)
+        ts.append(t0)
+    obs.append(np.zeros((2, 3)))  # degenerate: returned as is
+    mps.append(models["025_mug"])
+    Rs.append(np.eye(3))
+    ts.append(np.zeros(3))
+    with pytest.warns(UserWarning, match="2 observed points"):
+        batch = icp_refine_batch(obs, mps, np.stack(Rs), np.stack(ts))
+    assert len(batch) == len(obs)
+    for o, m, R0, t0, b in zip(obs[:-1], mps, Rs, ts, batch, strict=False):
+        assert_same(b, icp_refine(o, m, R0, t0), tol=0)
+    assert batch[-1].fitness == 0.0
+
+
+@pytest.mark.parametrize("impl", [icp_refine, icp_refine_open3d])
+def test_too_few_points_returns_init_with_warning(impl):
+    model = load_model("025_mug")
+    R0, t0 = Rotation.from_euler("z", 30, degrees=True).as_matrix(), np.array([0, 0, 1.0])
+    with pytest.warns(UserWarning, match="observed points"):
+        sol = impl(model[:2] @ R0.T + t0, model, R0, t0)
+    np.testing.assert_array_equal(sol.R, R0)
+    np.testing.assert_array_equal(sol.t, t0)
+    assert (sol.fitness, sol.inlier_rmse) == (0.0, 0.0)
+
+
+@pytest.mark.parametrize("impl", [icp_refine, icp_refine_open3d])
+def test_no_correspondence_returns_init_with_warning(impl):
+    model = load_model("025_mug")
+    R0, t0 = np.eye(3), np.array([0, 0, 1.0])
+    far = model @ R0.T + t0 + np.array([0.5, 0, 0])  # half a metre from the posed model
+    with pytest.warns(UserWarning, match="no model point within"):
+        sol = impl(far, model, R0, t0)
+    np.testing.assert_array_equal(sol.R, R0)
+    np.testing.assert_array_equal(sol.t, t0)
+    assert sol.fitness == 0.0
+
+
+def test_no_warning_in_the_normal_case():
+    model = load_model("025_mug")
+    obs, R0, t0, _, _ = visible_case(np.random.default_rng(2), model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        icp_refine(obs, model, R0, t0)
+
+
+def test_settings_schedule_and_validation():
+    radii = ICPSettings().radii()
+    assert len(radii) == 10
+    np.testing.assert_allclose(radii, 0.01 * 0.9 ** np.arange(10), rtol=1e-14)
+    for bad in (dict(iterations=0), dict(max_distance=0.0), dict(shrink=0.0), dict(shrink=1.5)):
+        with pytest.raises(ValueError, match="ICPSettings"):
+            ICPSettings(**bad)
+
+
+def test_bad_shapes_raise():
+    model = load_model("025_mug")
+    with pytest.raises(ValueError, match="observed"):
+        icp_refine(np.zeros((10, 2)), model, np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="R_init"):
+        icp_refine(model, model, np.eye(4), np.zeros(3))
+    with pytest.raises(ValueError, match="model_points"):
+        icp_refine(model, model[:, :2], np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="R_init"):
+        icp_refine_batch([model], [model], np.eye(3), np.zeros((1, 3)))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_umeyama_recovers_a_rigid_motion(dtype):
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(50, 3)).astype(dtype)
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = rng.normal(size=3)
+    dst = src @ R.T + t
+    R_hat, t_hat = umeyama_rigid(src.astype(float), dst)
+    tol = 1e-5 if dtype == np.float32 else 1e-12
+    np.testing.assert_allclose(R_hat, R, atol=tol)
+    np.testing.assert_allclose(t_hat, t, atol=tol)
+
+
+def test_umeyama_gives_a_rotation_for_a_reflected_target():
+    rng = np.random.default_rng(6)
+    src = rng.normal(size=(40, 3))
+    dst = src * np.array([1, 1, -1])  # a mirror image: no rotation fits exactly
+    R, _ = umeyama_rigid(src, dst)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_moment_form_matches_umeyama():
+    """The fast path's homogeneous-moment Umeyama against the textbook one."""
+    rng = np.random.default_rng(8)
+    for n in (3, 10, 500):
+        src = rng.normal(scale=0.05, size=(n, 3))
+        dst = src @ Rotation.random(random_state=rng).as_matrix().T + rng.normal(0, 0.01, (n, 3))
+        S = np.c_[dst, np.ones(n)].T @ np.c_[src, np.ones(n)]
+        T = _umeyama_from_moments(S)
+        R, t = umeyama_rigid(src, dst)
+        np.testing.assert_allclose(T[:3, :3], R, atol=1e-12)
+        np.testing.assert_allclose(T[:3, 3], t, atol=1e-12)
+    np.testing.assert_array_equal(_umeyama_from_moments(np.zeros((4, 4))), np.eye(4))
