@@ -21,7 +21,7 @@ import torch
 from tqdm.auto import tqdm
 
 from cloudpose import tracking
-from cloudpose.metrics import pose_errors, summarize
+from cloudpose.metrics import flatten_summary, pose_errors, summarize
 from cloudpose.refine import ICPSettings, icp_refine
 
 METHODS = ("net", "icp")
@@ -120,14 +120,8 @@ def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
         sub = df.rename(
             columns={f"{method}_{k}": k for k in ("ad", "ads", "rot_err_deg", "trans_err")}
         )
-        s = summarize(sub)
-        for key, value in s["pooled"].items():
-            out[tracking.metric_key(prefix, key)] = value
-        for key, value in s["class_mean"].items():
-            out[tracking.metric_key(prefix, "class_mean", key)] = value
-        for cls_name, row in s["per_class"].iterrows():
-            for key, value in row.items():
-                out[tracking.metric_key(prefix, "class", str(cls_name), str(key))] = float(value)
+        for key, value in flatten_summary(summarize(sub)).items():
+            out[tracking.metric_key(prefix, key)] = float(value)
     return out
 
 
