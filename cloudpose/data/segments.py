@@ -1,0 +1,282 @@
+"""Object segments: mask -> back-projection -> outlier filter -> farthest point sampling.
+
+DESIGN.md, "Data flow": per annotated instance of a frame, the pixels with label == class and
+depth > 0 are back-projected with the intrinsics (metres, camera frame), points farther than
+0.2 m from the segment mean are dropped, and farthest point sampling (FPS) from a random start
+orders 1024 of them; any prefix of that order is itself an FPS sample, so the network takes the
+first n. A segment with fewer points is filled by repeating its FPS order (the true count is
+kept); an instance without a usable point is kept as invalid (a miss at test time).
+
+The mask comes from a *segmentation source* (:data:`MASK_SOURCES`): "gt" = the ground-truth
+label image. A predicted segmentation (e.g. PoseCNN's published labels) is added with
+:func:`register_mask_source`. The occlusion factor always uses the ground-truth labels.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import fpsample
+import numpy as np
+
+if TYPE_CHECKING:
+    from cloudpose.data.render import Renderer
+    from cloudpose.data.ycb import Frame
+
+
+class SegmentWarning(UserWarning):
+    """A degenerate but recoverable segment (no usable point, no alone-pixel count)."""
+
+
+# --------------------------------------------------------------------------- FPS
+
+
+def _check_fps_args(points: np.ndarray, k: int) -> np.ndarray:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points have shape {points.shape}, expected (N, 3)")
+    if len(points) == 0:
+        raise ValueError("points are empty; FPS needs at least one point")
+    if k < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    return np.ascontiguousarray(points, dtype=np.float32)
+
+
+def _start(n: int, start: int | np.random.Generator | None) -> int:
+    if start is None:
+        start = np.random.default_rng()
+    if isinstance(start, np.random.Generator):
+        return int(start.integers(n))
+    if not 0 <= int(start) < n:
+        raise ValueError(f"start index {start} out of range 0..{n - 1}")
+    return int(start)
+
+
+def _fill(order: np.ndarray, k: int) -> np.ndarray:
+    """FPS order of all N < k points, then repeated cyclically up to k."""
+    return np.resize(order, k)
+
+
+def farthest_point_sampling(
+    points: np.ndarray, k: int, start: int | np.random.Generator | None = None
+) -> np.ndarray:
+    """Exact farthest point sampling (fpsample's vanilla FPS, in float32).
+
+    Args:
+        points: (N, 3) points, metres.
+        k: samples wanted.
+        start: first index, or a generator to draw it uniformly (None: a fresh generator).
+
+    Returns:
+        (k,) int64 indices in FPS order. If N < k: the FPS order of all N points, then
+        repeated cyclically (DESIGN.md: segments are filled by repeating points).
+    """
+    pts = _check_fps_args(points, k)
+    s = _start(len(pts), start)
+    m = min(k, len(pts))
+    if m == 1:
+        order = np.array([s], dtype=np.int64)
+    else:
+        # fps_sampling honours start_idx exactly (the bucket/kd variants in 1.0.2 do not)
+        order = np.asarray(fpsample.fps_sampling(pts, m, start_idx=s), dtype=np.int64)
+    return _fill(order, k) if m < k else order
+
+
+def farthest_point_sampling_reference(
+    points: np.ndarray, k: int, start: int | np.random.Generator | None = None
+) -> np.ndarray:
+    """Slow, obviously correct twin of :func:`farthest_point_sampling` (a numpy loop).
+
+    Same arithmetic (float32 squared distances, first index on ties), so equal outputs.
+    """
+    pts = _check_fps_args(points, k)
+    s = _start(len(pts), start)
+    m = min(k, len(pts))
+    order = [s]
+    nearest = np.full(len(pts), np.inf, dtype=np.float32)
+    for _ in range(m - 1):
+        d = ((pts - pts[order[-1]]) ** 2).sum(axis=1)
+        nearest = np.minimum(nearest, d)
+        order.append(int(np.argmax(nearest)))
+    out = np.asarray(order, dtype=np.int64)
+    return _fill(out, k) if m < k else out
+
+
+# --------------------------------------------------------------------------- mask sources
+
+MaskSource = Callable[["Frame", int], np.ndarray]
+"""(frame, class id) -> (H, W) bool mask of that instance."""
+
+
+def gt_mask(frame: Frame, cls_id: int) -> np.ndarray:
+    """Ground-truth segmentation: pixels whose label is ``cls_id``."""
+    return frame.label == cls_id
+
+
+MASK_SOURCES: dict[str, MaskSource] = {"gt": gt_mask}
+"""Segmentation sources by name (DataConfig.segmentation)."""
+
+
+def register_mask_source(name: str, source: MaskSource) -> None:
+    """Add a segmentation source, e.g. "posecnn" reading PoseCNN's predicted labels."""
+    MASK_SOURCES[name] = source
+
+
+def get_mask_source(name: str) -> MaskSource:
+    """The segmentation source ``name``; unknown names raise with the list of valid ones."""
+    if name not in MASK_SOURCES:
+        raise ValueError(
+            f"unknown segmentation {name!r}; valid segmentations: {', '.join(MASK_SOURCES)}"
+        )
+    return MASK_SOURCES[name]
+
+
+# --------------------------------------------------------------------------- segments
+
+
+@dataclass
+class Segment:
+    """One object instance's observed point cloud.
+
+    Attributes:
+        points: (n_fps, 3) float32 camera-frame points, metres, in FPS order (any prefix is an
+            FPS sample); zeros when invalid.
+        count: points left after the outlier filter (the true count; < n_fps means repeats).
+        cls_id: 1-based class id.
+        R: (3, 3) float32 ground-truth rotation model->camera, or None without ground truth.
+        t: (3,) float32 ground-truth translation, metres, or None.
+        occlusion: occlusion factor O = 1 - lambda / nu in [0, 1] (lambda: ground-truth label
+            pixels, nu: pixels of the object rendered alone); NaN when unknown.
+        frame_id: "SEQ/FRAME".
+        instance: index of the instance in the frame's meta (cls_indexes order).
+        valid: False when the segment has no usable point (a miss at test time).
+    """
+
+    points: np.ndarray
+    count: int
+    cls_id: int
+    R: np.ndarray | None
+    t: np.ndarray | None
+    occlusion: float
+    frame_id: str
+    instance: int
+    valid: bool
+
+
+def backproject(depth: np.ndarray, mask: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points of the masked pixels with a depth reading.
+
+    Args:
+        depth: (H, W) depth in metres, 0 = none.
+        mask: (H, W) bool.
+        K: (3, 3) intrinsics.
+
+    Returns:
+        (M, 3) float64 points ``z * K^-1 [u, v, 1]``, metres, in row-major pixel order.
+    """
+    v, u = np.nonzero(mask & (depth > 0))
+    z = depth[v, u].astype(np.float64)
+    pix = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
+    return (pix @ np.linalg.inv(K).T) * z[:, None]
+
+
+def occlusion_factor(visible: np.ndarray, alone: np.ndarray) -> np.ndarray:
+    """O = 1 - visible / alone, clipped to [0, 1]; NaN where ``alone`` is 0.
+
+    Args:
+        visible: (N,) ground-truth label pixels (lambda).
+        alone: (N,) pixels of the object rendered alone (nu).
+
+    Returns:
+        (N,) float64 occlusion factors (DESIGN.md, "Metrics"). On real frames the label can
+        exceed the rendering by a few pixels; that clips to 0.
+    """
+    visible = np.asarray(visible, dtype=np.float64)
+    alone = np.asarray(alone, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        o = 1.0 - visible / alone
+    return np.where(alone > 0, np.clip(o, 0.0, 1.0), np.nan)
+
+
+def extract_segments(
+    frame: Frame,
+    alone_pixels: np.ndarray | None = None,
+    renderer: Renderer | None = None,
+    n_fps: int = 1024,
+    outlier_radius: float = 0.2,
+    segmentation: str = "gt",
+    rng: np.random.Generator | None = None,
+) -> list[Segment]:
+    """Segments of every annotated instance of a frame (DESIGN.md, "Data flow").
+
+    Args:
+        frame: the frame (depth, label, K, cls_ids, poses or None).
+        alone_pixels: (N,) pixels of each instance rendered alone (the synthetic meta's
+            ``alone_pixels``); None -> rendered with ``renderer`` when the frame has poses.
+        renderer: renders the alone-pixel counts when ``alone_pixels`` is None.
+        n_fps: points kept per segment.
+        outlier_radius: points farther than this from the segment mean are dropped, metres.
+        segmentation: mask source name (:data:`MASK_SOURCES`).
+        rng: draws each segment's FPS start (default: a fresh generator).
+
+    Returns:
+        One :class:`Segment` per instance, in ``frame.cls_ids`` order; invalid ones (no usable
+        point) warn with :class:`SegmentWarning` and are kept.
+    """
+    mask_of = get_mask_source(segmentation)
+    if n_fps < 1:
+        raise ValueError(f"n_fps must be >= 1, got {n_fps}")
+    if not outlier_radius > 0:
+        raise ValueError(f"outlier_radius must be > 0 metres, got {outlier_radius}")
+    rng = rng or np.random.default_rng()
+    cls_ids = np.asarray(frame.cls_ids, dtype=np.int64)
+    n = len(cls_ids)
+    K = np.asarray(frame.K, dtype=np.float64)
+    occlusion = np.full(n, np.nan)
+    if frame.poses is not None and n:
+        if alone_pixels is None and renderer is not None:
+            alone_pixels = renderer.alone_pixels(K, frame.depth.shape, cls_ids, frame.poses)
+        if alone_pixels is not None:
+            alone_pixels = np.asarray(alone_pixels).reshape(-1)
+            if alone_pixels.shape != (n,):
+                raise ValueError(
+                    f"frame {frame.frame_id}: alone_pixels has {alone_pixels.shape[0]} entries, "
+                    f"expected one per instance ({n})"
+                )
+            visible = np.array([(frame.label == c).sum() for c in cls_ids])
+            occlusion = occlusion_factor(visible, alone_pixels)
+            if np.isnan(occlusion).any():
+                warnings.warn(
+                    f"frame {frame.frame_id}: classes {cls_ids[np.isnan(occlusion)].tolist()} "
+                    "have no pixel when rendered alone; occlusion factor unknown (NaN)",
+                    SegmentWarning,
+                    stacklevel=2,
+                )
+    out = []
+    for i, c in enumerate(cls_ids):
+        pts = backproject(frame.depth, mask_of(frame, int(c)), K)
+        if len(pts):
+            pts = pts[np.linalg.norm(pts - pts.mean(axis=0), axis=1) <= outlier_radius]
+        if frame.poses is not None:
+            R = frame.poses[i, :, :3].astype(np.float32)
+            t = frame.poses[i, :, 3].astype(np.float32)
+        else:
+            R = t = None
+        valid = len(pts) > 0
+        if valid:
+            sample = pts[farthest_point_sampling(pts, n_fps, rng)].astype(np.float32)
+        else:
+            sample = np.zeros((n_fps, 3), dtype=np.float32)
+            warnings.warn(
+                f"frame {frame.frame_id}: instance {i} (class {int(c)}) has no usable point "
+                f"(segmentation {segmentation!r}); kept as a miss",
+                SegmentWarning,
+                stacklevel=2,
+            )
+        out.append(
+            Segment(sample, len(pts), int(c), R, t, float(occlusion[i]), frame.frame_id, i, valid)
+        )
+    return out
