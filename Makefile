@@ -47,3 +47,29 @@ format: ## ruff fix and format
 
 variants: ## print the variant registry with parameter counts
 	$(CLI) variants
+
+# --- ablation suite and reports (cloudpose ablate / report / occlusion-report) ---------------
+MLFLOW_URI ?= $(or $(MLFLOW_TRACKING_URI),sqlite:///$(CURDIR)/mlflow.db)
+MLFLOW_PORT ?= 5000
+GROUP ?=
+.PHONY: ablation-shared ablation-rotation ablation-loss ablations occlusion-report tables mlflow-ui
+
+ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
+	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS)
+
+ablation-rotation: ## rotation-representation group (axis-angle, quaternion, 6D) x SEEDS on PRESET, then its reports
+	$(CLI) ablate --group rotation --preset $(PRESET) --seeds $(SEEDS)
+
+ablation-loss: ## rotation-loss group (geodesic, L2) x SEEDS on PRESET, then its reports
+	$(CLI) ablate --group loss --preset $(PRESET) --seeds $(SEEDS)
+
+ablations: ablation-shared ablation-rotation ablation-loss ## all three ablation groups
+
+occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing runs; GROUP=... adds a group's variants)
+	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))
+
+tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs (no training)
+	$(CLI) report --all --preset $(PRESET)
+
+mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db)
+	$(VENV)/bin/mlflow ui --backend-store-uri $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT)

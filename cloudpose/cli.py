@@ -220,5 +220,76 @@ def run(
     _print_summary(ev.metrics)
 
 
+@app.command()
+def ablate(
+    group: Annotated[str, typer.Option(help="Ablation group: shared, rotation or loss.")],
+    preset: PresetOpt = "cpu",
+    seeds: Annotated[int, typer.Option(help="Seeds 1..S per variant.")] = 3,
+    keep_going: Annotated[
+        bool, typer.Option("--keep-going/--stop-on-failure", help="Go on after a failed run.")
+    ] = False,
+    progress: ProgressOpt = True,
+) -> None:
+    """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
+    from cloudpose.ablate import run_group
+
+    try:
+        res = run_group(group, preset, seeds, Path.cwd(), progress, keep_going=keep_going)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
+    typer.echo(f"{group}/{preset}: " + ", ".join(f"{n} {s}" for s, n in counts.items())
+               + f"; reports in {res.report.out_dir}; log {res.log}")  # fmt: skip
+
+
+@app.command()
+def report(
+    group: Annotated[
+        list[str] | None, typer.Option(help="Group(s) to render (repeatable); default all.")
+    ] = None,
+    all_groups: Annotated[bool, typer.Option("--all", help="Every group (the default).")] = False,
+    preset: PresetOpt = "cpu",
+    data: Annotated[
+        str | None, typer.Option(help="Data fingerprint to report; default the most used.")
+    ] = None,
+    mlflow: Annotated[
+        bool, typer.Option("--mlflow/--no-mlflow", help="Also log the reports to MLflow.")
+    ] = True,
+) -> None:
+    """Render the tables, claims and figures of a preset from existing MLflow runs only."""
+    from cloudpose.report import render_reports
+
+    groups = None if all_groups or not group else list(group)
+    try:
+        res = render_reports(preset, groups, project_dir=Path.cwd(), data=data, log_mlflow=mlflow)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
+
+
+@app.command("occlusion-report")
+def occlusion_report(
+    preset: PresetOpt = "cpu",
+    seeds: Annotated[int, typer.Option(help="Seeds 1..S.")] = 3,
+    group: Annotated[
+        str | None, typer.Option(help="Also plot this group's variants (shared-0 alone if unset).")
+    ] = None,
+    train: Annotated[
+        bool, typer.Option("--train/--no-train", help="Train and evaluate missing runs first.")
+    ] = True,
+    progress: ProgressOpt = True,
+) -> None:
+    """ADS < 1 cm accuracy per occlusion bin: shared-0 without and with ICP (+ a group)."""
+    from cloudpose.ablate import occlusion_report as occlusion_fn
+
+    try:
+        res = occlusion_fn(preset, seeds, Path.cwd(), progress, group=group, train=train)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(exc)
+    for p in res.files:
+        if p.stem.startswith("occlusion"):
+            typer.echo(str(p))
+
+
 if __name__ == "__main__":
     app()

@@ -1,0 +1,260 @@
+"""The ablation runner: train and evaluate every variant of a group over seeds, then report.
+
+For each member variant and seed, a run that already finished *and* was evaluated in MLflow for
+the same variant, preset, seed and data fingerprint is skipped; anything else is trained
+(:func:`cloudpose.train.train` resumes an interrupted run from its checkpoint) and evaluated
+(:func:`cloudpose.evaluate.evaluate`). So an interrupted suite, rerun, continues where it stopped.
+One line per run goes to ``runs/ablate-{group}-{preset}.log``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cloudpose import tracking
+from cloudpose.config import Config, get_group, resolve
+
+TEST_KEY = "test/ads_auc"
+
+
+@dataclass(frozen=True)
+class RunStatus:
+    """What happened to one (variant, seed) of a suite.
+
+    Attributes:
+        status: "skipped" (finished and evaluated before), "trained" (trained and/or evaluated
+            in this call) or "failed".
+        seconds: wall time spent on it in this call.
+    """
+
+    variant: str
+    seed: int
+    status: str
+    run_id: str | None
+    seconds: float
+    error: str = ""
+
+
+@dataclass
+class SuiteResult:
+    """The runs of a suite and the report it rendered."""
+
+    group: str
+    preset: str
+    runs: list[RunStatus] = field(default_factory=list)
+    report: object | None = None
+    log: Path | None = None
+
+
+def seed_list(seeds: int | Iterable[int]) -> list[int]:
+    """``3`` -> [1, 2, 3]; a list is taken as it is (sorted, duplicates dropped)."""
+    if isinstance(seeds, int):
+        if seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {seeds}")
+        return list(range(1, seeds + 1))
+    out = sorted({int(s) for s in seeds})
+    if not out:
+        raise ValueError("seeds is empty")
+    return out
+
+
+def finished_run(client, cfg: Config, data: str):
+    """The newest FINISHED run of ``cfg``'s variant/preset/seed on ``data`` with test metrics."""
+    for r in tracking.find_runs(client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed,
+                                data=data):  # fmt: skip
+        if TEST_KEY in r.data.metrics:
+            return r
+    return None
+
+
+def _seconds_per_run_before(client, preset: str, epochs: int) -> float | None:
+    """Estimated training seconds of one run from earlier runs' ``time/epoch_s`` (last epoch)."""
+    per_epoch = [r.data.metrics["time/epoch_s"] for r in tracking.find_runs(client, preset=preset)
+                 if "time/epoch_s" in r.data.metrics]  # fmt: skip
+    return sum(per_epoch) / len(per_epoch) * epochs if per_epoch else None
+
+
+def _fmt_s(s: float | None) -> str:
+    if s is None or not math.isfinite(s):
+        return "unknown"
+    s = round(s)
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+def ensure_runs(
+    variants: list[str],
+    preset: str,
+    seeds: int | Iterable[int],
+    *,
+    group: str,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    keep_going: bool = False,
+    overrides: dict | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> list[RunStatus]:
+    """Train and evaluate every (variant, seed) that has no finished, evaluated run yet.
+
+    Args:
+        variants: variant names.
+        preset: training preset.
+        seeds: S (seeds 1..S) or a list of seeds.
+        group: the experiment a new run goes to.
+        project_dir: folder of ``data/``, ``runs/`` and the default MLflow store (cwd).
+        progress: per-epoch progress bars (from training) and ICP bars.
+        keep_going: after a failed run, log it and go on with the next (default: raise).
+        overrides: config overrides (``{"train": {"epochs": 1}}``), as in ``resolve``.
+        echo: where the per-run progress lines go (default: print).
+
+    Returns:
+        One status per (variant, seed), in order.
+    """
+    from cloudpose.data.cache import data_fingerprint, ensure_dataset
+    from cloudpose.evaluate import evaluate
+    from cloudpose.train import train
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    echo = echo or (lambda s: print(s, flush=True))
+    seeds = seed_list(seeds)
+    client = tracking.setup(project_dir)
+    log_path = project_dir / "runs" / f"ablate-{group}-{preset}.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    todo = [resolve(v, preset, s, overrides) for v in variants for s in seeds]
+    fingerprints: dict[str, str] = {}
+
+    def fingerprint(cfg: Config) -> str:
+        key = repr(cfg.data)
+        if key not in fingerprints:  # the fingerprint hashes the data: make it first
+            ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
+            fingerprints[key] = data_fingerprint(cfg.data, project_dir=project_dir)
+        return fingerprints[key]
+
+    pending = [cfg for cfg in todo if finished_run(client, cfg, fingerprint(cfg)) is None]
+    prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
+    durations: list[float] = []
+    out: list[RunStatus] = []
+    echo(f"ablation {group}/{preset}: {len(todo)} runs ({len(variants)} variants x "
+         f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run; "
+         f"log {log_path}")  # fmt: skip
+    for k, cfg in enumerate(todo, 1):
+        name = tracking.run_name(cfg.variant, cfg.preset, cfg.seed)
+        data = fingerprint(cfg)
+        done = finished_run(client, cfg, data)
+        if done is not None:
+            st = RunStatus(cfg.variant, cfg.seed, "skipped", done.info.run_id, 0.0)
+            out.append(st)
+            _log(log_path, k, len(todo), name, st, done.data.metrics.get(TEST_KEY))
+            echo(f"[{k}/{len(todo)}] {name}: finished before, skipped")
+            continue
+        left = len(pending) - pending.index(cfg) if cfg in pending else 1
+        per_run = sum(durations) / len(durations) if durations else prior
+        echo(f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
+             f"estimated {_fmt_s(per_run * left if per_run else None)} to go")  # fmt: skip
+        t0 = time.monotonic()
+        try:
+            outcome = train(cfg, project_dir=project_dir, group=group, progress=progress)
+            ev = evaluate(str(outcome.run_dir), project_dir=project_dir, progress=progress)
+        except KeyboardInterrupt:
+            st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
+            _log(log_path, k, len(todo), name, st, None)
+            raise
+        except Exception as exc:
+            st = RunStatus(cfg.variant, cfg.seed, "failed", None, time.monotonic() - t0,
+                           f"{type(exc).__name__}: {exc}")  # fmt: skip
+            out.append(st)
+            _log(log_path, k, len(todo), name, st, None)
+            echo(f"[{k}/{len(todo)}] {name}: FAILED ({st.error})")
+            if not keep_going:
+                raise
+            continue
+        seconds = time.monotonic() - t0
+        durations.append(seconds)
+        st = RunStatus(cfg.variant, cfg.seed, "trained", outcome.run_id, seconds)
+        out.append(st)
+        _log(log_path, k, len(todo), name, st, ev.metrics.get(TEST_KEY))
+        echo(f"[{k}/{len(todo)}] {name}: done in {_fmt_s(seconds)}; test ADS AUC "
+             f"{100 * ev.metrics.get(TEST_KEY, math.nan):.1f}")  # fmt: skip
+    return out
+
+
+def _log(path: Path, k: int, n: int, name: str, st: RunStatus, ads_auc: float | None) -> None:
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+    auc = f"{100 * ads_auc:.1f}" if ads_auc is not None else "-"
+    line = (f"{stamp}\t{k}/{n}\t{name}\t{st.status}\t{st.seconds:.1f}s\t"
+            f"run_id={st.run_id or '-'}\ttest_ads_auc={auc}")  # fmt: skip
+    if st.error:
+        line += f"\terror={st.error}"
+    with path.open("a", encoding="utf-8") as f:
+        f.write(line + "\n")
+
+
+def run_group(
+    group: str,
+    preset: str,
+    seeds: int | list[int] = 3,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    *,
+    keep_going: bool = False,
+    report: bool = True,
+    command: str | None = None,
+    overrides: dict | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> SuiteResult:
+    """Train and evaluate every member of ``group`` over ``seeds``, then render its reports.
+
+    Args:
+        group: ablation group (``ablations/variants.toml``: shared, rotation, loss).
+        preset: training preset (smoke, cpu, paper).
+        seeds: S (seeds 1..S) or a list of seeds.
+        project_dir: folder of ``data/``, ``runs/``, ``reports/`` and the MLflow store (cwd).
+        progress: progress bars.
+        keep_going: go on after a failed run (it is logged); default: stop.
+        report: render the group's reports afterwards (:func:`cloudpose.report.render_reports`).
+        command: the command line the reports name (default: this process's).
+        overrides: config overrides for every run.
+        echo: where progress lines go (default: print).
+    """
+    g = get_group(group)
+    project_dir = (project_dir or Path.cwd()).resolve()
+    statuses = ensure_runs(list(g.members), preset, seeds, group=group, project_dir=project_dir,
+                           progress=progress, keep_going=keep_going, overrides=overrides,
+                           echo=echo)  # fmt: skip
+    result = SuiteResult(group, preset, statuses,
+                         log=project_dir / "runs" / f"ablate-{group}-{preset}.log")  # fmt: skip
+    if report:
+        from cloudpose.report import render_reports
+
+        result.report = render_reports(preset, [group], project_dir=project_dir, command=command)
+    return result
+
+
+def occlusion_report(
+    preset: str,
+    seeds: int | list[int] = 3,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    *,
+    group: str | None = None,
+    train: bool = True,
+    command: str | None = None,
+    echo: Callable[[str], None] | None = None,
+):
+    """The occlusion plot: shared-0 without and with ICP (and a group's variants if asked).
+
+    Trains and evaluates the missing runs first unless ``train`` is False, then renders the
+    reports (the overall ones, and the group's when ``group`` is given).
+    """
+    from cloudpose.report import render_reports
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    variants = list(get_group(group).members) if group else ["shared-0"]
+    if train:
+        ensure_runs(variants, preset, seeds, group=group or "shared", project_dir=project_dir,
+                    progress=progress, echo=echo)  # fmt: skip
+    return render_reports(preset, [group] if group else [], project_dir=project_dir,
+                          command=command)  # fmt: skip

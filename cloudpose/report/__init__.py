@@ -1,0 +1,13 @@
+"""Reports rendered only from MLflow runs: the paper's tables, the claims, the figures.
+
+- :mod:`cloudpose.report.runs`: which runs a report is made of.
+- :mod:`cloudpose.report.stats`: mean ± std over seeds, differences with a 95% t-interval.
+- :mod:`cloudpose.report.tables`: Tables I-IV (Markdown, LaTeX, CSV), the paper's beside ours.
+- :mod:`cloudpose.report.claims`: every difference the paper claims, with a verdict.
+- :mod:`cloudpose.report.plots`: occlusion, accuracy-threshold, training and rotation figures.
+- :mod:`cloudpose.report.build`: renders all of it into ``reports/{preset}/`` and MLflow.
+"""
+
+from cloudpose.report.build import ReportResult, render_reports
+
+__all__ = ["ReportResult", "render_reports"]

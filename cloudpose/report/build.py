@@ -1,0 +1,263 @@
+"""Render every report of a preset from the runs in MLflow, and log it back to MLflow.
+
+Output folder ``reports/{preset}/``:
+
+- ``table1_overall``, ``table2_per_class`` (shared-0, without and with ICP), ``table3_shared_layers``
+  (group shared), ``table4_rotation`` (groups rotation and loss): each ``.md``, ``.tex``, ``.csv``;
+- ``claims.md`` / ``claims.csv``: every difference the paper claims, with a 95% CI and a verdict;
+- ``occlusion.png`` / ``.csv`` (shared-0 without and with ICP) and per group
+  ``occlusion_{group}``, ``curves_{group}``, ``training_{group}``, ``rot_err_{group}`` PNGs;
+- ``README.md``: the index.
+
+Each group's files (and the overall ones) are also logged as artifacts of one run named
+``report/{group}/{preset}`` in the group's experiment, replaced on every render.
+"""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+from cloudpose import tracking
+from cloudpose.config import get_group, groups
+from cloudpose.report import plots
+from cloudpose.report.claims import ClaimResult, claims_frame, claims_markdown, evaluate_claims
+from cloudpose.report.runs import RunSet, load_runs
+from cloudpose.report.tables import (
+    Provenance,
+    table1_overall,
+    table2_per_class,
+    table3_shared_layers,
+    table4_rotation,
+)
+
+GROUP_TABLE = {"shared": "table3_shared_layers", "rotation": "table4_rotation",
+               "loss": "table4_rotation"}  # fmt: skip
+OVERALL = ("table1_overall", "table2_per_class", "occlusion", "claims")
+
+DESCRIPTIONS = {
+    "table1_overall": "Table I: overall AD AUC, ADS AUC, ADS < 1 cm of shared-0 without and with "
+    "ICP, beside the paper's rows",
+    "table2_per_class": "Table II: per-class accuracy after ICP beside the paper's 'Ours' columns",
+    "table3_shared_layers": "Table III: shared layers (without ICP), with parameter counts",
+    "table4_rotation": "Table IV: rotation representation and loss, rotation error < 10/15/20°",
+    "claims": "every difference the paper claims: measured difference, 95% CI over seeds, verdict",
+    "occlusion": "ADS < 1 cm accuracy per occlusion bin, shared-0 without and with ICP",
+    "occlusion_{g}": "ADS < 1 cm accuracy per occlusion bin, variants of group {g}",
+    "curves_{g}": "AD and ADS accuracy-threshold curves (0-10 cm), variants of group {g}",
+    "training_{g}": "training loss and validation ADS AUC per epoch, variants of group {g}",
+    "rot_err_{g}": "rotation-error histograms, variants of group {g}",
+}
+
+
+@dataclass
+class ReportResult:
+    """What one render wrote."""
+
+    out_dir: Path
+    files: list[Path]
+    runs: RunSet
+    claims: list[ClaimResult] = field(default_factory=list)
+    mlflow_runs: dict[str, str] = field(default_factory=dict)
+    """group -> run id of its report run."""
+
+
+def default_command() -> str:
+    """The command line of this process, as a user would type it."""
+    argv = list(sys.argv)
+    prog = Path(argv[0]).name if argv else "python"
+    return shlex.join([prog, *argv[1:]])
+
+
+def render_reports(
+    preset: str,
+    group_names: list[str] | None = None,
+    *,
+    out_dir: Path | None = None,
+    project_dir: Path | None = None,
+    command: str | None = None,
+    data: str | None = None,
+    log_mlflow: bool = True,
+    client=None,
+) -> ReportResult:
+    """Render the reports of ``group_names`` (default: every group) from MLflow runs.
+
+    Tables I and II, the overall occlusion plot and claims.md are rendered every time (from
+    whatever runs exist); a group's table and figures only when its runs exist.
+
+    Args:
+        preset: training preset whose runs to report.
+        group_names: ablation groups; None = all.
+        out_dir: output folder; default ``{project_dir}/reports/{preset}``.
+        project_dir: folder of the default MLflow store (cwd).
+        command: the command named in every file; default this process's command line.
+        data: data fingerprint to report; default the one most runs were trained on.
+        log_mlflow: also log the files to a ``report/{group}/{preset}`` run per group.
+        client: an ``MlflowClient`` (default: the project's store).
+    """
+    project_dir = (project_dir or Path.cwd()).resolve()
+    client = client or tracking.setup(project_dir)
+    names = list(groups()) if group_names is None else list(group_names)
+    for g in names:
+        get_group(g)  # unknown names raise with the valid list
+    out_dir = out_dir or project_dir / "reports" / preset
+    out_dir.mkdir(parents=True, exist_ok=True)
+    command = command or default_command()
+    renderer = tracking.git_commit()
+    runs = load_runs(preset, data=data, client=client)
+    prov_all = Provenance.of(runs, command, renderer)
+    written: dict[str, list[Path]] = {"overall": []}
+
+    base = runs.subset(["shared-0"])
+    if base.records:
+        prov = Provenance.of(base, command, renderer)
+        written["overall"] += table1_overall(base).write(out_dir, prov)
+        written["overall"] += table2_per_class(base).write(out_dir, prov)
+        written["overall"] += _occlusion_overall(base, out_dir, prov)
+    results = evaluate_claims(runs)
+    (out_dir / "claims.md").write_text(claims_markdown(results, prov_all), encoding="utf-8")
+    claims_csv = f"# {prov_all.line()}\n" + claims_frame(results).to_csv(
+        index=False, float_format="%.3f"
+    )
+    (out_dir / "claims.csv").write_text(claims_csv, encoding="utf-8")
+    written["overall"] += [out_dir / "claims.md", out_dir / "claims.csv"]
+
+    for g in names:
+        written[g] = _render_group(runs, g, out_dir, command, renderer)
+    readme = _write_index(out_dir, prov_all, preset)
+    written["overall"].append(readme)
+
+    mlflow_runs = {}
+    if log_mlflow:
+        for g in names:
+            if written[g]:
+                mlflow_runs[g] = log_report_run(client, g, preset, written[g] + written["overall"],
+                                                prov_all, project_dir)  # fmt: skip
+    files = sorted({p for ps in written.values() for p in ps})
+    return ReportResult(out_dir, files, runs, results, mlflow_runs)
+
+
+def _series(runs: RunSet, variant: str, label: str, method: str = "net"):
+    tables = [t for r in runs.of(variant) if (t := r.instances()) is not None]
+    return plots.Series(label, tables, method) if tables else None
+
+
+def _occlusion_overall(runs: RunSet, out_dir: Path, prov: Provenance) -> list[Path]:
+    series = [s for s in (_series(runs, "shared-0", "shared-0, network alone", "net"),
+                          _series(runs, "shared-0", "shared-0 + ICP", "icp")) if s]  # fmt: skip
+    series = [s for s in series if f"{s.method}_ads" in s.tables[0]]
+    if not series:
+        return []
+    png = plots.plot_occlusion(series, out_dir / "occlusion.png", prov,
+                               "ADS < 1 cm accuracy vs occlusion (shared-0)")  # fmt: skip
+    csv = out_dir / "occlusion.csv"
+    csv.write_text(f"# {prov.line()}\n" + plots.occlusion_frame(series).to_csv(
+        index=False, float_format="%.2f"), encoding="utf-8")  # fmt: skip
+    return [png, csv]
+
+
+def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: str) -> list[Path]:
+    group = get_group(g)
+    sub = runs.subset(group.members)
+    if not sub.records:
+        return []
+    prov = Provenance.of(sub, command, renderer)
+    files: list[Path] = []
+    if g == "shared":
+        files += table3_shared_layers(sub).write(out_dir, prov)
+    else:
+        both = runs.subset(set(get_group("rotation").members) | set(get_group("loss").members))
+        files += table4_rotation(both).write(out_dir, Provenance.of(both, command, renderer))
+    present = [v for v in group.members if sub.of(v)]
+    labels = {v: f"{v} ({group.labels.get(v, v)})" for v in present}
+    series = [s for v in present if (s := _series(sub, v, labels[v]))]
+    if series:
+        base_icp = _series(sub, "shared-0", "shared-0 + ICP", "icp")
+        occ = series + ([base_icp] if base_icp and "icp_ads" in base_icp.tables[0] else [])
+        files.append(plots.plot_occlusion(occ, out_dir / f"occlusion_{g}.png", prov,
+                                          f"ADS < 1 cm accuracy vs occlusion, group {g}"))  # fmt: skip
+        files.append(plots.plot_threshold_curves(series, out_dir / f"curves_{g}.png", prov,
+                                                 f"Accuracy-threshold curves, group {g}, "
+                                                 "without ICP"))  # fmt: skip
+        files.append(plots.plot_rotation_histograms(series, out_dir / f"rot_err_{g}.png", prov,
+                                                    f"Rotation error, group {g}, without ICP"))  # fmt: skip
+    histories = {
+        labels[v]: [{k: r.history(k) for k in ("train/loss", "val/ads_auc")} for r in sub.of(v)]
+        for v in present
+    }
+    files.append(plots.plot_training_curves(histories, out_dir / f"training_{g}.png", prov,
+                                            f"Training curves, group {g}"))  # fmt: skip
+    return files
+
+
+def _describe(stem: str) -> str:
+    if stem in DESCRIPTIONS:
+        return DESCRIPTIONS[stem]
+    for key, text in DESCRIPTIONS.items():
+        if "{g}" in key and stem.startswith(key.split("{g}")[0]):
+            return text.format(g=stem[len(key.split("{g}")[0]) :])
+    return ""
+
+
+def _write_index(out_dir: Path, prov: Provenance, preset: str) -> Path:
+    stems: dict[str, list[str]] = {}
+    for p in sorted(out_dir.iterdir()):
+        if p.is_file() and p.name != "README.md" and p.suffix in (".md", ".tex", ".csv", ".png"):
+            stems.setdefault(p.stem, []).append(p.name)
+    lines = [f"# Reports, preset `{preset}`", "", f"_{prov.line()}_", "",
+             f"Rendered from the MLflow runs only (`cloudpose report --all --preset {preset}` "
+             "renders them again; `make mlflow-ui` shows the runs). Our numbers are mean ± "
+             "sample std over seeds, in percent; the paper's are its single runs on real "
+             "YCB-Video.", "", "| report | files |", "|---|---|"]  # fmt: skip
+    order = [k.split("{g}")[0] for k in DESCRIPTIONS]
+
+    def rank(stem: str) -> tuple[int, str]:
+        hits = [i for i, k in enumerate(order) if stem == k or ("_" in k and stem.startswith(k))]
+        return (hits[0] if hits else len(order), stem)
+
+    for stem, names in sorted(stems.items(), key=lambda kv: rank(kv[0])):
+        links = ", ".join(f"[{n}]({n})" for n in names)
+        desc = _describe(stem) or stem
+        lines.append(f"| {desc} | {links} |")
+    path = out_dir / "README.md"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def log_report_run(client, group: str, preset: str, files: list[Path], prov: Provenance,
+                   project_dir: Path | None = None) -> str:  # fmt: skip
+    """Log ``files`` as the artifacts of run ``report/{group}/{preset}``, replacing an older one.
+
+    The run carries tags ``kind=report``, ``report_group``, ``report_preset`` (and no
+    ``variant``/``preset`` tags, so run look-ups by those never find it).
+    """
+    exp = tracking.experiment_id(client, group, project_dir)
+    name = f"report/{group}/{preset}"
+    old = client.search_runs(
+        [exp], f"tags.kind = 'report' and tags.report_group = '{group}' and "
+        f"tags.report_preset = '{preset}'",
+    )  # fmt: skip
+    for r in old:
+        _remove_local_artifacts(r.info.artifact_uri)
+        client.delete_run(r.info.run_id)
+    tags = {"kind": "report", "report_group": group, "report_preset": preset,
+            "command": prov.command, "data": prov.data, "seeds": ",".join(map(str, prov.seeds)),
+            "git_commit": ",".join(prov.commits), "mlflow.note.content": prov.line()}  # fmt: skip
+    run = client.create_run(exp, tags=tags, run_name=name)
+    for p in sorted(set(files)):
+        if p.exists():
+            client.log_artifact(run.info.run_id, str(p))
+    client.set_terminated(run.info.run_id, "FINISHED")
+    return run.info.run_id
+
+
+def _remove_local_artifacts(uri: str | None) -> None:
+    if not uri or not uri.startswith("file:"):
+        return
+    path = Path(unquote(urlparse(uri).path))
+    if path.is_dir() and path.name == "artifacts":
+        shutil.rmtree(path, ignore_errors=True)

@@ -1,0 +1,186 @@
+"""Reading the finished, evaluated runs of a preset out of MLflow for the reports.
+
+A report compares runs trained on the same data: of the preset's finished runs that carry test
+metrics, it keeps those of one data fingerprint (the one most (variant, seed) pairs were trained
+on, ties to the newest; or the one asked for) and, per (variant, seed), the newest run.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import warnings
+from collections import Counter
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+import numpy as np
+import pandas as pd
+
+from cloudpose import tracking
+
+TEST_KEY = "test/ads_auc"
+"""A run counts as evaluated when it has this metric."""
+
+
+@dataclass
+class RunRecord:
+    """One finished, evaluated training run as the reports need it."""
+
+    run_id: str
+    variant: str
+    seed: int
+    preset: str
+    data: str
+    git_commit: str
+    start_time: int
+    params: dict[str, str]
+    metrics: dict[str, float]
+    artifact_uri: str = ""
+    client: object = field(repr=False, default=None)
+    _cache: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def parameters(self) -> int | None:
+        """Parameter count of the network (param ``model.parameters``), if logged."""
+        v = self.params.get("model.parameters")
+        return int(v) if v not in (None, "") else None
+
+    def metric(self, key: str) -> float:
+        """Value of a metric; NaN when the run does not have it."""
+        return float(self.metrics.get(key, math.nan))
+
+    def instances(self, name: str = "test") -> pd.DataFrame | None:
+        """The per-instance table ``eval/{name}/instances.csv``, or None if it is missing."""
+        key = ("instances", name)
+        if key not in self._cache:
+            rel = f"eval/{name}/instances.csv"
+            local = _local_artifact(self.artifact_uri, rel)
+            if local is not None:
+                self._cache[key] = pd.read_csv(local) if local.exists() else None
+            else:
+                with tempfile.TemporaryDirectory() as tmp:
+                    try:
+                        path = self.client.download_artifacts(self.run_id, rel, tmp)
+                        self._cache[key] = pd.read_csv(path)
+                    except Exception:
+                        self._cache[key] = None
+        return self._cache[key]
+
+    def history(self, key: str) -> pd.Series:
+        """Per-epoch values of ``key`` (index: epoch); empty if never logged."""
+        hist = self.client.get_metric_history(self.run_id, key)
+        s = pd.Series({m.step: m.value for m in sorted(hist, key=lambda m: m.timestamp)})
+        return s.sort_index().astype(float)
+
+
+def _local_artifact(uri: str, rel: str) -> Path | None:
+    """The file ``rel`` of a local (``file:`` or plain path) artifact store; None if remote."""
+    if uri.startswith("file:"):
+        return Path(unquote(urlparse(uri).path)) / rel
+    if uri and "://" not in uri:
+        return Path(uri) / rel
+    return None
+
+
+@dataclass
+class RunSet:
+    """The runs one report is rendered from."""
+
+    preset: str
+    data: str | None
+    records: list[RunRecord]
+    ignored: int = 0
+    """Runs of the same preset left out because they were trained on other data."""
+
+    def of(self, variant: str) -> list[RunRecord]:
+        """Runs of ``variant``, sorted by seed."""
+        return sorted((r for r in self.records if r.variant == variant), key=lambda r: r.seed)
+
+    def values(self, variant: str, key: str) -> dict[int, float]:
+        """seed -> metric ``key`` for ``variant`` (seeds where the metric is finite)."""
+        out = {r.seed: r.metric(key) for r in self.of(variant)}
+        return {s: v for s, v in out.items() if np.isfinite(v)}
+
+    @cached_property
+    def variants(self) -> list[str]:
+        return sorted({r.variant for r in self.records})
+
+    def subset(self, variants) -> RunSet:
+        """The runs of the given variants only."""
+        keep = set(variants)
+        return RunSet(self.preset, self.data, [r for r in self.records if r.variant in keep],
+                      self.ignored)  # fmt: skip
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted({r.seed for r in self.records})
+
+    @property
+    def commits(self) -> list[str]:
+        return sorted({r.git_commit for r in self.records})
+
+    def data_label(self) -> str:
+        """Where the runs' data came from, in words, with the fingerprint."""
+        if not self.records:
+            return "no runs"
+        roots = {r.params.get("data.root", "") for r in self.records}
+        fp = (self.data or "?")[:10]
+        if roots <= {""}:
+            seeds = {r.params.get("data.synth_seed", "?") for r in self.records}
+            return f"synthetic YCB-Video-layout scenes (synth seed {','.join(sorted(seeds))}, data {fp})"
+        names = ", ".join(sorted(Path(r).name or r for r in roots))
+        return f"{names} (data {fp})"
+
+
+def load_runs(preset: str, *, data: str | None = None, client=None,
+              project_dir: Path | None = None) -> RunSet:  # fmt: skip
+    """Finished runs of ``preset`` with test metrics, one per (variant, seed), on one dataset.
+
+    Args:
+        preset: the training preset (tag ``preset``).
+        data: data fingerprint to keep; default the one with the most (variant, seed) pairs.
+        client: an ``MlflowClient``; default :func:`cloudpose.tracking.setup` of ``project_dir``.
+        project_dir: folder of the default MLflow store (cwd).
+    """
+    client = client or tracking.setup(project_dir)
+    runs = tracking.find_runs(client, preset=preset)
+    runs = [
+        r for r in runs
+        if r.data.tags.get("variant") and r.data.tags.get("seed") and TEST_KEY in r.data.metrics
+    ]  # fmt: skip
+    if not runs:
+        return RunSet(preset, data, [])
+    if data is None:
+        pairs = Counter()
+        newest: dict[str, int] = {}
+        for r in runs:
+            fp = r.data.tags.get("data", "")
+            pairs[fp] += 1
+            newest[fp] = max(newest.get(fp, 0), r.info.start_time or 0)
+        data = max(pairs, key=lambda fp: (pairs[fp], newest[fp]))
+    chosen: dict[tuple[str, int], RunRecord] = {}
+    ignored = 0
+    for r in runs:  # newest first
+        tags = r.data.tags
+        if tags.get("data", "") != data:
+            ignored += 1
+            continue
+        key = (tags["variant"], int(tags["seed"]))
+        if key in chosen:
+            continue
+        chosen[key] = RunRecord(
+            run_id=r.info.run_id, variant=key[0], seed=key[1], preset=preset, data=data,
+            git_commit=tags.get("git_commit", "unknown"), start_time=r.info.start_time or 0,
+            params=dict(r.data.params), metrics=dict(r.data.metrics),
+            artifact_uri=r.info.artifact_uri or "", client=client,
+        )  # fmt: skip
+    if ignored:
+        warnings.warn(
+            f"{ignored} finished run(s) of preset {preset!r} were trained on other data than "
+            f"{data[:10]} and are left out of the report",
+            stacklevel=2,
+        )
+    return RunSet(preset, data, list(chosen.values()), ignored)

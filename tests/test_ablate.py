@@ -1,0 +1,195 @@
+"""The ablation runner's skip/resume logic, with training and evaluation replaced by fakes.
+
+The fakes write into a throwaway MLflow store exactly what ``cloudpose.train.train`` and
+``cloudpose.evaluate.evaluate`` write that the runner looks at: a run tagged with variant,
+preset, seed and data; FINISHED after training; test metrics after evaluation.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+from cloudpose import ablate, tracking
+
+
+class Fakes:
+    """Fake train/evaluate/data_fingerprint recording their calls."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.trained: list[tuple[str, int]] = []
+        self.evaluated: list[str] = []
+        self.fingerprint = "data0000001234"
+        self.fail_train: set[tuple[str, int]] = set()
+        self.interrupt_eval: set[tuple[str, int]] = set()
+        self.runs: dict[tuple[str, int, str], str] = {}  # resumable: same run for same settings
+
+    def data_fingerprint(self, data_cfg, project_dir=None):
+        return self.fingerprint
+
+    def train(self, cfg, *, project_dir=None, group=None, progress=True, **_):
+        key = (cfg.variant, cfg.seed)
+        self.trained.append(key)
+        if key in self.fail_train:
+            raise FloatingPointError("loss became nan")
+        client = tracking.setup(project_dir)
+        rkey = (cfg.variant, cfg.seed, self.fingerprint)
+        if rkey not in self.runs:
+            exp = tracking.experiment_id(client, group, project_dir)
+            tags = {"variant": cfg.variant, "group": group, "preset": cfg.preset,
+                    "seed": str(cfg.seed), "data": self.fingerprint, "git_commit": "c0ffee"}  # fmt: skip
+            run = client.create_run(exp, tags=tags,
+                                    run_name=tracking.run_name(cfg.variant, cfg.preset, cfg.seed))  # fmt: skip
+            self.runs[rkey] = run.info.run_id
+        run_id = self.runs[rkey]
+        client.log_metric(run_id, "time/epoch_s", 0.5, step=1)
+        client.set_terminated(run_id, "FINISHED")
+        rdir = project_dir / "runs" / cfg.variant / f"seed{cfg.seed}"
+        rdir.mkdir(parents=True, exist_ok=True)
+        (rdir / "run_id").write_text(run_id)
+        return types.SimpleNamespace(run_id=run_id, run_dir=rdir, metrics={})
+
+    def evaluate(self, run, *, project_dir=None, progress=True, **_):
+        run_id = (Path(run) / "run_id").read_text()
+        client = tracking.setup(project_dir)
+        r = client.get_run(run_id)
+        key = (r.data.tags["variant"], int(r.data.tags["seed"]))
+        self.evaluated.append(run_id)
+        if key in self.interrupt_eval:
+            self.interrupt_eval.discard(key)
+            raise KeyboardInterrupt
+        metrics = {"test/ads_auc": 0.5 + 0.01 * key[1], "test_icp/ads_auc": 0.6}
+        for k, v in metrics.items():
+            client.log_metric(run_id, k, v, step=0)
+        return types.SimpleNamespace(metrics=metrics, run_id=run_id)
+
+
+@pytest.fixture(scope="module")
+def empty_store(tmp_path_factory) -> Path:
+    """An empty, migrated MLflow SQLite store, made once (migrating one takes seconds)."""
+    root = tmp_path_factory.mktemp("template")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
+        mp.chdir(root)
+        tracking.setup(root).search_experiments()
+    return root / "mlflow.db"
+
+
+@pytest.fixture
+def fakes(tmp_path, monkeypatch, empty_store):
+    shutil.copy(empty_store, tmp_path / "mlflow.db")
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    monkeypatch.chdir(tmp_path)
+    f = Fakes(tmp_path)
+    import cloudpose.evaluate
+    import cloudpose.train
+
+    try:
+        import cloudpose.data.cache as cache
+    except ImportError:  # the data pipeline has not landed: stand in a module
+        cache = types.ModuleType("cloudpose.data.cache")
+        monkeypatch.setitem(sys.modules, "cloudpose.data.cache", cache)
+    monkeypatch.setattr(cache, "data_fingerprint", f.data_fingerprint, raising=False)
+    monkeypatch.setattr(cache, "ensure_dataset", lambda *a, **k: None, raising=False)
+    monkeypatch.setattr(cloudpose.train, "train", f.train)
+    monkeypatch.setattr(cloudpose.evaluate, "evaluate", f.evaluate)
+    return f
+
+
+def _run(tmp_path, seeds=2, **kw):
+    lines = []
+    res = ablate.run_group("loss", "smoke", seeds, tmp_path, progress=False, report=False,
+                           echo=lines.append, **kw)  # fmt: skip
+    return res, lines
+
+
+def test_finished_runs_are_not_retrained(fakes, tmp_path):
+    res, lines = _run(tmp_path)
+    assert sorted(fakes.trained) == [("l2", 1), ("l2", 2), ("shared-0", 1), ("shared-0", 2)]
+    assert [r.status for r in res.runs] == ["trained"] * 4
+    assert "4 runs" in lines[0] and "4 to run" in lines[0]
+    fakes.trained.clear()
+    res, lines = _run(tmp_path)
+    assert fakes.trained == []
+    assert [r.status for r in res.runs] == ["skipped"] * 4
+    log = (tmp_path / "runs" / "ablate-loss-smoke.log").read_text().splitlines()
+    assert len(log) == 8
+    assert all("\tskipped\t" in line for line in log[4:])
+    assert "l2/smoke/seed2" in log[3] and "test_ads_auc=52.0" in log[3]
+
+
+def test_a_missing_seed_is_trained(fakes, tmp_path):
+    _run(tmp_path, seeds=1)
+    fakes.trained.clear()
+    res, _ = _run(tmp_path, seeds=[1, 2])
+    assert sorted(fakes.trained) == [("l2", 2), ("shared-0", 2)]
+    assert sorted((r.variant, r.seed, r.status) for r in res.runs) == [
+        ("l2", 1, "skipped"), ("l2", 2, "trained"),
+        ("shared-0", 1, "skipped"), ("shared-0", 2, "trained"),
+    ]  # fmt: skip
+
+
+def test_interrupted_suite_resumes_where_it_stopped(fakes, tmp_path):
+    fakes.interrupt_eval.add(("l2", 1))  # Ctrl-C during the evaluation of the third run
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path)
+    assert fakes.trained == [("shared-0", 1), ("shared-0", 2), ("l2", 1)]
+    fakes.trained.clear()
+    res, _ = _run(tmp_path)
+    # the interrupted run is trained (= resumed: the same MLflow run) and evaluated again
+    assert fakes.trained == [("l2", 1), ("l2", 2)]
+    assert [r.status for r in res.runs] == ["skipped", "skipped", "trained", "trained"]
+    l2_1 = next(r for r in res.runs if (r.variant, r.seed) == ("l2", 1))
+    assert l2_1.run_id == fakes.runs[("l2", 1, fakes.fingerprint)]
+    log = (tmp_path / "runs" / "ablate-loss-smoke.log").read_text()
+    assert "\tinterrupted\t" in log
+
+
+def test_other_data_is_trained_again(fakes, tmp_path):
+    _run(tmp_path, seeds=1)
+    fakes.trained.clear()
+    fakes.fingerprint = "otherdata9999"
+    _run(tmp_path, seeds=1)
+    assert sorted(fakes.trained) == [("l2", 1), ("shared-0", 1)]
+
+
+def test_failure_stops_or_keeps_going(fakes, tmp_path):
+    fakes.fail_train.add(("shared-0", 2))
+    with pytest.raises(FloatingPointError):
+        _run(tmp_path)
+    assert fakes.trained == [("shared-0", 1), ("shared-0", 2)]
+    fakes.trained.clear()
+    res, lines = _run(tmp_path, keep_going=True)
+    assert fakes.trained == [("shared-0", 2), ("l2", 1), ("l2", 2)]
+    assert [r.status for r in res.runs] == ["skipped", "failed", "trained", "trained"]
+    assert any("FAILED" in line for line in lines)
+    assert (
+        "error=FloatingPointError: loss became nan"
+        in (tmp_path / "runs" / "ablate-loss-smoke.log").read_text()
+    )
+
+
+def test_eta_from_earlier_runs(fakes, tmp_path):
+    _run(tmp_path, seeds=1)
+    fakes.trained.clear()
+    _, lines = _run(tmp_path, seeds=[1, 2])
+    # before any run of this call finished, the estimate comes from time/epoch_s of earlier runs
+    first = next(line for line in lines if "training + evaluation" in line)
+    assert "2 run(s) left" in first and "unknown" not in first
+
+
+def test_seed_list():
+    assert ablate.seed_list(3) == [1, 2, 3]
+    assert ablate.seed_list([3, 1, 3]) == [1, 3]
+    with pytest.raises(ValueError, match="seeds"):
+        ablate.seed_list(0)
+
+
+def test_unknown_group_lists_valid_ones(tmp_path):
+    with pytest.raises(ValueError, match="valid groups"):
+        ablate.run_group("nope", "smoke", 1, tmp_path, report=False)

@@ -1,0 +1,416 @@
+"""Reports from a throwaway MLflow store holding synthetic runs (numbers from a seeded generator).
+
+Every expected number is computed here from the generated values, independently of
+cloudpose.report; the verdicts are checked on constructed cases.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from PIL import Image
+from scipy import stats as sps
+
+from cloudpose.config import get_group
+from cloudpose.report import stats
+
+PRESET = "smoke"
+DATA = "f00dfeed1234567890"
+COMMIT = "abc1234def"
+COMMAND = "cloudpose report --all --preset smoke"
+SEEDS = (1, 2, 3)
+METRICS = ("ad_auc", "ads_auc", "ads_lt_1cm", "rot_lt_10deg", "rot_lt_15deg", "rot_lt_20deg",
+           "trans_lt_1cm")  # fmt: skip
+CLASSES = [
+    line.strip()
+    for line in (Path(__file__).parents[1] / "cloudpose/resources/classes.txt").read_text().split()
+    if line.strip()
+]
+
+# Constructed per-seed offsets of each variant's test metrics from shared-0 (fractions):
+#   shared-1: clearly worse than shared-0 -> "separate beats shared 1" supported;
+#   l2: clearly better -> "geodesic beats L2" contradicted;
+#   quaternion: differences +0.01, -0.01, +0.002 -> CI contains 0 -> not resolved;
+#   shared-all-2x: one seed only -> not resolved.
+OFFSETS = {
+    "shared-1": (-0.10, -0.11, -0.09),
+    "l2": (0.10, 0.12, 0.11),
+    "quaternion": (0.01, -0.01, 0.002),
+}
+
+
+def _test_set(m: int = 240) -> pd.DataFrame:
+    """The test instances every run is evaluated on: occlusion, class, misses."""
+    rng = np.random.default_rng(99)
+    occ = rng.uniform(0.0, 1.0, m)
+    occ[:3] = [0.0, 0.999, 1.0]  # the edges: first bin, last bin, last bin (1.0 included)
+    return pd.DataFrame({"occlusion": occ, "miss": rng.uniform(size=m) < 0.05,
+                         "cls_id": rng.integers(1, 22, m)})  # fmt: skip
+
+
+TEST_SET = _test_set()
+
+
+def _instances(rng: np.random.Generator) -> pd.DataFrame:
+    m = len(TEST_SET)
+    occ, miss, cls = (TEST_SET[c].to_numpy() for c in ("occlusion", "miss", "cls_id"))
+    net_ads = rng.exponential(0.012, m) * (1 + 2 * occ)
+    icp_ads = net_ads * rng.uniform(0.2, 0.9, m)
+    net_ad = net_ads * rng.uniform(1.0, 3.0, m)
+    icp_ad = icp_ads * rng.uniform(1.0, 2.0, m)
+    rot = rng.gamma(2.0, 6.0, m)
+    df = pd.DataFrame({
+        "frame_id": [f"0048/{i // 5:06d}" for i in range(m)], "instance": np.arange(m) % 5,
+        "cls_id": cls, "class": [CLASSES[c - 1] for c in cls], "occlusion": occ,
+        "points": rng.integers(50, 2000, m), "miss": miss,
+        "net_ad": net_ad, "net_ads": net_ads, "net_rot_err_deg": rot,
+        "net_trans_err": net_ads * 0.8,
+        "icp_ad": icp_ad, "icp_ads": icp_ads, "icp_rot_err_deg": rot * 0.7,
+        "icp_trans_err": icp_ads * 0.8, "icp_fitness": rng.uniform(0.5, 1, m),
+    })  # fmt: skip
+    for c in ("net_ad", "net_ads", "net_rot_err_deg", "net_trans_err", "icp_ad", "icp_ads",
+              "icp_rot_err_deg", "icp_trans_err"):  # fmt: skip
+        df.loc[miss, c] = np.inf
+    return df
+
+
+def _make_store(root: Path) -> dict:
+    """Synthetic runs of every variant of every group; returns what was logged."""
+    from mlflow.entities import Metric, Param
+
+    from cloudpose import tracking
+
+    client = tracking.setup(root)
+    rng = np.random.default_rng(1234)
+    logged: dict = {"metrics": {}, "instances": {}, "params": {}, "history": {}}
+    base = {m: rng.uniform(0.4, 0.8, len(SEEDS)) for m in METRICS}
+    seen = set()
+    for gname in ("shared", "rotation", "loss"):
+        for variant in get_group(gname).members:
+            if variant in seen:
+                continue
+            seen.add(variant)
+            seeds = (1,) if variant == "shared-all-2x" else SEEDS
+            exp = tracking.experiment_id(client, gname, root)
+            n_params = int(rng.integers(1_000_000, 4_000_000))
+            logged["params"][variant] = n_params
+            for i, seed in enumerate(seeds):
+                tags = {"variant": variant, "group": gname, "preset": PRESET, "seed": str(seed),
+                        "data": DATA, "git_commit": COMMIT, "run_dir": str(root / variant)}  # fmt: skip
+                run = client.create_run(exp, tags=tags, run_name=f"{variant}/{PRESET}/seed{seed}")
+                rid = run.info.run_id
+                params = [Param("model.parameters", str(n_params)), Param("data.root", ""),
+                          Param("data.synth_seed", "0")]  # fmt: skip
+                ms = {}
+                for m in METRICS:
+                    if variant in OFFSETS:
+                        v = base[m][i] + OFFSETS[variant][i]
+                    elif variant == "shared-0":
+                        v = base[m][i]
+                    else:
+                        v = base[m][i] + rng.normal(0, 0.03)
+                    ms[f"test/{m}"] = v
+                    ms[f"test_icp/{m}"] = v + 0.1 + rng.normal(0, 0.005)  # ICP clearly better
+                    ms[f"test_icp/class_mean/{m}"] = v + 0.05
+                if variant == "shared-0":
+                    for c in CLASSES[:-1]:  # the last class has no test instance
+                        for m in ("ad_auc", "ads_auc", "ads_lt_1cm"):
+                            ms[f"test_icp/class/{c}/{m}"] = rng.uniform(0.5, 1.0)
+                hist = {"train/loss": np.exp(-np.arange(1, 6) / 3) + rng.uniform(0, .1, 5),
+                        "val/ads_auc": np.linspace(0.2, 0.7, 5) + rng.uniform(0, .05, 5)}  # fmt: skip
+                metrics = [Metric(k, v, 0, 0) for k, v in ms.items()]
+                metrics += [Metric(k, float(v), e, e + 1) for k, vals in hist.items()
+                            for e, v in enumerate(vals)]  # fmt: skip
+                client.log_batch(rid, metrics=metrics, params=params)
+                df = _instances(rng)
+                path = root / "logged" / rid / "instances.csv"
+                path.parent.mkdir(parents=True)
+                df.to_csv(path, index=False)
+                client.log_artifact(rid, str(path), artifact_path="eval/test")
+                client.set_terminated(rid, "FINISHED")
+                logged["metrics"][(variant, seed)] = ms
+                logged["instances"][(variant, seed)] = df
+                logged["history"][(variant, seed)] = hist
+    # a run on other data and an unfinished run: both must stay out of the report
+    exp = tracking.experiment_id(client, "shared", root)
+    other = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
+                                         "data": "0therdata00", "git_commit": "zzz"})  # fmt: skip
+    client.log_metric(other.info.run_id, "test/ads_auc", 0.0)
+    client.set_terminated(other.info.run_id, "FINISHED")
+    running = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
+                                           "data": DATA, "git_commit": "yyy"})  # fmt: skip
+    client.log_metric(running.info.run_id, "test/ads_auc", 0.0)
+    return logged
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    root = tmp_path_factory.mktemp("store")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
+        mp.chdir(root)
+        logged = _make_store(root)
+        from cloudpose.report import render_reports
+
+        with pytest.warns(UserWarning, match="other data"):
+            result = render_reports(PRESET, None, project_dir=root, command=COMMAND)
+        yield root, logged, result
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    return pd.read_csv(path, comment="#")
+
+
+def _ms(values) -> tuple[float, float]:
+    v = np.asarray(values, float)
+    return 100 * v.mean(), 100 * v.std(ddof=1)
+
+
+# ---------------------------------------------------------------- stats
+
+
+def test_difference_paired_matches_scipy_ttest_rel():
+    rng = np.random.default_rng(7)
+    a = rng.normal(0.7, 0.02, 5)
+    b = a - rng.normal(0.03, 0.01, 5)
+    d = stats.difference(dict(enumerate(a)), dict(enumerate(b)))
+    ci = sps.ttest_rel(a, b).confidence_interval(0.95)
+    assert d.paired and d.n == 5
+    assert d.mean == pytest.approx(np.mean(a - b))
+    assert (d.low, d.high) == pytest.approx((ci.low, ci.high))
+
+
+def test_difference_unpaired_is_welch():
+    a = {1: 0.70, 2: 0.72, 3: 0.69}
+    b = {4: 0.60, 5: 0.66, 6: 0.61, 7: 0.64}
+    d = stats.difference(a, b)
+    ci = sps.ttest_ind(list(a.values()), list(b.values()), equal_var=False).confidence_interval()
+    assert not d.paired
+    assert (d.low, d.high) == pytest.approx((ci.low, ci.high))
+
+
+@pytest.mark.parametrize(
+    ("a", "b", "expect", "verdict"),
+    [
+        ({1: 0.80, 2: 0.82, 3: 0.81}, {1: 0.70, 2: 0.71, 3: 0.69}, 1, stats.SUPPORTED),
+        ({1: 0.60, 2: 0.62, 3: 0.61}, {1: 0.70, 2: 0.71, 3: 0.69}, 1, stats.CONTRADICTED),
+        ({1: 0.71, 2: 0.69, 3: 0.705}, {1: 0.70, 2: 0.70, 3: 0.70}, 1, stats.UNRESOLVED),
+        ({1: 0.99}, {1: 0.10}, 1, stats.UNRESOLVED),  # one seed: never resolved
+        ({}, {1: 0.1, 2: 0.2}, 1, stats.UNRESOLVED),
+        # errors, smaller is better: a clearly smaller supports the claim
+        ({1: 1.0, 2: 1.1, 3: 0.9}, {1: 2.0, 2: 2.1, 3: 2.05}, -1, stats.SUPPORTED),
+    ],
+)
+def test_verdicts_on_constructed_cases(a, b, expect, verdict):
+    assert stats.difference(a, b, expect=expect).verdict == verdict
+
+
+def test_mean_std_and_format():
+    ms = stats.mean_std([0.5, 0.7, np.nan, None])
+    assert ms == pytest.approx((0.6, np.std([0.5, 0.7], ddof=1), 2))
+    assert stats.format_mean_std(ms) == "60.0 ± 14.1"
+    assert stats.format_mean_std(stats.mean_std([0.123])) == "12.3"
+    assert stats.format_mean_std(stats.mean_std([])) == "–"
+
+
+# ---------------------------------------------------------------- tables
+
+
+def test_table3_mean_std_and_paper_beside(rendered):
+    _root, logged, result = rendered
+    out = result.out_dir
+    df = _read_csv(out / "table3_shared_layers.csv").set_index("variant")
+    paper = pd.read_csv(Path(__file__).parents[1] / "cloudpose/resources/paper/"
+                        "table3_shared_layers.csv").set_index("shared_layers")  # fmt: skip
+    for variant in get_group("shared").members:
+        seeds = [s for (v, s) in logged["metrics"] if v == variant]
+        for m in ("ad_auc", "ads_auc", "rot_lt_10deg", "trans_lt_1cm"):
+            vals = [logged["metrics"][(variant, s)][f"test/{m}"] for s in seeds]
+            assert df.loc[variant, f"{m}_mean"] == pytest.approx(100 * np.mean(vals), abs=1e-3)
+            if len(vals) > 1:
+                assert df.loc[variant, f"{m}_std"] == pytest.approx(_ms(vals)[1], abs=1e-3)
+            else:
+                assert math.isnan(df.loc[variant, f"{m}_std"])
+        assert df.loc[variant, "seeds"] == len(seeds)
+        assert df.loc[variant, "parameters"] == logged["params"][variant]
+    assert df.loc["shared-0", "paper_ad_auc"] == pytest.approx(paper.loc["none", "AD_auc"])
+    assert df.loc["shared-all", "paper_rot_lt_10deg"] == pytest.approx(
+        paper.loc["all", "rot_err_lt_10deg"]
+    )
+    # Markdown: the formatted mean ± std of ours next to the paper's figure in the same row
+    md = (out / "table3_shared_layers.md").read_text()
+    vals = [logged["metrics"][("shared-0", s)]["test/ad_auc"] for s in SEEDS]
+    mean, std = _ms(vals)
+    row = next(line for line in md.splitlines() if "| shared-0 |" in line)
+    assert f"{mean:.1f} ± {std:.1f} | {paper.loc['none', 'AD_auc']:.1f}" in row
+    assert f"{logged['params']['shared-0']:,}" in row
+    tex = (out / "table3_shared_layers.tex").read_text()
+    assert "\\toprule" in tex and "\\bottomrule" in tex and "$\\pm$" in tex
+
+
+def test_table1_ours_and_paper_rows(rendered):
+    _, logged, result = rendered
+    md = (result.out_dir / "table1_overall.md").read_text()
+    assert "paper, real YCB-Video" in md and "synthetic" in md and DATA[:10] in md
+    for paper_row in ("| Ours w/o ICP | paper", "| DF + ICP | paper", "| PC | paper"):
+        assert paper_row in md
+    assert "82.7" in md and "94.7" in md and "90.3" in md  # the paper's "Ours" row
+    df = _read_csv(result.out_dir / "table1_overall.csv")
+    ours = df[df["source"] != "paper"].set_index("icp")
+    for icp, prefix in ((0, "test"), (1, "test_icp")):
+        for m in ("ad_auc", "ads_auc", "ads_lt_1cm"):
+            vals = [logged["metrics"][("shared-0", s)][f"{prefix}/{m}"] for s in SEEDS]
+            mean, std = _ms(vals)
+            assert ours.loc[icp, f"{m}_mean"] == pytest.approx(mean, abs=1e-3)
+            assert ours.loc[icp, f"{m}_std"] == pytest.approx(std, abs=1e-3)
+            assert f"{mean:.1f} ± {std:.1f}" in md
+
+
+def test_table2_per_class(rendered):
+    _, logged, result = rendered
+    df = _read_csv(result.out_dir / "table2_per_class.csv").set_index("object")
+    paper = pd.read_csv(Path(__file__).parents[1] / "cloudpose/resources/paper/"
+                        "table2_per_class.csv").set_index("object")  # fmt: skip
+    cls = CLASSES[3]
+    vals = [logged["metrics"][("shared-0", s)][f"test_icp/class/{cls}/ads_auc"] for s in SEEDS]
+    assert df.loc[cls, "ads_auc_mean"] == pytest.approx(100 * np.mean(vals), abs=1e-3)
+    assert df.loc[cls, "paper_ads_auc"] == pytest.approx(paper.loc[cls, "Ours_ADS"])
+    assert math.isnan(df.loc[CLASSES[-1], "ads_auc_mean"])  # no test instance: no number
+    md = (result.out_dir / "table2_per_class.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith(f"| {CLASSES[-1]} "))
+    assert "| – | – | – |" in row
+
+
+def test_table4_rotation_and_loss(rendered):
+    _, logged, result = rendered
+    df = _read_csv(result.out_dir / "table4_rotation.csv")
+    row = df[(df["ablation"] == "loss") & (df["variant"] == "l2")].iloc[0]
+    vals = [logged["metrics"][("l2", s)]["test/rot_lt_15deg"] for s in SEEDS]
+    assert row["rot_lt_15deg_mean"] == pytest.approx(100 * np.mean(vals), abs=1e-3)
+    assert row["paper_rot_lt_15deg"] == pytest.approx(52.5)
+    assert set(df["variant"]) == {"shared-0", "quaternion", "rot6d", "l2"}
+
+
+def test_runs_on_other_data_or_unfinished_are_left_out(rendered):
+    _, _, result = rendered
+    assert result.runs.data == DATA
+    assert {r.git_commit for r in result.runs.records} == {COMMIT}
+
+
+# ---------------------------------------------------------------- claims
+
+
+def test_claims_verdicts(rendered):
+    _, logged, result = rendered
+    df = _read_csv(result.out_dir / "claims.csv")
+
+    def verdict(other, metric):
+        return df[(df["other"] == other) & (df["metric"] == metric)].iloc[0]
+
+    assert verdict("shared-1/test", "ad_auc")["verdict"] == stats.SUPPORTED
+    assert verdict("l2/test", "rot_lt_10deg")["verdict"] == stats.CONTRADICTED
+    assert verdict("quaternion/test", "rot_lt_10deg")["verdict"] == stats.UNRESOLVED
+    one = verdict("shared-all-2x/test", "ads_auc")
+    assert one["verdict"] == stats.UNRESOLVED and one["seeds"] == 1
+    icp = verdict("shared-0/test", "ads_auc")
+    assert icp["verdict"] == stats.SUPPORTED
+    # the measured difference and CI, recomputed here: paired t over the three seeds
+    a = [logged["metrics"][("shared-0", s)]["test/ad_auc"] for s in SEEDS]
+    b = [logged["metrics"][("shared-1", s)]["test/ad_auc"] for s in SEEDS]
+    ci = sps.ttest_rel(a, b).confidence_interval(0.95)
+    row = verdict("shared-1/test", "ad_auc")
+    assert row["diff_pp"] == pytest.approx(100 * np.mean(np.subtract(a, b)), abs=1e-3)
+    assert (row["ci_low_pp"], row["ci_high_pp"]) == pytest.approx(
+        (100 * ci.low, 100 * ci.high), abs=1e-3
+    )
+    assert row["paper_diff_pp"] == pytest.approx(76.0 - 75.2)
+    md = (result.out_dir / "claims.md").read_text()
+    assert "separate (none) beats shared 1" in md and "**contradicted**" in md
+
+
+# ---------------------------------------------------------------- figures
+
+
+def test_occlusion_bins_and_counts(rendered):
+    _, logged, result = rendered
+    df = _read_csv(result.out_dir / "occlusion.csv")
+    for method in ("net", "icp"):
+        sub = df[df["method"] == method].sort_values("bin_low_pct")
+        accs, counts = [], None
+        for s in SEEDS:
+            t = logged["instances"][("shared-0", s)]
+            b = np.minimum((t["occlusion"].to_numpy() * 10).astype(int), 9)
+            counts = np.bincount(b, minlength=10)
+            hit = t[f"{method}_ads"].to_numpy() < 0.01
+            accs.append([100 * hit[b == i].mean() if (b == i).any() else np.nan
+                         for i in range(10)])  # fmt: skip
+        np.testing.assert_array_equal(sub["count"].to_numpy(), counts)
+        np.testing.assert_allclose(sub["accuracy_mean_pct"].to_numpy(),
+                                   np.nanmean(accs, axis=0), atol=0.01)  # fmt: skip
+        assert list(sub["bin_low_pct"]) == list(range(0, 100, 10))
+
+
+def test_pngs_exist_and_are_not_blank(rendered):
+    _, _, result = rendered
+    names = ["occlusion.png"] + [f"{k}_{g}.png" for k in ("occlusion", "curves", "training",
+                                                          "rot_err")
+                                 for g in ("shared", "rotation", "loss")]  # fmt: skip
+    for name in names:
+        path = result.out_dir / name
+        assert path.exists(), name
+        img = Image.open(io.BytesIO(path.read_bytes())).convert("RGB")
+        assert img.width >= 600 and img.height >= 300
+        colours = len(np.unique(np.asarray(img.resize((200, 100))).reshape(-1, 3), axis=0))
+        assert colours > 20, f"{name} looks blank ({colours} colours)"
+
+
+# ---------------------------------------------------------------- provenance, index, MLflow
+
+
+def test_every_report_names_command_preset_data_seeds_commit(rendered):
+    _, _, result = rendered
+    files = [p for p in result.out_dir.iterdir() if p.suffix in (".md", ".tex", ".csv")]
+    assert len(files) >= 15
+    for p in files:
+        text = p.read_text()
+        first = text.splitlines()[2] if p.suffix == ".md" and p.name != "README.md" else text
+        for needle in (COMMAND, f"preset {PRESET}", DATA[:10], COMMIT):
+            assert needle in text, (p.name, needle)
+        if p.suffix in (".tex", ".csv"):
+            assert text.startswith(("% made by", "# made by")), p.name
+        elif p.name != "README.md":
+            assert first.startswith("_made by"), p.name
+    t3 = (result.out_dir / "table3_shared_layers.md").read_text()
+    assert "seeds 1, 2, 3" in t3
+
+
+def test_readme_index_lists_every_file(rendered):
+    _, _, result = rendered
+    readme = (result.out_dir / "README.md").read_text()
+    for p in result.out_dir.iterdir():
+        if p.name != "README.md":
+            assert f"]({p.name})" in readme, p.name
+
+
+def test_report_runs_logged_and_replaced(rendered):
+    root, _, result = rendered
+    from cloudpose import tracking
+    from cloudpose.report import render_reports
+
+    client = tracking.setup(root)
+    exp = client.get_experiment_by_name("cloudpose-shared")
+    first = result.mlflow_runs["shared"]
+    arts = {a.path for a in client.list_artifacts(first)}
+    assert {"table3_shared_layers.md", "claims.md", "occlusion.png", "curves_shared.png"} <= arts
+    run = client.get_run(first)
+    assert run.info.run_name == f"report/shared/{PRESET}"
+    assert "variant" not in run.data.tags  # never mistaken for a training run
+    with pytest.warns(UserWarning, match="other data"):
+        again = render_reports(PRESET, ["shared"], project_dir=root, command=COMMAND)
+    live = client.search_runs([exp.experiment_id], "tags.kind = 'report'")
+    assert [r.info.run_id for r in live] == [again.mlflow_runs["shared"]]
