@@ -226,7 +226,8 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
                 if "renderer" not in _worker:
                     from cloudpose.data.render import Renderer
 
-                    _worker["renderer"] = Renderer(ds.models())
+                    # copies: the reader's arrays are read-only, Open3D wants writeable ones
+                    _worker["renderer"] = Renderer({c: p.copy() for c, p in ds.models().items()})
                 renderer = _worker["renderer"]
         rng = np.random.default_rng([settings["fps_seed"], zlib.crc32(fid.encode())])
         segs = extract_segments(

@@ -38,6 +38,7 @@ field; the segment pipeline renders it when it is absent.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -630,7 +631,8 @@ def frame_id(split: str, index: int) -> str:
 
 
 class _Generator:
-    """Holds what every frame needs (renderer with meshes, models, resting poses)."""
+    """Holds what every frame needs (renderer with meshes, models, resting poses); build it
+    with :func:`_generator` (one per process)."""
 
     def __init__(self) -> None:
         from cloudpose.data.render import Renderer, load_packaged_models
@@ -638,6 +640,11 @@ class _Generator:
         self.models = load_packaged_models()
         self.renderer = Renderer(self.models)
         self.resting = {c: resting_poses(p) for c, p in self.models.items()}
+
+
+@functools.cache
+def _generator() -> _Generator:
+    return _Generator()
 
 
 def generate_frame(
@@ -653,7 +660,7 @@ def generate_frame(
     Objects with fewer than :data:`MIN_VISIBLE_PIXELS` visible pixels are taken out and the
     scene rendered again.
     """
-    gen = generator or _Generator()
+    gen = generator or _generator()
     rng = np.random.default_rng([seed, SPLIT_CODES[split], index])
     K, shape = YCB_INTRINSICS, IMAGE_SHAPE
     while True:
@@ -720,7 +727,7 @@ def _write(root: Path, f: SynthFrame) -> None:
 
 def _init_worker() -> None:
     global _worker_gen
-    _worker_gen = _Generator()
+    _worker_gen = _generator()
 
 
 def _work(args: tuple[str, str, int, int, bool, bool]) -> str:
@@ -821,7 +828,7 @@ def synthesize(
 
     bar = tqdm(total=len(jobs), desc="synth", unit="frame", disable=not progress or not jobs)
     if workers <= 1:
-        gen = _Generator() if jobs else None
+        gen = _generator() if jobs else None
         for root_s, s, i, *_ in jobs:
             _write(Path(root_s), generate_frame(s, i, seed, noise, uniform_rotation, gen))
             bar.update()

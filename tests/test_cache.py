@@ -1,0 +1,157 @@
+"""Segment cache: round trip, keys that change with data and settings, the dataset entry point."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cloudpose.config import DataConfig
+from cloudpose.data import cache
+from cloudpose.data.segments import Segment
+from cloudpose.data.synth import synthesize
+
+REAL = Path(__file__).parent / "data" / "ycb_real"
+CFG = DataConfig(train_frames=2, test_frames=1, n_fps=64)
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory) -> Path:
+    """A project folder whose synthetic default data (2 train, 1 test frames) exists."""
+    d = tmp_path_factory.mktemp("project")
+    synthesize(cache.synthetic_root(CFG, d), 2, 1, workers=1, progress=False)
+    return d
+
+
+def _segment(i: int, gt: bool = True) -> Segment:
+    rng = np.random.default_rng(i)
+    return Segment(
+        rng.normal(size=(8, 3)).astype(np.float32),
+        5 + i,
+        1 + i,
+        np.eye(3, dtype=np.float32) if gt else None,
+        np.array([0, 0, 1 + i], np.float32) if gt else None,
+        0.1 * i if gt else float("nan"),
+        f"00{i:02d}/000001",
+        i,
+        i != 1,
+    )
+
+
+def test_segment_set_round_trip_and_subset(tmp_path):
+    s = cache.SegmentSet.from_segments([_segment(0), _segment(1), _segment(2, gt=False)], 8)
+    s.key = "abc"
+    assert len(s) == 3
+    assert s.points.shape == (3, 8, 3) and s.points.dtype == np.float32
+    assert np.isnan(s.R[2]).all() and np.isnan(s.t[2]).all() and np.isnan(s.occlusion[2])
+    path = tmp_path / "x.npz"
+    s.save(path)
+    back = cache.SegmentSet.load(path)
+    assert back.key == "abc"
+    for name in cache.SegmentSet._ARRAYS:
+        a, b = getattr(s, name), getattr(back, name)
+        assert a.dtype == b.dtype, name
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    sub = back.subset(back.valid)
+    assert len(sub) == 2 and sub.frame_id.tolist() == ["0000/000001", "0002/000001"]
+    assert len(back.subset(np.array([2]))) == 1 and len(back.subset(slice(0, 2))) == 2
+    both = cache.SegmentSet.concatenate([back, sub])
+    assert len(both) == 5
+    empty = cache.SegmentSet.from_segments([], 8)
+    assert empty.points.shape == (0, 8, 3)
+
+
+def test_load_rejects_bad_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match="segment cache"):
+        cache.SegmentSet.load(tmp_path / "none.npz")
+    np.savez(tmp_path / "bad.npz", points=np.zeros((1, 4, 3)))
+    with pytest.raises(ValueError, match="lacks fields"):
+        cache.SegmentSet.load(tmp_path / "bad.npz")
+
+
+def test_prepare_and_keys(project, tmp_path):
+    root = tmp_path / "ds"
+    shutil.copytree(cache.synthetic_root(CFG, project), root)
+    cdir = tmp_path / "cache"
+    p = cache.prepare(root, "train", CFG, cdir, workers=1, progress=False)
+    s = cache.SegmentSet.load(p)
+    assert p.name.startswith("ds-train-") and s.key in p.name
+    assert len(s) >= 6 and s.valid.all()
+    assert s.points.shape[1:] == (64, 3)
+    assert set(s.frame_id.tolist()) == {"0000/000001", "0000/000002"}
+    assert np.isfinite(s.occlusion).all() and ((s.occlusion >= 0) & (s.occlusion <= 1)).all()
+    # t of the GT pose lies near the segment (object centres are within 0.2 m of their points)
+    assert (np.linalg.norm(s.points.mean(1) - s.t, axis=1) < 0.2).all()
+    # cached: same path, file not rewritten
+    mtime = p.stat().st_mtime_ns
+    assert cache.prepare(root, "train", CFG, cdir, workers=1, progress=False) == p
+    assert p.stat().st_mtime_ns == mtime
+    # the key follows settings ...
+    key = cache.cache_key(root, "train", CFG)
+    for change in ({"n_fps": 32}, {"outlier_radius": 0.1}):
+        assert cache.cache_key(root, "train", dataclasses.replace(CFG, **change)) != key
+    assert cache.cache_key(root, "train", dataclasses.replace(CFG, train_frames=99)) == key
+    with pytest.raises(ValueError, match="valid segmentations"):
+        cache.cache_key(root, "train", dataclasses.replace(CFG, segmentation="nope"))
+    # ... the split and the frame files
+    assert cache.cache_key(root, "test", CFG) != key
+    depth = root / "data" / "0000" / "000002-depth.png"
+    st = depth.stat()
+    os.utime(depth, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    key2 = cache.cache_key(root, "train", CFG)
+    assert key2 != key
+    p2 = cache.prepare(root, "train", CFG, cdir, workers=1, progress=False)
+    assert p2 != p and key2 in p2.name
+    (root / "image_sets" / "train.txt").write_text("0000/000001\n")
+    assert cache.cache_key(root, "train", CFG) not in (key, key2)
+    # the FPS start is seeded: the same data gives the same segments
+    p3 = cache.prepare(root, "train", CFG, tmp_path / "cache3", workers=1, progress=False)
+    s3 = cache.SegmentSet.load(p3)
+    first = s.frame_id == "0000/000001"
+    assert np.array_equal(s3.points, s.points[first])
+
+
+def test_ensure_dataset_synthetic(project):
+    train, test = cache.ensure_dataset(CFG, project, workers=1, progress=False)
+    assert set(train.frame_id.tolist()) == {"0000/000001", "0000/000002"}
+    assert set(test.frame_id.tolist()) == {"1000/000001"}
+    assert train.points.shape[1] == 64
+    fp = cache.data_fingerprint(CFG, project)
+    assert fp == cache.data_fingerprint(CFG, project) and len(fp) == 16
+    assert cache.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
+    assert cache.synthetic_root(CFG, project).name == "synth-seed0"
+    cfg2 = dataclasses.replace(CFG, noise=False, uniform_rotation=True, synth_seed=2)
+    assert cache.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise"
+
+
+def test_ensure_dataset_real_root(tmp_path):
+    """A real root is read, never written: alone pixels are rendered, caches go elsewhere."""
+    root = tmp_path / "ycb"
+    shutil.copytree(REAL / "data", root / "data")
+    shutil.copy(REAL / "classes.txt", root / "classes.txt")
+    (root / "image_sets").mkdir()
+    (root / "image_sets" / "train.txt").write_text("0000/000001\n")
+    (root / "keyframe.txt").write_text("0000/000001\n")
+    before = sorted(p.relative_to(root) for p in root.rglob("*"))
+    cfg = DataConfig(root=str(root), n_fps=128)
+    train, test = cache.ensure_dataset(cfg, tmp_path / "proj", workers=1, progress=False)
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before
+    assert len(train) == 3 and train.cls_id.tolist() == [8, 14, 21]
+    assert np.array_equal(train.points, test.points)
+    assert np.isfinite(train.occlusion).all()
+    assert list((tmp_path / "proj" / "data" / "cache").glob("ycb-*.npz"))
+    with pytest.raises(FileNotFoundError, match=r"data\.root"):
+        cache.ensure_dataset(DataConfig(root=str(tmp_path / "nope")), tmp_path, progress=False)
+
+
+def test_occlusion_histogram(tmp_path):
+    s = cache.SegmentSet.from_segments([_segment(i) for i in range(3)], 8)
+    s.occlusion = np.array([0.0, 0.15, 1.0], np.float32)
+    png = tmp_path / "h.png"
+    counts = cache.occlusion_histogram(s, png, "test")
+    assert counts.tolist() == [1, 1, 0, 0, 0, 0, 0, 0, 0, 1]
+    assert png.stat().st_size > 1000

@@ -1,0 +1,201 @@
+"""Segment pipeline: FPS (fast vs reference), back-projection, outlier filter, fill, misses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pykdtree.kdtree import KDTree
+
+from cloudpose.conventions import YCB_INTRINSICS, transform_points
+from cloudpose.data import segments as sg
+from cloudpose.data.ycb import Frame, YCBVideo
+
+REAL = Path(__file__).parent / "data" / "ycb_real"
+
+
+# --------------------------------------------------------------------------- FPS
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("n", [1, 2, 50, 1023, 1024, 3000])
+def test_fps_fast_equals_reference(n, dtype):
+    rng = np.random.default_rng(n)
+    pts = (rng.normal(size=(n, 3)) * [0.05, 0.03, 0.02] + [0.1, -0.2, 0.9]).astype(dtype)
+    for start in {0, n - 1, int(rng.integers(n))}:
+        fast = sg.farthest_point_sampling(pts, 1024, start)
+        ref = sg.farthest_point_sampling_reference(pts, 1024, start)
+        assert fast.shape == (1024,)
+        assert np.array_equal(fast, ref)
+        assert fast[0] == start
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(2, 400),
+    k=st.integers(1, 500),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_fps_fast_equals_reference_property(n, k, seed):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3)).astype(np.float32)
+    s = int(rng.integers(n))
+    assert np.array_equal(
+        sg.farthest_point_sampling(pts, k, s), sg.farthest_point_sampling_reference(pts, k, s)
+    )
+
+
+def test_fps_is_farthest_first_and_prefix_is_fps():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.1, 0.1, size=(5000, 3)).astype(np.float32)
+    full = sg.farthest_point_sampling(pts, 1024, 17)
+    assert len(np.unique(full)) == 1024
+    for n in (1, 64, 256):
+        assert np.array_equal(sg.farthest_point_sampling(pts, n, 17), full[:n])
+    # each pick is the point farthest from those picked before
+    d = np.linalg.norm(pts[:, None] - pts[full[:5]][None], axis=2).min(axis=1)
+    assert np.isclose(d[full[5]], d.max())
+    # a generator draws the start; same seed -> same order
+    a = sg.farthest_point_sampling(pts, 32, np.random.default_rng(3))
+    b = sg.farthest_point_sampling(pts, 32, np.random.default_rng(3))
+    assert np.array_equal(a, b)
+
+
+def test_fps_fills_small_segments_by_repeating_the_fps_order():
+    pts = np.random.default_rng(0).normal(size=(10, 3))
+    idx = sg.farthest_point_sampling(pts, 1024, 4)
+    assert idx.shape == (1024,)
+    assert sorted(idx[:10]) == list(range(10))
+    assert np.array_equal(idx[10:20], idx[:10])
+
+
+def test_fps_bad_input():
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        sg.farthest_point_sampling(np.zeros((5, 2)), 4, 0)
+    with pytest.raises(ValueError, match="empty"):
+        sg.farthest_point_sampling(np.zeros((0, 3)), 4, 0)
+    with pytest.raises(ValueError, match="start index"):
+        sg.farthest_point_sampling(np.zeros((5, 3)), 4, 5)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_backproject_inverts_the_projection():
+    depth = np.zeros((480, 640), np.float32)
+    depth[100:110, 200:205] = 0.8
+    depth[105, 202] = 0.0  # no reading: skipped
+    mask = np.zeros_like(depth, dtype=bool)
+    mask[100:120, 200:203] = True
+    pts = sg.backproject(depth, mask, YCB_INTRINSICS)
+    assert len(pts) == 10 * 3 - 1
+    uvw = pts @ YCB_INTRINSICS.T
+    uv = uvw[:, :2] / uvw[:, 2:]
+    v, u = np.nonzero(mask & (depth > 0))
+    assert np.allclose(uv, np.stack([u, v], 1), atol=1e-6)
+    assert np.allclose(pts[:, 2], 0.8, atol=1e-6)
+
+
+def test_occlusion_factor():
+    o = sg.occlusion_factor(np.array([50, 100, 110, 0, 3]), np.array([100, 100, 100, 100, 0]))
+    assert np.allclose(o[:4], [0.5, 0.0, 0.0, 1.0])  # more label than render clips to 0
+    assert np.isnan(o[4])
+
+
+def _frame(depth, label, cls_ids, poses=None, fid="0000/000001"):
+    return Frame(fid, depth, label, YCB_INTRINSICS, np.asarray(cls_ids), poses, None)
+
+
+def _poses(n):
+    P = np.zeros((n, 3, 4))
+    P[:, :, :3] = np.eye(3)
+    P[:, 2, 3] = 1.0
+    return P
+
+
+def test_outlier_filter_and_fill():
+    depth = np.zeros((480, 640), np.float32)
+    label = np.zeros((480, 640), np.uint8)
+    label[200:230, 300:330] = 5  # 900 pixels at 1 m
+    depth[200:230, 300:330] = 1.0
+    depth[200, 300:310] = 2.0  # 10 pixels 1 m behind: a flying-pixel streak
+    label[50:53, 50:53] = 7  # a tiny object: 9 points
+    depth[50:53, 50:53] = 0.7
+    f = _frame(depth, label, [5, 7], _poses(2))
+    s5, s7 = sg.extract_segments(f, alone_pixels=np.array([1000, 9]), rng=np.random.default_rng(0))
+    assert s5.valid and s5.count == 890
+    assert s5.points.shape == (1024, 3) and s5.points.dtype == np.float32
+    assert np.abs(s5.points[:, 2] - 1.0).max() < 1e-6  # the streak is gone
+    assert np.isclose(s5.occlusion, 1 - 900 / 1000)
+    assert s7.count == 9 and len(np.unique(s7.points, axis=0)) == 9
+    assert np.array_equal(s7.points[9:18], s7.points[:9])
+    assert np.isclose(s7.occlusion, 0.0)
+    assert np.allclose(s5.R, np.eye(3)) and np.allclose(s5.t, [0, 0, 1])
+    assert (s5.frame_id, s5.instance, s7.instance, s5.cls_id) == ("0000/000001", 0, 1, 5)
+    # a larger radius keeps the streak
+    (s5b, _) = sg.extract_segments(f, np.array([1000, 9]), outlier_radius=1.5)
+    assert s5b.count == 900
+
+
+def test_instance_without_points_is_kept_as_a_miss():
+    depth = np.zeros((480, 640), np.float32)
+    label = np.zeros((480, 640), np.uint8)
+    label[10:20, 10:20] = 3
+    depth[10:20, 10:20] = 0.9
+    label[30:40, 30:40] = 4  # labelled but no depth reading
+    f = _frame(depth, label, [3, 4, 9], _poses(3))  # class 9: no pixel at all
+    with pytest.warns(sg.SegmentWarning, match="no usable point"):
+        segs = sg.extract_segments(f, np.array([100, 100, 100]), n_fps=16)
+    assert [s.valid for s in segs] == [True, False, False]
+    assert [s.count for s in segs] == [100, 0, 0]
+    assert segs[2].points.shape == (16, 3) and not segs[2].points.any()
+    assert segs[2].R is not None and np.isclose(segs[2].occlusion, 1.0)
+
+
+def test_frame_without_ground_truth():
+    depth = np.full((480, 640), 1.0, np.float32)
+    label = np.zeros((480, 640), np.uint8)
+    label[:40, :40] = 2
+    segs = sg.extract_segments(_frame(depth, label, [2]), n_fps=32)
+    assert segs[0].R is None and segs[0].t is None and np.isnan(segs[0].occlusion)
+    assert segs[0].valid and segs[0].count == 1600
+
+
+def test_segmentation_sources():
+    depth = np.full((480, 640), 1.0, np.float32)
+    label = np.zeros((480, 640), np.uint8)
+    label[:40, :40] = 2
+    f = _frame(depth, label, [2])
+    with pytest.raises(ValueError, match="valid segmentations: gt"):
+        sg.extract_segments(f, segmentation="posecnn")
+    sg.register_mask_source("left-half", lambda fr, c: (fr.label == c) & (np.arange(640) < 20))
+    try:
+        (s,) = sg.extract_segments(f, segmentation="left-half", n_fps=8)
+        assert s.count == 40 * 20
+    finally:
+        del sg.MASK_SOURCES["left-half"]
+
+
+# --------------------------------------------------------------------------- real frame
+
+
+def test_real_frame_segments_lie_on_the_posed_models():
+    from cloudpose.data.render import Renderer
+
+    ds = YCBVideo(REAL)
+    frame = ds.frame("0000/000001")
+    renderer = Renderer({c: p.copy() for c, p in ds.models().items()})
+    segs = sg.extract_segments(frame, renderer=renderer, rng=np.random.default_rng(0))
+    assert [s.cls_id for s in segs] == frame.cls_ids.tolist()
+    for s, P in zip(segs, frame.poses, strict=True):
+        assert s.valid and s.count >= 1024
+        model = transform_points(ds.model_points(s.cls_id), P[:, :3], P[:, 3])
+        d, _ = KDTree(model).query(s.points.astype(np.float64), k=1)
+        assert np.median(d) < 0.01, (s.cls_id, np.median(d))
+        assert np.allclose(s.R, P[:, :3]) and np.allclose(s.t, P[:, 3])
+        assert 0.0 <= s.occlusion <= 1.0
+        pixels = int(((frame.label == s.cls_id) & (frame.depth > 0)).sum())
+        assert s.count <= pixels

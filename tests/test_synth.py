@@ -1,0 +1,271 @@
+"""Synthetic YCB-Video scenes: layout, determinism, resumability, plausibility, noise."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from scipy.spatial import ConvexHull
+
+from cloudpose.conventions import DEPTH_FACTOR_YCB, IMAGE_SHAPE, YCB_INTRINSICS
+from cloudpose.data import synth
+from cloudpose.data.ycb import YCBVideo
+
+
+@pytest.fixture(scope="module")
+def gen():
+    return synth._generator()
+
+
+@pytest.fixture(scope="module")
+def small_root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("synth") / "ds"
+    s = synth.synthesize(root, 2, 1, seed=3, workers=1, progress=False)
+    assert s.frames_written == 3 and s.frames_skipped == 0
+    return root
+
+
+def _files(root: Path, fid: str) -> dict[str, Path]:
+    seq, name = fid.split("/")
+    return {k: root / "data" / seq / f"{name}-{k}" for k in ("depth.png", "label.png", "meta.mat")}
+
+
+# --------------------------------------------------------------------------- resting poses
+
+
+def test_resting_poses_of_a_box_are_its_faces(gen):
+    box = gen.models[2]  # 003_cracker_box
+    rp = gen.resting[2]
+    extent = np.sort(box.max(0) - box.min(0))
+    tops = np.sort(rp.heights_up)
+    # the three heights a box can stand at, each found among its stable faces
+    for e in extent:
+        assert np.abs(tops - e).min() < 0.01
+    assert np.isclose(rp.probabilities.sum(), 1.0)
+    for R in rp.rotations:
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_every_model_has_a_stable_pose_with_lowest_point_on_table(gen):
+    for c, pts in gen.models.items():
+        rp = gen.resting[c]
+        assert len(rp.probabilities) >= 1, c
+        for R, h in zip(rp.rotations, rp.heights, strict=True):
+            z = (pts @ R.T)[:, 2] + h
+            assert abs(z.min()) < 1e-9
+            # the centre of mass lies above the contact region, not beyond its edge
+            com = pts.mean(0) @ R.T
+            contact = (pts @ R.T)[z < 0.002]
+            assert (contact[:, 0].min() < com[0] < contact[:, 0].max()) and (
+                contact[:, 1].min() < com[1] < contact[:, 1].max()
+            )
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def test_table_scenes_are_plausible(gen):
+    convex = {1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 21}  # cans and boxes: hull test is meaningful
+    for i in range(12):
+        rng = np.random.default_rng([7, i])
+        sc = synth.sample_table_scene(rng, gen.models, gen.resting)
+        n = len(sc.cls_ids)
+        assert synth.N_OBJECTS[0] <= n <= synth.N_OBJECTS[1]
+        assert len(set(sc.cls_ids.tolist())) == n
+        world = [
+            gen.models[c] @ P[:, :3].T + P[:, 3]
+            for c, P in zip(sc.cls_ids, sc.model_to_world, strict=True)
+        ]
+        for w in world:  # resting on the table: lowest point at z = 0
+            assert abs(w[:, 2].min()) < 1e-9
+        R, t = sc.world_to_camera[:, :3], sc.world_to_camera[:, 3]
+        eye = -R.T @ t
+        dist = np.linalg.norm(eye - sc.look_at)
+        assert synth.CAMERA_DISTANCE[0] - 1e-9 <= dist <= synth.CAMERA_DISTANCE[1] + 1e-9
+        forward = R[2]
+        assert np.allclose((sc.look_at - eye) / dist, forward)
+        elevation = np.degrees(np.arcsin(-forward[2]))
+        assert synth.CAMERA_ELEVATION_DEG[0] - 1e-6 <= elevation <= synth.CAMERA_ELEVATION_DEG[1]
+        assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+        # the camera is above the table, every object in front of it
+        assert eye[2] > 0.1
+        for w in world:
+            assert ((w @ R.T + t)[:, 2] > 0.1).all()
+        # no interpenetration: footprints on a 5 mm raster are disjoint, and no point of one
+        # convex object lies inside another convex object's hull
+        cells = [
+            {
+                tuple(x)
+                for x in synth._footprint_cells((gen.models[c] @ P[:, :3].T)[:, :2])
+                + np.floor(P[:2, 3] / synth._GRID).astype(int)
+            }
+            for c, P in zip(sc.cls_ids, sc.model_to_world, strict=True)
+        ]
+        for a in range(n):
+            for b in range(a + 1, n):
+                assert not cells[a] & cells[b]
+                if sc.cls_ids[a] in convex and sc.cls_ids[b] in convex:
+                    eq = ConvexHull(world[b]).equations
+                    inside = (world[a] @ eq[:, :3].T + eq[:, 3] < 0).all(axis=1)
+                    assert inside.mean() < 0.01
+
+
+def test_floating_scenes_have_uniform_rotations_and_no_overlap(gen):
+    for i in range(10):
+        sc = synth.sample_floating_scene(np.random.default_rng([8, i]), gen.models)
+        P = sc.poses()
+        assert np.allclose(P, sc.model_to_world)  # world = camera
+        R = P[:, :, :3]
+        assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-9)
+        assert np.allclose(np.linalg.det(R), 1.0)
+        radii = [np.linalg.norm(gen.models[c], axis=1).max() for c in sc.cls_ids]
+        for a in range(len(P)):
+            assert P[a, 2, 3] > 0.3
+            for b in range(a + 1, len(P)):
+                assert np.linalg.norm(P[a, :, 3] - P[b, :, 3]) > radii[a] + radii[b]
+    # rotations of many objects: the mean of a uniform SO(3) sample is near 0
+    Rs = synth._random_rotations(np.random.default_rng(0), 4000)
+    assert np.abs(Rs.mean(0)).max() < 0.05
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def test_noise_statistics_on_a_plane_and_an_edge():
+    rng = np.random.default_rng(0)
+    clean = np.ones((200, 200))
+    clean[:, 100:] = 1.5  # a 0.5 m step: a depth edge at columns 99/100
+    clean[:10] = 0.0  # no surface
+    noisy = synth.add_sensor_noise(clean, rng)
+    assert (noisy[:10] == 0).all()  # never a reading where there was none
+    flat = (clean == 1.0) & (np.arange(200) < 90)[None]
+    ok = flat & (noisy > 0)
+    sigma = synth.NoiseModel().sigma0 + synth.NoiseModel().sigma2 * 0.6**2
+    err = noisy[ok] - 1.0
+    assert abs(err.mean()) < 5e-4
+    # Gaussian noise plus disparity quantisation (2.9 mm steps at 1 m -> 0.84 mm std)
+    assert sigma < err.std() < np.hypot(sigma, 0.0029 / np.sqrt(12)) * 1.2
+    drop_flat = 1 - ok.sum() / flat.sum()
+    assert drop_flat < 0.02
+    edge = noisy[10:, 99:101]
+    assert 0.3 < (edge == 0).mean() < 0.7  # half the edge pixels lose their reading
+    mixed = (edge > 1.02) & (edge < 1.48)  # flying pixels between the two surfaces
+    assert mixed.mean() > 0.02
+
+
+# --------------------------------------------------------------------------- frames on disk
+
+
+def test_layout_reads_back_and_meta_has_alone_pixels(small_root, gen):
+    ds = YCBVideo(small_root)
+    assert ds.image_set("train") == ["0000/000001", "0000/000002"]
+    assert ds.image_set("test") == ["1000/000001"] == ds.image_set("keyframe")
+    assert ds.models_root == small_root / "models"
+    assert np.allclose(ds.model_points(5), gen.models[5])
+    for fid in ds.image_set("train") + ds.image_set("test"):
+        f = ds.frame(fid)
+        assert f.depth.shape == IMAGE_SHAPE and np.allclose(f.K, YCB_INTRINSICS)
+        assert 3 <= len(f.cls_ids) <= 8
+        meta = scipy.io.loadmat(_files(small_root, fid)["meta.mat"])
+        assert float(meta["factor_depth"].ravel()[0]) == DEPTH_FACTOR_YCB
+        alone = meta["alone_pixels"].ravel()
+        visible = np.array([(f.label == c).sum() for c in f.cls_ids])
+        assert (visible >= synth.MIN_VISIBLE_PIXELS).all()
+        assert (alone >= visible).all()
+        # background depth (table, floor) exists where no object is
+        assert (f.depth[f.label == 0] > 0).mean() > 0.5
+
+
+def test_determinism_and_prefix(small_root, tmp_path):
+    # a bigger set with the same seed starts with the same frames, byte for byte
+    root = tmp_path / "ds"
+    synth.synthesize(root, 3, 2, seed=3, workers=1, progress=False)
+    for fid in ["0000/000001", "0000/000002", "1000/000001"]:
+        a, b = _files(small_root, fid), _files(root, fid)
+        for k in ("depth.png", "label.png"):
+            assert a[k].read_bytes() == b[k].read_bytes(), (fid, k)
+        ma, mb = scipy.io.loadmat(a["meta.mat"]), scipy.io.loadmat(b["meta.mat"])
+        for k in ("cls_indexes", "poses", "intrinsic_matrix", "alone_pixels"):
+            assert np.array_equal(ma[k], mb[k])
+    # another frame index or seed gives another scene
+    d1 = _files(root, "0000/000001")["depth.png"].read_bytes()
+    assert d1 != _files(root, "0000/000003")["depth.png"].read_bytes()
+    other = synth.generate_frame("train", 0, seed=4)
+    assert not np.array_equal(other.label, YCBVideo(root).frame("0000/000001").label)
+
+
+def test_resume_rewrites_only_missing_frames(small_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "ds"
+    shutil.copytree(small_root, root)
+    victim = _files(root, "0000/000002")
+    victim["meta.mat"].unlink()
+    keep = _files(root, "0000/000001")
+    before = {k: p.stat().st_mtime_ns for k, p in keep.items()}
+    # leftovers of an interrupted run: a staged frame and a temporary file
+    stage = root / ".staging" / "999" / "data" / "0000"
+    stage.mkdir(parents=True)
+    (stage / "000001-depth.png").write_bytes(b"partial")
+    tmp = root / "data" / "0000" / ".000003-depth.png.999.tmp"
+    tmp.write_bytes(b"partial")
+    s = synth.synthesize(root, 2, 1, seed=3, workers=1, progress=False)
+    assert (s.frames_written, s.frames_skipped) == (1, 2)
+    assert {k: p.stat().st_mtime_ns for k, p in keep.items()} == before
+    assert victim["meta.mat"].is_file()
+    assert (
+        victim["depth.png"].read_bytes()
+        == _files(small_root, "0000/000002")["depth.png"].read_bytes()
+    )
+    assert not (root / ".staging").exists()
+    ds = YCBVideo(root)
+    assert ds.image_set("train") == ["0000/000001", "0000/000002"]
+    ds.frame("0000/000002")
+    # fewer frames asked: the image sets shrink, the frames stay
+    synth.synthesize(root, 1, 1, seed=3, workers=1, progress=False)
+    assert YCBVideo(root).image_set("train") == ["0000/000001"]
+    assert victim["meta.mat"].is_file()
+
+
+def test_other_settings_in_same_root_raise(small_root):
+    with pytest.raises(ValueError, match=r"synth\.json"):
+        synth.synthesize(small_root, 2, 1, seed=3, noise=False, workers=1, progress=False)
+    with pytest.raises(ValueError, match="frame counts"):
+        synth.synthesize(small_root, -1, 1, seed=3, workers=1, progress=False)
+
+
+def test_noise_off_depth_is_the_rendering(tmp_path, gen):
+    root = tmp_path / "clean"
+    synth.synthesize(root, 1, 0, seed=5, noise=False, workers=1, progress=False)
+    f = YCBVideo(root).frame("0000/000001")
+    r = gen.renderer.render(f.K, f.depth.shape, f.cls_ids, f.poses)
+    assert np.array_equal(r.label, f.label)
+    obj = f.label > 0
+    assert np.abs(f.depth[obj] - r.depth[obj]).max() <= 0.5 / DEPTH_FACTOR_YCB + 1e-6
+    # the rendered frame with noise differs from it on object pixels, labels do not
+    g = synth.generate_frame("train", 0, seed=5, noise=True)
+    assert np.array_equal(g.label, f.label)
+    assert np.abs(g.depth - g.clean_depth)[obj & (g.depth > 0)].mean() > 5e-4
+    assert np.array_equal(g.clean_depth[obj], r.depth[obj].astype(np.float64))
+
+
+def test_uniform_rotation_frames(gen):
+    f = synth.generate_frame("test", 0, seed=1, uniform_rotation=True, generator=gen)
+    assert np.allclose(f.scene.world_to_camera, np.c_[np.eye(3), np.zeros(3)])
+    assert (f.visible_pixels >= synth.MIN_VISIBLE_PIXELS).all()
+    assert (f.depth[f.label == 0] > 0).mean() > 0.5  # the wall behind
+
+
+@pytest.mark.slow
+def test_parallel_equals_serial(small_root, tmp_path):
+    root = tmp_path / "par"
+    s = synth.synthesize(root, 2, 1, seed=3, workers=2, progress=False)
+    assert s.frames_written == 3
+    for fid in ["0000/000001", "0000/000002", "1000/000001"]:
+        for k in ("depth.png", "label.png"):
+            assert _files(root, fid)[k].read_bytes() == _files(small_root, fid)[k].read_bytes()
+    assert not any(p.name.endswith(".tmp") for p in root.rglob("*"))
+    assert sorted(os.listdir(root / "data")) == ["0000", "1000"]
