@@ -72,4 +72,4 @@ tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs
 	$(CLI) report --all --preset $(PRESET)
 
 mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db)
-	$(VENV)/bin/mlflow ui --backend-store-uri $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT)
+	$(VENV)/bin/mlflow ui --backend-store-uri $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT) --workers 1
