@@ -23,7 +23,13 @@ the update is Umeyama's rotation (reflection-corrected as in Eigen's ``umeyama``
 or the identity when there are none; the returned fitness and inlier RMSE are re-evaluated after
 the update with the same radius: fitness = inliers / source points, inlier_rmse =
 sqrt(mean squared inlier distance) (0 when no inlier). With one iteration per call, Open3D's
-convergence criteria (relative fitness / RMSE 1e-6) never stop a call early.
+convergence criteria (relative fitness / RMSE 1e-6) never stop a call early. One deliberate
+difference: with exactly two correspondences the rotation is undetermined and Eigen returns an
+arbitrary one; the fast path then moves by the translation only.
+
+Threads: the fast path runs BLAS and pykdtree on one thread while it works (``threadpoolctl``);
+a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fork/join made it
+10-30x slower whenever another process held a core.
 """
 
 from __future__ import annotations
