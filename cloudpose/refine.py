@@ -34,6 +34,7 @@ a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fo
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -217,10 +218,13 @@ def _single_threaded():
     """
     global _controller
     if _controller is None:
-        from threadpoolctl import ThreadpoolController
-
-        _controller = ThreadpoolController()
-    return _controller.limit(limits=1)
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:  # optional: without it, the libraries keep their own settings
+            _controller = False
+        else:
+            _controller = ThreadpoolController()
+    return _controller.limit(limits=1) if _controller else contextlib.nullcontext()
 
 
 def icp_refine(
