@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 
 from cloudpose import tracking
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
-from cloudpose.refine import ICPSettings, icp_refine
+from cloudpose.refine import ICPSettings, ModelIndex, icp_refine
 
 METHODS = ("net", "icp")
 """Column prefixes of the per-instance table: the network's estimate, then after ICP."""
@@ -69,10 +69,11 @@ def refine_poses(
     settings = settings or ICPSettings()
     R, t = est.R.copy(), est.t.copy()
     fitness = np.full(len(segs), np.nan)
+    index = {c: ModelIndex(m) for c, m in models_by_class.items()}  # one KD-tree per class
     for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
         k = int(min(segs.count[i], segs.points.shape[1]))
         sol = icp_refine(
-            segs.points[i, :k].astype(np.float64), models_by_class[int(segs.cls_id[i])],
+            segs.points[i, :k].astype(np.float64), index[int(segs.cls_id[i])],
             est.R[i], est.t[i], settings,
         )  # fmt: skip
         R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
