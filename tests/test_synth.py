@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -207,7 +208,9 @@ def test_resume_rewrites_only_missing_frames(small_root, tmp_path):
     keep = _files(root, "0000/000001")
     before = {k: p.stat().st_mtime_ns for k, p in keep.items()}
     # leftovers of an interrupted run: a staged frame and a temporary file
-    stage = root / ".staging" / "999" / "data" / "0000"
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stage = root / ".staging" / str(dead.pid) / "data" / "0000"
     stage.mkdir(parents=True)
     (stage / "000001-depth.png").write_bytes(b"partial")
     tmp = root / "data" / "0000" / ".000003-depth.png.999.tmp"

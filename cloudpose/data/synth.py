@@ -31,6 +31,11 @@ quantisation to 1/8 pixel (focal 580 px, baseline 7.5 cm: 2.9 mm steps at 1 m), 
 "flying" (mixed foreground/background) pixels at depth edges, and a small random dropout.
 Pixels without a reading have depth 0.
 
+Runs on the same root may overlap (e.g. parallel training runs that each ensure the data): a
+frame is written by renaming whole files, so two runs rendering the same frame leave identical,
+complete files. The frames depend on the renderer's surfaces: after a change to
+``cloudpose/data/render.py`` that alters them, render into a fresh root.
+
 ``alone_pixels``: each meta also stores, per instance, the pixel count of the object rendered
 alone at its pose (the occlusion factor's nu, DESIGN.md "Metrics"). The real dataset has no such
 field; the segment pipeline renders it when it is absent.
@@ -753,6 +758,32 @@ def _atomic_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _clean_staging(root: Path) -> None:
+    """Remove staged frames of processes that are gone (an interrupted run's leftovers); a
+    concurrent run's own staging folder is left alone."""
+    stage = root / ".staging"
+    if not stage.is_dir():
+        return
+    for d in stage.iterdir():
+        pid = int(d.name) if d.name.isdigit() else 0
+        if pid <= 0 or pid == os.getpid() or not _pid_alive(pid):
+            shutil.rmtree(d, ignore_errors=True)
+    try:
+        stage.rmdir()
+    except OSError:
+        pass  # another run is staging
+
+
 def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) -> None:
     settings = {
         "generator": "cloudpose.data.synth",
@@ -771,7 +802,7 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) ->
                 "choose another root (or delete the folder)"
             )
     root.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(root / ".staging", ignore_errors=True)  # leftovers of an interrupted run
+    _clean_staging(root)
     _atomic_text(info, json.dumps(settings, indent=2) + "\n")
     shutil.copyfile(resource_path("classes.txt"), root / "classes.txt")
     from cloudpose.data.ycb import load_classes
@@ -839,7 +870,7 @@ def synthesize(
             for _ in pool.imap_unordered(_work, jobs):
                 bar.update()
     bar.close()
-    shutil.rmtree(root / ".staging", ignore_errors=True)
+    _clean_staging(root)
     train_ids = [frame_id("train", i) for i in range(train_frames)]
     test_ids = [frame_id("test", i) for i in range(test_frames)]
     _atomic_text(root / "image_sets" / "train.txt", "".join(f + "\n" for f in train_ids))
