@@ -124,6 +124,7 @@ def test_ensure_dataset_synthetic(project):
     assert fp == cache.data_fingerprint(CFG, project) and len(fp) == 16
     assert cache.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
     assert cache.synthetic_root(CFG, project).name == "synth-seed0"
+    assert cache.dataset_root(CFG, project) == cache.synthetic_root(CFG, project)
     cfg2 = dataclasses.replace(CFG, noise=False, uniform_rotation=True, synth_seed=2)
     assert cache.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise"
 
@@ -144,6 +145,13 @@ def test_ensure_dataset_real_root(tmp_path):
     assert np.array_equal(train.points, test.points)
     assert np.isfinite(train.occlusion).all()
     assert list((tmp_path / "proj" / "data" / "cache").glob("ycb-*.npz"))
+    assert cache.dataset_root(cfg, tmp_path / "proj") == root
+    from cloudpose.data.ycb import YCBVideo
+
+    every = cache.segments_for(YCBVideo(root), "all", cfg, tmp_path / "c2", progress=False)
+    assert every.frame_id.tolist() == ["0000/000001"] * 3
+    assert np.array_equal(every.points, train.points)
+    assert not (root / "cache").exists()
     with pytest.raises(FileNotFoundError, match=r"data\.root"):
         cache.ensure_dataset(DataConfig(root=str(tmp_path / "nope")), tmp_path, progress=False)
 

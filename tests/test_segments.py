@@ -162,6 +162,10 @@ def test_frame_without_ground_truth():
     segs = sg.extract_segments(_frame(depth, label, [2]), n_fps=32)
     assert segs[0].R is None and segs[0].t is None and np.isnan(segs[0].occlusion)
     assert segs[0].valid and segs[0].count == 1600
+    # a frame with poses, read for prediction: the ground truth is ignored
+    f = _frame(depth, label, [2], _poses(1))
+    (s,) = sg.extract_segments(f, np.array([1600]), n_fps=32, with_gt=False)
+    assert s.R is None and s.t is None and np.isnan(s.occlusion) and s.count == 1600
 
 
 def test_segmentation_sources():

@@ -148,10 +148,20 @@ class SegmentSet:
 
 
 def _split_frames(root: Path, split: str) -> list[str]:
+    """Frame ids of a split: "train" -> image_sets/train.txt; "test" or "keyframe" ->
+    keyframe.txt; "all" -> every frame with a meta file under data/; else image_sets/SPLIT.txt."""
     from cloudpose.data.ycb import YCBVideo
 
+    if split == "all":
+        frames = sorted(
+            f"{p.parent.name}/{p.name[: -len('-meta.mat')]}"
+            for p in (root / "data").glob("*/*-meta.mat")
+        )
+        if not frames:
+            raise FileNotFoundError(f"{root / 'data'}: no frames (SEQ/FRAME-meta.mat) found")
+        return frames
     ds = YCBVideo(root)
-    return ds.image_set("keyframe" if split == "test" else split)
+    return ds.image_set("keyframe" if split in ("test", "keyframe") else split)
 
 
 def _settings(cfg: DataConfig) -> dict:
@@ -272,7 +282,8 @@ def prepare(
 
     Args:
         root: dataset root in YCB-Video layout.
-        split: "train" (image_sets/train.txt), "test" (keyframe.txt) or another image set name.
+        split: "train" (image_sets/train.txt), "test" or "keyframe" (keyframe.txt), "all" (every
+            frame with a meta file) or another image set name.
         cfg: segment settings (n_fps, outlier_radius, segmentation).
         cache_dir: folder of cache files (default ``root/cache``).
         workers: processes (default all cores); 1 extracts in this process.
@@ -335,6 +346,38 @@ def _dataset_root(cfg: DataConfig, project_dir: Path) -> tuple[Path, Path]:
     if not root.is_dir():
         raise FileNotFoundError(f"data.root {root}: dataset root not found")
     return root, project_dir / "data" / "cache"
+
+
+def dataset_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:
+    """Dataset root of ``cfg``: ``cfg.root``, or the synthetic default (:func:`synthetic_root`)."""
+    return _dataset_root(cfg, Path(project_dir or Path.cwd()))[0]
+
+
+def segments_for(
+    dataset,
+    frames: str = "keyframe",
+    cfg: DataConfig | None = None,
+    cache_dir: str | Path | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> SegmentSet:
+    """Segments of any YCB-Video-layout folder (e.g. a real dataset to evaluate on), cached.
+
+    Args:
+        dataset: a :class:`~cloudpose.data.ycb.YCBVideo` or its root folder.
+        frames: "keyframe", "all", "train" or an image_sets name (see :func:`prepare`).
+        cfg: segment settings (default :class:`~cloudpose.config.DataConfig`).
+        cache_dir: cache folder (default ``./data/cache``, so a dataset folder is only read).
+        workers: processes (default all cores).
+        progress: progress bar.
+    """
+    from cloudpose.config import DataConfig
+
+    root = Path(getattr(dataset, "root", dataset))
+    cfg = cfg or DataConfig()
+    cache_dir = Path(cache_dir) if cache_dir else Path.cwd() / "data" / "cache"
+    path = prepare(root, frames, cfg, cache_dir, workers=workers, progress=progress)
+    return SegmentSet.load(path)
 
 
 def ensure_dataset(

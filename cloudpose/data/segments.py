@@ -209,6 +209,7 @@ def extract_segments(
     outlier_radius: float = 0.2,
     segmentation: str = "gt",
     rng: np.random.Generator | None = None,
+    with_gt: bool = True,
 ) -> list[Segment]:
     """Segments of every annotated instance of a frame (DESIGN.md, "Data flow").
 
@@ -221,6 +222,7 @@ def extract_segments(
         outlier_radius: points farther than this from the segment mean are dropped, metres.
         segmentation: mask source name (:data:`MASK_SOURCES`).
         rng: draws each segment's FPS start (default: a fresh generator).
+        with_gt: False ignores the frame's poses (prediction): R, t None, occlusion NaN.
 
     Returns:
         One :class:`Segment` per instance, in ``frame.cls_ids`` order; invalid ones (no usable
@@ -235,10 +237,11 @@ def extract_segments(
     cls_ids = np.asarray(frame.cls_ids, dtype=np.int64)
     n = len(cls_ids)
     K = np.asarray(frame.K, dtype=np.float64)
+    poses = frame.poses if with_gt else None
     occlusion = np.full(n, np.nan)
-    if frame.poses is not None and n:
+    if poses is not None and n:
         if alone_pixels is None and renderer is not None:
-            alone_pixels = renderer.alone_pixels(K, frame.depth.shape, cls_ids, frame.poses)
+            alone_pixels = renderer.alone_pixels(K, frame.depth.shape, cls_ids, poses)
         if alone_pixels is not None:
             alone_pixels = np.asarray(alone_pixels).reshape(-1)
             if alone_pixels.shape != (n,):
@@ -260,9 +263,9 @@ def extract_segments(
         pts = backproject(frame.depth, mask_of(frame, int(c)), K)
         if len(pts):
             pts = pts[np.linalg.norm(pts - pts.mean(axis=0), axis=1) <= outlier_radius]
-        if frame.poses is not None:
-            R = frame.poses[i, :, :3].astype(np.float32)
-            t = frame.poses[i, :, 3].astype(np.float32)
+        if poses is not None:
+            R = poses[i, :, :3].astype(np.float32)
+            t = poses[i, :, 3].astype(np.float32)
         else:
             R = t = None
         valid = len(pts) > 0
