@@ -193,3 +193,22 @@ def test_seed_list():
 def test_unknown_group_lists_valid_ones(tmp_path):
     with pytest.raises(ValueError, match="valid groups"):
         ablate.run_group("nope", "smoke", 1, tmp_path, report=False)
+
+
+@pytest.mark.slow
+def test_run_group_loss_smoke_for_real(tmp_path, monkeypatch):
+    """The real thing on the smoke preset: synthesize, train, evaluate, report; rerun skips."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    lines = []
+    res = ablate.run_group("loss", "smoke", 1, tmp_path, progress=False, echo=lines.append)
+    assert [(r.variant, r.status) for r in res.runs] == [("shared-0", "trained"), ("l2", "trained")]
+    out = tmp_path / "reports" / "smoke"
+    for name in ("table1_overall.md", "table2_per_class.tex", "table4_rotation.csv", "claims.md",
+                 "occlusion.png", "curves_loss.png", "training_loss.png", "rot_err_loss.png",
+                 "README.md"):  # fmt: skip
+        assert (out / name).exists(), name
+    assert "not resolved at this size" in (out / "claims.md").read_text()  # one seed
+    res = ablate.run_group("loss", "smoke", 1, tmp_path, progress=False, report=False,
+                           echo=lines.append)  # fmt: skip
+    assert [r.status for r in res.runs] == ["skipped", "skipped"]

@@ -97,7 +97,8 @@ class Table:
     def latex(self, prov: Provenance) -> str:
         n = len(self.header)
         align = "l" * self.text_cols + "r" * (n - self.text_cols)
-        out = [f"% {prov.line()}", "\\begin{table}[t]", "\\centering",
+        out = [f"% {prov.line()}", "% needs \\usepackage{booktabs,amssymb}",
+               "\\begin{table}[t]", "\\centering",
                f"\\caption{{{_tex(self.title)}}}", f"\\begin{{tabular}}{{{align}}}",
                "\\toprule"]  # fmt: skip
         if any(g for g, _ in self.header):
