@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,13 +71,22 @@ def refine_poses(
     R, t = est.R.copy(), est.t.copy()
     fitness = np.full(len(segs), np.nan)
     index = {c: ModelIndex(m) for c, m in models_by_class.items()}  # one KD-tree per class
-    for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
-        k = int(min(segs.count[i], segs.points.shape[1]))
-        sol = icp_refine(
-            segs.points[i, :k].astype(np.float64), index[int(segs.cls_id[i])],
-            est.R[i], est.t[i], settings,
-        )  # fmt: skip
-        R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
+            k = int(min(segs.count[i], segs.points.shape[1]))
+            sol = icp_refine(
+                segs.points[i, :k].astype(np.float64), index[int(segs.cls_id[i])],
+                est.R[i], est.t[i], settings,
+            )  # fmt: skip
+            R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
+    if caught:
+        # One line instead of one per object: far-off estimates leave ICP nothing to match.
+        warnings.warn(
+            f"ICP kept the network's pose for {len(caught)} of {int(np.sum(segs.valid))} "
+            f"objects (e.g. {caught[0].message})",
+            stacklevel=2,
+        )
     return Estimates(R, t), fitness
 
 

@@ -264,11 +264,12 @@ def train(
             opt.zero_grad(set_to_none=True)
             terms.total.backward()
             opt.step()
-            if not math.isfinite(float(terms.total)):
-                raise FloatingPointError(f"loss became {float(terms.total)} at epoch {epoch}")
-            sums["loss"] += float(terms.total)
-            sums["rot"] += float(terms.rotation)
-            sums["trans"] += float(terms.translation)
+            loss, l_rot, l_trans = (float(x.detach()) for x in terms)
+            if not math.isfinite(loss):
+                raise FloatingPointError(f"loss became {loss} at epoch {epoch + 1}")
+            sums["loss"] += loss
+            sums["rot"] += l_rot
+            sums["trans"] += l_trans
             sums["n"] += 1
             batch += 1
             steps_here += 1
