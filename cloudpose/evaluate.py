@@ -175,7 +175,11 @@ def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
     if not local.exists():
         import mlflow
 
-        local = Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path="model.pt"))
+        local = Path(
+            mlflow.artifacts.download_artifacts(
+                run_id=run_id, artifact_path="model.pt", tracking_uri=client.tracking_uri
+            )
+        )
     return run_id, local
 
 

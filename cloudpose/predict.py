@@ -110,11 +110,11 @@ def predict(
     fitness = np.full(len(segs), np.nan)
     if icp:
         est, fitness = refine_poses(segs, est, models_by_class)
-    poses = [
-        ObjectPose(int(segs.cls_id[i]), dataset.classes[int(segs.cls_id[i]) - 1], est.R[i],
-                   est.t[i], int(segs.count[i]), float(fitness[i]))  # fmt: skip
-        for i in np.flatnonzero(segs.valid)
-    ]
+    poses = []
+    for i in np.flatnonzero(segs.valid):
+        c = int(segs.cls_id[i])
+        poses.append(ObjectPose(c, dataset.classes[c - 1], est.R[i], est.t[i],
+                                int(segs.count[i]), float(fitness[i])))  # fmt: skip
     skipped = [int(c) for c in segs.cls_id[~segs.valid]]
     if overlay is not None:
         draw_overlay(frame, poses, models_by_class, overlay)
@@ -138,7 +138,10 @@ def draw_overlay(frame, poses: list[ObjectPose], models_by_class, path: Path) ->
     for k, p in enumerate(poses):
         pts = transform_points(models_by_class[p.cls_id], p.R, p.t)
         pts = pts[pts[:, 2] > 1e-3]
-        uv = pts[:, :2] / pts[:, 2:] * [frame.K[0, 0], frame.K[1, 1]] + [frame.K[0, 2], frame.K[1, 2]]
+        uv = pts[:, :2] / pts[:, 2:] * [frame.K[0, 0], frame.K[1, 1]] + [
+            frame.K[0, 2],
+            frame.K[1, 2],
+        ]
         ax.scatter(uv[:, 0], uv[:, 1], s=0.6, color=cmap(k % 10), alpha=0.7, label=p.name)
     ax.set_xlim(0, w)
     ax.set_ylim(h, 0)

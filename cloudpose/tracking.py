@@ -34,16 +34,21 @@ def tracking_uri(project_dir: Path | None = None) -> str:
 
 
 def setup(project_dir: Path | None = None):
-    """Point MLflow at the store and return an ``MlflowClient``."""
+    """An ``MlflowClient`` on the store of :func:`tracking_uri`.
+
+    The process-wide ``mlflow.set_tracking_uri`` is never called: it also writes
+    ``MLFLOW_TRACKING_URI`` into the environment, which would then pin every later project
+    folder of the same process to this one's store.
+    """
     import logging
 
     import mlflow
 
     # Alembic prints every schema migration of a new SQLite store at INFO.
-    logging.getLogger("alembic").setLevel(logging.WARNING)
+    for name in ("alembic", "mlflow.store.db.utils"):
+        logging.getLogger(name).setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", module="mlflow")
-    mlflow.set_tracking_uri(tracking_uri(project_dir))
-    return mlflow.MlflowClient()
+    return mlflow.MlflowClient(tracking_uri=tracking_uri(project_dir))
 
 
 def experiment_id(client, group: str, project_dir: Path | None = None) -> str:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -16,27 +15,11 @@ import pytest
 
 from cloudpose.config import resolve
 from cloudpose.train import TrainingInterrupted, split_frames, train
-
-DATA = Path(__file__).parent / "data"
-
-
-@pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    """A project folder whose ``data/`` holds the smoke preset's synthetic set and caches."""
-    from cloudpose.data.cache import ensure_dataset
-
-    root = tmp_path_factory.mktemp("shared-data")
-    ensure_dataset(resolve("shared-0", "smoke").data, project_dir=root, progress=False)
-    return root / "data"
+from tests.conftest import make_project
 
 
-def _project(tmp_path: Path, data_dir: Path, monkeypatch) -> Path:
-    """A fresh project folder that reuses the module's rendered data (copied, caches included)."""
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    proj = tmp_path / "proj"
-    proj.mkdir()
-    shutil.copytree(data_dir, proj / "data", symlinks=True)
-    return proj
+def _project(tmp_path: Path, smoke_data: Path, monkeypatch) -> Path:
+    return make_project(tmp_path / "proj", smoke_data, monkeypatch)
 
 
 def _curve(run_id: str, proj: Path, key: str) -> list[float]:
@@ -59,10 +42,10 @@ def test_split_frames_is_fixed_by_frame_ids():
 
 
 @pytest.mark.slow
-def test_train_logs_to_mlflow_and_same_seed_same_numbers(tmp_path, data_dir, monkeypatch):
+def test_train_logs_to_mlflow_and_same_seed_same_numbers(tmp_path, smoke_data, monkeypatch):
     cfg = resolve("shared-0", "smoke", seed=3)
-    a = train(cfg, project_dir=_project(tmp_path / "a", data_dir, monkeypatch), progress=False)
-    b = train(cfg, project_dir=_project(tmp_path / "b", data_dir, monkeypatch), progress=False)
+    a = train(cfg, project_dir=_project(tmp_path / "a", smoke_data, monkeypatch), progress=False)
+    b = train(cfg, project_dir=_project(tmp_path / "b", smoke_data, monkeypatch), progress=False)
     assert a.metrics and a.metrics == b.metrics
     proj = tmp_path / "a" / "proj"
     losses = _curve(a.run_id, proj, "train/loss")
@@ -84,10 +67,12 @@ def test_train_logs_to_mlflow_and_same_seed_same_numbers(tmp_path, data_dir, mon
 
 
 @pytest.mark.slow
-def test_resume_after_interruption_matches_uninterrupted(tmp_path, data_dir, monkeypatch):
+def test_resume_after_interruption_matches_uninterrupted(tmp_path, smoke_data, monkeypatch):
     cfg = resolve("shared-1", "smoke", seed=2)
-    ref = train(cfg, project_dir=_project(tmp_path / "ref", data_dir, monkeypatch), progress=False)
-    proj = _project(tmp_path / "cut", data_dir, monkeypatch)
+    ref = train(
+        cfg, project_dir=_project(tmp_path / "ref", smoke_data, monkeypatch), progress=False
+    )
+    proj = _project(tmp_path / "cut", smoke_data, monkeypatch)
     with pytest.raises(TrainingInterrupted):
         train(cfg, project_dir=proj, progress=False, max_steps=3)  # mid-epoch
     resumed = train(cfg, project_dir=proj, progress=False)
@@ -98,10 +83,12 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, data_dir, mon
 
 
 @pytest.mark.slow
-def test_resume_after_kill_9(tmp_path, data_dir, monkeypatch):
+def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
     cfg = resolve("shared-0", "smoke", seed=5)
-    ref = train(cfg, project_dir=_project(tmp_path / "ref", data_dir, monkeypatch), progress=False)
-    proj = _project(tmp_path / "kill", data_dir, monkeypatch)
+    ref = train(
+        cfg, project_dir=_project(tmp_path / "ref", smoke_data, monkeypatch), progress=False
+    )
+    proj = _project(tmp_path / "kill", smoke_data, monkeypatch)
     code = (
         "from pathlib import Path; from cloudpose.config import resolve; "
         "from cloudpose.train import train; "
