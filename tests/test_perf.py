@@ -1,0 +1,84 @@
+"""Allocator and thread setup (cloudpose.perf) and the benchmark's analytic FLOP count."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from cloudpose.perf import (
+    active_allocator,
+    configure_threads,
+    preferred_allocator,
+    reexec_with_allocator,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _child(env_extra: dict[str, str]) -> str:
+    """Run a fresh interpreter that calls reexec_with_allocator(); returns what it printed."""
+    code = textwrap.dedent(
+        """
+        from cloudpose.perf import active_allocator, reexec_with_allocator
+        reexec_with_allocator()
+        print(active_allocator())
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "CLOUDPOSE_NO_TCMALLOC")}
+    env.update(env_extra)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_preferred_allocator_is_a_file_or_none() -> None:
+    lib = preferred_allocator()
+    assert lib is None or (lib.is_file() and ("tcmalloc" in lib.name or "jemalloc" in lib.name))
+    assert active_allocator() in ("glibc", "tcmalloc", "jemalloc", "unknown")
+
+
+def test_reexec_installs_the_allocator_once() -> None:
+    lib = preferred_allocator()
+    expected = "glibc" if lib is None else ("jemalloc" if "jemalloc" in lib.name else "tcmalloc")
+    assert _child({}) == expected
+
+
+def test_reexec_respects_opt_out() -> None:
+    assert _child({"CLOUDPOSE_NO_TCMALLOC": "1"}) == "glibc"
+
+
+def test_reexec_never_restarts_pytest() -> None:
+    reexec_with_allocator()  # would replace this process if it did; returning is the test
+
+
+def test_configure_threads() -> None:
+    before = torch.get_num_threads()
+    try:
+        assert configure_threads(1) == 1
+        assert configure_threads() == len(os.sched_getaffinity(0))
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_train_flops_match_a_hand_count() -> None:
+    """464 MFLOP per sample for shared-0 (issue 6), counted here from the layer widths."""
+    bench = pytest.importorskip("benchmarks.bench_train")
+    n, k = 256, 21
+    widths = [3 + k, 64, 64, 64, 128, 1024]
+    head = [1024, 512, 256, 3]
+    per_net = 0
+    for i, (a, b) in enumerate(itertools.pairwise(widths)):
+        per_net += 2 * n * a * b * (2 if i == 0 else 3)  # fwd, grad W, grad input (not for data)
+    for a, b in itertools.pairwise(head):
+        per_net += 2 * a * b * 3
+    expected = 2 * per_net  # the rotation net's output is 3 wide too
+    assert bench.train_flops_per_sample("shared-0", n) == pytest.approx(expected, rel=1e-12)
+    assert expected == pytest.approx(464.0e6, rel=1e-4)
