@@ -19,6 +19,7 @@ import json
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ from cloudpose.config import Config, groups_of
 from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
 from cloudpose.models import build_model, count_parameters
+from cloudpose.models.fused import fuse_model
 
 
 @dataclass(frozen=True)
@@ -205,6 +207,11 @@ def train(
 
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.model).to(device)
+    use_bf16 = cfg.train.precision == "bf16"
+    if use_bf16:
+        warn_if_slow_bf16(device)
+    if cfg.train.kernel == "fused":
+        fuse_model(model, bf16=use_bf16)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     epoch, batch, sums = 0, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
     if last.exists():
@@ -241,7 +248,6 @@ def train(
 
     bs = cfg.train.batch_size
     n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
-    use_bf16 = cfg.train.precision == "bf16"
     steps_here, t_ckpt = 0, time.monotonic()
     model.train()
     bar = tqdm(total=cfg.train.epochs * n_batches, initial=epoch * n_batches + batch,
@@ -305,6 +311,19 @@ def train(
     return TrainOutcome(run_id, rdir, final, final_metrics)
 
 
+def warn_if_slow_bf16(device: torch.device) -> None:
+    """Warn when bfloat16 has no hardware path here (CPUs without AVX-512 BF16 or AMX)."""
+    if device.type != "cpu":
+        return
+    cap = torch.backends.cpu.get_cpu_capability()
+    if "AVX512" not in cap and "AMX" not in cap:
+        warnings.warn(
+            f"train.precision='bf16' on a CPU with {cap} only: bfloat16 matrix products are "
+            "emulated and far slower than fp32 here",
+            stacklevel=3,
+        )
+
+
 class TrainingInterrupted(RuntimeError):
     """Raised when ``max_steps`` stops a run before its end (its checkpoint is saved)."""
 
@@ -342,5 +361,7 @@ def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[torch.nn.Mod
     cfg = Config.from_dict(state["config"])
     model = build_model(cfg.model).to(device)
     model.load_state_dict(state["model"])
+    if cfg.train.kernel == "fused":
+        fuse_model(model)  # eval mode: BatchNorm folded into the fused layer's weights
     model.eval()
     return model, cfg
