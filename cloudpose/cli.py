@@ -94,10 +94,13 @@ def prepare(
     variant: VariantOpt = "shared-0",
     preset: PresetOpt = "cpu",
     data: DataOpt = "",
+    histogram: Annotated[
+        Path | None, typer.Option(help="Also plot the test set's occlusion factors to this PNG.")
+    ] = None,
     progress: ProgressOpt = True,
 ) -> None:
     """Synthesize (if needed) and cache the segments of a preset's train and test sets."""
-    from cloudpose.data.cache import ensure_dataset
+    from cloudpose.data.cache import data_fingerprint, ensure_dataset, occlusion_histogram
 
     cfg = _config(variant, preset, 1, data)
     try:
@@ -105,6 +108,14 @@ def prepare(
     except (ValueError, FileNotFoundError) as exc:
         _fail(exc)
     typer.echo(f"train: {len(train_set)} segments, test: {len(test_set)} segments")
+    if histogram is not None:
+        fp = data_fingerprint(cfg.data, project_dir=Path.cwd())
+        title = (
+            f"Occlusion factors of the {preset}-preset test set: {len(test_set)} instances\n"
+            f"(cloudpose prepare --preset {preset} --histogram ...; data {fp[:10]})"
+        )
+        counts = occlusion_histogram(test_set, histogram, title)
+        typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")
 
 
 @app.command()
