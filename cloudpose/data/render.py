@@ -8,6 +8,8 @@ tensor ``RaycastingScene``: one ray per pixel centre through ``K^-1 [u, v, 1]``,
 
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -90,7 +92,7 @@ def _planar_triangles(
     return F[keep]
 
 
-def build_mesh(points: np.ndarray) -> o3d.geometry.TriangleMesh:
+def surface_triangles(points: np.ndarray) -> np.ndarray:
     """Build a triangle surface through a model's evaluation points.
 
     The surface is the union of three triangle sets over the same vertices (the points), which
@@ -109,8 +111,8 @@ def build_mesh(points: np.ndarray) -> o3d.geometry.TriangleMesh:
         points: (P, 3) model points in metres (model frame).
 
     Returns:
-        The surface mesh (model frame, metres); vertices are the input points that some
-        triangle uses, not watertight.
+        (T, 3) int64 triangles as indices into ``points`` (not watertight; the raycaster does
+        not need it).
     """
     points = np.array(points, dtype=np.float64)  # a writeable copy: Open3D rejects read-only
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
@@ -141,14 +143,91 @@ def build_mesh(points: np.ndarray) -> o3d.geometry.TriangleMesh:
     F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])]
     _, first = np.unique(np.sort(F, axis=1), axis=0, return_index=True)
     F = F[np.sort(first)]
-    used = np.unique(F)
-    remap = np.full(len(points), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(points[used]),
-        o3d.utility.Vector3iVector(remap[F].astype(np.int32)),
+    return F
+
+
+def build_mesh(points: np.ndarray) -> o3d.geometry.TriangleMesh:
+    """The surface mesh of a model (:func:`surface_triangles`, or the packaged cache of it).
+
+    Args:
+        points: (P, 3) model points in metres (model frame).
+
+    Returns:
+        Triangle mesh in the model frame, metres; its vertices are all P points.
+    """
+    points = np.array(points, dtype=np.float64)
+    F = _cached_triangles(points)
+    if F is None:
+        F = surface_triangles(points)
+    return o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(points), o3d.utility.Vector3iVector(F.astype(np.int32))
     )
-    return mesh
+
+
+SURFACE_VERSION = 1
+"""Bump when :func:`surface_triangles` changes, so that a stale packaged cache is ignored."""
+
+SURFACE_CACHE = ("meshes", "surfaces.npz")
+"""Packaged cache of the 21 models' surfaces (``resource_path(*SURFACE_CACHE)``)."""
+
+_surface_cache: dict[str, np.ndarray] | None = None
+
+
+def surface_key(points: np.ndarray) -> str:
+    """Cache key of a model's surface: the points' bytes and the build settings."""
+    h = hashlib.sha1(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+    h.update(
+        repr(
+            (
+                SURFACE_VERSION,
+                SURFACE_BPA_RADII,
+                SURFACE_ALPHA,
+                SURFACE_PATCH_ALPHA,
+                SURFACE_PATCH_TOL,
+            )
+        ).encode()
+    )
+    return h.hexdigest()
+
+
+def _cached_triangles(points: np.ndarray) -> np.ndarray | None:
+    global _surface_cache
+    if _surface_cache is None:
+        path = resource_path(*SURFACE_CACHE)
+        _surface_cache = {}
+        if path.is_file():
+            with np.load(path) as z:
+                _surface_cache = {k: z[k] for k in z.files}
+    F = _surface_cache.get(surface_key(points))
+    if F is None or (len(F) and F.max() >= len(points)):
+        return None
+    return F.astype(np.int64)
+
+
+def write_surface_cache(path: str | Path | None = None) -> Path:
+    """Build the surfaces of the 21 packaged models and save them (the packaged cache).
+
+    Regenerate after changing :func:`surface_triangles` (and bump :data:`SURFACE_VERSION`)::
+
+        python -c "from cloudpose.data.render import write_surface_cache as w; w()"
+
+    Args:
+        path: output .npz; default the packaged ``resources/meshes/surfaces.npz``.
+
+    Returns:
+        The path written. It maps :func:`surface_key` -> (T, 3) uint16 point indices.
+    """
+    global _surface_cache
+    path = Path(path) if path is not None else resource_path(*SURFACE_CACHE)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for pts in load_packaged_models().values():
+        F = surface_triangles(pts)
+        assert len(pts) <= np.iinfo(np.uint16).max
+        out[surface_key(pts)] = F.astype(np.uint16)
+    np.savez_compressed(path, **out)
+    _surface_cache = None
+    return path
 
 
 def camera_rays(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -206,7 +285,8 @@ class Renderer:
         self._rays: dict[tuple, np.ndarray] = {}
 
     def mesh(self, cls_id: int) -> o3d.geometry.TriangleMesh:
-        """Surface mesh of class ``cls_id`` (model frame, metres; built once, cached)."""
+        """Surface mesh of class ``cls_id`` (model frame, metres; its vertices are the model
+        points). Taken from the packaged cache when the points match, else built; kept."""
         c = int(cls_id)
         if c not in self.models:
             raise ValueError(f"class id {c} has no model; known ids {sorted(self.models)}")
