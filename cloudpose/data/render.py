@@ -146,17 +146,18 @@ def surface_triangles(points: np.ndarray) -> np.ndarray:
     return F
 
 
-def build_mesh(points: np.ndarray) -> o3d.geometry.TriangleMesh:
+def build_mesh(points: np.ndarray, use_cache: bool = True) -> o3d.geometry.TriangleMesh:
     """The surface mesh of a model (:func:`surface_triangles`, or the packaged cache of it).
 
     Args:
         points: (P, 3) model points in metres (model frame).
+        use_cache: look the surface up in the packaged cache first (same points and settings).
 
     Returns:
         Triangle mesh in the model frame, metres; its vertices are all P points.
     """
     points = np.array(points, dtype=np.float64)
-    F = _cached_triangles(points)
+    F = _cached_triangles(points) if use_cache else None
     if F is None:
         F = surface_triangles(points)
     return o3d.geometry.TriangleMesh(
@@ -276,10 +277,15 @@ class Renderer:
     Args:
         models: {class id: (P, 3) model points in metres}; None -> the 21 packaged models
             with ids 1..21.
+        use_cache: take surfaces from the packaged cache when the points match (default);
+            False builds every surface afresh.
     """
 
-    def __init__(self, models: dict[int, np.ndarray] | None = None) -> None:
+    def __init__(
+        self, models: dict[int, np.ndarray] | None = None, *, use_cache: bool = True
+    ) -> None:
         self.models = load_packaged_models() if models is None else dict(models)
+        self.use_cache = use_cache
         self._meshes: dict[int, o3d.geometry.TriangleMesh] = {}
         self._arrays: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._rays: dict[tuple, np.ndarray] = {}
@@ -291,7 +297,7 @@ class Renderer:
         if c not in self.models:
             raise ValueError(f"class id {c} has no model; known ids {sorted(self.models)}")
         if c not in self._meshes:
-            self._meshes[c] = build_mesh(self.models[c])
+            self._meshes[c] = build_mesh(self.models[c], self.use_cache)
         return self._meshes[c]
 
     def _mesh_arrays(self, c: int) -> tuple[np.ndarray, np.ndarray]:
