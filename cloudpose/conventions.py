@@ -21,9 +21,7 @@ import numpy as np
 DEPTH_FACTOR_YCB = 10000.0
 """YCB-Video depth PNG units per metre."""
 
-YCB_INTRINSICS = np.array(
-    [[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]]
-)
+YCB_INTRINSICS = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])
 """Intrinsics of YCB-Video camera 1 (used by sequences 0000-0059 and the keyframes)."""
 
 IMAGE_SHAPE = (480, 640)
