@@ -16,6 +16,12 @@ Fast and reference twins: ``add_distance`` / ``adds_distance`` evaluate many ins
 and queries one KD-tree per model, built once and cached); ``add_distance_reference`` /
 ``adds_distance_reference`` loop over instances and, for ADS, build a KD-tree on every
 estimate as bop_toolkit's ``adi`` does. Tests show they agree.
+
+Where numba is installed, ``adds_distance`` runs the compiled kernel
+``cloudpose.kernels.adds_mean`` (about 2x the pykdtree path per core, and parallel over
+instances): each nearest neighbour is found by a walk over the model's neighbour lists from the
+point's own model point, proved exact by a certificate, with a bounded k-d tree search where the
+certificate fails. The pykdtree path stays as the fallback and as a test twin.
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from pykdtree.kdtree import KDTree
+
+from cloudpose import kernels
 
 AUC_MAX_THRESHOLD = 0.1
 """Upper end of the AUC threshold range, metres (YCB-Video toolbox)."""
@@ -142,12 +150,15 @@ class ModelTree:
     Attributes:
         points: (P, 3) model points, metres, reordered along a Morton curve.
         tree: pykdtree KD-tree over ``points``.
+        ads_index: the compiled ADS kernel's k-d tree and neighbour lists
+            (``cloudpose.kernels.build_nn_index``), or None without numba.
     """
 
     def __init__(self, model_points: np.ndarray) -> None:
         X = _check_model(model_points)
         self.points = X[_morton_order(X)]
         self.tree = KDTree(self.points)
+        self.ads_index = kernels.build_nn_index(X) if kernels.HAVE_NUMBA else None
 
 
 def _morton_order(X: np.ndarray) -> np.ndarray:
@@ -219,6 +230,9 @@ def adds_distance(
     A = np.swapaxes(R_est, 1, 2) @ R_gt  # (M, 3, 3): gt model frame -> est model frame
     b = np.einsum("mji,mj->mi", R_est, t_gt - t_est)  # (M, 3) = R^T (t - t^)
     W = np.concatenate([A, b[:, :, None]], axis=2)  # (M, 3, 4)
+    if index.ads_index is not None and np.isfinite(W).all():
+        # compiled: a neighbour walk with an exactness certificate, k-d tree where it fails
+        return _out(kernels.adds_mean(index.ads_index, W), single)
     Yh = np.concatenate([Y, np.ones((P, 1))], axis=1)  # (P, 4)
     out = np.empty(len(W))
     step = max(1, _ADS_CHUNK_POINTS // P)

@@ -27,6 +27,11 @@ convergence criteria (relative fitness / RMSE 1e-6) never stop a call early. One
 difference: with exactly two correspondences the rotation is undetermined and Eigen returns an
 arbitrary one; the fast path then moves by the translation only.
 
+Where numba is installed, the whole loop runs compiled (``cloudpose.kernels.icp_model_frame``):
+the first iteration's correspondences come from a bounded k-d tree search, later ones from a
+search that starts at each point's previous match (neighbour lists and an exactness
+certificate), so the poses are those of the pykdtree loop, which stays as the fallback.
+
 Threads: the fast path runs BLAS and pykdtree on one thread while it works (``threadpoolctl``);
 a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fork/join made it
 10-30x slower whenever another process held a core.
@@ -42,6 +47,8 @@ from typing import NamedTuple
 
 import numpy as np
 from pykdtree.kdtree import KDTree
+
+from cloudpose import kernels
 
 
 @dataclass(frozen=True)
@@ -193,6 +200,9 @@ class ModelIndex:
         tree: pykdtree KD-tree over ``points``.
         points_h: (P + 1, 4) homogeneous points plus a zero row at index P, the index pykdtree
             returns for "no neighbour within the bound", so a gather needs no mask.
+        kernel_index: the compiled ICP loop's k-d tree and neighbour lists
+            (``cloudpose.kernels.build_nn_index``), or
+            None without numba.
     """
 
     def __init__(self, model_points: np.ndarray) -> None:
@@ -204,6 +214,7 @@ class ModelIndex:
         self.points_h = np.zeros((P + 1, 4))
         self.points_h[:P, :3] = self.points
         self.points_h[:P, 3] = 1.0
+        self.kernel_index = kernels.build_nn_index(self.points) if kernels.HAVE_NUMBA else None
 
 
 _controller = None
@@ -254,6 +265,8 @@ def icp_refine(
     if len(observed) < 3:
         return _degenerate(R_init, t_init, f"{len(observed)} observed points, need >= 3")
     index = model_points if isinstance(model_points, ModelIndex) else ModelIndex(model_points)
+    if index.kernel_index is not None:  # compiled: no BLAS or OpenMP threads to hold back
+        return _icp_model_frame(observed, index, R_init, t_init, settings.radii())
     with _single_threaded():
         return _icp_model_frame(observed, index, R_init, t_init, settings.radii())
 
@@ -262,6 +275,15 @@ def _icp_model_frame(
     observed: np.ndarray, index: ModelIndex, R_init: np.ndarray, t_init: np.ndarray, radii
 ) -> ICPSolution:
     N = len(observed)
+    if index.kernel_index is not None and np.isfinite(observed).all():
+        T_acc, n_inl, sum_d2 = kernels.icp_model_frame(
+            index.kernel_index, (observed - t_init) @ R_init, np.asarray(radii, dtype=np.float64)
+        )
+        if n_inl < 0:
+            return _degenerate(R_init, t_init, f"no model point within {radii[0]} m")
+        R = R_init @ T_acc[:3, :3].T
+        t = t_init - R @ T_acc[:3, 3]
+        return ICPSolution(R, t, n_inl / N, float(np.sqrt(sum_d2 / n_inl)) if n_inl else 0.0)
     cur = np.empty((N, 4))  # homogeneous observed points in the estimate's model frame
     cur[:, :3] = (observed - t_init) @ R_init  # R^T (p - t), row-major
     cur[:, 3] = 1.0

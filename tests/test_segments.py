@@ -72,6 +72,54 @@ def test_fps_fills_small_segments_by_repeating_the_fps_order():
     assert np.array_equal(idx[10:20], idx[:10])
 
 
+def _fpsample_order(pts: np.ndarray, k: int, start: int) -> np.ndarray:
+    import fpsample
+
+    return np.asarray(fpsample.fps_sampling(pts, k, start_idx=start), dtype=np.int64)
+
+
+def _real_segments() -> list[np.ndarray]:
+    f = YCBVideo(REAL).frame("0000/000001")
+    return [sg.backproject(f.depth, f.label == c, f.K).astype(np.float32) for c in f.cls_ids]
+
+
+def test_fps_on_real_segments_equals_fpsample_and_the_loop_ties_included():
+    """Depth is quantised, so real segments have tied distances: all three agree on them (the
+    highest index wins a tie), so caches made with the previous fpsample path are unchanged."""
+    rng = np.random.default_rng(7)
+    for seg in _real_segments():
+        for n in (300, 3000):
+            pts = seg[np.sort(rng.choice(len(seg), n, replace=False))]
+            s = int(rng.integers(n))
+            k = min(n, 1024)
+            fast = sg.farthest_point_sampling(pts, k, s)
+            assert np.array_equal(fast, _fpsample_order(pts, k, s))
+            assert np.array_equal(fast, sg.farthest_point_sampling_reference(pts, k, s))
+        s = int(rng.integers(len(seg)))  # a whole segment (~20k points) against fpsample
+        assert np.array_equal(
+            sg.farthest_point_sampling(seg, 1024, s), _fpsample_order(seg, 1024, s)
+        )
+
+
+def test_fps_ties_go_to_the_highest_index():
+    # the corners of a cube around the start tie at every step
+    pts = np.array([[0, 0, 0]] + [[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    order = sg.farthest_point_sampling(pts.astype(np.float32), 9, 0)
+    assert order[1] == 8  # all 8 corners are equally far: the last one
+    assert np.array_equal(order, sg.farthest_point_sampling_reference(pts, 9, 0))
+    assert np.array_equal(order, _fpsample_order(pts.astype(np.float32), 9, 0))
+
+
+def test_fps_fallback_without_numba_gives_the_same_order(monkeypatch):
+    from cloudpose import kernels
+
+    pts = np.round(np.random.default_rng(8).normal(size=(2000, 3)), 2).astype(np.float32)
+    fast = sg.farthest_point_sampling(pts, 256, 5)
+    monkeypatch.setattr(kernels, "HAVE_NUMBA", False)
+    assert np.array_equal(sg.farthest_point_sampling(pts, 256, 5), fast)
+    assert np.array_equal(sg.farthest_point_sampling_reference(pts, 256, 5), fast)
+
+
 def test_fps_bad_input():
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         sg.farthest_point_sampling(np.zeros((5, 2)), 4, 0)

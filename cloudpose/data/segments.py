@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING
 import fpsample
 import numpy as np
 
+from cloudpose import kernels
+
 if TYPE_CHECKING:
     from cloudpose.data.render import Renderer
     from cloudpose.data.ycb import Frame
@@ -63,7 +65,13 @@ def _fill(order: np.ndarray, k: int) -> np.ndarray:
 def farthest_point_sampling(
     points: np.ndarray, k: int, start: int | np.random.Generator | None = None
 ) -> np.ndarray:
-    """Exact farthest point sampling (fpsample's vanilla FPS, in float32).
+    """Exact farthest point sampling, in float32.
+
+    The compiled bucket FPS of :func:`cloudpose.kernels.fps_order` (a k-d tree skips the
+    points a new sample cannot get closer to) where numba is installed, else fpsample's
+    vanilla FPS. Both give the order of :func:`farthest_point_sampling_reference`, index for
+    index, ties included (the highest index wins a tie, as in fpsample, so segment caches
+    made with either are the same).
 
     Args:
         points: (N, 3) points, metres.
@@ -79,6 +87,8 @@ def farthest_point_sampling(
     m = min(k, len(pts))
     if m == 1:
         order = np.array([s], dtype=np.int64)
+    elif kernels.HAVE_NUMBA and np.isfinite(pts).all():
+        order = kernels.fps_order(pts, m, s)
     else:
         # fps_sampling honours start_idx exactly (the bucket/kd variants in 1.0.2 do not)
         order = np.asarray(fpsample.fps_sampling(pts, m, start_idx=s), dtype=np.int64)
@@ -90,7 +100,9 @@ def farthest_point_sampling_reference(
 ) -> np.ndarray:
     """Slow, obviously correct twin of :func:`farthest_point_sampling` (a numpy loop).
 
-    Same arithmetic (float32 squared distances, first index on ties), so equal outputs.
+    Same arithmetic (float32 squared distances ``(dx*dx + dy*dy) + dz*dz``; on ties the
+    highest index, fpsample's rule, which decides real segments: depth is quantised), so
+    equal outputs.
     """
     pts = _check_fps_args(points, k)
     s = _start(len(pts), start)
@@ -100,7 +112,7 @@ def farthest_point_sampling_reference(
     for _ in range(m - 1):
         d = ((pts - pts[order[-1]]) ** 2).sum(axis=1)
         nearest = np.minimum(nearest, d)
-        order.append(int(np.argmax(nearest)))
+        order.append(len(pts) - 1 - int(np.argmax(nearest[::-1])))  # the last maximum
     out = np.asarray(order, dtype=np.int64)
     return _fill(out, k) if m < k else out
 

@@ -1,0 +1,447 @@
+"""The benchmark suite (issue 6): every figure in one run -> reports/benchmarks.{md,json}.
+
+Each figure is measured beside its reference in the same run (interleaved repeats, medians),
+and reported as value, reference, ratio, target and whether it is met, with the machine
+described (``benchmarks.common.describe_machine``: CPU and flags, cores, torch, allocator,
+load). Figures (JSON keys):
+
+- ``train_fraction_of_peak``, ``train_bf16_samples_per_s`` (``benchmarks.bench_train``)
+- ``infer_ms_per_object``, ``infer_ms_frame8`` (``benchmarks.bench_infer``)
+- ``icp_ms_per_object``, ``ads_ms_per_10k`` (``benchmarks.bench_refine_metrics``)
+- ``fps_ms_20k`` (``benchmarks.bench_fps``)
+- ``synth_frames_per_s``, ``prepare_frames_per_s`` (``benchmarks.bench_data``)
+- ``cpu_variant_wall_s``: wall time of one ``cpu``-preset variant, train + evaluate. Not run by
+  default (it takes minutes): read from the MLflow store (start to end of the newest finished
+  ``cpu`` run; training and evaluation log into the same run), else null with a note;
+  ``--cpu-variant`` runs ``cloudpose run --preset cpu`` for real (into a temporary MLflow
+  store) and times it.
+
+The process sets itself up as the CLI does (``cloudpose.perf``: tcmalloc re-exec, threads).
+
+Usage: ``python -m benchmarks.run_all [--quick] [--only NAME[,NAME]] [--cpu-variant]
+[--out reports]``; ``make bench``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+ROOT = Path(__file__).resolve().parents[1]
+CPU_VARIANT_TARGET_S = 600.0
+
+FIGURES = (
+    "train_fraction_of_peak",
+    "train_bf16_samples_per_s",
+    "infer_ms_per_object",
+    "infer_ms_frame8",
+    "icp_ms_per_object",
+    "fps_ms_20k",
+    "ads_ms_per_10k",
+    "synth_frames_per_s",
+    "prepare_frames_per_s",
+    "cpu_variant_wall_s",
+)
+"""Every figure's JSON key, in report order."""
+
+GROUPS = {
+    "train": ("train_fraction_of_peak", "train_bf16_samples_per_s"),
+    "infer": ("infer_ms_per_object", "infer_ms_frame8"),
+    "refine_metrics": ("icp_ms_per_object", "ads_ms_per_10k"),
+    "fps": ("fps_ms_20k",),
+    "data": ("synth_frames_per_s", "prepare_frames_per_s"),
+    "cpu_variant": ("cpu_variant_wall_s",),
+}
+"""Which benchmark module measures which figures."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Groups
+
+
+def _train(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_train
+
+    res = bench_train.run(quick=quick)
+    tf = res["train_fraction_of_peak"]
+    plain_frac = tf["plain_fraction_of_peak"]
+    bf = res["train_bf16_samples_per_s"]
+    return {
+        "train_fraction_of_peak": {
+            "value": tf["value"],
+            "unit": "fraction of the fp32 GEMM rate",
+            "what": tf["what"],
+            "reference": {"name": "plain network (Conv1d-like Linear + BN)", "value": plain_frac},
+            "ratio": tf["value"] / plain_frac if plain_frac else None,
+            "target": ">= 0.80 (shared-0, fp32)",
+            "met": bool(tf["value"] >= 0.80),
+            "detail": {
+                **{k: v for k, v in tf.items() if k not in ("value", "what")},
+                "gemm_fp32": res["gemm_fp32_gflops"],
+                "train_by_allocator": res["train_by_allocator"],
+            },
+        },
+        "train_bf16_samples_per_s": {
+            "value": bf.get("value"),
+            "unit": "samples/s",
+            "what": "shared-0, fused, bfloat16 GEMM, batch 128, n = 256",
+            "reference": {
+                "name": "fp32 fused samples/s",
+                "value": tf["samples_per_s"],
+            },
+            "ratio": bf["value"] / tf["samples_per_s"] if bf.get("value") else None,
+            "target": ">= 0.65 of the bf16 GEMM rate, where bf16 hardware exists",
+            "met": (bool(bf["fraction_of_bf16_peak"] >= 0.65) if bf.get("value") else None),
+            "note": bf.get("skipped"),
+            "detail": bf,
+        },
+    }
+
+
+def _infer(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_infer
+
+    return bench_infer.run(quick=quick)
+
+
+def _refine_metrics(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_refine_metrics
+
+    return bench_refine_metrics.run(quick=quick)
+
+
+def _fps(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_fps
+
+    return bench_fps.run(quick=quick)
+
+
+def _data(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_data
+
+    return bench_data.run(quick=quick)
+
+
+def _cpu_variant(quick: bool, args: argparse.Namespace) -> dict[str, Any]:
+    if getattr(args, "cpu_variant", False):
+        return {"cpu_variant_wall_s": cpu_variant_run(args.variant, args.seed)}
+    return {"cpu_variant_wall_s": cpu_variant_from_store()}
+
+
+RUNNERS: dict[str, Callable[[bool, argparse.Namespace], dict[str, Any]]] = {
+    "train": _train,
+    "infer": _infer,
+    "refine_metrics": _refine_metrics,
+    "fps": _fps,
+    "data": _data,
+    "cpu_variant": _cpu_variant,
+}
+
+
+def _cpu_figure(value: float | None, what: str, detail: dict, note: str | None = None) -> dict:
+    return {
+        "value": value,
+        "unit": "s",
+        "what": what,
+        "reference": {
+            "name": "the budget of one cpu-preset variant",
+            "value": CPU_VARIANT_TARGET_S,
+        },
+        "ratio": (value / CPU_VARIANT_TARGET_S) if value is not None else None,
+        "target": f"<= {CPU_VARIANT_TARGET_S:g} s (train + evaluate)",
+        "met": (bool(value <= CPU_VARIANT_TARGET_S) if value is not None else None),
+        "note": note,
+        "detail": detail,
+    }
+
+
+def cpu_variant_from_store(project_dir: Path | None = None) -> dict[str, Any]:
+    """``cpu_variant_wall_s`` from the newest finished ``cpu``-preset run in the MLflow store.
+
+    The wall time is the run's end minus its start: training and the evaluation (with and
+    without ICP) log into the same run, which ends when evaluation ends. Data synthesis and
+    segment preparation are not in it.
+    """
+    try:
+        from cloudpose import tracking
+
+        client = tracking.setup(project_dir)
+        runs = tracking.find_runs(client, preset="cpu")
+    except Exception as exc:  # an unreadable store must not stop the suite
+        return _cpu_figure(
+            None, "cpu preset, train + evaluate", {}, f"MLflow store unreadable: {exc}"
+        )
+    timed = [r for r in runs if r.info.end_time and r.info.start_time]
+    if not timed:
+        return _cpu_figure(
+            None, "cpu preset, train + evaluate", {"store": tracking.tracking_uri(project_dir)},
+            "no finished cpu-preset run in the MLflow store; run `python -m benchmarks.run_all "
+            "--only cpu_variant --cpu-variant` (or the ablations) first",
+        )  # fmt: skip
+    newest = timed[0]
+    walls = [(r.info.end_time - r.info.start_time) / 1000.0 for r in timed]
+    walls_sorted = sorted(walls)
+    tags = newest.data.tags
+    return _cpu_figure(
+        walls[0],
+        f"newest finished cpu run {tags.get('variant')}/seed{tags.get('seed')}: MLflow start to "
+        "end (train + evaluate with and without ICP)",
+        {
+            "run_id": newest.info.run_id,
+            "variant": tags.get("variant"),
+            "runs_in_store": len(timed),
+            "median_over_runs_s": walls_sorted[len(walls_sorted) // 2],
+            "max_over_runs_s": walls_sorted[-1],
+            "store": tracking.tracking_uri(project_dir),
+        },
+        "read from the MLflow store, not measured in this run",
+    )
+
+
+def cpu_variant_run(variant: str = "shared-0", seed: int = 1) -> dict[str, Any]:
+    """Run ``cloudpose run --preset cpu`` for real (a temporary MLflow store) and time it.
+
+    Synthesis and preparation are done first (``cloudpose prepare``, skipped when cached) and
+    not counted; the timed command trains and evaluates.
+    """
+    cli = [sys.executable, "-m", "cloudpose.cli"]
+    env = dict(os.environ)
+    with tempfile.TemporaryDirectory(prefix="cloudpose-bench-mlflow-") as tmp:
+        env["MLFLOW_TRACKING_URI"] = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
+        # synthesis and segment caching (skipped when cached) are not part of the figure
+        subprocess.run([*cli, "prepare", "--preset", "cpu", "--no-progress"], cwd=ROOT, env=env,
+                       check=True)  # fmt: skip
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            [*cli, "run", "--variant", variant, "--preset", "cpu", "--seed", str(seed),
+             "--no-progress"],
+            cwd=ROOT, env=env, capture_output=True, text=True, check=False,
+        )  # fmt: skip
+        wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        return _cpu_figure(
+            None, f"cloudpose run --variant {variant} --preset cpu", {"stderr": proc.stderr[-2000:]},
+            f"the run failed (exit {proc.returncode})",
+        )  # fmt: skip
+    return _cpu_figure(
+        wall,
+        f"cloudpose run --variant {variant} --preset cpu --seed {seed} (train + evaluate), "
+        "measured in this run",
+        {"stdout_tail": proc.stdout[-1500:]},
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Report
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=ROOT, capture_output=True, text=True, check=False,
+        ).stdout.strip()  # fmt: skip
+        return out + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return str(v)
+        return f"{v:.3g}" if abs(v) < 100 else f"{v:,.0f}"
+    return str(v)
+
+
+def render_markdown(report: dict[str, Any]) -> str:
+    """The human-readable report: command, machine, commit, and one row per figure."""
+    m = report["machine"]
+    cpu = m["cpu"]
+    lines = [
+        "# Benchmarks (issue 6)",
+        "",
+        f"- command: `{report['command']}`",
+        f"- commit: `{report['commit']}`",
+        f"- when: {report['started']} (took {report['seconds']:.0f} s)",
+        f"- machine: {cpu['model']}, {cpu['usable_cores']}/{cpu['cores']} cores, flags "
+        f"{' '.join(cpu['flags']) or '-'}; torch {m['torch']} ({m['torch_cpu_capability']}), "
+        f"{m['torch_threads']} threads; allocator {m['allocator']}; numba {m.get('numba') or 'no'}",
+        f"- load average (1/5/15 min) at start {m['load_average_1_5_15min']}, at end "
+        f"{report.get('load_average_at_end')}",
+        "",
+        "Ratio = reference / value for times (higher is faster), value / reference for rates "
+        "and fractions. Every reference is measured in the same run, interleaved where cheap.",
+        "",
+        "| figure | value | unit | reference | ratio | target | met |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key in FIGURES:
+        f = report["figures"].get(key)
+        if f is None:
+            continue
+        ref = f.get("reference") or {}
+        ref_s = f"{_fmt(ref.get('value'))} ({ref.get('name', '')})" if ref else "-"
+        lines.append(
+            f"| `{key}` | {_fmt(f.get('value'))} | {f.get('unit', '')} | {ref_s} | "
+            f"{_fmt(f.get('ratio'))} | {f.get('target') or '-'} | {_fmt(f.get('met'))} |"
+        )
+    lines += ["", "## What each figure is", ""]
+    for key in FIGURES:
+        f = report["figures"].get(key)
+        if f is None:
+            continue
+        note = f" Note: {f['note']}" if f.get("note") else ""
+        lines.append(f"- `{key}`: {f.get('what', '')}.{note}")
+    if report.get("errors"):
+        lines += ["", "## Errors", ""]
+        lines += [f"- `{k}`: {v}" for k, v in report["errors"].items()]
+    lines += ["", "Details (per size, per variant, every repeat) are in benchmarks.json.", ""]
+    return "\n".join(lines)
+
+
+def run(
+    names: list[str] | None = None,
+    quick: bool = False,
+    out_dir: Path | None = None,
+    args: argparse.Namespace | None = None,
+) -> dict[str, Any]:
+    """Run the selected benchmark groups and write ``benchmarks.json`` / ``benchmarks.md``.
+
+    Args:
+        names: figure keys or group names (``GROUPS``) to run; None = all.
+        quick: small sizes and few repeats (the test's smoke run).
+        out_dir: where the reports go (default ``reports/`` of the repository).
+        args: the parsed command line (``--cpu-variant``, ``--variant``, ``--seed``).
+
+    Returns:
+        The report dict (also written as JSON).
+    """
+    from benchmarks.common import describe_machine
+
+    args = args or argparse.Namespace(cpu_variant=False, variant="shared-0", seed=1)
+    groups = select_groups(names)
+    t0 = time.perf_counter()
+    machine = describe_machine()
+    try:
+        import numba
+
+        machine["numba"] = numba.__version__
+    except ImportError:
+        machine["numba"] = None
+    report: dict[str, Any] = {
+        "command": " ".join([Path(sys.executable).name, "-m", "benchmarks.run_all", *sys.argv[1:]])
+        if sys.argv and sys.argv[0].endswith("run_all.py")
+        else f"benchmarks.run_all.run(names={names}, quick={quick})",
+        "commit": git_commit(),
+        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "quick": quick,
+        "machine": machine,
+        "figures": {},
+        "errors": {},
+    }
+    for g in groups:
+        try:
+            res = RUNNERS[g](quick, args)
+        except Exception as exc:  # one failing group must not lose the others
+            report["errors"][g] = f"{type(exc).__name__}: {exc}"
+            for key in GROUPS[g]:
+                report["figures"][key] = {"value": None, "note": f"failed: {exc}"}
+            continue
+        report["figures"].update(res)
+    report["seconds"] = time.perf_counter() - t0
+    try:
+        report["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        report["load_average_at_end"] = None
+    # figures in report order, with null entries for those not run
+    report["figures"] = {k: report["figures"][k] for k in FIGURES if k in report["figures"]}
+    out = Path(out_dir) if out_dir is not None else ROOT / "reports"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "benchmarks.json").write_text(json.dumps(report, indent=2, default=_json_default))
+    (out / "benchmarks.md").write_text(render_markdown(report))
+    return report
+
+
+def _json_default(o: Any) -> Any:
+    try:
+        import numpy as np
+
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    return str(o)
+
+
+def select_groups(names: list[str] | None) -> list[str]:
+    """Benchmark groups to run for ``--only`` names (figure keys or group names)."""
+    if not names:
+        return list(GROUPS)
+    chosen = []
+    for name in names:
+        if name in GROUPS:
+            g = name
+        else:
+            g = next((g for g, keys in GROUPS.items() if name in keys), None)
+            if g is None:
+                valid = sorted({*GROUPS, *FIGURES})
+                raise ValueError(f"--only: unknown benchmark {name!r}; valid: {', '.join(valid)}")
+        if g not in chosen:
+            chosen.append(g)
+    return chosen
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes, few repeats (smoke)")
+    ap.add_argument(
+        "--only", default="", help="NAME[,NAME]: figure keys or groups " + str(list(GROUPS))
+    )
+    ap.add_argument(
+        "--cpu-variant", action="store_true",
+        help="run one cpu-preset variant (train + evaluate) for real instead of reading MLflow",
+    )  # fmt: skip
+    ap.add_argument("--variant", default="shared-0", help="variant for --cpu-variant")
+    ap.add_argument("--seed", type=int, default=1, help="seed for --cpu-variant")
+    ap.add_argument("--out", type=Path, default=None, help="report folder (default reports/)")
+    args = ap.parse_args(argv)
+    names = [n.strip() for n in args.only.split(",") if n.strip()] or None
+    try:
+        select_groups(names)
+    except ValueError as exc:
+        ap.error(str(exc))
+    report = run(names, quick=args.quick, out_dir=args.out, args=args)
+    out = args.out or ROOT / "reports"
+    print((out / "benchmarks.md").read_text())
+    if report["errors"]:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    from cloudpose.perf import configure_threads, reexec_with_allocator
+
+    reexec_with_allocator()
+    configure_threads()
+    main()

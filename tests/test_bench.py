@@ -1,0 +1,82 @@
+"""Smoke test of the benchmark harness (benchmarks/run_all.py) in quick mode: it runs, writes
+both reports, and every figure carries its value, reference, ratio, target and verdict.
+No timing is asserted."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks import bench_train, run_all
+
+FIGURE_KEYS = {"value", "unit", "what", "reference", "ratio", "target", "met"}
+
+
+def test_quick_run_writes_every_selected_figure(tmp_path):
+    names = ["fps", "icp_ms_per_object", "infer", "cpu_variant"]
+    report = run_all.run(names, quick=True, out_dir=tmp_path)
+    assert not report["errors"]
+    saved = json.loads((tmp_path / "benchmarks.json").read_text())
+    md = (tmp_path / "benchmarks.md").read_text()
+    expected = {
+        "fps_ms_20k",
+        "icp_ms_per_object",
+        "ads_ms_per_10k",
+        "infer_ms_per_object",
+        "infer_ms_frame8",
+        "cpu_variant_wall_s",
+    }
+    assert set(saved["figures"]) == expected
+    assert {"machine", "commit", "command", "seconds"} <= set(saved)
+    assert saved["machine"]["cpu"]["cores"] >= 1
+    for key, fig in saved["figures"].items():
+        assert FIGURE_KEYS <= set(fig), key
+        assert f"`{key}`" in md
+    for key in expected - {"cpu_variant_wall_s"}:
+        fig = saved["figures"][key]
+        assert fig["value"] > 0 and fig["reference"]["value"] > 0 and fig["ratio"] > 0, key
+    # the exactness checks the figures rest on
+    sizes = saved["figures"]["fps_ms_20k"]["detail"]
+    assert all(
+        s["same_indices_as_fpsample"] and s["same_indices_as_numpy_loop"] for s in sizes.values()
+    )
+    assert saved["figures"]["ads_ms_per_10k"]["detail"]["ads_max_value_difference_m"] < 1e-12
+    assert saved["figures"]["icp_ms_per_object"]["detail"]["icp_max_pose_difference"] < 1e-9
+    assert saved["figures"]["infer_ms_per_object"]["detail"]["folded_vs_plain_max_abs_diff"] < 1e-4
+
+
+def test_train_figures_are_mapped_from_bench_train(tmp_path, monkeypatch):
+    """The train group turns bench_train.run's result into the two figures (bench_train itself
+    takes a minute even in quick mode; its own tests cover it), here on a recorded result."""
+    fake = {
+        "machine": {},
+        "gemm_fp32_gflops": {"peak_gflops": 100.0},
+        "train_fraction_of_peak": {
+            "value": 0.82, "what": "shared-0 fused", "samples_per_s": 180.0,
+            "plain_samples_per_s": 60.0, "plain_fraction_of_peak": 0.28, "per_variant": {},
+        },
+        "train_bf16_samples_per_s": {"value": None, "skipped": "no bf16 hardware"},
+        "train_by_allocator": {"tcmalloc": {"plain": 60.0, "fused": 180.0}},
+    }  # fmt: skip
+    monkeypatch.setattr(bench_train, "run", lambda quick=False: fake)
+    report = run_all.run(["train"], quick=True, out_dir=tmp_path)
+    figs = report["figures"]
+    assert figs["train_fraction_of_peak"]["met"] is True
+    assert figs["train_fraction_of_peak"]["ratio"] == pytest.approx(0.82 / 0.28)
+    assert figs["train_bf16_samples_per_s"]["value"] is None
+    assert figs["train_bf16_samples_per_s"]["note"] == "no bf16 hardware"
+
+
+def test_cpu_variant_is_null_without_runs_and_only_validates_names(tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
+    fig = run_all.cpu_variant_from_store(tmp_path)
+    assert fig["value"] is None and "no finished cpu-preset run" in fig["note"]
+    assert run_all.select_groups(["fps_ms_20k", "fps", "ads_ms_per_10k"]) == [
+        "fps",
+        "refine_metrics",
+    ]
+    with pytest.raises(ValueError, match="unknown benchmark"):
+        run_all.select_groups(["nope"])
+    with pytest.raises(SystemExit):
+        run_all.main(["--only", "nope"])
