@@ -11,11 +11,14 @@ calls, so they run here as compiled loops:
   numpy loop and ties go to the lowest index, so the order is the same, index for index.
 - ``icp_model_frame``: the paper's ICP schedule in the model frame (refine.py): per iteration,
   each observed point's nearest model point within the radius, the correspondence moments, and
-  Umeyama's rotation; all on one k-d tree of the model.
+  Umeyama's rotation. A point's first neighbour comes from a bounded k-d tree search; later
+  ones from a walk over the model's Delaunay graph from its previous neighbour, skipped while
+  the point cannot have left that neighbour's Voronoi cell.
 - ``adds_mean``: ADS of many instances of one model (metrics.py): each ground-truth-posed point
-  in the estimate's model frame, its nearest model point. The search starts from an upper bound
-  that is already an answer (the point's own model point, or the previous point's neighbour),
-  so it visits few leaves.
+  in the estimate's model frame, its nearest model point, by a downhill walk over the Delaunay
+  graph from the point's own model point or the previous point's neighbour. A point whose
+  Delaunay neighbours are all farther from the query than itself has the query in its Voronoi
+  cell: the walk's end is the exact nearest point.
 
 Every kernel has a slow twin elsewhere (numpy loop FPS, ten Open3D calls, per-instance KD-tree
 ADS) with tests that they agree; callers fall back to their numpy/pykdtree paths where numba is
@@ -24,7 +27,9 @@ first run on a machine pays the compilation (a few seconds).
 
 The k-d tree (``KDTree``): boxes split at the middle of their widest side (never empty sides),
 leaves of at most ``leaf_size`` points, points stored in leaf order; each node keeps the
-bounding box of its points, which a search uses as its lower bound.
+bounding box of its points, which a search uses as its lower bound. Where a model has no 3-D
+Delaunay triangulation (flat or under 5 points), ``NNIndex`` holds each point's nearest points
+instead and searches use a certificate with a k-d tree fallback (``_nearest_from``).
 """
 
 from __future__ import annotations
@@ -274,36 +279,89 @@ def nearest_bounded(
 
 
 class NNIndex(NamedTuple):
-    """A point set's k-d tree plus, per point, its nearest other points (for ``adds_mean`` and
-    ``icp_model_frame``).
+    """A point set's k-d tree and neighbour graph (for ``adds_mean`` and ``icp_model_frame``).
+
+    The graph is the Delaunay triangulation's where it exists (any 3-D set of 5 or more points
+    not all on a plane): q's nearest point is the point none of whose Delaunay neighbours is
+    nearer (its Voronoi cell holds q), so a downhill walk ends at the exact answer. Otherwise
+    (flat or tiny sets) each point's L nearest points, with a certificate and a k-d tree
+    fallback (see ``_nearest_from``).
 
     Attributes:
         tree: float64 ``build_kdtree`` of the points.
+        adj_ptr, adj: the Delaunay graph in CSR form over stored positions: the neighbours of
+            stored point p are ``adj[adj_ptr[p]:adj_ptr[p + 1]]`` (int64, int32); empty arrays
+            when there is no triangulation.
+        adj_len: (E,) float64 length of each graph edge, metres.
         nbr: (P, L) int32 stored positions of each stored point's L nearest other points,
-            nearest first.
+            nearest first ((P, 0) when the Delaunay graph is used).
         nbr_d2: (P, L) float32 their squared distances rounded down, ascending (the last one
             inf when the list holds every other point). Compact, so the lists stay in cache.
     """
 
     tree: KDTree
+    adj_ptr: np.ndarray
+    adj: np.ndarray
+    adj_len: np.ndarray
     nbr: np.ndarray
     nbr_d2: np.ndarray
 
 
+def _delaunay_graph(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Delaunay neighbours of every point (CSR) and the edge lengths, or None where Qhull
+    cannot triangulate.
+
+    Qhull leaves out points that coincide (to its precision) with a vertex; such a point gets
+    its vertex's neighbours and the vertex, and is added to the vertex's neighbours, so a walk
+    reaches it and can leave it.
+    """
+    if len(P) < 5:
+        return None
+    try:
+        from scipy.spatial import Delaunay, QhullError
+
+        tri = Delaunay(P)
+    except (QhullError, ValueError):
+        return None
+    ptr, ind = tri.vertex_neighbor_vertices
+    nbrs = [ind[ptr[i] : ptr[i + 1]] for i in range(len(P))]
+    if len(tri.coplanar):
+        extra: dict[int, list[int]] = {}
+        for point, _facet, vertex in tri.coplanar.tolist():
+            extra.setdefault(vertex, []).append(point)
+            nbrs[point] = np.append(nbrs[vertex], vertex)
+        for vertex, pts in extra.items():
+            nbrs[vertex] = np.append(nbrs[vertex], pts)
+        nbrs = [np.unique(a) for a in nbrs]
+    if any(len(a) == 0 for a in nbrs):
+        return None
+    adj_ptr = np.zeros(len(P) + 1, np.int64)
+    adj_ptr[1:] = np.cumsum([len(a) for a in nbrs])
+    adj = np.concatenate(nbrs).astype(np.int32)
+    rows = np.repeat(np.arange(len(P)), np.diff(adj_ptr))
+    return adj_ptr, adj, np.linalg.norm(P[adj] - P[rows], axis=1)
+
+
 def build_nn_index(points: np.ndarray, n_neighbours: int = 32, leaf_size: int = 16) -> NNIndex:
-    """The k-d tree and neighbour lists of a point set (a model), see :class:`NNIndex`.
+    """The k-d tree and neighbour graph of a point set (a model), see :class:`NNIndex`.
 
     Args:
         points: (P, 3) points, metres.
-        n_neighbours: neighbours listed per point (fewer if P is smaller).
+        n_neighbours: neighbours listed per point where there is no Delaunay graph.
         leaf_size: most points per k-d tree leaf.
     """
     from pykdtree.kdtree import KDTree as _PyKDTree
 
     tree = build_kdtree(points, leaf_size)
     P = len(tree.points)
+    graph = _delaunay_graph(tree.points)
+    if graph is not None:
+        return NNIndex(tree, *graph, np.zeros((P, 0), np.int32), np.zeros((P, 0), np.float32))
+    no_graph = (np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0))
     if P == 1:
-        return NNIndex(tree, np.zeros((1, 1), np.int32), np.full((1, 1), np.inf, np.float32))
+        return NNIndex(
+            tree, *no_graph, np.zeros((1, 1), np.int32), np.full((1, 1), np.inf, np.float32)
+        )
     L = max(1, min(int(n_neighbours), P - 1))
     d, i = _PyKDTree(tree.points).query(tree.points, k=L + 1)
     d, i = d.reshape(P, L + 1), i.reshape(P, L + 1).astype(np.int64)
@@ -320,7 +378,7 @@ def build_nn_index(points: np.ndarray, n_neighbours: int = 32, leaf_size: int = 
     nbr_d2[up] = np.nextafter(nbr_d2[up], np.float32(0))
     if L == P - 1:  # every other point is listed: a list scan is always conclusive
         nbr_d2[:, -1] = np.inf
-    return NNIndex(tree, np.ascontiguousarray(nbr), np.ascontiguousarray(nbr_d2))
+    return NNIndex(tree, *no_graph, np.ascontiguousarray(nbr), np.ascontiguousarray(nbr_d2))
 
 
 @njit(cache=True, inline="always")
@@ -333,9 +391,13 @@ def _d2(P, j, x, y, z):
 
 @njit(cache=True, inline="always")
 def _nearest_from(
-    P, box, left, right, start, end, nbr, nbr_d2, n_walk, x, y, z, c, bound_d2, stack, stack_d2
-):
+    P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, n_walk, x, y, z, c, bound_d2,
+    stack, stack_d2,
+):  # fmt: skip
     """Nearest stored point with squared distance < bound_d2, searched from stored point c.
+
+    With a Delaunay graph: walk downhill over all Delaunay neighbours; where none is nearer,
+    the query is in the point's Voronoi cell: the exact nearest point. Without one:
 
     1. Walk downhill: move to the nearest of the current point's first ``n_walk`` neighbours
        while one is nearer to the query.
@@ -346,8 +408,22 @@ def _nearest_from(
 
     Returns (squared distance, stored index) or (bound_d2, -1) when none is that near.
     """
-    L = nbr.shape[1]
     best = _d2(P, c, x, y, z)
+    if adj_ptr.shape[0] > 0:
+        while True:
+            cc = c
+            for j in range(adj_ptr[c], adj_ptr[c + 1]):
+                q = adj[j]
+                d2 = _d2(P, q, x, y, z)
+                if d2 < best:
+                    best, cc = d2, q
+            if cc == c:
+                break
+            c = cc
+        if best < bound_d2:
+            return best, c
+        return bound_d2, -1
+    L = nbr.shape[1]
     for _ in range(P.shape[0]):
         cc = c
         for j in range(n_walk):
@@ -386,7 +462,7 @@ def _nearest_from(
 
 
 @njit(cache=True, parallel=True)
-def _adds_kernel(P, box, left, right, start, end, nbr, nbr_d2, W, n_walk):
+def _adds_kernel(P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, W, n_walk):
     M = W.shape[0]
     n = P.shape[0]
     n_walk = min(n_walk, nbr.shape[1])
@@ -408,8 +484,8 @@ def _adds_kernel(P, box, left, right, start, end, nbr, nbr_d2, W, n_walk):
             # the previous point's neighbour (stored order is spatially local).
             c = i if _d2(P, i, x, y, z) <= _d2(P, prev, x, y, z) else prev
             best, prev = _nearest_from(
-                P, box, left, right, start, end, nbr, nbr_d2, n_walk, x, y, z, c, np.inf,
-                stack, stack_d2,
+                P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, n_walk, x, y, z, c,
+                np.inf, stack, stack_d2,
             )  # fmt: skip
             total += math.sqrt(best)
         out[m] = total / n
@@ -435,7 +511,9 @@ def adds_mean(index: NNIndex, W: np.ndarray, n_walk: int = 8) -> np.ndarray:
     """
     W = np.ascontiguousarray(W, dtype=np.float64)
     t = index.tree
-    return _adds_kernel(t.points, *t[2:], index.nbr, index.nbr_d2, W, int(n_walk))
+    return _adds_kernel(
+        t.points, *t[2:], index.adj_ptr, index.adj, index.nbr, index.nbr_d2, W, int(n_walk)
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -471,69 +549,145 @@ def _umeyama_moments(S):
 
 
 @njit(cache=True, inline="always")
-def _match(P, box, left, right, start, end, nbr, nbr_d2, x, y, z, prev, r2, stack, stack_d2):
+def _match(
+    P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, x, y, z, prev, r2, stack,
+    stack_d2,
+):  # fmt: skip
     """Nearest model point within the radius (squared r2): from last iteration's match where
     there was one (the points moved little), else a bounded k-d tree search."""
     if prev >= 0:
         return _nearest_from(
-            P, box, left, right, start, end, nbr, nbr_d2, 8, x, y, z, prev, r2, stack, stack_d2
-        )
+            P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, 8, x, y, z, prev, r2,
+            stack, stack_d2,
+        )  # fmt: skip
     return _nearest(P, box, left, right, start, end, x, y, z, r2, -1, stack, stack_d2)
 
 
+@njit(cache=True, inline="always")
+def _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, c):
+    """Exact nearest point by a downhill walk over the Delaunay graph from c.
+
+    Returns its squared distance, its stored index, and how far the query may move before it
+    can leave the point's Voronoi cell: the distance to the nearest bisector plane with a
+    Delaunay neighbour z, ``(|q - z|^2 - |q - c|^2) / (2 |z - c|)`` (metres).
+    """
+    best = _d2(P, c, x, y, z)
+    while True:
+        cc = c
+        b0 = best
+        slack = np.inf  # valid when this step finds nothing nearer (b0 is then c's distance)
+        for j in range(adj_ptr[c], adj_ptr[c + 1]):
+            q = adj[j]
+            d2 = _d2(P, q, x, y, z)
+            if adj_len[j] > 0:  # a duplicate of c is as near as c wherever the query goes
+                slack = min(slack, (d2 - b0) / (2.0 * adj_len[j]))
+            if d2 < best:
+                best, cc = d2, q
+        if cc == c:
+            return best, c, slack
+        c = cc
+
+
+@njit(cache=True, inline="always")
+def _correspond(
+    P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, x, y, z, k, r2, nn,
+    half_gap, moved, stack, stack_d2,
+):  # fmt: skip
+    """Point k's nearest model point within the radius (squared r2): (d2, index) or (r2, -1).
+
+    With a Delaunay graph, ``nn[k]`` is the point's exact nearest model point (any distance)
+    when it was last searched, and
+    ``moved[k]`` how far the point has moved since. While it has moved less than its distance
+    to the boundary of the nearest point's Voronoi cell then (``half_gap[k]``, from the
+    bisector planes with the Delaunay neighbours), its nearest point cannot have changed, so no
+    search is needed: late ICP iterations move points by micrometres. Otherwise a walk from
+    ``nn[k]``, or a bounded k-d tree search for a point with no neighbour yet.
+    """
+    j = nn[k]
+    if adj_ptr.shape[0] == 0:  # no graph: search from the last match every time
+        d2, j = _match(
+            P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, x, y, z, j, r2,
+            stack, stack_d2,
+        )  # fmt: skip
+        nn[k] = j
+        return d2, j
+    if j >= 0 and moved[k] < half_gap[k]:
+        d2 = _d2(P, j, x, y, z)
+    else:
+        if j < 0:
+            d2, j = _nearest(P, box, left, right, start, end, x, y, z, r2, -1, stack, stack_d2)
+            if j < 0:
+                return r2, -1
+        d2, j, slack = _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, j)
+        nn[k] = j
+        moved[k] = 0.0
+        # margins far above the rounding of the squared distances (~1e-16 relative)
+        half_gap[k] = slack * (1.0 - 1e-9) - 1e-13 if slack < np.inf else 0.0
+    if d2 < r2:
+        return d2, j
+    return r2, -1
+
+
 @njit(cache=True)
-def _icp_kernel(P, box, left, right, start, end, nbr, nbr_d2, cur, radii):
+def _icp_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, cur, radii):
     N = cur.shape[0]
     T_acc = np.eye(4)
     stack = np.empty(_STACK, np.int64)
     stack_d2 = np.empty(_STACK)
     S = np.empty((4, 4))
-    nxt = np.empty((N, 3))
-    match = np.full(N, -1, np.int64)
+    nn = np.full(N, -1, np.int64)
+    half_gap = np.zeros(N)
+    moved = np.zeros(N)
     for it in range(radii.shape[0]):
         r2 = radii[it] * radii[it]
-        S[:] = 0.0
+        s00 = s01 = s02 = s03 = s10 = s11 = s12 = s13 = 0.0
+        s20 = s21 = s22 = s23 = s30 = s31 = s32 = s33 = 0.0
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            _, j = _match(
-                P, box, left, right, start, end, nbr, nbr_d2, x, y, z, match[k], r2,
-                stack, stack_d2,
+            _, j = _correspond(
+                P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, x, y, z,
+                k, r2, nn, half_gap, moved, stack, stack_d2,
             )  # fmt: skip
-            match[k] = j
-            if j >= 0:
+            if j >= 0:  # moments of the pair (model point, observed point)
                 mx, my, mz = P[j, 0], P[j, 1], P[j, 2]
-                S[0, 0] += mx * x
-                S[0, 1] += mx * y
-                S[0, 2] += mx * z
-                S[0, 3] += mx
-                S[1, 0] += my * x
-                S[1, 1] += my * y
-                S[1, 2] += my * z
-                S[1, 3] += my
-                S[2, 0] += mz * x
-                S[2, 1] += mz * y
-                S[2, 2] += mz * z
-                S[2, 3] += mz
-                S[3, 0] += x
-                S[3, 1] += y
-                S[3, 2] += z
-                S[3, 3] += 1.0
-        if it == 0 and S[3, 3] == 0:
+                s00 += mx * x
+                s01 += mx * y
+                s02 += mx * z
+                s03 += mx
+                s10 += my * x
+                s11 += my * y
+                s12 += my * z
+                s13 += my
+                s20 += mz * x
+                s21 += mz * y
+                s22 += mz * z
+                s23 += mz
+                s30 += x
+                s31 += y
+                s32 += z
+                s33 += 1.0
+        if it == 0 and s33 == 0:
             return T_acc, -1, 0.0
+        S[0, 0], S[0, 1], S[0, 2], S[0, 3] = s00, s01, s02, s03
+        S[1, 0], S[1, 1], S[1, 2], S[1, 3] = s10, s11, s12, s13
+        S[2, 0], S[2, 1], S[2, 2], S[2, 3] = s20, s21, s22, s23
+        S[3, 0], S[3, 1], S[3, 2], S[3, 3] = s30, s31, s32, s33
         T = _umeyama_moments(S)
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            for i in range(3):
-                nxt[k, i] = T[i, 0] * x + T[i, 1] * y + T[i, 2] * z + T[i, 3]
-        cur, nxt = nxt, cur
+            nx = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+            ny = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+            nz = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+            moved[k] += math.sqrt((nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2)
+            cur[k, 0], cur[k, 1], cur[k, 2] = nx, ny, nz
         T_acc = T @ T_acc
     r2 = radii[-1] * radii[-1]
     n_inl = 0
     sum_d2 = 0.0
     for k in range(N):
-        d2, j = _match(
-            P, box, left, right, start, end, nbr, nbr_d2, cur[k, 0], cur[k, 1], cur[k, 2],
-            match[k], r2, stack, stack_d2,
+        d2, j = _correspond(
+            P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, cur[k, 0],
+            cur[k, 1], cur[k, 2], k, r2, nn, half_gap, moved, stack, stack_d2,
         )  # fmt: skip
         if j >= 0:
             n_inl += 1
@@ -547,8 +701,9 @@ def icp_model_frame(
     """The ICP loop of refine._icp_model_frame, compiled.
 
     Each correspondence is the exact nearest model point within the radius: a bounded k-d
-    tree search in the first iteration, then a search from the point's previous match
-    (``_nearest_from``).
+    tree search for a point without one yet, then a Delaunay walk from its previous nearest
+    point, skipped while the point has moved less than half the gap to its second nearest
+    (``_correspond``).
 
     Args:
         index: ``build_nn_index`` of the model points, metres.
@@ -563,7 +718,17 @@ def icp_model_frame(
     cur = np.array(observed_model_frame, dtype=np.float64, order="C", copy=True)
     radii = np.ascontiguousarray(radii, dtype=np.float64)
     t = index.tree
-    return _icp_kernel(t.points, *t[2:], index.nbr, index.nbr_d2, cur, radii)
+    return _icp_kernel(
+        t.points,
+        *t[2:],
+        index.adj_ptr,
+        index.adj,
+        index.adj_len,
+        index.nbr,
+        index.nbr_d2,
+        cur,
+        radii,
+    )
 
 
 # ---------------------------------------------------------------------------------------------

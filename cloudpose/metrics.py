@@ -18,10 +18,10 @@ and queries one KD-tree per model, built once and cached); ``add_distance_refere
 estimate as bop_toolkit's ``adi`` does. Tests show they agree.
 
 Where numba is installed, ``adds_distance`` runs the compiled kernel
-``cloudpose.kernels.adds_mean`` (about 2x the pykdtree path per core, and parallel over
-instances): each nearest neighbour is found by a walk over the model's neighbour lists from the
-point's own model point, proved exact by a certificate, with a bounded k-d tree search where the
-certificate fails. The pykdtree path stays as the fallback and as a test twin.
+``cloudpose.kernels.adds_mean`` (parallel over instances): each nearest neighbour is found by a
+downhill walk over the model's Delaunay graph, starting at the point's own model point or the
+previous point's neighbour; the walk ends in the query's Voronoi cell, so the neighbour is
+exact. The pykdtree path stays as the fallback and as a test twin.
 """
 
 from __future__ import annotations

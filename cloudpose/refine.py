@@ -29,8 +29,10 @@ arbitrary one; the fast path then moves by the translation only.
 
 Where numba is installed, the whole loop runs compiled (``cloudpose.kernels.icp_model_frame``):
 the first iteration's correspondences come from a bounded k-d tree search, later ones from a
-search that starts at each point's previous match (neighbour lists and an exactness
-certificate), so the poses are those of the pykdtree loop, which stays as the fallback.
+walk over the model's Delaunay graph from each point's previous nearest point, skipped while
+the point has not moved far enough to leave that point's Voronoi cell. Each correspondence is
+the exact nearest model point, so the poses are those of the pykdtree loop, which stays as the
+fallback.
 
 Threads: the fast path runs BLAS and pykdtree on one thread while it works (``threadpoolctl``);
 a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fork/join made it

@@ -68,8 +68,16 @@ def _brute_adds(model, W):
     return np.array(out)
 
 
+@pytest.fixture(params=["delaunay", "lists"])
+def graph_kind(request, monkeypatch):
+    """Both neighbour structures: the Delaunay graph, and the lists used where there is none."""
+    if request.param == "lists":
+        monkeypatch.setattr(K, "_delaunay_graph", lambda P: None)
+    return request.param
+
+
 @pytest.mark.parametrize("n_neighbours", [1, 8, 32, 10_000])
-def test_adds_mean_equals_brute_force(n_neighbours):
+def test_adds_mean_equals_brute_force(n_neighbours, graph_kind):
     rng = np.random.default_rng(2)
     model = np.loadtxt(resource_path("models", "025_mug", "points.xyz"))[::4]
     M = 12
@@ -88,7 +96,17 @@ def test_adds_mean_equals_brute_force(n_neighbours):
     assert got[0] == 0.0
 
 
-def test_adds_mean_with_duplicates_and_tiny_models():
+def test_delaunay_graph_is_used_where_it_exists():
+    rng = np.random.default_rng(6)
+    assert len(K.build_nn_index(rng.normal(size=(50, 3))).adj) > 0
+    flat = np.c_[rng.normal(size=(50, 2)), np.zeros(50)]  # no 3-D triangulation: lists
+    index = K.build_nn_index(flat)
+    assert len(index.adj) == 0 and index.nbr.shape == (50, 32)
+    W = np.concatenate([Rotation.random(3, random_state=1).as_matrix(), np.ones((3, 3, 1))], 2)
+    np.testing.assert_allclose(K.adds_mean(index, W), _brute_adds(flat, W), rtol=1e-12)
+
+
+def test_adds_mean_with_duplicates_and_tiny_models(graph_kind):
     rng = np.random.default_rng(3)
     for pts in clouds(rng):
         W = np.concatenate(
@@ -100,7 +118,7 @@ def test_adds_mean_with_duplicates_and_tiny_models():
             np.testing.assert_allclose(got, _brute_adds(pts, W), rtol=1e-12, atol=1e-16)
 
 
-def test_icp_kernel_degenerate_and_identity():
+def test_icp_kernel_degenerate_and_identity(graph_kind):
     model = np.loadtxt(resource_path("models", "025_mug", "points.xyz"))
     index = K.build_nn_index(model)
     T, n, s = K.icp_model_frame(index, model + 1.0, np.array([0.01, 0.009]))  # far away
