@@ -57,13 +57,10 @@ def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
     exp = client.get_experiment_by_name(name)
     if exp is not None:
         return exp.experiment_id
-    # The experiment kind makes MLflow 3's UI open on its model-training view (runs, charts)
-    # instead of the GenAI traces overview.
     location = None
     if not os.environ.get("MLFLOW_TRACKING_URI"):
         location = ((project_dir or Path.cwd()).resolve() / "mlartifacts" / group).as_uri()
-    tags = {"group": group, "mlflow.experimentKind": "custom_model_development"}
-    return client.create_experiment(name, artifact_location=location, tags=tags)
+    return client.create_experiment(name, artifact_location=location, tags={"group": group})
 
 
 def run_name(variant: str, preset: str, seed: int) -> str:
