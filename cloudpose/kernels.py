@@ -391,13 +391,10 @@ def _d2(P, j, x, y, z):
 
 @njit(cache=True, inline="always")
 def _nearest_from(
-    P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, n_walk, x, y, z, c, bound_d2,
-    stack, stack_d2,
-):  # fmt: skip
-    """Nearest stored point with squared distance < bound_d2, searched from stored point c.
-
-    With a Delaunay graph: walk downhill over all Delaunay neighbours; where none is nearer,
-    the query is in the point's Voronoi cell: the exact nearest point. Without one:
+    P, box, left, right, start, end, nbr, nbr_d2, n_walk, x, y, z, c, bound_d2, stack, stack_d2
+):
+    """Nearest stored point with squared distance < bound_d2, searched from stored point c,
+    with the neighbour lists (models without a Delaunay graph):
 
     1. Walk downhill: move to the nearest of the current point's first ``n_walk`` neighbours
        while one is nearer to the query.
@@ -409,20 +406,7 @@ def _nearest_from(
     Returns (squared distance, stored index) or (bound_d2, -1) when none is that near.
     """
     best = _d2(P, c, x, y, z)
-    if adj_ptr.shape[0] > 0:
-        while True:
-            cc = c
-            for j in range(adj_ptr[c], adj_ptr[c + 1]):
-                q = adj[j]
-                d2 = _d2(P, q, x, y, z)
-                if d2 < best:
-                    best, cc = d2, q
-            if cc == c:
-                break
-            c = cc
-        if best < bound_d2:
-            return best, c
-        return bound_d2, -1
+    n_walk = min(n_walk, nbr.shape[1])
     L = nbr.shape[1]
     for _ in range(P.shape[0]):
         cc = c
@@ -462,10 +446,10 @@ def _nearest_from(
 
 
 @njit(cache=True, parallel=True)
-def _adds_kernel(P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, W, n_walk):
+def _adds_kernel(P, box, left, right, start, end, nbr, nbr_d2, W, n_walk):
+    """ADS per instance with the neighbour lists (models without a Delaunay graph)."""
     M = W.shape[0]
     n = P.shape[0]
-    n_walk = min(n_walk, nbr.shape[1])
     out = np.empty(M)
     for m in prange(M):
         stack = np.empty(_STACK, np.int64)
@@ -484,8 +468,8 @@ def _adds_kernel(P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, W, 
             # the previous point's neighbour (stored order is spatially local).
             c = i if _d2(P, i, x, y, z) <= _d2(P, prev, x, y, z) else prev
             best, prev = _nearest_from(
-                P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, n_walk, x, y, z, c,
-                np.inf, stack, stack_d2,
+                P, box, left, right, start, end, nbr, nbr_d2, n_walk, x, y, z, c, np.inf,
+                stack, stack_d2,
             )  # fmt: skip
             total += math.sqrt(best)
         out[m] = total / n
@@ -551,9 +535,7 @@ def adds_mean(index: NNIndex, W: np.ndarray, n_walk: int = 8) -> np.ndarray:
     t = index.tree
     if len(index.adj_ptr):
         return _adds_graph_kernel(t.points, index.adj_ptr, index.adj, W)
-    return _adds_kernel(
-        t.points, *t[2:], index.adj_ptr, index.adj, index.nbr, index.nbr_d2, W, int(n_walk)
-    )
+    return _adds_kernel(t.points, *t[2:], index.nbr, index.nbr_d2, W, int(n_walk))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -589,30 +571,15 @@ def _umeyama_moments(S):
 
 
 @njit(cache=True, inline="always")
-def _match(
-    P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, x, y, z, prev, r2, stack,
-    stack_d2,
-):  # fmt: skip
-    """Nearest model point within the radius (squared r2): from last iteration's match where
-    there was one (the points moved little), else a bounded k-d tree search."""
+def _match(P, box, left, right, start, end, nbr, nbr_d2, x, y, z, prev, r2, stack, stack_d2):
+    """Nearest model point within the radius (squared r2), with the neighbour lists: from last
+    iteration's match where there was one (the points moved little), else a bounded k-d tree
+    search."""
     if prev >= 0:
         return _nearest_from(
-            P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, 8, x, y, z, prev, r2,
-            stack, stack_d2,
-        )  # fmt: skip
+            P, box, left, right, start, end, nbr, nbr_d2, 8, x, y, z, prev, r2, stack, stack_d2
+        )
     return _nearest(P, box, left, right, start, end, x, y, z, r2, -1, stack, stack_d2)
-
-
-@njit(cache=True)
-def _match_call(
-    P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, x, y, z, prev, r2, stack,
-    stack_d2,
-):  # fmt: skip
-    """``_match`` as a real call (see ``_nearest_call``)."""
-    return _match(
-        P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, x, y, z, prev, r2, stack,
-        stack_d2,
-    )  # fmt: skip
 
 
 @njit(cache=True, inline="always")
@@ -640,51 +607,18 @@ def _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, c):
         c = cc
 
 
-@njit(cache=True, inline="always")
-def _correspond(
-    P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, x, y, z, k, r2, nn,
-    half_gap, moved, stack, stack_d2,
-):  # fmt: skip
-    """Point k's nearest model point within the radius (squared r2): (d2, index) or (r2, -1).
-
-    With a Delaunay graph, ``nn[k]`` is the point's exact nearest model point (any distance)
-    when it was last searched, and
-    ``moved[k]`` how far the point has moved since. While it has moved less than its distance
-    to the boundary of the nearest point's Voronoi cell then (``half_gap[k]``, from the
-    bisector planes with the Delaunay neighbours), its nearest point cannot have changed, so no
-    search is needed: late ICP iterations move points by micrometres. Otherwise a walk from
-    ``nn[k]``, or a bounded k-d tree search for a point with no neighbour yet.
-    """
-    j = nn[k]
-    if adj_ptr.shape[0] == 0:  # no graph: search from the last match every time
-        d2, j = _match_call(
-            P, box, left, right, start, end, adj_ptr, adj, nbr, nbr_d2, x, y, z, j, r2,
-            stack, stack_d2,
-        )  # fmt: skip
-        nn[k] = j
-        return d2, j
-    if j >= 0 and moved[k] < half_gap[k]:
-        d2 = _d2(P, j, x, y, z)
-    else:
-        if j < 0:  # real calls: inlining these searches here slowed the whole loop 2x
-            d2, j = _nearest_call(P, box, left, right, start, end, x, y, z, r2, -1, stack, stack_d2)
-            if j < 0:
-                return r2, -1
-        d2, j, slack = _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, j)
-        nn[k] = j
-        moved[k] = 0.0
-        # margins far above the rounding of the squared distances (~1e-16 relative)
-        half_gap[k] = slack * (1.0 - 1e-9) - 1e-13 if slack < np.inf else 0.0
-    if d2 < r2:
-        return d2, j
-    return r2, -1
-
-
 @njit(cache=True)
 def _icp_graph_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, cur, radii):
-    """``_icp_kernel`` for a model with a Delaunay graph, written out flat (the same
-    correspondences as ``_correspond``; one loop body the compiler keeps in registers runs
-    about 2x faster than the general one)."""
+    """The ICP loop for a model with a Delaunay graph.
+
+    ``nn[k]`` is point k's exact nearest model point (any distance) when last searched,
+    ``slack[k]`` its distance then to the boundary of that point's Voronoi cell (the nearest
+    bisector plane with a Delaunay neighbour), ``moved[k]`` how far it has moved since. While
+    it has moved less than the slack its nearest point cannot have changed, so no search is
+    needed (late ICP iterations move points by micrometres); otherwise a Delaunay walk from
+    ``nn[k]``, or a bounded k-d tree search for a point with no neighbour yet. Written as one
+    flat loop body: with the searches behind helper layers it ran 2x slower.
+    """
     N = cur.shape[0]
     n_it = radii.shape[0]
     T_acc = np.eye(4)
@@ -755,70 +689,45 @@ def _icp_graph_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, cu
 
 
 @njit(cache=True)
-def _icp_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, cur, radii):
+def _icp_kernel(P, box, left, right, start, end, nbr, nbr_d2, cur, radii):
+    """The ICP loop with the neighbour lists (models without a Delaunay graph): each point's
+    correspondence searched from its previous match (``_match``)."""
     N = cur.shape[0]
+    n_it = radii.shape[0]
     T_acc = np.eye(4)
     stack = np.empty(_STACK, np.int64)
     stack_d2 = np.empty(_STACK)
     S = np.empty((4, 4))
-    nn = np.full(N, -1, np.int64)
-    half_gap = np.zeros(N)
-    moved = np.zeros(N)
-    for it in range(radii.shape[0]):
-        r2 = radii[it] * radii[it]
-        s00 = s01 = s02 = s03 = s10 = s11 = s12 = s13 = 0.0
-        s20 = s21 = s22 = s23 = s30 = s31 = s32 = s33 = 0.0
+    match = np.full(N, -1, np.int64)
+    for it in range(n_it + 1):  # the last pass only scores the final pose
+        r2 = radii[min(it, n_it - 1)] ** 2
+        S[:] = 0.0
+        sum_d2 = 0.0
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            _, j = _correspond(
-                P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, x, y, z,
-                k, r2, nn, half_gap, moved, stack, stack_d2,
+            d2, j = _match(
+                P, box, left, right, start, end, nbr, nbr_d2, x, y, z, match[k], r2, stack,
+                stack_d2,
             )  # fmt: skip
-            if j >= 0:  # moments of the pair (model point, observed point)
-                mx, my, mz = P[j, 0], P[j, 1], P[j, 2]
-                s00 += mx * x
-                s01 += mx * y
-                s02 += mx * z
-                s03 += mx
-                s10 += my * x
-                s11 += my * y
-                s12 += my * z
-                s13 += my
-                s20 += mz * x
-                s21 += mz * y
-                s22 += mz * z
-                s23 += mz
-                s30 += x
-                s31 += y
-                s32 += z
-                s33 += 1.0
-        if it == 0 and s33 == 0:
+            match[k] = j
+            if j >= 0:
+                m = (P[j, 0], P[j, 1], P[j, 2], 1.0)
+                c = (x, y, z, 1.0)
+                for a in range(4):
+                    for b in range(4):
+                        S[a, b] += m[a] * c[b]
+                sum_d2 += d2
+        if it == n_it:
+            return T_acc, int(S[3, 3]), sum_d2
+        if it == 0 and S[3, 3] == 0:
             return T_acc, -1, 0.0
-        S[0, 0], S[0, 1], S[0, 2], S[0, 3] = s00, s01, s02, s03
-        S[1, 0], S[1, 1], S[1, 2], S[1, 3] = s10, s11, s12, s13
-        S[2, 0], S[2, 1], S[2, 2], S[2, 3] = s20, s21, s22, s23
-        S[3, 0], S[3, 1], S[3, 2], S[3, 3] = s30, s31, s32, s33
         T = _umeyama_moments(S)
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            nx = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-            ny = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
-            nz = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
-            moved[k] += math.sqrt((nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2)
-            cur[k, 0], cur[k, 1], cur[k, 2] = nx, ny, nz
+            for a in range(3):
+                cur[k, a] = T[a, 0] * x + T[a, 1] * y + T[a, 2] * z + T[a, 3]
         T_acc = T @ T_acc
-    r2 = radii[-1] * radii[-1]
-    n_inl = 0
-    sum_d2 = 0.0
-    for k in range(N):
-        d2, j = _correspond(
-            P, box, left, right, start, end, adj_ptr, adj, adj_len, nbr, nbr_d2, cur[k, 0],
-            cur[k, 1], cur[k, 2], k, r2, nn, half_gap, moved, stack, stack_d2,
-        )  # fmt: skip
-        if j >= 0:
-            n_inl += 1
-            sum_d2 += d2
-    return T_acc, n_inl, sum_d2
+    return T_acc, 0, 0.0  # not reached
 
 
 def icp_model_frame(
@@ -848,17 +757,7 @@ def icp_model_frame(
         return _icp_graph_kernel(
             t.points, *t[2:], index.adj_ptr, index.adj, index.adj_len, cur, radii
         )
-    return _icp_kernel(
-        t.points,
-        *t[2:],
-        index.adj_ptr,
-        index.adj,
-        index.adj_len,
-        index.nbr,
-        index.nbr_d2,
-        cur,
-        radii,
-    )
+    return _icp_kernel(t.points, *t[2:], index.nbr, index.nbr_d2, cur, radii)
 
 
 # ---------------------------------------------------------------------------------------------

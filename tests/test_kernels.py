@@ -139,3 +139,23 @@ def test_fps_order_equals_the_numpy_loop_with_ties():
                     K.fps_order(pts, k, s, leaf_size=leaf),
                     farthest_point_sampling_reference(pts, k, s),
                 )
+
+
+@pytest.mark.parametrize("P", [3, 6, 40])
+def test_icp_on_flat_and_tiny_models_equals_the_pykdtree_loop(P):
+    """Models without a 3-D triangulation (flat, few points) use the neighbour lists."""
+    from cloudpose.refine import ModelIndex, icp_refine
+
+    rng = np.random.default_rng(P)
+    model = np.c_[rng.uniform(-0.03, 0.03, size=(P, 2)), np.zeros(P)]  # a flat plate
+    index = ModelIndex(model)
+    assert index.kernel_index is not None and len(index.kernel_index.adj) == 0
+    plain = ModelIndex(model)
+    plain.kernel_index = None
+    obs = model[rng.integers(P, size=200)] + rng.normal(0, 0.002, (200, 3))
+    R0 = Rotation.from_rotvec([0.02, -0.01, 0.03]).as_matrix()
+    t0 = np.array([0.001, 0.002, -0.001])
+    a, b = icp_refine(obs, index, R0, t0), icp_refine(obs, plain, R0, t0)
+    np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+    np.testing.assert_allclose(a.t, b.t, atol=1e-12)
+    assert a.fitness == b.fitness and a.inlier_rmse == pytest.approx(b.inlier_rmse, abs=1e-15)
