@@ -81,6 +81,29 @@ def _trained_like(variant: str) -> nn.Module:
     return model.eval()
 
 
+def _one_thread_ms(
+    impls: dict[str, nn.Module], batches: dict[int, tuple], repeats: int
+) -> dict[str, dict[str, float]]:
+    """The same timings with one intra-op thread: stable when another process holds a core
+    (with two threads a forward then waits for scheduler time slices, 5-30x slower)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        times: dict[str, dict[int, list[float]]] = {k: {B: [] for B in batches} for k in impls}
+        with torch.inference_mode():
+            for _ in range(repeats + 1):
+                for name, m in impls.items():
+                    for B, b in batches.items():
+                        t0 = time.perf_counter()
+                        m(*b)
+                        times[name][B].append((time.perf_counter() - t0) * 1e3)
+        return {
+            k: {str(B): statistics.median(v[1:]) for B, v in d.items()} for k, d in times.items()
+        }
+    finally:
+        torch.set_num_threads(threads)
+
+
 def run(quick: bool = False, repeats: int | None = None, variant: str = "shared-0") -> dict:
     """Inference figures (ms, median of interleaved repeats).
 
@@ -115,6 +138,7 @@ def run(quick: bool = False, repeats: int | None = None, variant: str = "shared-
                     m(*b)
                     times[name][B].append((time.perf_counter() - t0) * 1e3)
     med = {k: {B: statistics.median(v) for B, v in d.items()} for k, d in times.items()}
+    one_thread = _one_thread_ms({"folded": folded, "plain": plain}, batches, max(2, repeats // 3))
     gemm = {
         "rows_256": gemm_rate(256, 128, 1024, repeats=3 if quick else 21)["median_gflops"],
         "rows_2048": gemm_rate(2048, 128, 1024, repeats=3 if quick else 21)["median_gflops"],
@@ -128,6 +152,7 @@ def run(quick: bool = False, repeats: int | None = None, variant: str = "shared-
         "lower_bound_ms_at_gemm_rate": {str(B): v for B, v in bound.items()},
         "folded_vs_plain_max_abs_diff": max_diff,
         "threads": torch.get_num_threads(),
+        "one_thread_ms": one_thread,
         "repeats": repeats,
         "variant": variant,
         "bf16": "not tried: this CPU has no bf16 GEMM hardware (bench_train: bf16 GEMM "
