@@ -849,6 +849,11 @@ def fps_order(points: np.ndarray, k: int, start: int, leaf_size: int = 128) -> n
     Returns:
         (k,) int64 indices into ``points``.
     """
+    n = len(points)
+    if not 1 <= k <= n or not 0 <= start < n:
+        raise ValueError(
+            f"fps_order: need 1 <= k <= N and 0 <= start < N, got {k=}, {start=}, N={n}"
+        )
     tree = build_kdtree(points, leaf_size, dtype=np.float32)
     first = int(np.flatnonzero(tree.index == start)[0])
     return _fps_kernel(tree.points, tree.index, *tree[2:], int(k), first)

@@ -128,6 +128,13 @@ def test_icp_kernel_degenerate_and_identity(graph_kind):
     assert n == len(model[::3]) and s < 1e-28
 
 
+def test_fps_order_rejects_bad_k_and_start():
+    pts = np.zeros((4, 3), np.float32)
+    for k, s in ((0, 0), (5, 0), (2, 4), (2, -1)):
+        with pytest.raises(ValueError, match="fps_order"):
+            K.fps_order(pts, k, s)
+
+
 def test_fps_order_equals_the_numpy_loop_with_ties():
     rng = np.random.default_rng(5)
     for pts in clouds(rng):
