@@ -30,7 +30,7 @@ from torch import nn
 
 from cloudpose.models.basenet import BaseNet, PointLayer, PointLayerMaxPool, RegressionHead
 from cloudpose.models.fused import FusedPointLayerMaxPool
-from cloudpose.models.pose import PoseNet, PoseOutput, raw_rotation_to_rotmat
+from cloudpose.models.pose import PoseNet, PoseOutput, check_pose_inputs, raw_rotation_to_rotmat
 
 __all__ = ["FoldedPoseNet", "fold_bn", "fold_for_inference"]
 
@@ -250,15 +250,7 @@ class FoldedPoseNet(nn.Module):
             PoseOutput with R (B, 3, 3), t (B, 3), rot_raw, t_residual (B, 3), mu (B, 3).
         """
         k = self.k
-        if points.ndim != 3 or points.shape[-1] != 3 or 0 in points.shape[:2]:
-            raise ValueError(f"points must have shape (B>0, n>0, 3), got {tuple(points.shape)}")
-        if cls_id.shape != points.shape[:1] or cls_id.is_floating_point():
-            raise ValueError(
-                f"cls_id must be an integer tensor of shape ({points.shape[0]},), "
-                f"got {cls_id.dtype} {tuple(cls_id.shape)}"
-            )
-        if cls_id.device.type == "cpu" and (int(cls_id.min()) < 1 or int(cls_id.max()) > k):
-            raise ValueError(f"cls_id must be 1-based class ids in 1..{k}, got {cls_id.tolist()}")
+        check_pose_inputs(points, cls_id, k)
         points = points.to(self._dtype())
         cls0 = cls_id.long() - 1
         mu = points.mean(dim=1)  # (B, 3)

@@ -77,6 +77,21 @@ def raw_rotation_to_rotmat(rot_raw: torch.Tensor, rotation: str) -> torch.Tensor
     return rot6d_to_rotmat(rot_raw)
 
 
+def check_pose_inputs(points: torch.Tensor, cls_id: torch.Tensor, num_classes: int) -> None:
+    """Raise ``ValueError`` unless points are (B>0, n>0, 3) and cls_id (B,) ints in 1..k."""
+    if points.ndim != 3 or points.shape[-1] != 3 or 0 in points.shape[:2]:
+        raise ValueError(f"points must have shape (B>0, n>0, 3), got {tuple(points.shape)}")
+    if cls_id.shape != points.shape[:1] or cls_id.is_floating_point():
+        raise ValueError(
+            f"cls_id must be an integer tensor of shape ({points.shape[0]},), "
+            f"got {cls_id.dtype} {tuple(cls_id.shape)}"
+        )
+    # Range check only off-GPU: on CUDA it would force a host sync every step.
+    k = num_classes
+    if cls_id.device.type == "cpu" and (int(cls_id.min()) < 1 or int(cls_id.max()) > k):
+        raise ValueError(f"cls_id must be 1-based class ids in 1..{k}, got {cls_id.tolist()}")
+
+
 class PoseNet(nn.Module):
     """Rotation + translation regression from a point-cloud segment, built from a ModelConfig.
 
@@ -151,16 +166,7 @@ class PoseNet(nn.Module):
             mu (B, 3).
         """
         k = self.cfg.num_classes
-        if points.ndim != 3 or points.shape[-1] != 3 or 0 in points.shape[:2]:
-            raise ValueError(f"points must have shape (B>0, n>0, 3), got {tuple(points.shape)}")
-        if cls_id.shape != points.shape[:1] or cls_id.is_floating_point():
-            raise ValueError(
-                f"cls_id must be an integer tensor of shape ({points.shape[0]},), "
-                f"got {cls_id.dtype} {tuple(cls_id.shape)}"
-            )
-        # Range check only off-GPU: on CUDA it would force a host sync every step.
-        if cls_id.device.type == "cpu" and (int(cls_id.min()) < 1 or int(cls_id.max()) > k):
-            raise ValueError(f"cls_id must be 1-based class ids in 1..{k}, got {cls_id.tolist()}")
+        check_pose_inputs(points, cls_id, k)
 
         B, n, _ = points.shape
         mu = points.mean(dim=1)  # (B, 3)
