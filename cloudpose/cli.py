@@ -68,8 +68,12 @@ def synth(
     out: Annotated[Path, typer.Option(help="Output root (YCB-Video layout).")] = Path(
         "data/synth-seed0"
     ),
-    train_frames: Annotated[int, typer.Option(help="Training frames.")] = 400,
-    test_frames: Annotated[int, typer.Option(help="Test frames (listed in keyframe.txt).")] = 100,
+    train_frames: Annotated[
+        int | None, typer.Option(help="Training frames (default: the cpu preset's).")
+    ] = None,
+    test_frames: Annotated[
+        int | None, typer.Option(help="Test frames, listed in keyframe.txt (default: cpu's).")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
     noise: Annotated[bool, typer.Option("--noise/--no-noise", help="Depth-sensor noise.")] = True,
     uniform_rotation: Annotated[
@@ -81,6 +85,9 @@ def synth(
     """Render a synthetic YCB-Video-layout dataset from the 21 real model point sets (resumable)."""
     from cloudpose.data.synth import synthesize
 
+    cpu = _config("shared-0", "cpu", 1).data
+    train_frames = cpu.train_frames if train_frames is None else train_frames
+    test_frames = cpu.test_frames if test_frames is None else test_frames
     s = synthesize(
         out, train_frames, test_frames, seed=seed, noise=noise,
         uniform_rotation=uniform_rotation, workers=workers, progress=progress,
