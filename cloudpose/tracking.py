@@ -81,7 +81,9 @@ def git_commit(repo: Path | None = None) -> str:
             ["git", "rev-parse", "--short=10", "HEAD"], cwd=cwd, capture_output=True, text=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            # Code only: rendered reports and data under the repository are not the code.
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", "cloudpose",
+             "ablations", "pyproject.toml"],  # fmt: skip
             cwd=cwd,
             capture_output=True,
             text=True,
