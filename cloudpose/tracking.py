@@ -82,8 +82,16 @@ def git_commit(repo: Path | None = None) -> str:
         ).stdout.strip()
         dirty = subprocess.run(
             # Code only: rendered reports and data under the repository are not the code.
-            ["git", "status", "--porcelain", "--untracked-files=no", "--", "cloudpose",
-             "ablations", "pyproject.toml"],  # fmt: skip
+            [
+                "git",
+                "status",
+                "--porcelain",
+                "--untracked-files=no",
+                "--",
+                "cloudpose",
+                "ablations",
+                "pyproject.toml",
+            ],
             cwd=cwd,
             capture_output=True,
             text=True,
