@@ -209,6 +209,19 @@ def table1_overall(runs: RunSet) -> Table:
                  header, rows, pd.DataFrame(data), notes, text_cols=5)  # fmt: skip
 
 
+def _add_ours(runs, prefix: str, metrics, cells: list, row: dict, rows: list, data: list) -> None:
+    """Append shared-0's ``{prefix}/{metric}`` mean ± std cells and CSV fields, then the row."""
+    n = 0
+    for m in metrics:
+        ms, text = _ours(runs, "shared-0", f"{prefix}/{m}")
+        cells.append(text)
+        row[f"{m}_mean"], row[f"{m}_std"] = ms.mean * 100, ms.std * 100
+        n = max(n, ms.n)
+    row["seeds"] = n
+    rows.append([*cells, str(n)])
+    data.append(row)
+
+
 def table2_per_class(runs: RunSet) -> Table:
     """Table II: per-class accuracy after ICP, the paper's Ours columns beside ours."""
     metrics = ("ad_auc", "ads_auc", "ads_lt_1cm")
@@ -224,25 +237,10 @@ def table2_per_class(runs: RunSet) -> Table:
         cells = [cls, *(_paper(p[c]) for c in paper_cols)]
         row = {"object": cls, **{f"paper_{m}": _num(p[c]) for m, c in zip(metrics, paper_cols,
                                                                           strict=True)}}  # fmt: skip
-        n = 0
-        for m in metrics:
-            ms, text = _ours(runs, "shared-0", f"test_icp/class/{cls}/{m}")
-            cells.append(text)
-            row[f"{m}_mean"], row[f"{m}_std"] = ms.mean * 100, ms.std * 100
-            n = max(n, ms.n)
-        row["seeds"] = n
-        rows.append([*cells, str(n)])
-        data.append(row)
+        _add_ours(runs, f"test_icp/class/{cls}", metrics, cells, row, rows, data)
     rows.append(None)
-    cells, row, n = ["class mean", "–", "–", "–"], {"object": "class mean"}, 0
-    for m in metrics:
-        ms, text = _ours(runs, "shared-0", f"test_icp/class_mean/{m}")
-        cells.append(text)
-        row[f"{m}_mean"], row[f"{m}_std"] = ms.mean * 100, ms.std * 100
-        n = max(n, ms.n)
-    row["seeds"] = n
-    rows.append([*cells, str(n)])
-    data.append(row)
+    cells, row = ["class mean", "–", "–", "–"], {"object": "class mean"}
+    _add_ours(runs, "test_icp/class_mean", metrics, cells, row, rows, data)
     notes = [
         "Paper columns: Gao et al. (ICRA 2020), Table II, 'Ours' (with ICP), real YCB-Video.",
         f"Our columns: shared-0 + ICP, mean ± sample std over seeds on {runs.data_label()}; "
