@@ -210,6 +210,31 @@ def test_verdicts_on_constructed_cases(a, b, expect, verdict):
     assert stats.difference(a, b, expect=expect).verdict == verdict
 
 
+def test_verdict_needs_three_seeds():
+    # a clear difference on two seeds: the interval is printed, the verdict waits for a third seed
+    a, b = {1: 0.800, 2: 0.812}, {1: 0.700, 2: 0.710}
+    two = stats.difference(a, b)
+    ci = sps.ttest_rel([0.800, 0.812], [0.700, 0.710]).confidence_interval(0.95)
+    assert two.n == 2 and (two.low, two.high) == pytest.approx((ci.low, ci.high))
+    assert two.low > 0 and two.verdict == stats.UNRESOLVED
+    assert stats.difference(a, b, min_seeds=2).verdict == stats.SUPPORTED
+    three = stats.difference({**a, 3: 0.81}, {**b, 3: 0.70})
+    assert three.verdict == stats.SUPPORTED
+    with pytest.raises(ValueError, match="min_seeds"):
+        stats.difference(a, b, min_seeds=1)
+
+
+def test_identical_paired_differences_are_not_a_verdict():
+    # every seed one test instance (1/740) apart: std 0, a zero-width interval, no verdict
+    step = 1 / 740
+    a = {s: v + step for s, v in {1: 0.004, 2: 0.011, 3: 0.007}.items()}
+    b = {1: 0.004, 2: 0.011, 3: 0.007}
+    d = stats.difference(a, b)
+    assert d.mean == pytest.approx(step)
+    assert d.low == pytest.approx(d.high)
+    assert d.verdict == stats.UNRESOLVED
+
+
 def test_mean_std_and_format():
     ms = stats.mean_std([0.5, 0.7, np.nan, None])
     assert ms == pytest.approx((0.6, np.std([0.5, 0.7], ddof=1), 2))

@@ -15,7 +15,7 @@ import pandas as pd
 
 from cloudpose.config import get_group
 from cloudpose.report.runs import RunSet
-from cloudpose.report.stats import Difference, difference
+from cloudpose.report.stats import MIN_SEEDS, Difference, difference
 from cloudpose.report.tables import METRIC_LABELS, Provenance, paper_table
 
 
@@ -131,7 +131,9 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
         "printed it (one run, real YCB-Video) and as we measure it (mean over seeds, paired by "
         "seed; 95% confidence interval from Student's t over seeds). Verdict: **supported** when "
         "the interval lies above 0, **contradicted** when it lies below 0, **not resolved at this "
-        "size** when it contains 0 or fewer than two seeds are available.",
+        f"size** when it contains 0, when fewer than {MIN_SEEDS} seeds are available, or when "
+        "it has zero width (every seed's difference the same: a spread below the test set's "
+        "resolution, not certainty).",
         "",
     ]
     counts: dict[str, int] = {}

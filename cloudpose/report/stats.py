@@ -4,6 +4,14 @@ The paper reports one training run per variant. We train S seeds and ask, for ev
 the paper claims, whether the seed-to-seed spread lets the data decide it: the mean difference
 (paired by seed where both sides have the seed) with a 95% confidence interval from Student's t
 distribution, and a verdict in words.
+
+A verdict needs at least :data:`MIN_SEEDS` seeds on each side and an interval of nonzero width.
+Why: the reported metrics are fractions of a finite test set (1/740 of an instance on the cpu
+preset), so two seeds can easily differ by exactly the same count on both variants; their paired
+differences are then identical, the sample std is 0, and Student's interval collapses to a point
+that excludes 0 however small the difference. With two seeds the std also rests on a single
+degree of freedom. The interval is still printed in those cases; only the verdict stays
+"not resolved".
 """
 
 from __future__ import annotations
@@ -18,6 +26,9 @@ from scipy import stats as sps
 SUPPORTED = "supported"
 CONTRADICTED = "contradicted"
 UNRESOLVED = "not resolved at this size"
+
+MIN_SEEDS = 3
+"""Fewest seeds (paired: seeds both sides have) on which a claim gets a verdict."""
 
 
 class MeanStd(NamedTuple):
@@ -78,6 +89,7 @@ def difference(
     *,
     expect: int = 1,
     level: float = 0.95,
+    min_seeds: int = MIN_SEEDS,
 ) -> Difference:
     """Difference ``a - b`` of a metric over seeds, its CI, and the verdict on a claim.
 
@@ -86,17 +98,21 @@ def difference(
         b: seed -> metric value of the other side.
         expect: +1 if the claim says ``a`` is larger (accuracies), -1 if smaller (errors).
         level: confidence level.
+        min_seeds: fewest seeds for a verdict (at least 2).
 
     Returns:
         Paired by seed when at least two seeds are on both sides (t with n - 1 degrees of
         freedom on the per-seed differences); otherwise Welch's interval when both sides have
         at least two seeds; otherwise no interval. The verdict is "supported" when the interval
         excludes 0 on the side the claim expects, "contradicted" when it excludes 0 on the other
-        side, and "not resolved at this size" when it contains 0 or there are fewer than two
-        seeds.
+        side, and "not resolved at this size" when it contains 0, has zero width (every paired
+        difference equal: a spread below the metric's resolution, not a certainty), or rests on
+        fewer than ``min_seeds`` seeds. The interval itself is computed from two seeds on.
     """
     if expect not in (1, -1):
         raise ValueError(f"expect must be +1 or -1, got {expect!r}")
+    if min_seeds < 2:
+        raise ValueError(f"min_seeds must be at least 2 (an interval needs two), got {min_seeds!r}")
     a = {s: float(v) for s, v in a.items() if v is not None and np.isfinite(v)}
     b = {s: float(v) for s, v in b.items() if v is not None and np.isfinite(v)}
     common = sorted(set(a) & set(b))
@@ -121,7 +137,11 @@ def difference(
         else:
             mean = math.nan
         return Difference(mean, math.nan, math.nan, min(len(a), len(b)), False, UNRESOLVED)
-    return Difference(mean, low, high, n, paired, verdict(low, high, expect))
+    # zero width up to float rounding (per-seed differences equal but for the last bits)
+    decided = n >= min_seeds and high - low > 1e-9 * max(1.0, abs(mean))
+    return Difference(
+        mean, low, high, n, paired, verdict(low, high, expect) if decided else UNRESOLVED
+    )
 
 
 def verdict(low: float, high: float, expect: int = 1) -> str:
