@@ -240,6 +240,28 @@ def test_other_settings_in_same_root_raise(small_root):
         synth.synthesize(small_root, -1, 1, seed=3, workers=1, progress=False)
 
 
+def test_frames_of_another_renderer_raise(small_root, tmp_path, monkeypatch):
+    # synth.json records the surface build; a root made with other surfaces is not extended
+    import json
+    import shutil
+
+    from cloudpose.data import render
+
+    root = tmp_path / "copy"
+    shutil.copytree(small_root, root)
+    assert json.loads((root / "synth.json").read_text())["surfaces"] == render.surface_settings()
+    monkeypatch.setattr(render, "SURFACE_VERSION", render.SURFACE_VERSION + 1)
+    with pytest.raises(ValueError, match=r"synth\.json.*surfaces"):
+        synth.synthesize(root, 2, 1, seed=3, workers=1, progress=False)
+    # a synth.json from before the key existed is refused too, and says why
+    monkeypatch.undo()
+    info = json.loads((root / "synth.json").read_text())
+    del info["surfaces"]
+    (root / "synth.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="older cloudpose"):
+        synth.synthesize(root, 2, 1, seed=3, workers=1, progress=False)
+
+
 def test_noise_off_depth_is_the_rendering(tmp_path, gen):
     root = tmp_path / "clean"
     synth.synthesize(root, 1, 0, seed=5, noise=False, workers=1, progress=False)

@@ -175,20 +175,23 @@ SURFACE_CACHE = ("meshes", "surfaces.npz")
 _surface_cache: dict[str, np.ndarray] | None = None
 
 
+def surface_settings() -> str:
+    """The surface build's version and settings, as one string (in cache keys and synth.json)."""
+    return repr(
+        (
+            SURFACE_VERSION,
+            SURFACE_BPA_RADII,
+            SURFACE_ALPHA,
+            SURFACE_PATCH_ALPHA,
+            SURFACE_PATCH_TOL,
+        )
+    )
+
+
 def surface_key(points: np.ndarray) -> str:
     """Cache key of a model's surface: the points' bytes and the build settings."""
     h = hashlib.sha1(np.ascontiguousarray(points, dtype=np.float64).tobytes())
-    h.update(
-        repr(
-            (
-                SURFACE_VERSION,
-                SURFACE_BPA_RADII,
-                SURFACE_ALPHA,
-                SURFACE_PATCH_ALPHA,
-                SURFACE_PATCH_TOL,
-            )
-        ).encode()
-    )
+    h.update(surface_settings().encode())
     return h.hexdigest()
 
 

@@ -785,9 +785,14 @@ def _clean_staging(root: Path) -> None:
 
 
 def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) -> None:
+    from cloudpose.data.render import surface_settings
+
+    # Frames depend on the generator and on the rendered surfaces: both versions are recorded,
+    # so frames made by an older renderer are never mixed with new ones on resume.
     settings = {
         "generator": "cloudpose.data.synth",
         "version": GENERATOR_VERSION,
+        "surfaces": surface_settings(),
         "seed": seed,
         "noise": noise,
         "uniform_rotation": uniform_rotation,
@@ -798,8 +803,9 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) ->
         old = {k: old.get(k) for k in settings}
         if old != settings:
             raise ValueError(
-                f"{info}: this folder holds synthetic frames made with {old}, not {settings}; "
-                "choose another root (or delete the folder)"
+                f"{info}: this folder holds synthetic frames made with {old}, not {settings} "
+                "(a missing key: made by an older cloudpose); choose another root (or delete "
+                "the folder)"
             )
     root.mkdir(parents=True, exist_ok=True)
     _clean_staging(root)
