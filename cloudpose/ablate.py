@@ -209,7 +209,7 @@ def run_group(
 
     Args:
         group: ablation group (``ablations/variants.toml``: shared, rotation, loss).
-        preset: training preset (smoke, cpu, paper).
+        preset: training preset (``ablations/presets.toml``).
         seeds: S (seeds 1..S) or a list of seeds.
         project_dir: folder of ``data/``, ``runs/``, ``reports/`` and the MLflow store (cwd).
         progress: progress bars.

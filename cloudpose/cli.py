@@ -18,7 +18,9 @@ app = typer.Typer(
 )
 
 VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
-PresetOpt = Annotated[str, typer.Option(help="Preset: smoke, cpu or paper.")]
+PresetOpt = Annotated[
+    str, typer.Option(help="Preset (ablations/presets.toml): smoke, cpu, cpu-long, paper.")
+]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[
     str, typer.Option("--data", help="YCB-Video-layout root; empty = the synthetic default.")

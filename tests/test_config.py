@@ -195,7 +195,15 @@ def test_variants_match_design_table():
 # --- serialisation -----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("preset", ["smoke", "cpu", "paper"])
+def test_cpu_long_is_cpu_with_the_papers_epochs():
+    # the diagnostic preset must reuse the cpu data (same frames, same segment cache)
+    cpu, long = resolve("shared-0", "cpu", seed=1), resolve("shared-0", "cpu-long", seed=1)
+    assert long.data == cpu.data and long.model == cpu.model and long.loss == cpu.loss
+    assert long.train.epochs == resolve("shared-0", "paper").train.epochs == 90
+    assert dataclasses.replace(long.train, epochs=cpu.train.epochs) == cpu.train
+
+
+@pytest.mark.parametrize("preset", ["smoke", "cpu", "cpu-long", "paper"])
 def test_config_round_trip(preset):
     for name in variants():
         cfg = resolve(name, preset, seed=3)
