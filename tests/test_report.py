@@ -356,6 +356,10 @@ def test_claims_verdicts(rendered):
     assert row["paper_diff_pp"] == pytest.approx(76.0 - 75.2)
     md = (result.out_dir / "claims.md").read_text()
     assert "separate (none) beats shared 1" in md and "**contradicted**" in md
+    # the chance-level note counts the rows that have an interval (one-seed rows have none)
+    n_ci = int(np.isfinite(df["ci_low_pp"]).sum())
+    assert 0 < n_ci < len(df)
+    assert f"{n_ci} intervals at 95% each" in md and f"about {0.05 * n_ci:.1f} of them" in md
 
 
 # ---------------------------------------------------------------- figures

@@ -140,6 +140,11 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
     for r in results:
         counts[r.diff.verdict] = counts.get(r.diff.verdict, 0) + 1
     lines.append("Summary: " + "; ".join(f"{v}: {n}" for v, n in sorted(counts.items())) + ".")
+    n_ci = sum(math.isfinite(r.diff.low) for r in results)
+    if n_ci:
+        lines += ["", f"{n_ci} intervals at 95% each, not corrected for multiple comparisons: were "
+                  f"no claimed difference real, about {0.05 * n_ci:.1f} of them would still exclude "
+                  "0 by chance, so a lone verdict among many unresolved rows is weak evidence."]  # fmt: skip
     topic = None
     for r in results:
         c, d = r.claim, r.diff
