@@ -189,16 +189,9 @@ def table1_overall(runs: RunSet) -> Table:
     ours_source = f"ours, {runs.data_label()}"
     for label, prefix, icp in (("Ours w/o ICP (shared-0)", "test", 0),
                                ("Ours (shared-0 + ICP)", "test_icp", 1)):  # fmt: skip
-        cells, row = [], {"method": label, "source": ours_source, "icp": icp}
-        n = 0
-        for m in metrics:
-            ms, text = _ours(runs, "shared-0", f"{prefix}/{m}")
-            cells.append(text)
-            row[f"{m}_mean"], row[f"{m}_std"] = ms.mean * 100, ms.std * 100
-            n = max(n, ms.n)
-        row["seeds"] = n
-        rows.append([label, ours_source, "", "✓", "✓" if icp else "", *cells, str(n)])
-        data.append(row)
+        cells = [label, ours_source, "", "✓", "✓" if icp else ""]
+        row = {"method": label, "source": ours_source, "icp": icp}
+        _add_ours(runs, prefix, metrics, cells, row, rows, data)
     notes = [
         "Paper rows: the figures printed in Gao et al. (ICRA 2020), Table I, one run each on "
         "real YCB-Video (PC = PoseCNN, DF = DenseFusion).",
