@@ -1,7 +1,7 @@
 """The ablation runner: train and evaluate every variant of a group over seeds, then report.
 
 For each member variant and seed, a run that already finished *and* was evaluated in MLflow for
-the same variant, preset, seed and data fingerprint is skipped; anything else is trained
+the same variant, preset, seed, data fingerprint and config is skipped; anything else is trained
 (:func:`cloudpose.train.train` resumes an interrupted run from its checkpoint) and evaluated
 (:func:`cloudpose.evaluate.evaluate`). So an interrupted suite, rerun, continues where it stopped.
 One line per run goes to ``runs/ablate-{group}-{preset}.log``.
@@ -63,10 +63,15 @@ def seed_list(seeds: int | Iterable[int]) -> list[int]:
 
 
 def finished_run(client, cfg: Config, data: str):
-    """The newest FINISHED run of ``cfg``'s variant/preset/seed on ``data`` with test metrics."""
+    """The newest FINISHED run of exactly ``cfg`` on ``data`` with test metrics, or None.
+
+    Matched on the tags (variant, preset, seed, data) and then on the whole config
+    (:func:`cloudpose.tracking.run_has_config`): after an edit of the preset or the variant, or a
+    run with overrides, the runs of the old config are not taken for the new one.
+    """
     for r in tracking.find_runs(client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed,
                                 data=data):  # fmt: skip
-        if TEST_KEY in r.data.metrics:
+        if TEST_KEY in r.data.metrics and tracking.run_has_config(r, cfg):
             return r
     return None
 

@@ -9,6 +9,8 @@ one :class:`Config` that every checkpoint and every MLflow run stores in full.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import tomllib
 from dataclasses import dataclass, field
 from functools import cache
@@ -154,6 +156,15 @@ class Config:
     def to_dict(self) -> dict[str, Any]:
         """Nested plain dict (JSON/TOML-safe)."""
         return dataclasses.asdict(self)
+
+    def fingerprint(self) -> str:
+        """16 hex digits that change whenever any field changes (names, seed and settings).
+
+        Keys a run's folder and its MLflow tag ``config``: a run made under an edited preset or
+        variant, or with overrides, is never taken for (nor resumed as) a run of another config.
+        """
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def flat(self) -> dict[str, Any]:
         """Flat ``section.field`` dict, as logged to MLflow params."""

@@ -7,7 +7,7 @@
   lives in the experiment of the group it was trained for; a variant listed in several groups
   (``shared-0``) is trained once and found by tags from every group's report.
 - Run name ``{variant}/{preset}/seed{seed}``; tags ``variant``, ``group``, ``preset``, ``seed``,
-  ``data`` (the data fingerprint), ``git_commit``. Metric keys are split-prefixed
+  ``data`` (the data fingerprint), ``config`` (:meth:`Config.fingerprint`), ``git_commit``. Metric keys are split-prefixed
   (``train/loss``, ``val/ads_auc``, ``test/ads_auc``, ``test_icp/ads_auc``).
 """
 
@@ -133,3 +133,16 @@ def find_runs(
 def flat_params(d: dict[str, Any]) -> dict[str, str]:
     """MLflow params from a flat config dict: values as strings, keys sanitised."""
     return {metric_key(k): str(v) for k, v in d.items()}
+
+
+def run_has_config(run, cfg) -> bool:
+    """Whether an MLflow ``run`` was made with exactly the config ``cfg``.
+
+    By the ``config`` tag; a run from before that tag existed is compared on its logged params
+    (every ``section.field`` of ``cfg`` must be there with the same value).
+    """
+    tag = run.data.tags.get("config")
+    if tag is not None:
+        return tag == cfg.fingerprint()
+    params = run.data.params
+    return all(params.get(k) == v for k, v in flat_params(cfg.flat()).items())

@@ -1,6 +1,7 @@
 """Training of one variant from the segment cache, resumable and tracked in MLflow.
 
-Resumability: the run folder ``runs/{variant}/{preset}/seed{S}-{data}`` holds ``last.pt`` (model,
+Resumability: the run folder ``runs/{variant}/{preset}/seed{S}-{data}-{config}`` (data and config
+fingerprints: an edited preset or an override never resumes another config's run) holds ``last.pt`` (model,
 optimiser, position in the epoch and the epoch's running loss sums), written atomically at the end
 of every epoch and every ``checkpoint_every_s`` seconds within one, and ``run.json`` with the MLflow
 run id. Rerunning the same command after any interruption (``kill -9`` included) continues from
@@ -152,8 +153,9 @@ def validate(
 
 
 def run_dir_for(cfg: Config, data_key: str, project_dir: Path) -> Path:
-    """``runs/{variant}/{preset}/seed{S}-{data[:10]}`` under the project folder."""
-    return project_dir / "runs" / cfg.variant / cfg.preset / f"seed{cfg.seed}-{data_key[:10]}"
+    """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{config[:8]}`` under the project folder."""
+    name = f"seed{cfg.seed}-{data_key[:10]}-{cfg.fingerprint()[:8]}"
+    return project_dir / "runs" / cfg.variant / cfg.preset / name
 
 
 def train(
@@ -230,7 +232,8 @@ def train(
         exp = tracking.experiment_id(client, group, project_dir)
         tags = {
             "variant": cfg.variant, "group": group, "preset": cfg.preset, "seed": str(cfg.seed),
-            "data": data_key, "git_commit": tracking.git_commit(), "run_dir": str(rdir),
+            "data": data_key, "config": cfg.fingerprint(), "git_commit": tracking.git_commit(),
+            "run_dir": str(rdir),
         }  # fmt: skip
         name = tracking.run_name(cfg.variant, cfg.preset, cfg.seed)
         run = client.create_run(exp, tags=tags, run_name=name)

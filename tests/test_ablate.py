@@ -27,7 +27,8 @@ class Fakes:
         self.fingerprint = "data0000001234"
         self.fail_train: set[tuple[str, int]] = set()
         self.interrupt_eval: set[tuple[str, int]] = set()
-        self.runs: dict[tuple[str, int, str], str] = {}  # resumable: same run for same settings
+        self.runs: dict[tuple[str, int, str, str], str] = {}  # resumable: same run, same settings
+        self.config_tag = True  # False: runs as made before the ``config`` tag existed
 
     def data_fingerprint(self, data_cfg, project_dir=None):
         return self.fingerprint
@@ -38,18 +39,22 @@ class Fakes:
         if key in self.fail_train:
             raise FloatingPointError("loss became nan")
         client = tracking.setup(project_dir)
-        rkey = (cfg.variant, cfg.seed, self.fingerprint)
+        rkey = (cfg.variant, cfg.seed, self.fingerprint, cfg.fingerprint())
         if rkey not in self.runs:
             exp = tracking.experiment_id(client, group, project_dir)
             tags = {"variant": cfg.variant, "group": group, "preset": cfg.preset,
                     "seed": str(cfg.seed), "data": self.fingerprint, "git_commit": "c0ffee"}  # fmt: skip
+            if self.config_tag:
+                tags["config"] = cfg.fingerprint()
             run = client.create_run(exp, tags=tags,
                                     run_name=tracking.run_name(cfg.variant, cfg.preset, cfg.seed))  # fmt: skip
+            for k, v in tracking.flat_params(cfg.flat()).items():
+                client.log_param(run.info.run_id, k, v)
             self.runs[rkey] = run.info.run_id
         run_id = self.runs[rkey]
         client.log_metric(run_id, "time/epoch_s", 0.5, step=1)
         client.set_terminated(run_id, "FINISHED")
-        rdir = project_dir / "runs" / cfg.variant / f"seed{cfg.seed}"
+        rdir = project_dir / "runs" / cfg.variant / f"seed{cfg.seed}-{cfg.fingerprint()}"
         rdir.mkdir(parents=True, exist_ok=True)
         (rdir / "run_id").write_text(run_id)
         return types.SimpleNamespace(run_id=run_id, run_dir=rdir, metrics={})
@@ -145,7 +150,9 @@ def test_interrupted_suite_resumes_where_it_stopped(fakes, tmp_path):
     assert fakes.trained == [("l2", 1), ("l2", 2)]
     assert [r.status for r in res.runs] == ["skipped", "skipped", "trained", "trained"]
     l2_1 = next(r for r in res.runs if (r.variant, r.seed) == ("l2", 1))
-    assert l2_1.run_id == fakes.runs[("l2", 1, fakes.fingerprint)]
+    assert l2_1.run_id == next(
+        v for k, v in fakes.runs.items() if k[:3] == ("l2", 1, fakes.fingerprint)
+    )
     log = (tmp_path / "runs" / "ablate-loss-smoke.log").read_text()
     assert "\tinterrupted\t" in log
 
@@ -155,6 +162,30 @@ def test_other_data_is_trained_again(fakes, tmp_path):
     fakes.trained.clear()
     fakes.fingerprint = "otherdata9999"
     _run(tmp_path, seeds=1)
+    assert sorted(fakes.trained) == [("l2", 1), ("shared-0", 1)]
+
+
+def test_another_config_is_trained_again(fakes, tmp_path):
+    # a quick run with overrides is not taken for the preset's run, nor the other way round
+    _run(tmp_path, seeds=1, overrides={"train": {"epochs": 1}})
+    fakes.trained.clear()
+    res, _ = _run(tmp_path, seeds=1)
+    assert sorted(fakes.trained) == [("l2", 1), ("shared-0", 1)]
+    assert [r.status for r in res.runs] == ["trained"] * 2
+    fakes.trained.clear()
+    _run(tmp_path, seeds=1)
+    _run(tmp_path, seeds=1, overrides={"train": {"epochs": 1}})
+    assert fakes.trained == []
+
+
+def test_runs_without_config_tag_are_matched_on_params(fakes, tmp_path):
+    # runs logged before the ``config`` tag existed: the logged params decide
+    fakes.config_tag = False
+    _run(tmp_path, seeds=1)
+    fakes.trained.clear()
+    _run(tmp_path, seeds=1)
+    assert fakes.trained == []
+    _run(tmp_path, seeds=1, overrides={"train": {"lr": 1e-3}})
     assert sorted(fakes.trained) == [("l2", 1), ("shared-0", 1)]
 
 

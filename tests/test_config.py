@@ -195,6 +195,22 @@ def test_variants_match_design_table():
 # --- serialisation -----------------------------------------------------------------------------
 
 
+def test_config_fingerprint():
+    a = resolve("shared-3", "cpu", seed=2)
+    assert a.fingerprint() == resolve("shared-3", "cpu", seed=2).fingerprint()
+    assert len(a.fingerprint()) == 16
+    # through JSON (as stored in checkpoints and MLflow) it is the same config
+    assert Config.from_dict(json.loads(json.dumps(a.to_dict()))).fingerprint() == a.fingerprint()
+    others = [
+        resolve("shared-3", "cpu", seed=3),
+        resolve("shared-4", "cpu", seed=2),
+        resolve("shared-3", "cpu-long", seed=2),
+        resolve("shared-3", "cpu", seed=2, overrides={"train": {"lr": 1e-3}}),
+        dataclasses.replace(a, data=dataclasses.replace(a.data, test_frames=151)),
+    ]
+    assert len({a.fingerprint(), *(o.fingerprint() for o in others)}) == 1 + len(others)
+
+
 def test_cpu_long_is_cpu_with_the_papers_epochs():
     # the diagnostic preset must reuse the cpu data (same frames, same segment cache)
     cpu, long = resolve("shared-0", "cpu", seed=1), resolve("shared-0", "cpu-long", seed=1)

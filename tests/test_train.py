@@ -61,9 +61,18 @@ def test_train_logs_to_mlflow_and_same_seed_same_numbers(tmp_path, smoke_data, m
     assert int(run.data.params["model.parameters"]) > 1_000_000
     exp = tracking.setup(proj).get_experiment(run.info.experiment_id)
     assert exp.name == "cloudpose-shared"
+    assert run.data.tags["config"] == cfg.fingerprint()
+    assert tracking.run_has_config(run, cfg)
     # a finished run is returned as it is, not trained again
     again = train(cfg, project_dir=proj, progress=False)
     assert again.run_id == a.run_id and again.metrics == a.metrics
+    # another config under the same name (an override, an edited preset) is a new run and folder
+    cfg1 = resolve("shared-0", "smoke", seed=3, overrides={"train": {"epochs": 1}})
+    other = train(cfg1, project_dir=proj, progress=False)
+    assert other.run_id != a.run_id and other.run_dir != a.run_dir
+    assert other.run_dir.name.endswith(cfg1.fingerprint()[:8])
+    assert len(_curve(other.run_id, proj, "train/loss")) == 1
+    assert not tracking.run_has_config(tracking.setup(proj).get_run(other.run_id), cfg)
 
 
 @pytest.mark.slow
