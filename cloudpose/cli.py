@@ -19,7 +19,8 @@ app = typer.Typer(
 
 VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
 PresetOpt = Annotated[
-    str, typer.Option(help="Preset (ablations/presets.toml): smoke, cpu, cpu-long, paper.")
+    str,
+    typer.Option(help="Preset (ablations/presets.toml): smoke, cpu, cpu-long, memorize, paper."),
 ]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[
