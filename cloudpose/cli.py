@@ -288,6 +288,52 @@ def report(
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 
 
+@app.command()
+def curves(
+    run: Annotated[
+        list[str],
+        typer.Option(help="Run (repeatable): name variant/preset/seedS, MLflow run id or folder."),
+    ],
+    out: Annotated[Path, typer.Option(help="PNG to write; the values go beside it as .csv.")],
+    metric: Annotated[
+        list[str] | None,
+        typer.Option(help="Per-epoch metric (repeatable); default: rotation loss and error."),
+    ] = None,
+    title: Annotated[str, typer.Option(help="Figure title.")] = "",
+    mark_epoch: Annotated[
+        int | None, typer.Option(help="Dashed line at this epoch (e.g. where a preset stops).")
+    ] = None,
+    mark_label: Annotated[str, typer.Option(help="Text beside the dashed line.")] = "",
+    x: Annotated[str, typer.Option(help="x axis: epoch, or step (Adam steps).")] = "epoch",
+) -> None:
+    """Per-epoch curves of any runs side by side (one panel per metric), from MLflow."""
+    import shlex
+
+    from cloudpose import tracking
+    from cloudpose.report.curves import curves_csv, fetch_curves, plot_curves
+
+    metrics = list(metric or ["train/loss_rot", "val/rot_err_median_deg"])
+    args = ["cloudpose", "curves", *(a for r in run for a in ("--run", r)), "--out", str(out)]
+    args += [a for m in metrics for a in ("--metric", m)] + ["--x", x]
+    if title:
+        args += ["--title", title]
+    if mark_epoch is not None:
+        args += ["--mark-epoch", str(mark_epoch)] + (
+            ["--mark-label", mark_label] * bool(mark_label)
+        )
+    command = "`" + shlex.join(args) + "`"
+    try:
+        found = fetch_curves(tracking.setup(Path.cwd()), run, metrics)
+    except ValueError as exc:
+        _fail(exc)
+    try:
+        png = plot_curves(found, metrics, out, command=command, title=title,
+                          mark_epoch=mark_epoch, mark_label=mark_label, x=x)  # fmt: skip
+    except ValueError as exc:
+        _fail(exc)
+    typer.echo(f"{png}\n{curves_csv(found, metrics, out.with_suffix('.csv'), command)}")
+
+
 @app.command("occlusion-report")
 def occlusion_report(
     preset: PresetOpt = "cpu",

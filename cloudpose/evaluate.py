@@ -145,16 +145,11 @@ class EvalOutcome:
     run_id: str | None
 
 
-def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
-    """MLflow run id and local checkpoint of ``run``.
-
-    ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
-    ``variant/preset/seedS`` (the newest finished run of that name).
-    """
+def resolve_run_id(client, run: str) -> str:
+    """MLflow run id of ``run`` (a run folder, an MLflow run id or a run name; see resolve_run)."""
     path = Path(run)
     if (path / "run.json").exists():
-        info = json.loads((path / "run.json").read_text())
-        return info["run_id"], path / "model.pt"
+        return json.loads((path / "run.json").read_text())["run_id"]
     if run.count("/") == 2:
         variant, preset, seed = run.split("/")
         found = tracking.find_runs(
@@ -171,6 +166,20 @@ def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
                 f"--run {run!r} is neither a run folder, a run name variant/preset/seedS, "
                 f"nor an MLflow run id in {tracking.tracking_uri()}"
             ) from exc
+    return run_id
+
+
+def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
+    """MLflow run id and local checkpoint of ``run``.
+
+    ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
+    ``variant/preset/seedS`` (the newest finished run of that name).
+    """
+    path = Path(run)
+    if (path / "run.json").exists():
+        info = json.loads((path / "run.json").read_text())
+        return info["run_id"], path / "model.pt"
+    run_id = resolve_run_id(client, run)
     local = Path(client.get_run(run_id).data.tags.get("run_dir", "")) / "model.pt"
     if not local.exists():
         import mlflow
