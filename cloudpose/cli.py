@@ -20,7 +20,9 @@ app = typer.Typer(
 VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
 PresetOpt = Annotated[
     str,
-    typer.Option(help="Preset (ablations/presets.toml): smoke, cpu, cpu-long, memorize, paper."),
+    typer.Option(
+        help="Preset (ablations/presets.toml): smoke, cpu, cpu-long, cpu-4k, memorize, paper."
+    ),
 ]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[

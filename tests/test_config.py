@@ -219,7 +219,7 @@ def test_cpu_long_is_cpu_with_the_papers_epochs():
     assert dataclasses.replace(long.train, epochs=cpu.train.epochs) == cpu.train
 
 
-@pytest.mark.parametrize("preset", ["smoke", "cpu", "cpu-long", "memorize", "paper"])
+@pytest.mark.parametrize("preset", ["smoke", "cpu", "cpu-long", "cpu-4k", "memorize", "paper"])
 def test_config_round_trip(preset):
     for name in variants():
         cfg = resolve(name, preset, seed=3)
