@@ -251,3 +251,36 @@ def test_real_frame_segments_lie_on_the_posed_models():
         assert 0.0 <= s.occlusion <= 1.0
         pixels = int(((frame.label == s.cls_id) & (frame.depth > 0)).sum())
         assert s.count <= pixels
+
+
+# --------------------------------------------------------------------------- synthetic training set
+
+
+def test_synthetic_training_segments_match_their_labels(smoke_data):
+    """Every cached training segment lies on its own class's model at its own pose.
+
+    The check that rules out label bugs (pose of another instance, transposed rotation, another
+    class's model) when a network fails to learn rotation: each alternative is measured too and
+    must fit worse.
+    """
+    from cloudpose.data.cache import SegmentSet
+
+    (path,) = (smoke_data / "synth-seed0" / "cache").glob("*-train-*.npz")
+    s = SegmentSet.load(path)
+    models = YCBVideo(smoke_data / "synth-seed0").models()
+    checked = 0
+    for i in np.flatnonzero(s.valid):
+        P = s.points[i][: min(int(s.count[i]), len(s.points[i]))].astype(np.float64)
+        c, R, t = int(s.cls_id[i]), s.R[i].astype(np.float64), s.t[i].astype(np.float64)
+
+        def fit(X, P=P):
+            return float(np.median(KDTree(X).query(P, k=1)[0]))
+
+        own = fit(transform_points(models[c], R, t))
+        assert own < 0.006, (s.frame_id[i], c, own)  # sensor noise + model point spacing
+        turned = np.degrees(np.arccos(np.clip((np.trace(R @ R) - 1) / 2, -1, 1)))
+        if turned > 30:  # R^T differs from R by that angle
+            assert fit(transform_points(models[c], R.T, t)) > own + 0.002
+        assert fit(transform_points(models[c % 21 + 1], R, t)) > own
+        checked += 1
+    assert checked >= 20
