@@ -138,7 +138,10 @@ def plot_curves(
         fig.suptitle(title)
     ids = "; ".join(f"{c.label}: run {c.run_id[:8]}, data {c.data[:10]}, config {c.config[:8]}, "
                     f"code {c.commit}" for c in curves)  # fmt: skip
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    # room for the footer: ~190 characters per line at this size and font
+    width_chars = 190 * len(metrics) / 2
+    lines = 1 + int(len(command) / width_chars) + 1 + int(len(ids) / width_chars)
+    fig.tight_layout(rect=(0, min(0.3, 0.025 * lines + 0.015), 1, 1))
     fig.text(0.01, 0.005, f"made by {command}\n{ids}", fontsize=6, color="0.35", ha="left",
              va="bottom", wrap=True)  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
