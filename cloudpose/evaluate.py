@@ -175,11 +175,9 @@ def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
     ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
     ``variant/preset/seedS`` (the newest finished run of that name).
     """
-    path = Path(run)
-    if (path / "run.json").exists():
-        info = json.loads((path / "run.json").read_text())
-        return info["run_id"], path / "model.pt"
     run_id = resolve_run_id(client, run)
+    if (Path(run) / "run.json").exists():
+        return run_id, Path(run) / "model.pt"
     local = Path(client.get_run(run_id).data.tags.get("run_dir", "")) / "model.pt"
     if not local.exists():
         import mlflow

@@ -12,12 +12,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import pandas as pd
 from matplotlib.ticker import MaxNLocator
+
+from cloudpose.report.plots import _save  # also selects the Agg backend
+from cloudpose.report.runs import metric_history
 
 METRIC_LABELS = {
     "train/loss": "training loss (10·m + rad)",
@@ -72,10 +72,7 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
     for run in runs:
         run_id = resolve_run_id(client, run)
         r = client.get_run(run_id)
-        series = {}
-        for key in metrics:
-            hist = sorted(client.get_metric_history(run_id, key), key=lambda m: m.timestamp)
-            series[key] = pd.Series({m.step: m.value for m in hist}, dtype=float).sort_index()
+        series = {key: metric_history(client, run_id, key) for key in metrics}
         tags, params = r.data.tags, r.data.params
         try:
             steps = int(params["data.train_segments"]) // int(params["train.batch_size"])
@@ -144,10 +141,7 @@ def plot_curves(
     fig.tight_layout(rect=(0, min(0.3, 0.025 * lines + 0.015), 1, 1))
     fig.text(0.01, 0.005, f"made by {command}\n{ids}", fontsize=6, color="0.35", ha="left",
              va="bottom", wrap=True)  # fmt: skip
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def curves_csv(

@@ -71,9 +71,15 @@ class RunRecord:
 
     def history(self, key: str) -> pd.Series:
         """Per-epoch values of ``key`` (index: epoch); empty if never logged."""
-        hist = self.client.get_metric_history(self.run_id, key)
-        s = pd.Series({m.step: m.value for m in sorted(hist, key=lambda m: m.timestamp)})
-        return s.sort_index().astype(float)
+        return metric_history(self.client, self.run_id, key)
+
+
+def metric_history(client, run_id: str, key: str) -> pd.Series:
+    """Per-step values of metric ``key`` of a run (index: step; a step logged twice keeps the
+    later value); empty if never logged."""
+    hist = client.get_metric_history(run_id, key)
+    s = pd.Series({m.step: m.value for m in sorted(hist, key=lambda m: m.timestamp)})
+    return s.sort_index().astype(float)
 
 
 def _local_artifact(uri: str, rel: str) -> Path | None:
