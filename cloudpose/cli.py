@@ -29,6 +29,36 @@ DataOpt = Annotated[
     str, typer.Option("--data", help="YCB-Video-layout root; empty = the synthetic default.")
 ]
 ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Override one config field, section.field=value (TOML value; repeatable), "
+        "e.g. --set model.rotation_input=centred --set train.epochs=3. An override is another "
+        "config: its own run folder and MLflow run.",
+    ),
+]
+
+
+def parse_sets(items: list[str] | None) -> dict[str, dict]:
+    """``["train.epochs=3", "data.classes=['011_banana']"]`` -> ``{"train": {"epochs": 3}, ...}``.
+
+    Values are TOML (numbers, true/false, quoted strings, arrays); a bare word is a string.
+    """
+    import tomllib
+
+    out: dict[str, dict] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not name:
+            raise ValueError(f"--set {item!r}: expected section.field=value, e.g. train.epochs=3")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out.setdefault(section, {})[name] = value
+    return out
 
 
 @app.callback()
@@ -39,13 +69,15 @@ def _main() -> None:
     perf.configure_threads()
 
 
-def _config(variant: str, preset: str, seed: int, data: str = "", **train):
+def _config(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):
     from cloudpose.config import resolve
 
-    overrides: dict = {"data": {"root": data}} if data else {}
+    overrides: dict = parse_sets(sets)
+    if data:
+        overrides.setdefault("data", {})["root"] = data
     train = {k: v for k, v in train.items() if v is not None}
     if train:
-        overrides["train"] = train
+        overrides.setdefault("train", {}).update(train)
     return resolve(variant, preset, seed, overrides or None)
 
 
@@ -66,6 +98,57 @@ def variants() -> None:
     for r in rows:
         groups = ",".join(r["groups"])
         typer.echo(f"{r['name']:<18} {groups:<22} {r['parameters']:>11,}  {r['changes']}")
+
+
+@app.command()
+def symmetries(
+    write: Annotated[
+        bool, typer.Option("--write/--check", help="Rewrite the packaged table, or compare.")
+    ] = False,
+) -> None:
+    """Print each class's symmetries as seen in depth (the table the losses and metrics use)."""
+    import json
+
+    from cloudpose.conventions import resource_path
+    from cloudpose.data.ycb import load_classes
+    from cloudpose.geometry.symmetry import SYMMETRY_FILE, build_table, symmetry_from_json
+
+    table = build_table(load_classes(resource_path("classes.txt")))
+    for name, entry in table["classes"].items():
+        typer.echo(f"{name:<24} {symmetry_from_json(entry).describe()}")
+    text = json.dumps(table, indent=1) + "\n"
+    if write:
+        SYMMETRY_FILE.write_text(text)
+        typer.echo(f"wrote {SYMMETRY_FILE}")
+    elif SYMMETRY_FILE.read_text() != text:
+        _fail(ValueError(f"{SYMMETRY_FILE} differs from the models' symmetries; run with --write"))
+    else:
+        typer.echo(f"{SYMMETRY_FILE} matches")
+
+
+@app.command()
+def experiments(
+    group: Annotated[str, typer.Option(help="Group whose MLflow experiment to list.")],
+    out: Annotated[
+        Path, typer.Option(help="Markdown file to write (the values go beside it as .csv).")
+    ],
+    against: Annotated[
+        str | None,
+        typer.Option(help="List changes relative to this preset (default: each run's own)."),
+    ] = None,
+) -> None:
+    """An experiment log: every finished run of a group, its overrides and its rotation errors."""
+    import shlex
+    import sys
+
+    from cloudpose.report.experiments import write_log
+
+    command = "cloudpose " + shlex.join(sys.argv[1:])
+    try:
+        path = write_log(group, out, command, against=against)
+    except ValueError as exc:
+        _fail(exc)
+    typer.echo(f"wrote {path}")
 
 
 @app.command()
@@ -141,12 +224,14 @@ def train(
     device: Annotated[str | None, typer.Option(help="auto, cpu or cuda.")] = None,
     group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
     progress: ProgressOpt = True,
+    set_: SetOpt = None,
 ) -> None:
     """Train one variant (resumes an interrupted run of the same settings)."""
     from cloudpose.train import train as train_fn
 
-    cfg = _config(variant, preset, seed, data, epochs=epochs, precision=precision, device=device)
     try:
+        cfg = _config(variant, preset, seed, data, set_, epochs=epochs, precision=precision,
+                      device=device)  # fmt: skip
         out = train_fn(cfg, group=group, progress=progress)
     except (ValueError, FileNotFoundError) as exc:
         _fail(exc)
@@ -228,14 +313,16 @@ def run(
     seed: SeedOpt = 1,
     data: DataOpt = "",
     progress: ProgressOpt = True,
+    set_: SetOpt = None,
+    group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
 ) -> None:
     """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP."""
     from cloudpose.evaluate import evaluate as evaluate_fn
     from cloudpose.train import train as train_fn
 
-    cfg = _config(variant, preset, seed, data)
     try:
-        out = train_fn(cfg, progress=progress)
+        cfg = _config(variant, preset, seed, data, set_)
+        out = train_fn(cfg, group=group, progress=progress)
         ev = evaluate_fn(str(out.run_dir), progress=progress)
     except (ValueError, FileNotFoundError) as exc:
         _fail(exc)
@@ -252,12 +339,14 @@ def ablate(
         bool, typer.Option("--keep-going/--stop-on-failure", help="Go on after a failed run.")
     ] = False,
     progress: ProgressOpt = True,
+    set_: SetOpt = None,
 ) -> None:
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
     from cloudpose.ablate import run_group
 
     try:
-        res = run_group(group, preset, seeds, Path.cwd(), progress, keep_going=keep_going)
+        res = run_group(group, preset, seeds, Path.cwd(), progress, keep_going=keep_going,
+                        overrides=parse_sets(set_) or None)  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         _fail(exc)
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}

@@ -22,6 +22,9 @@ ROTATIONS = ("axis_angle", "quaternion", "rot6d")
 ROTATION_LOSSES = ("geodesic", "l2")
 SHARED_CHOICES = (0, 1, 2, 3, 4, 5, "all")
 PRECISIONS = ("fp32", "bf16")
+ROTATION_INPUTS = ("raw", "centred")
+SAMPLERS = ("shuffle", "class_balanced")
+LR_SCHEDULES = ("constant", "cosine")
 KERNELS = ("fused", "plain")
 
 
@@ -39,6 +42,14 @@ class ModelConfig:
         head: hidden widths of the regression MLP after the max pool.
         num_classes: k of the one-hot class input (21 for YCB-Video).
         bn_momentum: PyTorch BatchNorm momentum (the released code's decay 0.99 = 0.01).
+        rotation_input: what the rotation branch of ``shared_layers = 0`` sees: "raw"
+            camera-frame xyz (the paper) or "centred" xyz minus the segment mean (what every
+            shared variant's trunk sees).
+        xyz_scale: the networks see xyz divided by this length, metres (1.0 = metres, the
+            paper). The one-hot class channels are 0/1; centred object points in metres are
+            ~0.05, so at 1.0 the class term dominates every first-layer unit and the pooled
+            features vary by a few percent between segments of one class (a class can then
+            get stuck at a constant output). 0.1 (decimetres) puts both on one scale.
     """
 
     shared_layers: int | str = 0
@@ -48,14 +59,23 @@ class ModelConfig:
     head: tuple[int, ...] = (512, 256)
     num_classes: int = 21
     bn_momentum: float = 0.01
+    rotation_input: str = "raw"
+    xyz_scale: float = 1.0
 
     def __post_init__(self) -> None:
+        if self.rotation_input not in ROTATION_INPUTS:
+            raise ValueError(
+                f"model.rotation_input must be one of {ROTATION_INPUTS}, "
+                f"got {self.rotation_input!r}"
+            )
         if self.shared_layers not in SHARED_CHOICES:
             raise ValueError(
                 f"model.shared_layers must be one of {SHARED_CHOICES}, got {self.shared_layers!r}"
             )
         if self.rotation not in ROTATIONS:
             raise ValueError(f"model.rotation must be one of {ROTATIONS}, got {self.rotation!r}")
+        if not self.xyz_scale > 0:
+            raise ValueError(f"model.xyz_scale must be > 0, got {self.xyz_scale!r}")
         if not self.width > 0:
             raise ValueError(f"model.width must be > 0, got {self.width!r}")
         object.__setattr__(self, "point_mlp", tuple(self.point_mlp))
@@ -69,10 +89,13 @@ class LossConfig:
     Attributes:
         rotation: "geodesic" (angle between rotations, rad) or "l2" (|r - r_gt|_2 on axis-angle).
         alpha: weight of the translation loss (metres) against the rotation loss (radians).
+        symmetric: take the rotation loss modulo each class's symmetries (the smallest loss
+            over the equivalent ground truths of ``cloudpose.geometry.symmetry``).
     """
 
     rotation: str = "geodesic"
     alpha: float = 10.0
+    symmetric: bool = False
 
     def __post_init__(self) -> None:
         if self.rotation not in ROTATION_LOSSES:
@@ -96,6 +119,17 @@ class TrainConfig:
         kernel: "fused" = the last per-point layer, its BatchNorm, ReLU and the max pool as one
             exact autograd function (:mod:`cloudpose.models.fused`, same numerics, 2-2.5x the
             training throughput on CPU); "plain" = the textbook modules.
+        bn_recalibrate: before each validation and before the final save, re-estimate every
+            BatchNorm's running statistics as the plain average over this many training
+            batches (no gradient step; 0 = keep the running averages). Fixes eval mode in
+            short runs: with momentum 0.01 from step 0 the running variances (initialised to
+            1) need thousands of steps to reach the real ones (~1e-3 in the first layer).
+        sampler: "shuffle" (every segment once per epoch) or "class_balanced" (each batch
+            draws classes uniformly, then a segment of the class; same steps per epoch).
+        lr_schedule: "constant" or "cosine" (decay to 0 over the run's steps).
+        augment_roll_deg: turn each training segment about the camera's optical axis by a
+            uniform angle in +-this many degrees (points, R and t alike). Exact for depth
+            data: a camera rolled about its optical axis sees the same surface points. 0 = off.
     """
 
     epochs: int = 90
@@ -106,8 +140,24 @@ class TrainConfig:
     precision: str = "fp32"
     device: str = "auto"
     kernel: str = "fused"
+    bn_recalibrate: int = 50
+    sampler: str = "shuffle"
+    lr_schedule: str = "constant"
+    augment_roll_deg: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.epochs < 1:
+            raise ValueError(f"train.epochs must be >= 1, got {self.epochs}")
+        if self.batch_size < 2:
+            raise ValueError(f"train.batch_size must be >= 2 (BatchNorm), got {self.batch_size}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"train.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(
+                f"train.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
+            )
+        if self.bn_recalibrate < 0:
+            raise ValueError(f"train.bn_recalibrate must be >= 0, got {self.bn_recalibrate}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.kernel not in KERNELS:
@@ -128,6 +178,8 @@ class DataConfig:
         n_fps: points kept per segment by farthest point sampling.
         outlier_radius: drop segment points farther than this from the segment mean, metres.
         segmentation: where segment masks come from; "gt" = ground-truth labels.
+        classes: train and test on these class names only (empty = every class). Instances
+            of other classes are left out of training, validation and test sets alike.
     """
 
     root: str = ""
@@ -139,6 +191,10 @@ class DataConfig:
     n_fps: int = 1024
     outlier_radius: float = 0.2
     segmentation: str = "gt"
+    classes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "classes", tuple(self.classes))
 
 
 @dataclass(frozen=True)

@@ -118,7 +118,37 @@ def instance_table(
         )  # fmt: skip
         for key in ("ad", "ads", "rot_err_deg", "trans_err"):
             df[f"{method}_{key}"] = err[key]
+        df[f"{method}_rot_sym_err_deg"] = symmetric_rotation_errors(
+            segs.cls_id, segs.R, R_est, class_names, miss
+        )
     return df
+
+
+def symmetric_rotation_errors(
+    cls_id: np.ndarray,
+    R_gt: np.ndarray,
+    R_est: np.ndarray,
+    class_names: list[str],
+    miss: np.ndarray | None = None,
+) -> np.ndarray:
+    """(M,) rotation errors modulo each class's symmetries, degrees; ``inf`` for misses.
+
+    Args:
+        cls_id: (M,) 1-based class ids; ``class_names[id - 1]`` names the class whose entry of
+            the symmetry table (:mod:`cloudpose.geometry.symmetry`) applies.
+        R_gt, R_est: (M, 3, 3) rotations.
+        miss: (M,) instances without an estimate.
+    """
+    from cloudpose.geometry.symmetry import symmetric_rotation_error_deg, symmetries_for
+
+    cls_id = np.asarray(cls_id).astype(int)
+    syms = symmetries_for(list(class_names))
+    out = np.full(len(cls_id), np.inf)
+    hit = np.ones(len(cls_id), bool) if miss is None else ~np.asarray(miss, bool)
+    for c in np.unique(cls_id[hit]):
+        sel = hit & (cls_id == c)
+        out[sel] = symmetric_rotation_error_deg(R_gt[sel], R_est[sel], syms[int(c) - 1])
+    return out
 
 
 def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
@@ -129,7 +159,10 @@ def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
             continue
         prefix = name if method == "net" else f"{name}_icp"
         sub = df.rename(
-            columns={f"{method}_{k}": k for k in ("ad", "ads", "rot_err_deg", "trans_err")}
+            columns={
+                f"{method}_{k}": k
+                for k in ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
+            }
         )
         for key, value in flatten_summary(summarize(sub)).items():
             out[tracking.metric_key(prefix, key)] = float(value)
@@ -212,7 +245,7 @@ def evaluate(
         icp: also evaluate after ICP refinement.
         log: log the table and metrics to the run in MLflow.
     """
-    from cloudpose.data.cache import ensure_dataset, segments_for
+    from cloudpose.data.cache import ensure_dataset, only_classes, segments_for
     from cloudpose.data.ycb import YCBVideo
     from cloudpose.train import load_checkpoint
 
@@ -228,7 +261,9 @@ def evaluate(
         name = name or "test"
     else:
         dataset = YCBVideo(data)
-        segs = segments_for(dataset, frames, cfg.data, progress=progress)
+        segs = only_classes(
+            segments_for(dataset, frames, cfg.data, progress=progress), data, cfg.data.classes
+        )
         name = name or tracking.metric_key(Path(data).resolve().name)
     models_by_class = dataset.models()
     t0 = time.monotonic()

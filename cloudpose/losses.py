@@ -7,12 +7,14 @@ reduces them to batch means. Rotation losses are in radians (geodesic) or in axi
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
 
 from cloudpose.config import ROTATION_LOSSES
 from cloudpose.geometry.rotations import rotmat_geodesic_distance, rotmat_to_rotvec, safe_norm
+from cloudpose.geometry.symmetry import SymmetryTensors
 
 __all__ = ["LossTerms", "geodesic_loss", "pose_loss", "rotvec_l2_loss", "translation_loss"]
 
@@ -86,6 +88,9 @@ def pose_loss(
     rotation: str = "geodesic",
     alpha: float = 10.0,
     rotvec_pred: torch.Tensor | None = None,
+    symmetry: SymmetryTensors | None = None,
+    cls_id: torch.Tensor | None = None,
+    symmetric: bool = False,
 ) -> LossTerms:
     """The training loss ``alpha * mean(l_t) + mean(l_r)``.
 
@@ -99,6 +104,14 @@ def pose_loss(
             ``cloudpose.config.LossConfig.rotation``.
         alpha: weight of the translation term, rad/m (``LossConfig.alpha``).
         rotvec_pred: (B, 3) the network's raw axis-angle output; required for ``"l2"``.
+        symmetry: take the loss modulo each sample's class symmetries; needs ``cls_id``.
+            ``"geodesic"``: the smallest distance to any ground truth that looks the same in
+            depth (:meth:`SymmetryTensors.distance`, exact); ``"l2"``: the L2 distance to the
+            rotation vector of the equivalent ground truth nearest to the prediction
+            (:meth:`SymmetryTensors.closest_ground_truth`).
+        cls_id: (B,) 1-based class ids, for ``symmetry``.
+        symmetric: ``LossConfig.symmetric``; without ``symmetry``, the packaged table of the
+            21 YCB-Video classes (ids in ``classes.txt`` order).
 
     Returns:
         :class:`LossTerms` of scalars: total, rotation (rad), translation (m).
@@ -108,6 +121,8 @@ def pose_loss(
     """
     if rotation not in ROTATION_LOSSES:
         raise ValueError(f"pose_loss: rotation must be one of {ROTATION_LOSSES}, got {rotation!r}")
+    if symmetric and symmetry is None:
+        symmetry = ycb_symmetry_tensors().to(R_pred.device)
     _check_shape("R_pred", R_pred, (3, 3))
     _check_shape("R_gt", R_gt, (3, 3))
     _check_shape("t_pred", t_pred, (3,))
@@ -120,7 +135,11 @@ def pose_loss(
                 f"expected {tuple(batch)} like R_pred"
             )
 
-    if rotation == "geodesic":
+    if rotation == "geodesic" and symmetry is not None:
+        if cls_id is None or cls_id.shape != batch:
+            raise ValueError(f"pose_loss: symmetry needs cls_id of shape {tuple(batch)}")
+        l_r = symmetry.distance(R_pred, R_gt, cls_id)
+    elif rotation == "geodesic":
         l_r = geodesic_loss(R_pred, R_gt)
     else:
         if rotvec_pred is None:
@@ -133,10 +152,24 @@ def pose_loss(
                 f"pose_loss: rotvec_pred has batch shape {tuple(rotvec_pred.shape[:-1])}, "
                 f"expected {tuple(batch)} like R_pred"
             )
+        if symmetry is not None:
+            if cls_id is None or cls_id.shape != batch:
+                raise ValueError(f"pose_loss: symmetry needs cls_id of shape {tuple(batch)}")
+            R_gt = symmetry.closest_ground_truth(R_pred.detach(), R_gt, cls_id)
         l_r = rotvec_l2_loss(rotvec_pred, rotmat_to_rotvec(R_gt))
     l_t = translation_loss(t_pred, t_gt)
     rot, trans = l_r.mean(), l_t.mean()
     return LossTerms(total=alpha * trans + rot, rotation=rot, translation=trans)
+
+
+@functools.cache
+def ycb_symmetry_tensors() -> SymmetryTensors:
+    """The packaged symmetry table for the 21 YCB-Video class ids, as loss tensors."""
+    from cloudpose.conventions import resource_path
+    from cloudpose.data.ycb import load_classes
+    from cloudpose.geometry.symmetry import symmetries_for
+
+    return SymmetryTensors(symmetries_for(load_classes(resource_path("classes.txt"))))
 
 
 def _check_shape(name: str, x: torch.Tensor, tail: tuple[int, ...]) -> None:

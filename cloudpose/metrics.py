@@ -477,7 +477,18 @@ def _summary_row(df: pd.DataFrame) -> dict[str, float]:
         "rot_lt_10deg": fraction_below(df["rot_err_deg"], 10.0),
         "rot_lt_15deg": fraction_below(df["rot_err_deg"], 15.0),
         "rot_lt_20deg": fraction_below(df["rot_err_deg"], 20.0),
+        "rot_err_median_deg": float(np.median(df["rot_err_deg"])) if len(df) else float("nan"),
         "trans_lt_1cm": fraction_below(df["trans_err"], 0.01),
+        **(
+            {
+                "rot_sym_lt_10deg": fraction_below(df["rot_sym_err_deg"], 10.0),
+                "rot_sym_lt_15deg": fraction_below(df["rot_sym_err_deg"], 15.0),
+                "rot_sym_lt_20deg": fraction_below(df["rot_sym_err_deg"], 20.0),
+                "rot_sym_err_median_deg": float(np.median(df["rot_sym_err_deg"])),
+            }
+            if "rot_sym_err_deg" in df and len(df)
+            else {}
+        ),
         "count": float(len(df)),
     }
 

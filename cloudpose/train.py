@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 
 from cloudpose import tracking
 from cloudpose.config import Config, groups_of
+from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
 from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
 from cloudpose.models import build_model, count_parameters
@@ -96,10 +97,9 @@ class Batchable:
     def __len__(self) -> int:
         return self.points.shape[0]
 
-
-def _epoch_perm(seed: int, epoch: int, m: int) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-    return torch.randperm(m, generator=g)
+    def subset(self, index: torch.Tensor) -> Batchable:
+        """The segments at ``index`` (an index tensor or bool mask)."""
+        return Batchable(self.points[index], self.cls_id[index], self.R[index], self.t[index])
 
 
 def _save_atomic(obj: Any, path: Path) -> None:
@@ -116,18 +116,29 @@ def validate(
     cfg: Config,
     device: torch.device,
     batch_size: int = 512,
+    class_names: list[str] | None = None,
+    symmetry: SymmetryTensors | None = None,
+    prefix: str = "val",
 ) -> dict[str, float]:
-    """Validation loss and pose accuracy (no ICP) of ``model`` on ``data``."""
+    """Loss and pose accuracy (no ICP) of ``model`` in eval mode on ``data``.
+
+    Args:
+        symmetry: the loss's symmetry table when the run trains modulo symmetry.
+        class_names: names of class ids 1..k; adds the rotation error modulo symmetry.
+        prefix: metric key prefix ("val", or "fit" for training segments).
+    """
     if len(data) == 0:
         return {}
     model.eval()
     Rs, ts, totals = [], [], []
     for i in range(0, len(data), batch_size):
         sl = slice(i, i + batch_size)
-        out = model(data.points[sl].to(device), data.cls_id[sl].to(device))
+        cls_id = data.cls_id[sl].to(device)
+        out = model(data.points[sl].to(device), cls_id)
         terms = pose_loss(
             out.R, out.t, data.R[sl].to(device), data.t[sl].to(device),
             rotation=cfg.loss.rotation, alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw,
+            symmetry=symmetry, cls_id=cls_id,
         )  # fmt: skip
         totals.append(float(terms.total) * out.R.shape[0])
         Rs.append(out.R.float().cpu())
@@ -142,14 +153,129 @@ def validate(
         ads[m] = adds_distance(models_by_class[int(c)], R_gt[m], t_gt[m], R_est[m], t_est[m])
     rot = rotation_error_deg(R_gt, R_est)
     trans = np.linalg.norm(t_gt - t_est, axis=-1)
-    return {
-        "val/loss": sum(totals) / len(data),
-        "val/ads_auc": voc_ap_auc(ads),
-        "val/rot_err_median_deg": float(np.median(rot)),
-        "val/trans_err_median_mm": float(np.median(trans) * 1000),
-        "val/rot_lt_10deg": float(np.mean(rot < 10)),
-        "val/trans_lt_1cm": float(np.mean(trans < 0.01)),
+    out = {
+        "loss": sum(totals) / len(data),
+        "ads_auc": voc_ap_auc(ads),
+        "rot_err_median_deg": float(np.median(rot)),
+        "trans_err_median_mm": float(np.median(trans) * 1000),
+        "rot_lt_10deg": float(np.mean(rot < 10)),
+        "trans_lt_1cm": float(np.mean(trans < 0.01)),
     }
+    if class_names is not None:
+        from cloudpose.evaluate import symmetric_rotation_errors
+
+        sym = symmetric_rotation_errors(cls_id, R_gt, R_est, class_names)
+        out.update({
+            "rot_sym_err_median_deg": float(np.median(sym)),
+            "rot_sym_lt_10deg": float(np.mean(sym < 10)),
+            "rot_sym_lt_20deg": float(np.mean(sym < 20)),
+        })  # fmt: skip
+    return {f"{prefix}/{k}": v for k, v in out.items()}
+
+
+def bn_modules(model: torch.nn.Module) -> list[torch.nn.BatchNorm1d]:
+    """Every BatchNorm of ``model`` (fused layers keep theirs as ``.bn``)."""
+    return [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+
+
+@torch.no_grad()
+def recalibrate_bn(model: torch.nn.Module, data: Batchable, batches: int, batch_size: int,
+                   seed: int, device: torch.device) -> None:  # fmt: skip
+    """Re-estimate every BatchNorm's running statistics on training batches ("precise BN").
+
+    Each running mean and variance becomes the plain average of its batch statistics over
+    ``batches`` batches of ``batch_size`` segments (drawn by ``seed``), the distribution the
+    layer sees in training. No parameter changes. Used before every evaluation in eval mode:
+    an exponential average with momentum 0.01 started at variance 1 is still far from the
+    real statistics after a few thousand steps.
+    """
+    bns = bn_modules(model)
+    momenta = [bn.momentum for bn in bns]
+    for bn in bns:
+        bn.reset_running_stats()
+        bn.momentum = None  # cumulative average
+    was_training = model.training
+    model.train()
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(batches):
+        idx = torch.randint(len(data), (batch_size,), generator=g)
+        model(data.points[idx].to(device), data.cls_id[idx].to(device))
+    for bn, m in zip(bns, momenta, strict=True):
+        bn.momentum = m
+    model.train(was_training)
+
+
+@torch.no_grad()
+def batch_stats_rotation_error(model: torch.nn.Module, data: Batchable, batch_size: int,
+                               device: torch.device) -> float:  # fmt: skip
+    """Median rotation error (degrees) of ``model`` in *train* mode (batch statistics).
+
+    The same segments in eval mode give ``validate``'s number; the two agree when the running
+    statistics match the training distribution. BatchNorm buffers are restored afterwards.
+    """
+    saved = [(bn, bn.running_mean.clone(), bn.running_var.clone(), bn.num_batches_tracked.clone())
+             for bn in bn_modules(model)]  # fmt: skip
+    was_training = model.training
+    model.train()
+    errs = []
+    for i in range(0, len(data) - batch_size + 1, batch_size):
+        sl = slice(i, i + batch_size)
+        out = model(data.points[sl].to(device), data.cls_id[sl].to(device))
+        errs.append(rotation_error_deg(data.R[sl].numpy(), out.R.float().cpu().numpy()))
+    for bn, mean, var, n in saved:
+        bn.running_mean.copy_(mean)
+        bn.running_var.copy_(var)
+        bn.num_batches_tracked.copy_(n)
+    model.train(was_training)
+    return float(np.median(np.concatenate(errs))) if errs else float("nan")
+
+
+def epoch_order(fit: Batchable, sampler: str, seed: int, epoch: int, n: int) -> torch.Tensor:
+    """(n,) training indices of one epoch, a function of ``(seed, epoch)`` only.
+
+    ``shuffle``: a permutation of the segments (the first ``n``); ``class_balanced``: each
+    draw picks a class uniformly among the classes present, then one of its segments.
+    """
+    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    if sampler == "shuffle":
+        return torch.randperm(len(fit), generator=g)[:n]
+    classes, inverse = torch.unique(fit.cls_id, return_inverse=True)
+    members = [torch.nonzero(inverse == c).squeeze(1) for c in range(len(classes))]
+    pick = torch.randint(len(classes), (n,), generator=g)
+    out = torch.empty(n, dtype=torch.long)
+    for c, idx in enumerate(members):
+        sel = pick == c
+        out[sel] = idx[torch.randint(len(idx), (int(sel.sum()),), generator=g)]
+    return out
+
+
+def roll_about_optical_axis(
+    points: torch.Tensor, R: torch.Tensor, t: torch.Tensor, max_deg: float,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Segments and poses as seen by the camera rolled about its optical (z) axis.
+
+    Args:
+        points: (B, n, 3) camera-frame points, metres; R (B, 3, 3), t (B, 3) their poses.
+        max_deg: roll angles are uniform in [-max_deg, max_deg] degrees, one per segment.
+
+    Returns:
+        ``(points @ Q^T, Q R, Q t)`` with Q (B, 3, 3) the rolls.
+    """
+    B = points.shape[0]
+    a = (torch.rand(B, generator=generator) * 2 - 1) * math.radians(max_deg)
+    c, s = torch.cos(a), torch.sin(a)
+    Q = torch.zeros(B, 3, 3)
+    Q[:, 0, 0], Q[:, 0, 1], Q[:, 1, 0], Q[:, 1, 1], Q[:, 2, 2] = c, -s, s, c, 1.0
+    Q = Q.to(points.device, points.dtype)
+    return points @ Q.mT, Q @ R, (Q @ t[..., None]).squeeze(-1)
+
+
+def lr_at(cfg: Config, step: int, total: int) -> float:
+    """Learning rate of optimiser step ``step`` (0-based) of ``total`` (``train.lr_schedule``)."""
+    if cfg.train.lr_schedule == "cosine":
+        return 0.5 * cfg.train.lr * (1.0 + math.cos(math.pi * min(step, total) / max(total, 1)))
+    return cfg.train.lr
 
 
 def run_dir_for(cfg: Config, data_key: str, project_dir: Path) -> Path:
@@ -206,7 +332,14 @@ def train(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
             f"{cfg.train.batch_size}; render more frames (data.train_frames)"
         )
-    models_by_class = YCBVideo(train_set_root(cfg, project_dir)).models()
+    dataset = YCBVideo(train_set_root(cfg, project_dir))
+    models_by_class = dataset.models()
+    class_names = list(dataset.classes)
+    symmetry = None
+    if cfg.loss.symmetric:
+        symmetry = SymmetryTensors(symmetries_for(class_names)).to(device)
+    # A fixed sample of training segments: eval- vs train-mode error on the same segments.
+    probe = fit.subset(torch.randperm(len(fit), generator=torch.Generator().manual_seed(0))[:512])
 
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.model).to(device)
@@ -258,18 +391,26 @@ def train(
                disable=not progress, desc=tracking.run_name(cfg.variant, cfg.preset, cfg.seed),
                unit="step", dynamic_ncols=True)  # fmt: skip
     metrics: dict[str, float] = {}
+    total_steps = cfg.train.epochs * n_batches
     while epoch < cfg.train.epochs:
         t_epoch = time.monotonic()
-        perm = _epoch_perm(cfg.seed, epoch, len(fit))
+        perm = epoch_order(fit, cfg.train.sampler, cfg.seed, epoch, n_batches * bs)
         while batch < n_batches:
+            for group_ in opt.param_groups:
+                group_["lr"] = lr_at(cfg, epoch * n_batches + batch, total_steps)
             idx = perm[batch * bs : (batch + 1) * bs]
             pts, cls_id = fit.points[idx].to(device), fit.cls_id[idx].to(device)
             R_gt, t_gt = fit.R[idx].to(device), fit.t[idx].to(device)
+            if cfg.train.augment_roll_deg > 0:
+                g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 100_003 + batch)
+                pts, R_gt, t_gt = roll_about_optical_axis(pts, R_gt, t_gt,
+                                                          cfg.train.augment_roll_deg, g)  # fmt: skip
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
                 out = model(pts, cls_id)
             terms = pose_loss(
                 out.R.float(), out.t.float(), R_gt, t_gt, rotation=cfg.loss.rotation,
-                alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw.float(),
+                alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw.float(), symmetry=symmetry,
+                cls_id=cls_id,
             )  # fmt: skip
             opt.zero_grad(set_to_none=True)
             terms.total.backward()
@@ -298,8 +439,16 @@ def train(
             "train/loss_rot": sums["rot"] / n,
             "train/loss_trans": sums["trans"] / n,
             "time/epoch_s": time.monotonic() - t_epoch,
+            "train/lr": opt.param_groups[0]["lr"],
         }
-        metrics.update(validate(model, val, models_by_class, cfg, device))
+        metrics["fit/rot_err_median_deg_batchstats"] = batch_stats_rotation_error(
+            model, probe, bs, device
+        )
+        if cfg.train.bn_recalibrate:
+            recalibrate_bn(model, fit, cfg.train.bn_recalibrate, bs, cfg.seed + epoch, device)
+        for data_, prefix in ((val, "val"), (probe, "fit")):
+            metrics.update(validate(model, data_, models_by_class, cfg, device,
+                                    class_names=class_names, symmetry=symmetry, prefix=prefix))  # fmt: skip
         client.log_batch(run_id, metrics=_mlflow_metrics(metrics, epoch + 1))
         epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
         _checkpoint(last, model, opt, cfg, epoch, batch, sums)

@@ -80,20 +80,31 @@ def test_resolve_real_registry():
     assert (cfg.variant, cfg.preset, cfg.seed) == ("shared-all-2x", "smoke", 7)
     assert cfg.model.shared_layers == "all" and cfg.model.width == 2.0
     assert cfg.train.epochs == 1 and cfg.train.n_points == 64  # override, smoke preset
-    assert cfg.model.rotation == "axis_angle" and cfg.loss == LossConfig()  # base
+    assert cfg.model.rotation == "axis_angle" and cfg.loss == LossConfig(symmetric=True)
     assert resolve("l2").loss.rotation == "l2"
     assert resolve("quaternion").model.rotation == "quaternion"
 
 
-def test_paper_preset_is_the_papers_recipe():
-    cfg = resolve("shared-0", "paper")
+def test_paper_literal_preset_is_the_papers_recipe():
+    cfg = resolve("shared-0", "paper-literal")
+    assert cfg.model == ModelConfig() and cfg.loss == LossConfig()  # raw xyz in metres
+    assert cfg.train.bn_recalibrate == 0 and cfg.train.lr_schedule == "constant"
     assert (cfg.train.epochs, cfg.train.batch_size, cfg.train.lr, cfg.train.n_points) == (
         90, 128, 0.0008, 256,
     )  # fmt: skip
     assert cfg.model.bn_momentum == 0.01  # the released code's BN decay 0.99
     assert cfg.model.point_mlp == (64, 64, 64, 128, 1024) and cfg.model.head == (512, 256)
     assert cfg.loss.alpha == 10.0 and cfg.loss.rotation == "geodesic"
-    assert {"smoke", "cpu", "paper"} <= set(presets())
+    assert {"smoke", "cpu", "cpu-paper", "paper", "paper-literal"} <= set(presets())
+    # paper = the same settings with the recipe findings; cpu-paper = cpu without them
+    paper = resolve("shared-0", "paper")
+    assert paper.train == dataclasses.replace(cfg.train, bn_recalibrate=50)
+    assert (paper.model.xyz_scale, paper.model.rotation_input, paper.loss.symmetric) == (
+        0.03, "centred", True,
+    )  # fmt: skip
+    cpu, cpu_paper = resolve("shared-0", "cpu"), resolve("shared-0", "cpu-paper")
+    assert cpu.data == cpu_paper.data and cpu.train.epochs == cpu_paper.train.epochs
+    assert cpu_paper.model == ModelConfig() and cpu_paper.loss == LossConfig()
 
 
 # --- unknown names -----------------------------------------------------------------------------
@@ -147,14 +158,17 @@ def test_loader_rejects_bad_registry(registry):
 
 
 def test_every_variant_has_a_why_and_a_minimal_delta():
-    base = Config()
+    # the base and the proposed system under every preset: what a variant can change
+    bases = [Config()] + [resolve("shared-0", p) for p in presets()]
     assert variants()
     for name, v in variants().items():
         assert v.name == name and len(v.why) > 10
         for section, fields in v.delta.items():
             for key, value in fields.items():
-                # a delta lists only what it changes
-                assert getattr(getattr(base, section), key) != value, f"{name}: {section}.{key}"
+                # a delta lists only what it changes, from the base or under some preset
+                assert any(getattr(getattr(b, section), key) != value for b in bases), (
+                    f"{name}: {section}.{key}"
+                )
         resolve(name)  # every variant resolves to a valid config
     assert get_variant("shared-0").describe() == "(base)"
     assert get_variant("l2").describe() == "loss.rotation=l2"
@@ -178,7 +192,8 @@ def test_groups_as_the_issue_lists_them():
     assert "shared-all-2x" in shared and len(shared) == 9
     assert g["rotation"].members == ("shared-0", "quaternion", "rot6d")
     assert g["loss"].members == ("shared-0", "l2")
-    assert groups_of("shared-0") == ["shared", "rotation", "loss"]
+    assert groups_of("shared-0") == ["shared", "rotation", "loss", "symmetry"]
+    assert g["symmetry"].members == ("shared-0", "geodesic-plain")
     assert groups_of("rot6d") == ["rotation"]
     # every variant belongs to some group
     assert all(groups_of(name) for name in variants())
@@ -211,15 +226,15 @@ def test_config_fingerprint():
     assert len({a.fingerprint(), *(o.fingerprint() for o in others)}) == 1 + len(others)
 
 
-def test_cpu_long_is_cpu_with_the_papers_epochs():
+def test_cpu_long_is_cpu_paper_with_the_papers_epochs():
     # the diagnostic preset must reuse the cpu data (same frames, same segment cache)
-    cpu, long = resolve("shared-0", "cpu", seed=1), resolve("shared-0", "cpu-long", seed=1)
+    cpu, long = resolve("shared-0", "cpu-paper", seed=1), resolve("shared-0", "cpu-long", seed=1)
     assert long.data == cpu.data and long.model == cpu.model and long.loss == cpu.loss
     assert long.train.epochs == resolve("shared-0", "paper").train.epochs == 90
     assert dataclasses.replace(long.train, epochs=cpu.train.epochs) == cpu.train
 
 
-@pytest.mark.parametrize("preset", ["smoke", "cpu", "cpu-long", "cpu-4k", "memorize", "paper"])
+@pytest.mark.parametrize("preset", list(presets()))
 def test_config_round_trip(preset):
     for name in variants():
         cfg = resolve(name, preset, seed=3)
@@ -254,3 +269,34 @@ def test_flat_keys():
     assert not any(isinstance(v, dict) for v in flat.values())
     # MLflow keys allow letters, digits and _ - . / space only
     assert all(set(k) <= set("abcdefghijklmnopqrstuvwxyz0123456789_-./ ") for k in flat)
+
+
+def test_new_training_fields_are_checked():
+    with pytest.raises(ValueError, match="epochs"):
+        config.TrainConfig(epochs=0)
+    with pytest.raises(ValueError, match="sampler"):
+        config.TrainConfig(sampler="nope")
+    with pytest.raises(ValueError, match="lr_schedule"):
+        config.TrainConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match="rotation_input"):
+        config.ModelConfig(rotation_input="world")
+    with pytest.raises(ValueError, match="xyz_scale"):
+        config.ModelConfig(xyz_scale=0.0)
+    assert config.DataConfig(classes=["011_banana"]).classes == ("011_banana",)
+
+
+def test_cli_set_parses_toml_values():
+    from cloudpose.cli import parse_sets
+
+    got = parse_sets(["train.epochs=3", "model.rotation_input=centred", "loss.symmetric=true",
+                      "data.classes=['011_banana', '025_mug']", "model.xyz_scale=0.1"])  # fmt: skip
+    assert got == {
+        "train": {"epochs": 3},
+        "model": {"rotation_input": "centred", "xyz_scale": 0.1},
+        "loss": {"symmetric": True},
+        "data": {"classes": ["011_banana", "025_mug"]},
+    }
+    cfg = resolve("shared-0", "smoke", 1, got)
+    assert cfg.data.classes == ("011_banana", "025_mug") and cfg.train.epochs == 3
+    with pytest.raises(ValueError, match=r"section\.field=value"):
+        parse_sets(["epochs=3"])

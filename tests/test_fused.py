@@ -195,11 +195,17 @@ def test_fuse_and_unfuse_model_swap_in_place() -> None:
 
 
 def _loss_curve(
-    variant: str, fused: bool, steps: int, B: int = 8, n: int = 64, n_batches: int = 4
+    variant: str,
+    fused: bool,
+    steps: int,
+    B: int = 8,
+    n: int = 64,
+    n_batches: int = 4,
+    preset: str = "paper-literal",
 ) -> torch.Tensor:
     """Float64 training losses of a fresh PoseNet on ``n_batches`` synthetic batches, cycled."""
     torch.manual_seed(0)
-    model = build_model(resolve(variant, "paper").model).double()
+    model = build_model(resolve(variant, preset).model).double()
     if fused:
         fuse_model(model)
     opt = torch.optim.Adam(model.parameters(), lr=8e-4)

@@ -12,9 +12,9 @@ from cloudpose.models.fused import fuse_model
 from cloudpose.models.inference import FoldedPoseNet, fold_bn, fold_for_inference
 
 
-def trained_like(variant: str, dtype: torch.dtype = torch.float32) -> nn.Module:
+def trained_like(variant: str, dtype: torch.dtype = torch.float32, overrides=None) -> nn.Module:
     """A small network whose BatchNorm layers have non-trivial statistics and affine terms."""
-    cfg = resolve(variant, "smoke")
+    cfg = resolve(variant, "smoke", overrides=overrides)
     torch.manual_seed(0)
     model = build_model(cfg.model).to(dtype).train()
     g = torch.Generator().manual_seed(1)
@@ -47,6 +47,36 @@ def test_folded_equals_eval_mode(variant, dtype, tol):
     assert out.R.dtype == dtype and out.R.shape == ref.R.shape
     for name, a, b in zip(ref._fields, out, ref, strict=True):
         torch.testing.assert_close(a, b, rtol=tol, atol=tol, msg=name)
+
+
+@pytest.mark.parametrize("variant", ["shared-0", "shared-2", "shared-all"])
+@pytest.mark.parametrize("rotation_input", ["raw", "centred"])
+def test_folded_equals_eval_mode_with_input_settings(variant, rotation_input):
+    model = trained_like(
+        variant, torch.float64, {"model": {"xyz_scale": 0.03, "rotation_input": rotation_input}}
+    )
+    pts, cls = batch(torch.float64)
+    with torch.no_grad():
+        ref = model(pts, cls)
+    out = fold_for_inference(model)(pts, cls)
+    for name, a, b in zip(ref._fields, out, ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12, msg=name)
+
+
+def test_rotation_input_changes_only_what_the_rotation_branch_sees():
+    raw = trained_like("shared-0", torch.float64, {"model": {"rotation_input": "raw"}})
+    cen = trained_like("shared-0", torch.float64, {"model": {"rotation_input": "centred"}})
+    cen.load_state_dict(raw.state_dict())
+    pts, cls = batch(torch.float64)
+    with torch.no_grad():
+        a, b = raw(pts, cls), cen(pts, cls)
+        # centred input: the rotation does not move with the segment, the translation does
+        shift = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+        b2 = cen(pts + shift, cls)
+    torch.testing.assert_close(a.t, b.t)
+    assert not torch.allclose(a.rot_raw, b.rot_raw)
+    torch.testing.assert_close(b2.rot_raw, b.rot_raw)
+    torch.testing.assert_close(b2.t, b.t + shift)
 
 
 def test_fused_model_folds_the_same_and_paired_branches_are_used():

@@ -443,3 +443,12 @@ def test_report_runs_logged_and_replaced(rendered):
         again = render_reports(PRESET, ["shared"], project_dir=root, command=COMMAND)
     live = client.search_runs([exp.experiment_id], "tags.kind = 'report'")
     assert [r.info.run_id for r in live] == [again.mlflow_runs["shared"]]
+
+
+def test_outlier_classes_flags_a_class_far_below_the_rest():
+    from cloudpose.report.tables import outlier_classes
+
+    values = {f"c{i}": 80.0 + i % 3 for i in range(20)} | {"002_master_chef_can": 55.8}
+    assert outlier_classes(values) == {"002_master_chef_can": 55.8}
+    assert outlier_classes({k: v for k, v in values.items() if k != "002_master_chef_can"}) == {}
+    assert outlier_classes({"a": 1.0, "b": float("nan")}) == {}

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from cloudpose.config import resolve
 from cloudpose.train import TrainingInterrupted, split_frames, train
@@ -121,3 +122,111 @@ def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
     assert resumed.metrics == ref.metrics
     info = json.loads((last.parent / "run.json").read_text())
     assert info["finished"] and info["run_id"] == resumed.run_id
+
+
+def _tiny_batches(n_batches: int, seed: int = 0):
+    """Random (points, cls_id) batches in metres: segments of 3 classes around z = 0.9 m."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(n_batches):
+        cls_id = torch.randint(1, 4, (64,), generator=g)
+        pts = torch.randn(64, 32, 3, generator=g) * 0.04 + torch.tensor([0.0, 0.0, 0.9])
+        out.append((pts, cls_id))
+    return out
+
+
+@pytest.mark.parametrize("kernel", ["plain", "fused"])
+def test_recalibrated_bn_makes_eval_mode_match_train_mode(kernel):
+    from cloudpose.config import ModelConfig
+    from cloudpose.models import build_model
+    from cloudpose.models.fused import fuse_model
+    from cloudpose.train import Batchable, recalibrate_bn
+
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(bn_momentum=0.01, point_mlp=(16, 32, 64), head=(32,)))
+    if kernel == "fused":
+        fuse_model(model)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    batches = _tiny_batches(20)
+    for pts, cls_id in batches:  # a short run: momentum 0.01 leaves the running stats at init
+        loss = model(pts, cls_id).t_residual.square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    pts, cls_id = batches[0]
+    with torch.no_grad():
+        model.train()
+        # train mode updates the running stats: evaluate on a copy
+        import copy
+
+        train_out = copy.deepcopy(model)(pts, cls_id).t
+        model.eval()
+        stale = model(pts, cls_id).t
+    gap_before = float((stale - train_out).norm(dim=1).mean())
+    data = Batchable(
+        points=torch.cat([p for p, _ in batches]),
+        cls_id=torch.cat([c for _, c in batches]),
+        R=torch.eye(3).expand(1280, 3, 3).clone(),
+        t=torch.zeros(1280, 3),
+    )
+    bn0 = model.translation_net.stages[0].bn
+    with torch.no_grad():
+        lin0 = model.translation_net.stages[0].linear
+        x0 = torch.cat([data.points - data.points.mean(1, keepdim=True),
+                        torch.nn.functional.one_hot(data.cls_id - 1, 21)[:, None].expand(-1, 32, -1)],
+                       dim=-1)  # fmt: skip
+        true_var = lin0(x0.reshape(-1, 24)).var(0)
+    assert (bn0.running_var / true_var).median() > 3  # still near its initial 1
+    recalibrate_bn(model, data, batches=40, batch_size=64, seed=1, device=torch.device("cpu"))
+    ratio = bn0.running_var / true_var
+    assert torch.allclose(ratio, torch.ones_like(ratio), atol=0.1), ratio
+    assert not model.training
+    with torch.no_grad():
+        fresh = model(pts, cls_id).t
+    gap_after = float((fresh - train_out).norm(dim=1).mean())
+    assert gap_after < 0.5 * gap_before, (gap_before, gap_after)
+    # the momenta are restored for further training
+    assert all(
+        bn.momentum == 0.01 for bn in model.modules() if isinstance(bn, torch.nn.BatchNorm1d)
+    )
+
+
+def test_class_balanced_sampler_draws_classes_uniformly():
+    from cloudpose.train import Batchable, epoch_order
+
+    cls_id = torch.tensor([1] * 900 + [2] * 90 + [3] * 10)
+    fit = Batchable(
+        torch.zeros(1000, 4, 3), cls_id, torch.eye(3).expand(1000, 3, 3), torch.zeros(1000, 3)
+    )
+    idx = epoch_order(fit, "class_balanced", seed=1, epoch=0, n=3000)
+    counts = torch.bincount(cls_id[idx])[1:].float() / 3000
+    assert torch.allclose(counts, torch.full((3,), 1 / 3), atol=0.04)
+    assert torch.equal(idx, epoch_order(fit, "class_balanced", seed=1, epoch=0, n=3000))
+    assert not torch.equal(idx, epoch_order(fit, "class_balanced", seed=1, epoch=1, n=3000))
+    perm = epoch_order(fit, "shuffle", seed=1, epoch=0, n=1000)
+    assert sorted(perm.tolist()) == list(range(1000))
+
+
+def test_cosine_schedule_ends_at_zero():
+    from cloudpose.train import lr_at
+
+    cfg = resolve("shared-0", "smoke", overrides={"train": {"lr_schedule": "cosine", "lr": 1e-3}})
+    assert lr_at(cfg, 0, 100) == pytest.approx(1e-3)
+    assert lr_at(cfg, 50, 100) == pytest.approx(5e-4)
+    assert lr_at(cfg, 100, 100) == pytest.approx(0.0, abs=1e-12)
+    assert lr_at(resolve("shared-0", "smoke"), 70, 100) == resolve("shared-0", "smoke").train.lr
+
+
+def test_roll_keeps_segments_on_their_posed_models():
+    from cloudpose.train import roll_about_optical_axis
+
+    g = torch.Generator().manual_seed(0)
+    model = torch.randn(50, 3, dtype=torch.float64) * 0.05
+    R = torch.linalg.qr(torch.randn(4, 3, 3, dtype=torch.float64))[0]
+    R = R * torch.det(R)[:, None, None]
+    t = torch.tensor([[0.1, -0.05, 0.9]], dtype=torch.float64).expand(4, 3)
+    pts = model @ R.mT + t[:, None]  # (4, 50, 3) the model at its pose
+    p2, R2, t2 = roll_about_optical_axis(pts, R, t, 180.0, g)
+    torch.testing.assert_close(p2, model @ R2.mT + t2[:, None])
+    torch.testing.assert_close(p2[..., 2], pts[..., 2])  # depth unchanged: a roll about z
+    assert not torch.allclose(p2, pts)

@@ -411,8 +411,26 @@ def ensure_dataset(
     sets = []
     for split in ("train", "test"):
         path = prepare(root, split, cfg, cache_dir, workers=workers, progress=progress)
-        sets.append(SegmentSet.load(path))
+        sets.append(only_classes(SegmentSet.load(path), root, cfg.classes))
     return sets[0], sets[1]
+
+
+def only_classes(segs: SegmentSet, root: str | Path, classes: tuple[str, ...]) -> SegmentSet:
+    """The segments of the named classes (``DataConfig.classes``); all of them when empty.
+
+    Raises:
+        ValueError: a name that is not in the dataset's ``classes.txt``.
+    """
+    if not classes:
+        return segs
+    from cloudpose.data.ycb import load_classes
+
+    names = load_classes(Path(root) / "classes.txt")
+    unknown = [c for c in classes if c not in names]
+    if unknown:
+        raise ValueError(f"data.classes: unknown classes {unknown}; {root}/classes.txt has {names}")
+    ids = [names.index(c) + 1 for c in classes]
+    return segs.subset(np.isin(segs.cls_id, ids))
 
 
 def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> str:

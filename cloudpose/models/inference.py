@@ -148,12 +148,15 @@ class _FoldedBaseNet(nn.Module):
         return self.head(self.stages(x))
 
 
-def _first_layer_split(stages: _FoldedStages, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The first layer's xyz weights (3, C) and its one-hot columns as (k, C) class biases."""
+def _first_layer_split(
+    stages: _FoldedStages, k: int, xyz_scale: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first layer's xyz weights (3, C) for xyz in metres (``ModelConfig.xyz_scale``
+    folded in) and its one-hot columns as (k, C) class biases."""
     if stages.n == 0 or (stages.n == 1 and stages.pooled):
         raise ValueError("fold_for_inference: the first per-point layer must not be the max pool")
     w = stages.weight(0)  # (3 + k, C)
-    return w[:3].contiguous(), w[3 : 3 + k].contiguous()
+    return (w[:3] / xyz_scale).contiguous(), w[3 : 3 + k].contiguous()
 
 
 class FoldedPoseNet(nn.Module):
@@ -171,7 +174,7 @@ class FoldedPoseNet(nn.Module):
         if self.mode == "all":
             assert model.net is not None
             self.net = _FoldedBaseNet(model.net)
-            w3, wk = _first_layer_split(self.net.stages, self.k)
+            w3, wk = _first_layer_split(self.net.stages, self.k, self.cfg.xyz_scale)
             self.register_buffer("w_xyz", w3)
             self.register_buffer("w_cls", wk)
             return
@@ -180,7 +183,7 @@ class FoldedPoseNet(nn.Module):
         self.trans = _FoldedBaseNet(model.translation_net)
         if self.mode == "trunk":
             self.trunk = _FoldedStages(list(model.trunk))
-            w3, wk = _first_layer_split(self.trunk, self.k)
+            w3, wk = _first_layer_split(self.trunk, self.k, self.cfg.xyz_scale)
             self.register_buffer("w_xyz", w3)
             self.register_buffer("w_cls", wk)
             return
@@ -198,7 +201,7 @@ class FoldedPoseNet(nn.Module):
         )
         self.paired = bool(same and rs.pooled and ts.pooled)
         for name, st in (("rot", rs), ("trans", ts)):
-            w3, wk = _first_layer_split(st, self.k)
+            w3, wk = _first_layer_split(st, self.k, self.cfg.xyz_scale)
             self.register_buffer(f"{name}_w_xyz", w3)
             self.register_buffer(f"{name}_w_cls", wk)
         if self.paired:
@@ -264,14 +267,19 @@ class FoldedPoseNet(nn.Module):
             h = self.trunk(h, first=1)
             rot_raw, t_res = self.rot(h), self.trans(h)
         elif self.paired:
-            rot_raw, t_res = self._paired(points, centred, cls0)
+            rot_raw, t_res = self._paired(self._rot_xyz(points, centred), centred, cls0)
         else:
-            hr = self._first(self.rot.stages, self.rot_w_xyz, self.rot_w_cls, points, cls0)
+            rot_xyz = self._rot_xyz(points, centred)
+            hr = self._first(self.rot.stages, self.rot_w_xyz, self.rot_w_cls, rot_xyz, cls0)
             ht = self._first(self.trans.stages, self.trans_w_xyz, self.trans_w_cls, centred, cls0)
             rot_raw = self.rot.head(self.rot.stages(hr, first=1))
             t_res = self.trans.head(self.trans.stages(ht, first=1))
         R = raw_rotation_to_rotmat(rot_raw, self.cfg.rotation)
         return PoseOutput(R, t_res + mu, rot_raw, t_res, mu)
+
+    def _rot_xyz(self, points: torch.Tensor, centred: torch.Tensor) -> torch.Tensor:
+        """The rotation branch's xyz input of shared-0 (``ModelConfig.rotation_input``)."""
+        return centred if self.cfg.rotation_input == "centred" else points
 
     def _dtype(self) -> torch.dtype:
         return next(iter(self.buffers())).dtype

@@ -60,7 +60,8 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
 
     Args:
         client: an MLflow client bound to the store.
-        runs: run names ``variant/preset/seedS``, MLflow run ids or run folders.
+        runs: run names ``variant/preset/seedS``, MLflow run ids or run folders, each
+            optionally ``LABEL=RUN`` to name its line (default: the run name).
         metrics: metric keys (``train/loss_rot``, ...).
 
     Raises:
@@ -69,7 +70,10 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
     from cloudpose.evaluate import resolve_run_id
 
     out = []
-    for run in runs:
+    for spec in runs:
+        label, sep, run = spec.rpartition("=")
+        if not sep:
+            label, run = "", spec
         run_id = resolve_run_id(client, run)
         r = client.get_run(run_id)
         series = {key: metric_history(client, run_id, key) for key in metrics}
@@ -78,7 +82,7 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
             steps = int(params["data.train_segments"]) // int(params["train.batch_size"])
         except (KeyError, ValueError):
             steps = None
-        out.append(RunCurves(r.info.run_name or run_id, run_id, series, tags.get("data", "?"),
+        out.append(RunCurves(label or r.info.run_name or run_id, run_id, series, tags.get("data", "?"),
                              tags.get("config", "?"), tags.get("git_commit", "?"), steps))  # fmt: skip
     for key in metrics:
         if not any(len(c.series[key]) for c in out):

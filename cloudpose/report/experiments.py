@@ -1,0 +1,160 @@
+"""An experiment log from MLflow: one row per run, what it changed and what it reached.
+
+``cloudpose experiments --group diagnostics --out reports/diagnostics/rotation_experiments.md``
+lists every finished run of a group's experiment in start order: the settings in which its
+config differs from its preset's own config (``--set`` overrides), the Adam steps, the last
+epoch's rotation error on a fixed sample of training segments in train mode (batch statistics)
+and in eval mode (running statistics), the validation and test rotation errors (plain geodesic,
+as the paper reports them, and modulo symmetry), the test ADS AUC, and the minutes it took.
+The runs are the evidence; this file is their index, rewritten from the store each time.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from cloudpose import tracking
+from cloudpose.config import Config, resolve
+
+COLUMNS = {
+    "steps": "Adam steps",
+    "fit/rot_err_median_deg_batchstats": "train segs, train mode (°)",
+    "fit/rot_err_median_deg": "train segs, eval mode (°)",
+    "fit/rot_sym_err_median_deg": "train segs, eval, mod sym (°)",
+    "val/rot_err_median_deg": "val median (°)",
+    "test/rot_err_median_deg": "test median (°)",
+    "test/rot_lt_10deg": "test < 10° (%)",
+    "test/rot_lt_20deg": "test < 20° (%)",
+    "test/rot_sym_err_median_deg": "test median mod sym (°)",
+    "test/rot_sym_lt_10deg": "test < 10° mod sym (%)",
+    "test/rot_sym_lt_20deg": "test < 20° mod sym (%)",
+    "test/ads_auc": "test ADS AUC",
+    "minutes": "minutes",
+}
+"""Log columns: MLflow metric key (or derived field) -> header."""
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One run of the log."""
+
+    name: str
+    command: str
+    changes: str
+    values: dict[str, float]
+
+
+def config_changes(cfg: Config, against: str | None = None) -> dict[str, object]:
+    """``section.field -> value`` where ``cfg`` differs from its variant under ``against``
+    (a preset name; default its own preset as registered now)."""
+    base = resolve(cfg.variant, against or cfg.preset, cfg.seed).flat()
+    base["preset"] = cfg.preset
+    return {k: v for k, v in cfg.flat().items() if base.get(k) != v}
+
+
+def _command(cfg: Config, changes: dict[str, object], group: str) -> str:
+    own = config_changes(cfg)  # what --set must say under the run's own preset
+    sets = " ".join(f"--set {k}={json.dumps(v) if not isinstance(v, str) else v}"
+                    for k, v in own.items() if k != "preset")  # fmt: skip
+    return (f"cloudpose run --variant {cfg.variant} --preset {cfg.preset} --seed {cfg.seed} "
+            f"--group {group} {sets}").strip()  # fmt: skip
+
+
+def collect(group: str, project_dir: Path | None = None,
+            against: str | None = None) -> list[Experiment]:  # fmt: skip
+    """The finished runs of ``group``'s experiment, oldest first (changes: see
+    :func:`config_changes`)."""
+    client = tracking.setup(project_dir)
+    exp = client.get_experiment_by_name(tracking.EXPERIMENT_PREFIX + group)
+    if exp is None:
+        raise ValueError(f"no MLflow experiment for group {group!r} in {tracking.tracking_uri()}")
+    runs = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'",
+                              order_by=["attributes.start_time ASC"], max_results=1000)  # fmt: skip
+    out = []
+    for run in runs:
+        p = run.data.params
+        try:
+            cfg = Config.from_dict(json.loads(Path(_config_path(client, run)).read_text()))
+        except (OSError, ValueError):
+            continue
+        changes = config_changes(cfg, against)
+        m = dict(run.data.metrics)
+        history = client.get_metric_history(run.info.run_id, "train/loss")
+        n_fit = int(p.get("data.train_segments", 0))
+        m["steps"] = len(history) * (n_fit // cfg.train.batch_size)
+        if run.info.end_time and run.info.start_time:
+            m["minutes"] = (run.info.end_time - run.info.start_time) / 60_000
+        for k in list(m):
+            if k.split("/")[-1].startswith(("rot_lt", "rot_sym_lt")) or k.endswith("ads_auc"):
+                m[k] = 100 * m[k]
+        text = ", ".join(f"{k}={v}" for k, v in changes.items()) or "(none)"
+        out.append(Experiment(run.info.run_name, _command(cfg, changes, group), text, m))
+    return out
+
+
+def _config_path(client, run) -> str:
+    from cloudpose.report.runs import _local_artifact
+
+    local = _local_artifact(run.info.artifact_uri, "config.json")
+    if local is not None:
+        return str(local)
+    import mlflow
+
+    return mlflow.artifacts.download_artifacts(run_id=run.info.run_id, artifact_path="config.json",
+                                               tracking_uri=client.tracking_uri)  # fmt: skip
+
+
+def experiment_table(experiments: list[Experiment]) -> pd.DataFrame:
+    """One row per run: name, changes and the :data:`COLUMNS` (NaN where not logged)."""
+    rows = []
+    for i, e in enumerate(experiments, start=1):
+        row = {"#": i, "run": e.name, "changes": e.changes}
+        row.update({h: e.values.get(k, float("nan")) for k, h in COLUMNS.items()})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _markdown(df: pd.DataFrame) -> str:
+    def cell(v) -> str:
+        if isinstance(v, float):
+            return "–" if v != v else f"{v:.1f}"
+        return str(v).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join(lines)
+
+
+def write_log(group: str, out: Path, command: str, project_dir: Path | None = None,
+              against: str | None = None) -> Path:  # fmt: skip
+    """Write the log of ``group`` as Markdown to ``out`` (and the values as CSV beside it)."""
+    experiments = collect(group, project_dir, against)
+    if not experiments:
+        raise ValueError(f"group {group!r} has no finished run to list")
+    df = experiment_table(experiments)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    df.to_csv(out.with_suffix(".csv"), index=False, float_format="%.2f")
+    lines = [
+        f"# Experiment log: {group}",
+        "",
+        f"Made by `{command}` from the MLflow runs of the experiment "
+        f"`{tracking.EXPERIMENT_PREFIX + group}`; every row is a run anyone can repeat with the "
+        "command listed under the table. 'changes': the settings in which the run differs from "
+        f"{'the preset ' + repr(against) if against else 'its own preset'} as registered now. 'train segs': a fixed sample of 512 training segments, "
+        "the last epoch, in train mode (batch statistics) and in eval mode (running statistics). "
+        "Rotation errors are the plain geodesic angle (as the paper reports them) and the angle "
+        "modulo each class's symmetries (`cloudpose symmetries`). Minutes: wall clock of "
+        "training + evaluation on the machine that ran it.",
+        "",
+        _markdown(df),
+        "",
+        "Commands:",
+        "",
+    ]
+    lines += [f"{i}. `{e.command}`" for i, e in enumerate(experiments, start=1)]
+    out.write_text("\n".join(lines) + "\n")
+    return out

@@ -1,0 +1,29 @@
+"""The experiment log lists a group's runs with their overrides and rotation errors."""
+
+from __future__ import annotations
+
+from cloudpose.config import resolve
+from cloudpose.report.experiments import collect, config_changes, experiment_table, write_log
+
+
+def test_config_changes_lists_overrides_only():
+    cfg = resolve("shared-0", "cpu", 1, {"model": {"xyz_scale": 0.1}, "train": {"epochs": 3}})
+    assert config_changes(cfg) == {"model.xyz_scale": 0.1, "train.epochs": 3}
+    assert config_changes(resolve("l2", "cpu")) == {}
+    literal = config_changes(resolve("shared-0", "cpu"), against="cpu-paper")
+    assert literal["model.xyz_scale"] == 0.03 and literal["loss.symmetric"] is True
+
+
+def test_log_of_a_trained_smoke_run(smoke_run, tmp_path, monkeypatch):
+    proj, _ = smoke_run
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    (exp,) = collect("shared", proj)
+    assert exp.name == "shared-0/smoke/seed1" and exp.changes == "(none)"
+    assert exp.command == "cloudpose run --variant shared-0 --preset smoke --seed 1 --group shared"
+    assert exp.values["steps"] > 0 and "fit/rot_err_median_deg_batchstats" in exp.values
+    df = experiment_table([exp])
+    assert df.loc[0, "Adam steps"] == exp.values["steps"]
+    path = write_log("shared", tmp_path / "log.md", "cloudpose experiments ...", proj)
+    text = path.read_text()
+    assert "| 1 | shared-0/smoke/seed1 | (none) |" in text
+    assert (tmp_path / "log.csv").exists()
