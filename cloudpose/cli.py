@@ -21,7 +21,7 @@ VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants
 PresetOpt = Annotated[
     str,
     typer.Option(
-        help="Preset (ablations/presets.toml): smoke, cpu, cpu-long, cpu-4k, memorize, paper."
+        help="Preset (`cloudpose presets` lists them; ablations/presets.toml)."
     ),
 ]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
@@ -98,6 +98,15 @@ def variants() -> None:
     for r in rows:
         groups = ",".join(r["groups"])
         typer.echo(f"{r['name']:<18} {groups:<22} {r['parameters']:>11,}  {r['changes']}")
+
+
+@app.command()
+def presets() -> None:
+    """Print the presets (ablations/presets.toml) with what each is for."""
+    from cloudpose.config import presets as registered
+
+    for name, why in registered().items():
+        typer.echo(f"{name:<14} {why}")
 
 
 @app.command()
@@ -449,5 +458,16 @@ def occlusion_report(
             typer.echo(str(p))
 
 
+def main() -> None:
+    """The console script: ``app`` with a broken MLflow store said in one line (exit 2)."""
+    from cloudpose.tracking import StoreError
+
+    try:
+        app()
+    except StoreError as exc:
+        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise SystemExit(2) from None
+
+
 if __name__ == "__main__":
-    app()
+    main()

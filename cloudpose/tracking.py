@@ -48,7 +48,39 @@ def setup(project_dir: Path | None = None):
     for name in ("alembic", "mlflow.store.db.utils"):
         logging.getLogger(name).setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", module="mlflow")
-    return mlflow.MlflowClient(tracking_uri=tracking_uri(project_dir))
+    uri = tracking_uri(project_dir)
+    db = _sqlite_path(uri)
+    if db is None:
+        return mlflow.MlflowClient(tracking_uri=uri)
+    # The first client of a new SQLite store creates its tables and runs every schema
+    # migration; two processes doing that at once leave a store that no command can open again
+    # (alembic's `_alembic_tmp_* already exists`). One process at a time, then every later one
+    # finds the schema current and only reads it.
+    from filelock import FileLock
+
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(str(db) + ".lock"):
+        try:
+            client = mlflow.MlflowClient(tracking_uri=uri)
+            client.search_experiments(max_results=1)
+        except Exception as e:  # noqa: BLE001 - any failure to open the store says the same
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise StoreError(
+                f"the MLflow store {db} cannot be opened ({type(e).__name__}: {first}); "
+                f"if it is broken, move it aside (mv {db} {db}.broken) and rerun, or set "
+                "MLFLOW_TRACKING_URI to another store"
+            ) from e
+    return client
+
+
+class StoreError(RuntimeError):
+    """The MLflow store exists but cannot be opened (the message says how to recover)."""
+
+
+def _sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` tracking URI, else None."""
+    prefix = "sqlite:///"
+    return Path(uri[len(prefix) :]) if uri.startswith(prefix) else None
 
 
 def experiment_id(client, group: str, project_dir: Path | None = None) -> str:

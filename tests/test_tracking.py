@@ -1,0 +1,59 @@
+"""The MLflow store: safe first use under concurrency, a broken store said in one line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from cloudpose import tracking
+
+
+def test_concurrent_first_use_of_a_new_store(tmp_path, monkeypatch):
+    """Four processes open one fresh SQLite store at once; every one of them and a later one
+    can use it (without the lock, two concurrent migrations break the store for good)."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    script = textwrap.dedent(
+        """
+        import sys
+        from pathlib import Path
+        from cloudpose import tracking
+        client = tracking.setup(Path(sys.argv[1]))
+        tracking.experiment_id(client, "g" + sys.argv[2], Path(sys.argv[1]))
+        """
+    )
+    procs = [
+        subprocess.Popen([sys.executable, "-c", script, str(tmp_path), str(i)],
+                         stderr=subprocess.PIPE, text=True)
+        for i in range(4)
+    ]  # fmt: skip
+    errors = [p.communicate(timeout=300)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0, 0], errors
+    client = tracking.setup(tmp_path)
+    names = {e.name for e in client.search_experiments()}
+    assert {f"{tracking.EXPERIMENT_PREFIX}g{i}" for i in range(4)} <= names
+
+
+def test_broken_store_is_one_line_with_the_fix(tmp_path, monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    (tmp_path / "mlflow.db").write_bytes(b"this is not a database" * 100)
+    with pytest.raises(tracking.StoreError, match=r"cannot be opened.*mv .*mlflow\.db") as info:
+        tracking.setup(tmp_path)
+    assert "\n" not in str(info.value)
+
+
+def test_cli_says_a_broken_store_in_one_line(tmp_path):
+    (tmp_path / "mlflow.db").write_bytes(b"this is not a database" * 100)
+    env = {k: v for k, v in __import__("os").environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env["CLOUDPOSE_NO_TCMALLOC"] = "1"
+    out = subprocess.run(
+        [sys.executable, "-m", "cloudpose.cli", "experiments", "--group", "shared", "--out", "log.md"],
+        cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 2, out.stderr
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "mlflow.db" in lines[0] and "mv " in lines[0], out.stderr
+    assert not any(Path(tmp_path).glob("mlruns"))
