@@ -52,7 +52,7 @@ variants: ## print the variant registry with parameter counts
 MLFLOW_URI ?= $(or $(MLFLOW_TRACKING_URI),sqlite:///$(CURDIR)/mlflow.db)
 MLFLOW_PORT ?= 5000
 GROUP ?=
-.PHONY: ablation-shared ablation-rotation ablation-loss ablations occlusion-report tables mlflow-ui
+.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations occlusion-report tables mlflow-ui
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
 	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS)
@@ -63,7 +63,10 @@ ablation-rotation: ## rotation-representation group (axis-angle, quaternion, 6D)
 ablation-loss: ## rotation-loss group (geodesic, L2) x SEEDS on PRESET, then its reports
 	$(CLI) ablate --group loss --preset $(PRESET) --seeds $(SEEDS)
 
-ablations: ablation-shared ablation-rotation ablation-loss ## all three ablation groups
+ablation-symmetry: ## rotation loss modulo symmetry vs the plain geodesic x SEEDS on PRESET, then its reports
+	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS)
+
+ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups
 
 occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing runs; GROUP=... adds a group's variants)
 	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))

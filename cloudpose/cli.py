@@ -20,9 +20,7 @@ app = typer.Typer(
 VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
 PresetOpt = Annotated[
     str,
-    typer.Option(
-        help="Preset (`cloudpose presets` lists them; ablations/presets.toml)."
-    ),
+    typer.Option(help="Preset (`cloudpose presets` lists them; ablations/presets.toml)."),
 ]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[

@@ -63,7 +63,7 @@ def setup(project_dir: Path | None = None):
         try:
             client = mlflow.MlflowClient(tracking_uri=uri)
             client.search_experiments(max_results=1)
-        except Exception as e:  # noqa: BLE001 - any failure to open the store says the same
+        except Exception as e:
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise StoreError(
                 f"the MLflow store {db} cannot be opened ({type(e).__name__}: {first}); "

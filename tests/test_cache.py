@@ -102,7 +102,13 @@ def test_prepare_and_keys(project, tmp_path):
     depth = root / "data" / "0000" / "000002-depth.png"
     st = depth.stat()
     os.utime(depth, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
-    key2 = cache.cache_key(root, "train", CFG)
+    assert cache.cache_key(root, "train", CFG, memo_dir=cdir) == key  # same bytes, same key
+    copy = tmp_path / "copy" / root.name
+    shutil.copytree(root, copy)  # a copy (new mtimes) is the same data
+    assert cache.cache_key(copy, "train", CFG) == key
+    label = root / "data" / "0000" / "000002-label.png"
+    label.write_bytes(label.read_bytes() + b"\0")  # new content
+    key2 = cache.cache_key(root, "train", CFG, memo_dir=cdir)
     assert key2 != key
     p2 = cache.prepare(root, "train", CFG, cdir, workers=1, progress=False)
     assert p2 != p and key2 in p2.name

@@ -318,7 +318,8 @@ def test_table4_rotation_and_loss(rendered):
     vals = [logged["metrics"][("l2", s)]["test/rot_lt_15deg"] for s in SEEDS]
     assert row["rot_lt_15deg_mean"] == pytest.approx(100 * np.mean(vals), abs=1e-3)
     assert row["paper_rot_lt_15deg"] == pytest.approx(52.5)
-    assert set(df["variant"]) == {"shared-0", "quaternion", "rot6d", "l2"}
+    assert set(df["variant"]) == {"shared-0", "quaternion", "rot6d", "l2", "geodesic-plain"}
+    assert set(df["ablation"]) == {"representation", "loss", "symmetry"}
 
 
 def test_runs_on_other_data_or_unfinished_are_left_out(rendered):

@@ -3,7 +3,7 @@
 :func:`prepare` runs :func:`cloudpose.data.segments.extract_segments` over a split's frames (all
 cores) and writes one uncompressed ``.npz`` of columnar arrays (:class:`SegmentSet`) that loads
 into memory in seconds. The file name holds a key that hashes everything the segments depend on:
-the frame list, each frame file's size and modification time, the model files, and the segment
+the frame list, the content of each frame file and model file, and the segment
 settings (n_fps, outlier_radius, segmentation, FPS seed, pipeline version). A changed frame or
 setting gives a new key, so a stale cache is never read.
 
@@ -175,32 +175,76 @@ def _settings(cfg: DataConfig) -> dict:
     }
 
 
-def cache_key(root: str | Path, split: str, cfg: DataConfig) -> str:
-    """Key of a split's segments: hash of frame ids, frame file sizes and mtimes, model files
-    and segment settings (20 hex digits)."""
+def cache_key(
+    root: str | Path, split: str, cfg: DataConfig, memo_dir: str | Path | None = None
+) -> str:
+    """Key of a split's segments: hash of frame ids, the *content* of each frame's files and of
+    the model files, and the segment settings (20 hex digits).
+
+    Byte-identical data gives the same key wherever it lies and whenever it was written (a
+    ``cp -r`` copy, a re-render in another clone). Content digests are remembered by path,
+    size and modification time in ``memo_dir/digests.json`` (when given), so a large dataset
+    is read once, not on every command.
+    """
     from cloudpose.data.ycb import YCBVideo
 
     root = Path(root)
     ds = YCBVideo(root)
     frames = _split_frames(root, split)
-    h = hashlib.sha256()
-    h.update(json.dumps(_settings(cfg), sort_keys=True).encode())
+    files: list[Path] = []
     for fid in frames:
-        h.update(fid.encode())
         paths = ds.frame_paths(fid)
         for kind in ("depth", "label", "meta"):
-            try:
-                st = os.stat(paths[kind])
-            except FileNotFoundError:
+            if not Path(paths[kind]).is_file():
                 raise FileNotFoundError(
                     f"{paths[kind]}: {kind} file of frame {fid} (split {split!r}) not found"
-                ) from None
-            h.update(f"{st.st_size}:{st.st_mtime_ns};".encode())
-    for name in ds.classes:  # the models feed the rendered alone-pixel counts
-        p = ds.models_root / name / "points.xyz"
-        st = os.stat(p) if p.is_file() else None
-        h.update(f"{name}:{st.st_size if st else -1}".encode())
+                )
+            files.append(Path(paths[kind]))
+    models = [ds.models_root / name / "points.xyz" for name in ds.classes]
+    digests = content_digests(files + [p for p in models if p.is_file()], memo_dir)
+    h = hashlib.sha256()
+    h.update(json.dumps(_settings(cfg), sort_keys=True).encode())
+    h.update(json.dumps(frames).encode())
+    h.update("".join(digests[: len(files)]).encode())
+    # the models feed the rendered alone-pixel counts
+    model_digest = iter(digests[len(files) :])
+    for name, p in zip(ds.classes, models, strict=True):
+        h.update(f"{name}:{next(model_digest) if p.is_file() else '-'};".encode())
     return h.hexdigest()[:20]
+
+
+def content_digests(paths: list[Path], memo_dir: str | Path | None = None) -> list[str]:
+    """BLAKE2b digests (32 hex digits) of the files' bytes, in order.
+
+    Args:
+        paths: files to hash.
+        memo_dir: folder of the memo ``digests.json`` (absolute path -> size, mtime_ns,
+            digest); a file whose size and mtime match its entry is not read again. None =
+            no memo.
+    """
+    memo_path = Path(memo_dir) / "digests.json" if memo_dir else None
+    memo: dict[str, list] = {}
+    if memo_path is not None and memo_path.is_file():
+        try:
+            memo = json.loads(memo_path.read_text())
+        except ValueError:  # a torn or foreign file: start over, it is only a memo
+            memo = {}
+    out, changed = [], False
+    for p in paths:
+        st = os.stat(p)
+        key, stamp = str(Path(p).resolve()), [st.st_size, st.st_mtime_ns]
+        entry = memo.get(key)
+        if entry is None or entry[:2] != stamp:
+            with open(p, "rb") as f:
+                entry = memo[key] = [*stamp, hashlib.file_digest(f, "blake2b").hexdigest()[:32]]
+            changed = True
+        out.append(entry[2])
+    if changed and memo_path is not None:
+        memo_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = memo_path.with_name(f"{memo_path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(memo))
+        os.replace(tmp, memo_path)
+    return out
 
 
 # --------------------------------------------------------------------------- prepare
@@ -267,7 +311,8 @@ def _run(jobs: list, root: str, workers: int):
 def cache_path(root: str | Path, split: str, cfg: DataConfig, cache_dir: str | Path) -> Path:
     """Where the segments of ``split`` live: ``cache_dir/ROOTNAME-SPLIT-KEY.npz``."""
     root = Path(root)
-    return Path(cache_dir) / f"{root.resolve().name}-{split}-{cache_key(root, split, cfg)}.npz"
+    key = cache_key(root, split, cfg, memo_dir=cache_dir)
+    return Path(cache_dir) / f"{root.resolve().name}-{split}-{key}.npz"
 
 
 def prepare(
@@ -439,8 +484,8 @@ def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> 
     Needs the data to exist (call after :func:`ensure_dataset`).
     """
     project_dir = Path(project_dir or Path.cwd())
-    root, _ = _dataset_root(cfg, project_dir)
-    keys = [cache_key(root, split, cfg) for split in ("train", "test")]
+    root, cache_dir = _dataset_root(cfg, project_dir)
+    keys = [cache_key(root, split, cfg, memo_dir=cache_dir) for split in ("train", "test")]
     return hashlib.sha256("+".join(keys).encode()).hexdigest()[:16]
 
 

@@ -35,8 +35,9 @@ from cloudpose.report.tables import (
     table4_rotation,
 )
 
-GROUP_TABLE = {"shared": "table3_shared_layers", "rotation": "table4_rotation",
-               "loss": "table4_rotation"}  # fmt: skip
+TABLE4_GROUPS = ("rotation", "loss", "symmetry")
+"""The groups whose rows Table IV holds, one section each."""
+GROUP_TABLE = {"shared": "table3_shared_layers"} | dict.fromkeys(TABLE4_GROUPS, "table4_rotation")
 OVERALL = ("table1_overall", "table2_per_class", "occlusion", "claims")
 
 DESCRIPTIONS = {
@@ -170,7 +171,7 @@ def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: s
     if g == "shared":
         files += table3_shared_layers(sub).write(out_dir, prov)
     else:
-        both = runs.subset(set(get_group("rotation").members) | set(get_group("loss").members))
+        both = runs.subset(set().union(*(get_group(n).members for n in TABLE4_GROUPS)))
         files += table4_rotation(both).write(out_dir, Provenance.of(both, command, renderer))
     present = [v for v in group.members if sub.of(v)]
     labels = {v: f"{v} ({group.labels.get(v, v)})" for v in present}

@@ -338,7 +338,8 @@ def table4_rotation(runs: RunSet) -> Table:
         header += [(METRIC_LABELS[m], "ours"), (METRIC_LABELS[m], "paper")]
     header.append(("", "seeds"))
     rows, data = [], []
-    for section, group_name in (("representation", "rotation"), ("loss", "loss")):
+    for section, group_name in (("representation", "rotation"), ("loss", "loss"),
+                                ("symmetry", "symmetry")):  # fmt: skip
         group = get_group(group_name)
         by_label = {r["variant"]: r for _, r in paper[paper["ablation"] == section].iterrows()}
         r, d = _ablation_rows(runs, group.members, group.labels, metrics, by_label, paper_cols,
