@@ -8,9 +8,34 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import click
 import typer
+from typer.core import TyperGroup
+
+
+class _Commands(TyperGroup):
+    """Every command with one error handler: bad input is one line on stderr, exit 2.
+
+    The library raises ``ValueError`` / ``FileNotFoundError`` naming the file, field or name
+    and what was expected (and :class:`~cloudpose.tracking.StoreError` for a store that cannot
+    be opened); ``cloudpose --debug ...`` shows the traceback instead.
+    """
+
+    def invoke(self, ctx: click.Context):
+        from cloudpose.tracking import StoreError
+
+        try:
+            return super().invoke(ctx)
+        except (ValueError, FileNotFoundError, StoreError) as exc:
+            if _DEBUG:
+                raise
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(2) from None
+
 
 app = typer.Typer(
+    cls=_Commands,
     help="Depth-only 6D pose regression on point clouds (Gao et al., ICRA 2020): "
     "synthetic data, training, ICP, evaluation and the paper's ablations.",
     no_args_is_help=True,
@@ -25,6 +50,9 @@ PresetOpt = Annotated[
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[
     str, typer.Option("--data", help="YCB-Video-layout root; empty = the synthetic default.")
+]
+DeviceOpt = Annotated[
+    str, typer.Option(help="auto (CUDA when available, as in training), cpu or cuda.")
 ]
 ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
 SetOpt = Annotated[
@@ -59,8 +87,18 @@ def parse_sets(items: list[str] | None) -> dict[str, dict]:
     return out
 
 
+_DEBUG = False
+"""``--debug``: bad input raises with its traceback instead of the one-line error."""
+
+
 @app.callback()
-def _main() -> None:
+def _main(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="Show the traceback of an error (default: one line).")
+    ] = False,
+) -> None:
+    global _DEBUG
+    _DEBUG = debug
     from cloudpose import perf
 
     perf.reexec_with_allocator()
@@ -77,11 +115,6 @@ def _config(variant: str, preset: str, seed: int, data: str = "", sets=None, **t
     if train:
         overrides.setdefault("train", {}).update(train)
     return resolve(variant, preset, seed, overrides or None)
-
-
-def _fail(exc: Exception) -> None:
-    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(2) from exc
 
 
 @app.command()
@@ -128,7 +161,7 @@ def symmetries(
         SYMMETRY_FILE.write_text(text)
         typer.echo(f"wrote {SYMMETRY_FILE}")
     elif SYMMETRY_FILE.read_text() != text:
-        _fail(ValueError(f"{SYMMETRY_FILE} differs from the models' symmetries; run with --write"))
+        raise ValueError(f"{SYMMETRY_FILE} differs from the models' symmetries; run with --write")
     else:
         typer.echo(f"{SYMMETRY_FILE} matches")
 
@@ -151,10 +184,7 @@ def experiments(
     from cloudpose.report.experiments import write_log
 
     command = "cloudpose " + shlex.join(sys.argv[1:])
-    try:
-        path = write_log(group, out, command, against=against)
-    except ValueError as exc:
-        _fail(exc)
+    path = write_log(group, out, command, against=against)
     typer.echo(f"wrote {path}")
 
 
@@ -205,10 +235,7 @@ def prepare(
     from cloudpose.data.cache import data_fingerprint, ensure_dataset, occlusion_histogram
 
     cfg = _config(variant, preset, 1, data)
-    try:
-        train_set, test_set = ensure_dataset(cfg.data, project_dir=Path.cwd(), progress=progress)
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    train_set, test_set = ensure_dataset(cfg.data, project_dir=Path.cwd(), progress=progress)
     typer.echo(f"train: {len(train_set)} segments, test: {len(test_set)} segments")
     if histogram is not None:
         fp = data_fingerprint(cfg.data, project_dir=Path.cwd())
@@ -236,12 +263,9 @@ def train(
     """Train one variant (resumes an interrupted run of the same settings)."""
     from cloudpose.train import train as train_fn
 
-    try:
-        cfg = _config(variant, preset, seed, data, set_, epochs=epochs, precision=precision,
-                      device=device)  # fmt: skip
-        out = train_fn(cfg, group=group, progress=progress)
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    cfg = _config(variant, preset, seed, data, set_, epochs=epochs, precision=precision,
+                  device=device)  # fmt: skip
+    out = train_fn(cfg, group=group, progress=progress)
     typer.echo(f"run {out.run_id}  {out.run_dir}")
     for k, v in sorted(out.metrics.items()):
         typer.echo(f"  {k:<28} {v:.4f}")
@@ -256,15 +280,19 @@ def evaluate(
     ),
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
     show_instances: Annotated[bool, typer.Option(help="Print every instance's errors.")] = False,
+    name: Annotated[
+        str | None,
+        typer.Option(help="Metric prefix (default: test, or the --data folder's identity)."),
+    ] = None,
+    device: DeviceOpt = "auto",
     progress: ProgressOpt = True,
 ) -> None:
     """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
     from cloudpose.evaluate import evaluate as evaluate_fn
 
-    try:
-        out = evaluate_fn(run, data=data, frames=frames, icp=icp, progress=progress)
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    out = evaluate_fn(run, data=data, frames=frames, name=name, icp=icp, progress=progress,
+                      device=device)  # fmt: skip
+    typer.echo(f"evaluated {out.source}; logged as {out.name}/... and {out.name}_icp/...")
     _print_summary(out.metrics)
     if show_instances:
         typer.echo(out.table.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
@@ -297,17 +325,15 @@ def predict(
     overlay: Annotated[Path, typer.Option(help="Where to write the overlay PNG.")] = Path(
         "prediction.png"
     ),
+    device: DeviceOpt = "auto",
 ) -> None:
     """Estimate each labelled object's pose in one frame; print poses, write an overlay picture."""
     from cloudpose.predict import predict as predict_fn
 
-    try:
-        result = predict_fn(
-            depth, label, checkpoint, color=color, meta=meta, intrinsics=intrinsics,
-            depth_factor=depth_factor, icp=icp, overlay=overlay,
-        )  # fmt: skip
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    result = predict_fn(
+        depth, label, checkpoint, color=color, meta=meta, intrinsics=intrinsics,
+        depth_factor=depth_factor, icp=icp, overlay=overlay, device=device,
+    )  # fmt: skip
     for p in result.poses:
         typer.echo(p.describe())
     typer.echo(f"overlay: {overlay}")
@@ -327,12 +353,9 @@ def run(
     from cloudpose.evaluate import evaluate as evaluate_fn
     from cloudpose.train import train as train_fn
 
-    try:
-        cfg = _config(variant, preset, seed, data, set_)
-        out = train_fn(cfg, group=group, progress=progress)
-        ev = evaluate_fn(str(out.run_dir), progress=progress)
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    cfg = _config(variant, preset, seed, data, set_)
+    out = train_fn(cfg, group=group, progress=progress)
+    ev = evaluate_fn(str(out.run_dir), progress=progress)
     typer.echo(f"run {out.run_id}  {out.run_dir}")
     _print_summary(ev.metrics)
 
@@ -351,11 +374,8 @@ def ablate(
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
     from cloudpose.ablate import run_group
 
-    try:
-        res = run_group(group, preset, seeds, Path.cwd(), progress, keep_going=keep_going,
-                        overrides=parse_sets(set_) or None)  # fmt: skip
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    res = run_group(group, preset, seeds, Path.cwd(), progress, keep_going=keep_going,
+                    overrides=parse_sets(set_) or None)  # fmt: skip
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
     typer.echo(f"{group}/{preset}: " + ", ".join(f"{n} {s}" for s, n in counts.items())
                + f"; reports in {res.report.out_dir}; log {res.log}")  # fmt: skip
@@ -379,10 +399,7 @@ def report(
     from cloudpose.report import render_reports
 
     groups = None if all_groups or not group else list(group)
-    try:
-        res = render_reports(preset, groups, project_dir=Path.cwd(), data=data, log_mlflow=mlflow)
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    res = render_reports(preset, groups, project_dir=Path.cwd(), data=data, log_mlflow=mlflow)
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 
 
@@ -420,15 +437,9 @@ def curves(
             ["--mark-label", mark_label] * bool(mark_label)
         )
     command = "`" + shlex.join(args) + "`"
-    try:
-        found = fetch_curves(tracking.setup(Path.cwd()), run, metrics)
-    except ValueError as exc:
-        _fail(exc)
-    try:
-        png = plot_curves(found, metrics, out, command=command, title=title,
-                          mark_epoch=mark_epoch, mark_label=mark_label, x=x)  # fmt: skip
-    except ValueError as exc:
-        _fail(exc)
+    found = fetch_curves(tracking.setup(Path.cwd()), run, metrics)
+    png = plot_curves(found, metrics, out, command=command, title=title,
+                      mark_epoch=mark_epoch, mark_label=mark_label, x=x)  # fmt: skip
     typer.echo(f"{png}\n{curves_csv(found, metrics, out.with_suffix('.csv'), command)}")
 
 
@@ -447,25 +458,11 @@ def occlusion_report(
     """ADS < 1 cm accuracy per occlusion bin: shared-0 without and with ICP (+ a group)."""
     from cloudpose.ablate import occlusion_report as occlusion_fn
 
-    try:
-        res = occlusion_fn(preset, seeds, Path.cwd(), progress, group=group, train=train)
-    except (ValueError, FileNotFoundError) as exc:
-        _fail(exc)
+    res = occlusion_fn(preset, seeds, Path.cwd(), progress, group=group, train=train)
     for p in res.files:
         if p.stem.startswith("occlusion"):
             typer.echo(str(p))
 
 
-def main() -> None:
-    """The console script: ``app`` with a broken MLflow store said in one line (exit 2)."""
-    from cloudpose.tracking import StoreError
-
-    try:
-        app()
-    except StoreError as exc:
-        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
-        raise SystemExit(2) from None
-
-
 if __name__ == "__main__":
-    main()
+    app()

@@ -25,6 +25,10 @@ from cloudpose import tracking
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
 from cloudpose.refine import ICPSettings, ModelIndex, icp_refine
 
+OWN_TEST = "test"
+"""Metric prefix of a run's evaluation on its own test set (``test/...``, ``test_icp/...``).
+Reserved: an evaluation on other data (``--data``) is named by that data's identity."""
+
 METHODS = ("net", "icp")
 """Column prefixes of the per-instance table: the network's estimate, then after ICP."""
 
@@ -176,6 +180,10 @@ class EvalOutcome:
     table: pd.DataFrame
     metrics: dict[str, float]
     run_id: str | None
+    name: str = OWN_TEST
+    """The metric prefix the evaluation was logged under."""
+    source: str = ""
+    """Which run, checkpoint and data were evaluated, in words."""
 
 
 def resolve_run_id(client, run: str) -> str:
@@ -185,12 +193,24 @@ def resolve_run_id(client, run: str) -> str:
         return json.loads((path / "run.json").read_text())["run_id"]
     if run.count("/") == 2:
         variant, preset, seed = run.split("/")
-        found = tracking.find_runs(
-            client, variant=variant, preset=preset, seed=int(seed.removeprefix("seed"))
-        )
+        try:
+            seed_n = int(seed.removeprefix("seed"))
+        except ValueError:
+            raise ValueError(f"--run {run!r}: expected variant/preset/seedN") from None
+        found = tracking.find_runs(client, variant=variant, preset=preset, seed=seed_n)
+        own = [r for r in found if tracking.is_preset_config(r)]
         if not found:
             raise ValueError(f"no finished run named {run!r} in {tracking.tracking_uri()}")
-        run_id = found[0].info.run_id
+        if len(own) != 1:
+            listed = "; ".join(tracking.describe_run(r) for r in (own or found))
+            why = (
+                f"{len(own)} finished runs of preset {preset!r}'s own config are named {run!r}"
+                if own
+                else f"no finished run named {run!r} has preset {preset!r}'s own config "
+                "(the ones there were made with overrides or an older preset)"
+            )
+            raise ValueError(f"{why}: {listed}. Pass the run id or run folder")
+        run_id = own[0].info.run_id
     else:
         try:
             run_id = client.get_run(run).info.run_id
@@ -206,7 +226,8 @@ def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
     """MLflow run id and local checkpoint of ``run``.
 
     ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
-    ``variant/preset/seedS`` (the newest finished run of that name).
+    ``variant/preset/seedS``: the one finished run of that name trained with the preset's own
+    config (an error listing the candidates when there are none or several).
     """
     run_id = resolve_run_id(client, run)
     if (Path(run) / "run.json").exists():
@@ -223,6 +244,16 @@ def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
     return run_id, local
 
 
+def evaluation_name(root: str | Path, frames: str, key: str) -> str:
+    """Metric prefix of an evaluation on ``frames`` of the dataset at ``root``.
+
+    ``{folder}-{frames}-{key[:10]}`` with ``key`` the content key of the segments
+    (:func:`cloudpose.data.cache.cache_key`): two folders with one basename, or one folder's
+    keyframes and all its frames, get different names; the same bytes anywhere get one name.
+    """
+    return tracking.metric_key(f"{Path(root).resolve().name}-{frames}-{key[:10]}")
+
+
 def evaluate(
     run: str,
     *,
@@ -234,6 +265,7 @@ def evaluate(
     project_dir: Path | None = None,
     progress: bool = True,
     log: bool = True,
+    device: str = "auto",
 ) -> EvalOutcome:
     """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
 
@@ -241,33 +273,60 @@ def evaluate(
         run: run folder, MLflow run id, or run name (:func:`resolve_run`).
         data: dataset root in YCB-Video layout; None = the run's own test set.
         frames: with ``data``: image set to read ("keyframe", "all", or an image_sets name).
-        name: metric prefix; default "test" for the run's test set, else the folder's name.
+        name: metric prefix; default :data:`OWN_TEST` for the run's own test set, else
+            :func:`evaluation_name` (a name of the user's must not be ``test``/``test_icp``).
         icp: also evaluate after ICP refinement.
         log: log the table and metrics to the run in MLflow.
+        device: where the network runs ("auto": CUDA when available, as in training).
+
+    Raises:
+        ValueError: no instance to evaluate; a reserved ``name`` with ``data``; ``name``
+            already holding an evaluation of other data in this run.
     """
-    from cloudpose.data.cache import ensure_dataset, only_classes, segments_for
+    from cloudpose.data.cache import cache_key, ensure_dataset, only_classes, segments_for
     from cloudpose.data.ycb import YCBVideo
     from cloudpose.train import load_checkpoint
 
     project_dir = (project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)
     run_id, ckpt = resolve_run(client, run, project_dir)
-    model, cfg = load_checkpoint(ckpt)
+    model, cfg = load_checkpoint(ckpt, device)
+    device = next(model.buffers()).device
     if data is None:
         _, segs = ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
         from cloudpose.train import train_set_root
 
         dataset = YCBVideo(train_set_root(cfg, project_dir))
-        name = name or "test"
+        name, data_key = name or OWN_TEST, segs.key
+        data_label = f"the run's own test set ({dataset.root})"
     else:
+        if name in (OWN_TEST, f"{OWN_TEST}_icp"):
+            raise ValueError(
+                f"--name {name!r} is reserved for the run's own test set; leave it unset to "
+                "name the evaluation by its data"
+            )
         dataset = YCBVideo(data)
+        data_key = cache_key(data, frames, cfg.data, memo_dir=project_dir / "data" / "cache")
         segs = only_classes(
             segments_for(dataset, frames, cfg.data, progress=progress), data, cfg.data.classes
         )
-        name = name or tracking.metric_key(Path(data).resolve().name)
+        name = name or evaluation_name(data, frames, data_key)
+        data_label = f"{Path(data).resolve()} (frames {frames!r})"
+    if len(segs) == 0:
+        raise ValueError(
+            f"no instance to evaluate in {data_label} (no annotated object in its frames"
+            + (f" of the classes {list(cfg.data.classes)})" if cfg.data.classes else ")")
+        )
+    tag = f"eval/{name}/data"
+    logged = client.get_run(run_id).data.tags.get(tag) if log else None
+    if logged is not None and logged != data_key:
+        raise ValueError(
+            f"run {run_id} already holds an evaluation named {name!r} of other data (key "
+            f"{logged}, this data {data_key}); choose another --name"
+        )
     models_by_class = dataset.models()
     t0 = time.monotonic()
-    est = {"net": estimate_poses(model, segs, cfg.train.n_points)}
+    est = {"net": estimate_poses(model, segs, cfg.train.n_points, device=device)}
     t_net = time.monotonic() - t0
     if icp:
         t0 = time.monotonic()
@@ -289,7 +348,9 @@ def evaluate(
             table.to_csv(path, index=False)
             client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
         client.log_batch(run_id, metrics=_metrics(metrics))
-    return EvalOutcome(table, metrics, run_id)
+        client.set_tag(run_id, tag, data_key)
+    source = f"run {run_id}, checkpoint {ckpt}, {len(segs)} instances of {data_label}"
+    return EvalOutcome(table, metrics, run_id, name, source)
 
 
 def _metrics(metrics: dict[str, float]):

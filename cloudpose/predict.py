@@ -60,7 +60,7 @@ def parse_intrinsics(text: str | None) -> np.ndarray:
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
 
-def load_model_for(checkpoint: str):
+def load_model_for(checkpoint: str, device: str = "auto"):
     """(model, config) from a ``model.pt``, a run folder, an MLflow run id or a run name."""
     from cloudpose import tracking
     from cloudpose.evaluate import resolve_run
@@ -68,9 +68,9 @@ def load_model_for(checkpoint: str):
 
     path = Path(checkpoint)
     if path.is_file():
-        return load_checkpoint(path)
+        return load_checkpoint(path, device)
     _, ckpt = resolve_run(tracking.setup(), checkpoint, Path.cwd())
-    return load_checkpoint(ckpt)
+    return load_checkpoint(ckpt, device)
 
 
 def predict(
@@ -85,13 +85,19 @@ def predict(
     icp: bool = True,
     overlay: Path | None = None,
     seed: int = 0,
+    device: str = "auto",
 ) -> PredictResult:
-    """Estimate the pose of every labelled object in one frame (see the module doc)."""
-    from cloudpose.data.segments import extract_segments
+    """Estimate the pose of every labelled object in one frame (see the module doc).
+
+    Raises:
+        ValueError: besides bad files, depth that looks like another unit than
+            ``depth_factor`` says (:func:`cloudpose.data.segments.check_depth_scale`).
+    """
+    from cloudpose.data.segments import check_depth_scale, extract_segments
     from cloudpose.data.ycb import YCBVideo, read_frame
     from cloudpose.evaluate import estimate_poses, refine_poses
 
-    model, cfg = load_model_for(checkpoint)
+    model, cfg = load_model_for(checkpoint, device)
     K = None if meta is not None else parse_intrinsics(intrinsics)
     frame = read_frame(
         depth, label, meta_mat=meta, color_png=color, K=K, depth_factor=depth_factor,
@@ -106,7 +112,13 @@ def predict(
     segs = SegmentSet.from_segments(segs)
     dataset = YCBVideo(Path(depth).parent)  # packaged classes and models unless the folder has them
     models_by_class = dataset.models()
-    est = estimate_poses(model, segs, cfg.train.n_points)
+    valid = np.flatnonzero(segs.valid)
+    check_depth_scale(
+        [segs.points[i, : min(int(segs.count[i]), segs.points.shape[1])] for i in valid],
+        [int(segs.cls_id[i]) for i in valid], models_by_class, str(depth),
+        "--depth-factor" if meta is None else f"factor_depth in {meta}",
+    )  # fmt: skip
+    est = estimate_poses(model, segs, cfg.train.n_points, device=next(model.buffers()).device)
     fitness = np.full(len(segs), np.nan)
     if icp:
         est, fitness = refine_poses(segs, est, models_by_class)

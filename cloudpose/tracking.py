@@ -178,3 +178,32 @@ def run_has_config(run, cfg) -> bool:
         return tag == cfg.fingerprint()
     params = run.data.params
     return all(params.get(k) == v for k, v in flat_params(cfg.flat()).items())
+
+
+def is_preset_config(run) -> bool:
+    """Whether an MLflow ``run`` was trained with its preset's own config (no override).
+
+    Its tags name variant, preset and seed; the config those resolve to today (with the run's
+    dataset root) must have the run's ``config`` fingerprint. A run made with ``--set`` or
+    ``--epochs``, or under an edited preset, is another config and answers False.
+    """
+    from cloudpose.config import resolve
+
+    tags, params = run.data.tags, run.data.params
+    root = params.get("data.root", "")
+    try:
+        cfg = resolve(tags["variant"], tags["preset"], int(tags["seed"]),
+                      {"data": {"root": root}} if root else None)  # fmt: skip
+    except (KeyError, ValueError):
+        return False
+    return tags.get("config") == cfg.fingerprint()
+
+
+def describe_run(run) -> str:
+    """One line naming a run: id, name, config and data fingerprints, start time."""
+    import datetime
+
+    t = run.data.tags
+    start = datetime.datetime.fromtimestamp((run.info.start_time or 0) / 1000)
+    return (f"{run.info.run_id} ({run.info.run_name}, config {t.get('config', '?')}, "
+            f"data {t.get('data', '?')[:10]}, started {start:%Y-%m-%d %H:%M})")  # fmt: skip

@@ -53,7 +53,13 @@ def pick_device(name: str = "auto") -> torch.device:
     """``auto``: CUDA when available, else CPU; anything else is passed to ``torch.device``."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"device {name!r}: expected auto, cpu, cuda or cuda:N") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r}: CUDA is not available here; use auto or cpu")
+    return device
 
 
 def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
@@ -503,20 +509,33 @@ def _mlflow_metrics(metrics: dict[str, float], step: int):
     return [Metric(k, float(v), now, step) for k, v in metrics.items()]
 
 
-def load_checkpoint(path: str | Path, device: str = "cpu") -> tuple[torch.nn.Module, Config]:
+def load_checkpoint(
+    path: str | Path, device: str | torch.device = "cpu"
+) -> tuple[torch.nn.Module, Config]:
     """Inference model and config from a ``model.pt`` or ``last.pt`` checkpoint.
+
+    ``device``: where the model goes ("auto": CUDA when available, :func:`pick_device`).
 
     The model is the trained network folded for inference (no training from it).
     """
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
-    state = torch.load(path, map_location=device, weights_only=True)
-    if "model" not in state or "config" not in state:
+    device = pick_device(device)
+    try:
+        # weights_only: a checkpoint holds tensors and plain data; any other pickle is refused
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # a text file, a torn file, a foreign or unsafe pickle
+        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise ValueError(f"{path} is not a cloudpose checkpoint ({reason})") from exc
+    if not isinstance(state, dict) or "model" not in state or "config" not in state:
         raise ValueError(f"{path} is not a cloudpose checkpoint (expected keys 'model', 'config')")
     cfg = Config.from_dict(state["config"])
     model = build_model(cfg.model).to(device)
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: the weights do not fit its config's network ({exc})") from exc
     model.eval()
     # Inference only: every BatchNorm folded into its layer, both networks as one batched
     # product (same outputs as eval mode to ~1e-7 in float32; cloudpose.models.inference).

@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 from scipy import stats as sps
 
-from cloudpose.config import get_group
+from cloudpose.config import get_group, resolve
 from cloudpose.report import stats
 
 PRESET = "smoke"
@@ -101,7 +101,8 @@ def _make_store(root: Path) -> dict:
             logged["params"][variant] = n_params
             for i, seed in enumerate(seeds):
                 tags = {"variant": variant, "group": gname, "preset": PRESET, "seed": str(seed),
-                        "data": DATA, "git_commit": COMMIT, "run_dir": str(root / variant)}  # fmt: skip
+                        "data": DATA, "git_commit": COMMIT, "run_dir": str(root / variant),
+                        "config": resolve(variant, PRESET, seed).fingerprint()}  # fmt: skip
                 run = client.create_run(exp, tags=tags, run_name=f"{variant}/{PRESET}/seed{seed}")
                 rid = run.info.run_id
                 params = [Param("model.parameters", str(n_params)), Param("data.root", ""),
@@ -139,12 +140,20 @@ def _make_store(root: Path) -> dict:
     # a run on other data and an unfinished run: both must stay out of the report
     exp = tracking.experiment_id(client, "shared", root)
     other = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
-                                         "data": "0therdata00", "git_commit": "zzz"})  # fmt: skip
+                                         "data": "0therdata00", "git_commit": "zzz",
+                                         "config": resolve("shared-0", PRESET, 1).fingerprint()})  # fmt: skip
     client.log_metric(other.info.run_id, "test/ads_auc", 0.0)
     client.set_terminated(other.info.run_id, "FINISHED")
     running = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
                                            "data": DATA, "git_commit": "yyy"})  # fmt: skip
     client.log_metric(running.info.run_id, "test/ads_auc", 0.0)
+    # a finished run of the same name, data and preset, trained with an override (the newest)
+    over = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
+                                        "data": DATA, "git_commit": "xxx",
+                                        "config": resolve("shared-0", PRESET, 1,
+                                                          {"train": {"epochs": 1}}).fingerprint()})  # fmt: skip
+    client.log_metric(over.info.run_id, "test/ads_auc", 0.0)
+    client.set_terminated(over.info.run_id, "FINISHED")
     return logged
 
 
@@ -157,8 +166,10 @@ def rendered(tmp_path_factory):
         logged = _make_store(root)
         from cloudpose.report import render_reports
 
-        with pytest.warns(UserWarning, match="other data"):
+        with pytest.warns(UserWarning) as caught:
             result = render_reports(PRESET, None, project_dir=root, command=COMMAND)
+        said = " ".join(str(w.message) for w in caught)
+        assert "other data" in said and "1 finished run(s)" in said and "another config" in said
         yield root, logged, result
 
 
@@ -325,7 +336,7 @@ def test_table4_rotation_and_loss(rendered):
 def test_runs_on_other_data_or_unfinished_are_left_out(rendered):
     _, _, result = rendered
     assert result.runs.data == DATA
-    assert {r.git_commit for r in result.runs.records} == {COMMIT}
+    assert {r.git_commit for r in result.runs.records} == {COMMIT}  # not xxx, yyy, zzz
 
 
 # ---------------------------------------------------------------- claims

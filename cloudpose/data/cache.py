@@ -161,7 +161,11 @@ def _split_frames(root: Path, split: str) -> list[str]:
             raise FileNotFoundError(f"{root / 'data'}: no frames (SEQ/FRAME-meta.mat) found")
         return frames
     ds = YCBVideo(root)
-    return ds.image_set("keyframe" if split in ("test", "keyframe") else split)
+    name = "keyframe" if split in ("test", "keyframe") else split
+    frames = ds.image_set(name)
+    if not frames:
+        raise ValueError(f"{root}: the frame list {name!r} (split {split!r}) is empty")
+    return frames
 
 
 def _settings(cfg: DataConfig) -> dict:

@@ -295,3 +295,54 @@ def extract_segments(
             Segment(sample, len(pts), int(c), R, t, float(occlusion[i]), frame.frame_id, i, valid)
         )
     return out
+
+
+def check_depth_scale(
+    points: list[np.ndarray],
+    cls_ids: list[int],
+    models_by_class: dict[int, np.ndarray],
+    source: str,
+    flag: str,
+) -> None:
+    """Raise when the segments look like depth read in the wrong unit.
+
+    A segment's extent (twice the 95th percentile of its points' distance from their mean) is
+    at most the model's diameter and, unless the object is mostly hidden, a fair part of it;
+    and a depth sensor sees objects between ~0.2 and ~6 m. Depth in millimetres read as
+    tenths of a millimetre (YCB-Video's factor) shrinks both by 10: objects at 0.1 m, a tenth
+    of their size. The check takes the median over the segments, so one occluded object does
+    not trip it.
+
+    Args:
+        points: per segment, (N_i, 3) camera-frame points, metres (N_i >= 3).
+        cls_ids: per segment, its 1-based class id (a key of ``models_by_class``).
+        models_by_class: (P, 3) model points, metres.
+        source: what to name in the error (the depth file).
+        flag: the setting that fixes it (e.g. ``--depth-factor``).
+
+    Raises:
+        ValueError: naming ``source``, the factor the data looks off by, and ``flag``.
+    """
+    ratios, depths = [], []
+    for p, c in zip(points, cls_ids, strict=True):
+        if len(p) < 3 or c not in models_by_class:
+            continue
+        m = models_by_class[c]
+        diameter = float(np.linalg.norm(m.max(0) - m.min(0)))
+        extent = 2 * float(np.percentile(np.linalg.norm(p - p.mean(0), axis=1), 95))
+        ratios.append(extent / diameter)
+        depths.append(float(np.median(p[:, 2])))
+    if not ratios:
+        return
+    ratio, depth = float(np.median(ratios)), float(np.median(depths))
+    if 0.3 <= ratio <= 3.0 and 0.2 <= depth <= 6.0:
+        return
+    factor = 10.0 ** round(float(np.log10(ratio)))
+    if factor == 1.0:
+        factor = 10.0 ** round(float(np.log10(depth / 1.0)))
+    looks = f"{1 / factor:g} times too small" if factor < 1 else f"{factor:g} times too large"
+    raise ValueError(
+        f"{source}: the objects look {looks} for their models (median segment extent "
+        f"{ratio:.2f} x the model diameter, median depth {depth:.3f} m): is the depth in "
+        f"another unit? set {flag} (depth units per metre; YCB-Video 10000, millimetres 1000)"
+    )

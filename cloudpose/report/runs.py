@@ -157,6 +157,15 @@ def load_runs(preset: str, *, data: str | None = None, client=None,
         r for r in runs
         if r.data.tags.get("variant") and r.data.tags.get("seed") and TEST_KEY in r.data.metrics
     ]  # fmt: skip
+    # a run with overrides (--set, --epochs) or from an edited preset is another config
+    other = [r for r in runs if not tracking.is_preset_config(r)]
+    if other:
+        warnings.warn(
+            f"{len(other)} finished run(s) tagged preset {preset!r} were made with another "
+            "config (overrides or an older preset) and are left out of the report",
+            stacklevel=2,
+        )
+        runs = [r for r in runs if tracking.is_preset_config(r)]
     if not runs:
         return RunSet(preset, data, [])
     if data is None:
