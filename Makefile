@@ -13,7 +13,8 @@ SEED ?= 1
 .PHONY: help setup install demo test test-fast lint format variants
 
 help: ## list the targets
-	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  \033[36m%-18s\033[0m %s\n", $$1, $$2}'
+	@if [ -t 1 ]; then c='\033[36m'; r='\033[0m'; else c=; r=; fi; \
+	grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' -v c="$$c" -v r="$$r" '{printf "  %s%-18s%s %s\n", c, $$1, r, $$2}'
 
 setup: install demo ## fresh machine: system libraries, virtualenv, package; then the main job on the smoke preset
 
@@ -27,8 +28,8 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 	  || echo "warning: could not install libusb-1.0-0/libtcmalloc-minimal4; Open3D needs libusb (tcmalloc is optional)"; fi
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install "$(TORCH_SPEC)"
+	$(PY) -m pip install -e '.[dev]'
 
 demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)

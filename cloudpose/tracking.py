@@ -100,6 +100,18 @@ def run_name(variant: str, preset: str, seed: int) -> str:
     return f"{variant}/{preset}/seed{seed}"
 
 
+def display_name(cfg) -> str:
+    """The MLflow run name of ``cfg``: :func:`run_name`, plus ``+{config fingerprint}`` when
+    ``cfg`` is not its preset's own config (overrides), so that runs of different configs never
+    share a name in the UI."""
+    from cloudpose.config import resolve
+
+    name = run_name(cfg.variant, cfg.preset, cfg.seed)
+    root = {"data": {"root": cfg.data.root}} if cfg.data.root else None
+    own = resolve(cfg.variant, cfg.preset, cfg.seed, root)
+    return name if own.fingerprint() == cfg.fingerprint() else f"{name}+{cfg.fingerprint()[:8]}"
+
+
 def metric_key(*parts: str) -> str:
     """Join parts with ``/`` and replace characters MLflow keys do not allow."""
     return _KEY_BAD.sub("_", "/".join(parts))

@@ -374,8 +374,7 @@ def train(
             "data": data_key, "config": cfg.fingerprint(), "git_commit": tracking.git_commit(),
             "run_dir": str(rdir),
         }  # fmt: skip
-        name = tracking.run_name(cfg.variant, cfg.preset, cfg.seed)
-        run = client.create_run(exp, tags=tags, run_name=name)
+        run = client.create_run(exp, tags=tags, run_name=tracking.display_name(cfg))
         run_id = run.info.run_id
         params = tracking.flat_params(cfg.flat())
         params.update({"model.parameters": str(count_parameters(model)),

@@ -149,6 +149,8 @@ def test_a_run_name_resolves_to_the_presets_own_config(project):
     res = cli("train", "--preset", "smoke", "--set", "train.epochs=1", "--no-progress")
     assert res.exit_code == 0, res.output
     assert resolve_run_id(client, name) == out.run_id
+    names = {r.info.run_name for r in tracking.find_runs(client, variant="shared-0", seed=1)}
+    assert name in names and any(n.startswith(name + "+") for n in names)  # never one name
     # two finished runs of the preset's own config (here: the same run tagged again)
     twin = client.create_run(client.get_run(out.run_id).info.experiment_id,
                              tags=dict(client.get_run(out.run_id).data.tags), run_name=name)  # fmt: skip
