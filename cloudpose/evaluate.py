@@ -22,6 +22,7 @@ import torch
 from tqdm.auto import tqdm
 
 from cloudpose import tracking
+from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
 from cloudpose.refine import ICPSettings, ModelIndex, icp_refine
 
@@ -122,37 +123,10 @@ def instance_table(
         )  # fmt: skip
         for key in ("ad", "ads", "rot_err_deg", "trans_err"):
             df[f"{method}_{key}"] = err[key]
-        df[f"{method}_rot_sym_err_deg"] = symmetric_rotation_errors(
+        df[f"{method}_rot_sym_err_deg"] = rotation_errors_modulo_symmetry(
             segs.cls_id, segs.R, R_est, class_names, miss
         )
     return df
-
-
-def symmetric_rotation_errors(
-    cls_id: np.ndarray,
-    R_gt: np.ndarray,
-    R_est: np.ndarray,
-    class_names: list[str],
-    miss: np.ndarray | None = None,
-) -> np.ndarray:
-    """(M,) rotation errors modulo each class's symmetries, degrees; ``inf`` for misses.
-
-    Args:
-        cls_id: (M,) 1-based class ids; ``class_names[id - 1]`` names the class whose entry of
-            the symmetry table (:mod:`cloudpose.geometry.symmetry`) applies.
-        R_gt, R_est: (M, 3, 3) rotations.
-        miss: (M,) instances without an estimate.
-    """
-    from cloudpose.geometry.symmetry import symmetric_rotation_error_deg, symmetries_for
-
-    cls_id = np.asarray(cls_id).astype(int)
-    syms = symmetries_for(list(class_names))
-    out = np.full(len(cls_id), np.inf)
-    hit = np.ones(len(cls_id), bool) if miss is None else ~np.asarray(miss, bool)
-    for c in np.unique(cls_id[hit]):
-        sel = hit & (cls_id == c)
-        out[sel] = symmetric_rotation_error_deg(R_gt[sel], R_est[sel], syms[int(c) - 1])
-    return out
 
 
 def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:

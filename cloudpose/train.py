@@ -31,7 +31,11 @@ from tqdm.auto import tqdm
 
 from cloudpose import tracking
 from cloudpose.config import Config, groups_of
-from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
+from cloudpose.geometry.symmetry import (
+    SymmetryTensors,
+    rotation_errors_modulo_symmetry,
+    symmetries_for,
+)
 from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
 from cloudpose.models import build_model, count_parameters
@@ -168,9 +172,7 @@ def validate(
         "trans_lt_1cm": float(np.mean(trans < 0.01)),
     }
     if class_names is not None:
-        from cloudpose.evaluate import symmetric_rotation_errors
-
-        sym = symmetric_rotation_errors(cls_id, R_gt, R_est, class_names)
+        sym = rotation_errors_modulo_symmetry(cls_id, R_gt, R_est, class_names)
         out.update({
             "rot_sym_err_median_deg": float(np.median(sym)),
             "rot_sym_lt_10deg": float(np.mean(sym < 10)),

@@ -236,6 +236,31 @@ def symmetric_rotation_error_deg(
     return np.min(errs, axis=0)
 
 
+def rotation_errors_modulo_symmetry(
+    cls_id: np.ndarray,
+    R_gt: np.ndarray,
+    R_est: np.ndarray,
+    class_names: list[str],
+    miss: np.ndarray | None = None,
+) -> np.ndarray:
+    """(M,) rotation errors modulo each class's symmetries, degrees; ``inf`` for misses.
+
+    Args:
+        cls_id: (M,) 1-based class ids; ``class_names[id - 1]`` names the class whose entry of
+            the symmetry table applies.
+        R_gt, R_est: (M, 3, 3) rotations.
+        miss: (M,) instances without an estimate.
+    """
+    cls_id = np.asarray(cls_id).astype(int)
+    syms = symmetries_for(list(class_names))
+    out = np.full(len(cls_id), np.inf)
+    hit = np.ones(len(cls_id), bool) if miss is None else ~np.asarray(miss, bool)
+    for c in np.unique(cls_id[hit]):
+        sel = hit & (cls_id == c)
+        out[sel] = symmetric_rotation_error_deg(R_gt[sel], R_est[sel], syms[int(c) - 1])
+    return out
+
+
 class SymmetryTensors(torch.nn.Module):
     """A table's symmetries as padded tensors indexed by 1-based class id, for losses.
 
