@@ -451,6 +451,10 @@ def test_report_runs_logged_and_replaced(rendered):
     run = client.get_run(first)
     assert run.info.run_name == f"report/shared/{PRESET}"
     assert "variant" not in run.data.tags  # never mistaken for a training run
+    # the group's table is the experiment's description: on its page without choosing columns
+    note = client.get_experiment(exp.experiment_id).tags["mlflow.note.content"]
+    assert "Table III" in note and "shared-all-2x" in note and COMMAND in note
+    assert run.data.tags["mlflow.note.content"] == note
     with pytest.warns(UserWarning, match="other data"):
         again = render_reports(PRESET, ["shared"], project_dir=root, command=COMMAND)
     live = client.search_runs([exp.experiment_id], "tags.kind = 'report'")

@@ -245,15 +245,27 @@ def log_report_run(client, group: str, preset: str, files: list[Path], prov: Pro
     for r in old:
         _remove_local_artifacts(r.info.artifact_uri)
         client.delete_run(r.info.run_id)
+    note = _summary_note(group, preset, files, prov)
     tags = {"kind": "report", "report_group": group, "report_preset": preset,
             "command": prov.command, "data": prov.data, "seeds": ",".join(map(str, prov.seeds)),
-            "git_commit": ",".join(prov.commits), "mlflow.note.content": prov.line()}  # fmt: skip
+            "git_commit": ",".join(prov.commits), "mlflow.note.content": note}  # fmt: skip
+    # The experiment's description is the first thing its page shows: the group's table, so
+    # the numbers that matter are there without choosing any column.
+    client.set_experiment_tag(exp, "mlflow.note.content", note)
     run = client.create_run(exp, tags=tags, run_name=name)
     for p in sorted(set(files)):
         if p.exists():
             client.log_artifact(run.info.run_id, str(p))
     client.set_terminated(run.info.run_id, "FINISHED")
     return run.info.run_id
+
+
+def _summary_note(group: str, preset: str, files: list[Path], prov: Provenance) -> str:
+    """Markdown for the MLflow UI: the group's table (as rendered) and where it comes from."""
+    table = next((p for p in files if p.name == f"{GROUP_TABLE.get(group, '')}.md"), None)
+    body = table.read_text(encoding="utf-8") if table is not None and table.exists() else ""
+    return (f"**Report of group `{group}`, preset `{preset}`** (run `report/{group}/{preset}` "
+            f"holds every table and plot as artifacts).\n\n{body}\n\n{prov.line()}")  # fmt: skip
 
 
 def _remove_local_artifacts(uri: str | None) -> None:
