@@ -42,3 +42,12 @@ def smoke_run(tmp_path_factory, smoke_data):
     finally:
         mp.undo()
     return proj, out
+
+
+@pytest.fixture
+def smoke_project(smoke_run, monkeypatch):
+    """(project folder, TrainOutcome) of :func:`smoke_run`, as the current directory and store."""
+    proj, out = smoke_run
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(proj)
+    return proj, out

@@ -18,11 +18,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture
-def project(smoke_run, monkeypatch):
-    proj, out = smoke_run
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    monkeypatch.chdir(proj)
-    return proj, out
+def project(smoke_project):
+    return smoke_project
 
 
 def test_evaluate_own_test_set_logs_table_and_metrics(project):
