@@ -343,7 +343,7 @@ def _next_steps(preset: str) -> None:
     typer.echo(f"\nWhat this is: {meaning}")
     typer.echo("Next: `make mlflow-ui` and open http://127.0.0.1:5000 to browse the run; "
                "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation "
-               "(~7 min a run here) and renders its tables into reports/cpu/.")  # fmt: skip
+               "(~10 min a run here) and renders its tables into reports/cpu/.")  # fmt: skip
 
 
 @app.command()
