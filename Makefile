@@ -78,7 +78,7 @@ tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs
 mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db)
 	$(VENV)/bin/mlflow ui --backend-store-uri $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT) --workers 1
 
-# --- benchmarks (issue 6) ---------------------------------------------------------------------
+# --- benchmarks ---------------------------------------------------------------------
 .PHONY: bench
 
 bench: ## the benchmark suite -> reports/benchmarks.md and reports/benchmarks.json

@@ -1,4 +1,4 @@
-"""Data pipeline throughput (issue 6, ``synth_frames_per_s``, ``prepare_frames_per_s``).
+"""Data pipeline throughput (``synth_frames_per_s``, ``prepare_frames_per_s``).
 
 - ``synth_frames_per_s``: ``cloudpose.data.synth.synthesize`` of N training frames into a
   temporary root with all cores (the CLI's default), beside the same with one process
@@ -38,13 +38,12 @@ from cloudpose.data.synth import synthesize
 @contextlib.contextmanager
 def _without_numba():
     """The previous FPS path, in this process and in spawned workers."""
-    old_env, old_flag = os.environ.get("CLOUDPOSE_NO_NUMBA"), kernels.HAVE_NUMBA
+    old_env = os.environ.get("CLOUDPOSE_NO_NUMBA")
     os.environ["CLOUDPOSE_NO_NUMBA"] = "1"
-    kernels.HAVE_NUMBA = False
     try:
-        yield
+        with kernels.disabled():
+            yield
     finally:
-        kernels.HAVE_NUMBA = old_flag
         if old_env is None:
             os.environ.pop("CLOUDPOSE_NO_NUMBA", None)
         else:

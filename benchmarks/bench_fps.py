@@ -1,4 +1,4 @@
-"""Farthest point sampling speed (issue 6, ``fps_ms_20k``), printed as JSON.
+"""Farthest point sampling speed (``fps_ms_20k``), printed as JSON.
 
 1024 samples with a random start from real depth segments: the three annotated objects of the
 real YCB-Video frame in ``tests/data/ycb_real`` (17-21k points each, back-projected as the

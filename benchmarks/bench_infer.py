@@ -1,4 +1,4 @@
-"""Inference latency of the pose networks (issue 6, ``infer_ms_per_object``, ``infer_ms_frame8``).
+"""Inference latency of the pose networks (``infer_ms_per_object``, ``infer_ms_frame8``).
 
 Both networks of ``shared-0`` (paper widths, n = 256 points, float32, eval mode) on 1 object and
 on a frame of 8 objects, in the same process and interleaved:
@@ -12,7 +12,7 @@ on a frame of 8 objects, in the same process and interleaved:
 
 The lower bound is the forward FLOPs (counted from the Linear layers) at this machine's
 float32 GEMM rate for the 128 -> 1024 layer's shape, measured in the same run. Threads: all
-usable cores (``cloudpose.perf.configure_threads``).
+usable cores (``cloudpose.runtime.configure_threads``).
 
 Usage: ``python -m benchmarks.bench_infer [--quick]``
 """
@@ -187,7 +187,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    from cloudpose.perf import configure_threads
+    from cloudpose.runtime import configure_threads
 
     configure_threads()
     print(json.dumps(run(quick=args.quick), indent=2))

@@ -1,4 +1,4 @@
-"""Refinement and evaluation speed against their references (issue 6), printed as JSON.
+"""Refinement and evaluation speed against their references, printed as JSON.
 
 - ``icp_ms_per_object``: the paper's ICP schedule (10 iterations, 0.01 m shrinking by 10%),
   observed ~1024 points, models of 2,620 points: ``icp_refine`` (one KD-tree per model, model
@@ -33,14 +33,14 @@ if __package__ in (None, ""):
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import resource_path
+from cloudpose.data.models import ModelIndex
 from cloudpose.metrics import (
-    ModelTree,
     add_distance,
     add_distance_reference,
     adds_distance,
     adds_distance_reference,
 )
-from cloudpose.refine import ModelIndex, icp_refine, icp_refine_open3d
+from cloudpose.refine import icp_refine, icp_refine_open3d
 
 
 def load_models() -> dict[int, np.ndarray]:
@@ -75,7 +75,7 @@ def bench_icp(models, repeats: int, per_round: int = 42) -> dict:
     for k in range(per_round):
         c = keys[k % len(keys)]
         cases.append((c, *icp_case(rng, models[c])))
-    index = {c: ModelIndex(m) for c, m in models.items()}
+    index = {c: ModelIndex.of(m) for c, m in models.items()}
     worst = 0.0
     for c, obs, R0, t0 in cases:
         a, b = icp_refine(obs, index[c], R0, t0), icp_refine_open3d(obs, models[c], R0, t0)
@@ -119,7 +119,7 @@ def bench_ads(models, repeats: int, M: int, ref_instances: int) -> dict:
     poses = error_poses(rng, M)
     groups = [(c, np.flatnonzero(cls == c)) for c in models]
     for c, _ in groups:  # build (cache) each model's tree once, as an evaluation run does
-        ModelTree(models[c])
+        ModelIndex.of(models[c])
         adds_distance(models[c], *[p[:1] for p in poses])
 
     def fast():

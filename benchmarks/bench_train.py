@@ -1,4 +1,4 @@
-"""Training-step throughput against this machine's GEMM rate (issue 6, ``train_fraction_of_peak``).
+"""Training-step throughput against this machine's GEMM rate (``train_fraction_of_peak``).
 
 One run measures, in the same processes:
 
@@ -8,8 +8,8 @@ One run measures, in the same processes:
   plain network and of the same network with ``cloudpose.models.fused.fuse_model``, repeats
   interleaved so that load from other processes hits both alike; every variant in the full run;
 - the same with the allocator the CLI installs (tcmalloc / jemalloc, via
-  ``cloudpose.perf``), with glibc's malloc as is, and with glibc after
-  ``cloudpose.perf.tune_glibc_malloc`` (the CLI's fallback), each in its own child process (an
+  ``cloudpose.runtime``), with glibc's malloc as is, and with glibc after
+  ``cloudpose.runtime.tune_glibc_malloc`` (the CLI's fallback), each in its own child process (an
   allocator is fixed at process start).
 
 FLOPs are counted analytically from the plain network's Linear layers (forward hooks record
@@ -47,7 +47,7 @@ from cloudpose.geometry.rotations import rotvec_to_rotmat
 from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
 from cloudpose.models.fused import fuse_model
-from cloudpose.perf import (
+from cloudpose.runtime import (
     active_allocator,
     configure_threads,
     preferred_allocator,

@@ -1,4 +1,4 @@
-"""Shared benchmark helpers: machine description, timing, this machine's GEMM rate (issue 6).
+"""Shared benchmark helpers: machine description, timing, this machine's GEMM rate.
 
 Every benchmark reports its figures beside a reference measured in the same run, with the
 machine described, so ratios stay comparable across machines and load.
@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from cloudpose.perf import active_allocator
+from cloudpose.runtime import active_allocator
 
 INTERESTING_FLAGS = (
     "avx",

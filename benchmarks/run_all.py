@@ -1,4 +1,4 @@
-"""The benchmark suite (issue 6): every figure in one run -> reports/benchmarks.{md,json}.
+"""The benchmark suite: every figure in one run -> reports/benchmarks.{md,json}.
 
 Each figure is measured beside its reference in the same run (interleaved repeats, medians),
 and reported as value, reference, ratio, target and whether it is met, with the machine
@@ -16,7 +16,7 @@ load). Figures (JSON keys):
   ``--cpu-variant`` runs ``cloudpose run --preset cpu`` for real (into a temporary MLflow
   store) and times it.
 
-The process sets itself up as the CLI does (``cloudpose.perf``: tcmalloc re-exec, threads).
+The process sets itself up as the CLI does (``cloudpose.runtime``: tcmalloc re-exec, threads).
 
 Usage: ``python -m benchmarks.run_all [--quick] [--only NAME[,NAME]] [--cpu-variant]
 [--out reports]``; ``make bench``.
@@ -278,7 +278,7 @@ def render_markdown(report: dict[str, Any]) -> str:
     m = report["machine"]
     cpu = m["cpu"]
     lines = [
-        "# Benchmarks (issue 6)",
+        "# Benchmarks",
         "",
         f"- command: `{report['command']}`",
         f"- commit: `{report['commit']}`",
@@ -440,7 +440,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    from cloudpose.perf import configure_threads, reexec_with_allocator
+    from cloudpose.runtime import configure_threads, reexec_with_allocator
 
     reexec_with_allocator()
     configure_threads()

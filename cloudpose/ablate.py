@@ -17,8 +17,7 @@ from pathlib import Path
 
 from cloudpose import tracking
 from cloudpose.config import Config, get_group, resolve
-
-TEST_KEY = "test/ads_auc"
+from cloudpose.runs import TEST_KEY, finished_run, run_name
 
 
 @dataclass(frozen=True)
@@ -60,20 +59,6 @@ def seed_list(seeds: int | Iterable[int]) -> list[int]:
     if not out:
         raise ValueError("seeds is empty")
     return out
-
-
-def finished_run(client, cfg: Config, data: str):
-    """The newest FINISHED run of exactly ``cfg`` on ``data`` with test metrics, or None.
-
-    Matched on the tags (variant, preset, seed, data) and then on the whole config
-    (:func:`cloudpose.tracking.run_has_config`): after an edit of the preset or the variant, or a
-    run with overrides, the runs of the old config are not taken for the new one.
-    """
-    for r in tracking.find_runs(client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed,
-                                data=data):  # fmt: skip
-        if TEST_KEY in r.data.metrics and tracking.run_has_config(r, cfg):
-            return r
-    return None
 
 
 def _seconds_per_run_before(client, preset: str, epochs: int) -> float | None:
@@ -118,9 +103,8 @@ def ensure_runs(
     Returns:
         One status per (variant, seed), in order.
     """
-    from cloudpose.data.cache import data_fingerprint, ensure_dataset
-    from cloudpose.evaluate import evaluate
-    from cloudpose.train import train
+    from cloudpose import pipeline
+    from cloudpose.data import dataset
 
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))
@@ -129,14 +113,16 @@ def ensure_runs(
     log_path = project_dir / "runs" / f"ablate-{group}-{preset}.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
     todo = [resolve(v, preset, s, overrides) for v in variants for s in seeds]
-    fingerprints: dict[str, str] = {}
+    prepared: dict[str, dataset.Prepared] = {}
+
+    def data_of(cfg: Config) -> dataset.Prepared:
+        key = repr(cfg.data)
+        if key not in prepared:  # made once per data config, shared by its runs
+            prepared[key] = dataset.prepare_data(cfg.data, project_dir, progress=progress)
+        return prepared[key]
 
     def fingerprint(cfg: Config) -> str:
-        key = repr(cfg.data)
-        if key not in fingerprints:  # the fingerprint hashes the data: make it first
-            ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
-            fingerprints[key] = data_fingerprint(cfg.data, project_dir=project_dir)
-        return fingerprints[key]
+        return data_of(cfg).key
 
     pending = [cfg for cfg in todo if finished_run(client, cfg, fingerprint(cfg)) is None]
     prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
@@ -146,7 +132,7 @@ def ensure_runs(
          f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run; "
          f"log {log_path}")  # fmt: skip
     for k, cfg in enumerate(todo, 1):
-        name = tracking.run_name(cfg.variant, cfg.preset, cfg.seed)
+        name = run_name(cfg.variant, cfg.preset, cfg.seed)
         data = fingerprint(cfg)
         done = finished_run(client, cfg, data)
         if done is not None:
@@ -161,8 +147,9 @@ def ensure_runs(
              f"estimated {_fmt_s(per_run * left if per_run else None)} to go")  # fmt: skip
         t0 = time.monotonic()
         try:
-            outcome = train(cfg, project_dir=project_dir, group=group, progress=progress)
-            ev = evaluate(str(outcome.run_dir), project_dir=project_dir, progress=progress)
+            result = pipeline.train_and_evaluate(cfg, project_dir=project_dir, group=group,
+                                                 progress=progress, data=data_of(cfg))  # fmt: skip
+            outcome, ev = result.train, result.evaluation
         except KeyboardInterrupt:
             st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
             _log(log_path, k, len(todo), name, st, None)

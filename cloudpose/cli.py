@@ -103,14 +103,14 @@ def _main(
 
     # "warning: message", without the source line that Python prints beneath it
     warnings.formatwarning = lambda message, *args, **kwargs: f"warning: {message}\n"
-    from cloudpose import perf
+    from cloudpose import runtime
 
-    perf.reexec_with_allocator()
-    perf.configure_threads()
+    runtime.reexec_with_allocator()
+    runtime.configure_threads()
 
 
 def tracking_name(cfg) -> str:
-    from cloudpose.tracking import run_name
+    from cloudpose.runs import run_name
 
     return run_name(cfg.variant, cfg.preset, cfg.seed)
 
@@ -242,16 +242,18 @@ def prepare(
     progress: ProgressOpt = True,
 ) -> None:
     """Synthesize (if needed) and cache the segments of a preset's train and test sets."""
-    from cloudpose.data.cache import data_fingerprint, ensure_dataset, occlusion_histogram
+    from cloudpose.data.dataset import prepare_data
 
     cfg = _config(variant, preset, 1, data)
-    train_set, test_set = ensure_dataset(cfg.data, project_dir=Path.cwd(), progress=progress)
+    prepared = prepare_data(cfg.data, Path.cwd(), progress=progress)
+    train_set, test_set = prepared.train, prepared.test
     typer.echo(f"train: {len(train_set)} segments, test: {len(test_set)} segments")
     if histogram is not None:
-        fp = data_fingerprint(cfg.data, project_dir=Path.cwd())
+        from cloudpose.report.plots import occlusion_histogram
+
         title = (
             f"Occlusion factors of the {preset}-preset test set: {len(test_set)} instances\n"
-            f"(cloudpose prepare --preset {preset} --histogram ...; data {fp[:10]})"
+            f"(cloudpose prepare --preset {preset} --histogram ...; data {prepared.key[:10]})"
         )
         counts = occlusion_histogram(test_set, histogram, title)
         typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")
@@ -271,11 +273,11 @@ def train(
     set_: SetOpt = None,
 ) -> None:
     """Train one variant (resumes an interrupted run of the same settings)."""
-    from cloudpose.train import train as train_fn
+    from cloudpose.pipeline import train_run
 
     cfg = _config(variant, preset, seed, data, set_, epochs=epochs, precision=precision,
                   device=device)  # fmt: skip
-    out = train_fn(cfg, group=group, progress=progress)
+    out = train_run(cfg, group=group, progress=progress)
     typer.echo(f"run {out.run_id}  {out.run_dir}")
     for k, v in sorted(out.metrics.items()):
         typer.echo(f"  {k:<28} {v:.4f}")
@@ -386,12 +388,11 @@ def run(
     group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
 ) -> None:
     """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP."""
-    from cloudpose.evaluate import evaluate as evaluate_fn
-    from cloudpose.train import train as train_fn
+    from cloudpose.pipeline import train_and_evaluate
 
     cfg = _config(variant, preset, seed, data, set_)
-    out = train_fn(cfg, group=group, progress=progress)
-    ev = evaluate_fn(str(out.run_dir), progress=progress)
+    result = train_and_evaluate(cfg, group=group, progress=progress)
+    out, ev = result.train, result.evaluation
     typer.echo(f"\nrun {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
     typer.echo(f"test set: {ev.source}; without and with ICP refinement:")
     _print_summary(ev.metrics)

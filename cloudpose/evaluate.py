@@ -9,22 +9,21 @@ network alone and ``{name}_icp/...`` after ICP; the per-instance table is an art
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
-from tqdm.auto import tqdm
 
 from cloudpose import tracking
+from cloudpose.data.dataset import Prepared
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
+from cloudpose.infer import Estimates, estimate_poses, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
-from cloudpose.refine import ICPSettings, ModelIndex, icp_refine
+from cloudpose.refine import ICPSettings
+from cloudpose.runs import resolve_run
 
 OWN_TEST = "test"
 """Metric prefix of a run's evaluation on its own test set (``test/...``, ``test_icp/...``).
@@ -32,67 +31,6 @@ Reserved: an evaluation on other data (``--data``) is named by that data's ident
 
 METHODS = ("net", "icp")
 """Column prefixes of the per-instance table: the network's estimate, then after ICP."""
-
-
-@dataclass(frozen=True)
-class Estimates:
-    """Poses of every row of a segment set; rows that are misses hold NaN."""
-
-    R: np.ndarray  # (M, 3, 3)
-    t: np.ndarray  # (M, 3) metres
-
-
-@torch.no_grad()
-def estimate_poses(model, segs, n_points: int, device="cpu", batch_size: int = 512) -> Estimates:
-    """Run the pose network on every valid segment of ``segs`` (first ``n_points`` FPS points)."""
-    model.eval()
-    m = len(segs)
-    R = np.full((m, 3, 3), np.nan)
-    t = np.full((m, 3), np.nan)
-    idx = np.flatnonzero(segs.valid)
-    for i in range(0, len(idx), batch_size):
-        rows = idx[i : i + batch_size]
-        pts = torch.from_numpy(np.ascontiguousarray(segs.points[rows, :n_points], np.float32))
-        cls_id = torch.from_numpy(segs.cls_id[rows].astype(np.int64))
-        out = model(pts.to(device), cls_id.to(device))
-        R[rows] = out.R.double().cpu().numpy()
-        t[rows] = out.t.double().cpu().numpy()
-    return Estimates(R, t)
-
-
-def refine_poses(
-    segs,
-    est: Estimates,
-    models_by_class: dict[int, np.ndarray],
-    settings: ICPSettings | None = None,
-    progress: bool = False,
-) -> tuple[Estimates, np.ndarray]:
-    """ICP-refine every valid row; returns the refined poses and Open3D's fitness per row.
-
-    The observed cloud is the segment's cached FPS points without the fill-by-repeat copies
-    (``points[:count]``).
-    """
-    settings = settings or ICPSettings()
-    R, t = est.R.copy(), est.t.copy()
-    fitness = np.full(len(segs), np.nan)
-    index = {c: ModelIndex(m) for c, m in models_by_class.items()}  # one KD-tree per class
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
-            k = int(min(segs.count[i], segs.points.shape[1]))
-            sol = icp_refine(
-                segs.points[i, :k].astype(np.float64), index[int(segs.cls_id[i])],
-                est.R[i], est.t[i], settings,
-            )  # fmt: skip
-            R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
-    if caught:
-        # One line instead of one per object: far-off estimates leave ICP nothing to match.
-        warnings.warn(
-            f"ICP kept the network's pose for {len(caught)} of {int(np.sum(segs.valid))} "
-            f"objects (e.g. {caught[0].message})",
-            stacklevel=2,
-        )
-    return Estimates(R, t), fitness
 
 
 def instance_table(
@@ -160,64 +98,6 @@ class EvalOutcome:
     """Which run, checkpoint and data were evaluated, in words."""
 
 
-def resolve_run_id(client, run: str) -> str:
-    """MLflow run id of ``run`` (a run folder, an MLflow run id or a run name; see resolve_run)."""
-    path = Path(run)
-    if (path / "run.json").exists():
-        return json.loads((path / "run.json").read_text())["run_id"]
-    if run.count("/") == 2:
-        variant, preset, seed = run.split("/")
-        try:
-            seed_n = int(seed.removeprefix("seed"))
-        except ValueError:
-            raise ValueError(f"--run {run!r}: expected variant/preset/seedN") from None
-        found = tracking.find_runs(client, variant=variant, preset=preset, seed=seed_n)
-        own = [r for r in found if tracking.is_preset_config(r)]
-        if not found:
-            raise ValueError(f"no finished run named {run!r} in {tracking.tracking_uri()}")
-        if len(own) != 1:
-            listed = "; ".join(tracking.describe_run(r) for r in (own or found))
-            why = (
-                f"{len(own)} finished runs of preset {preset!r}'s own config are named {run!r}"
-                if own
-                else f"no finished run named {run!r} has preset {preset!r}'s own config "
-                "(the ones there were made with overrides or an older preset)"
-            )
-            raise ValueError(f"{why}: {listed}. Pass the run id or run folder")
-        run_id = own[0].info.run_id
-    else:
-        try:
-            run_id = client.get_run(run).info.run_id
-        except Exception as exc:
-            raise ValueError(
-                f"--run {run!r} is neither a run folder, a run name variant/preset/seedS, "
-                f"nor an MLflow run id in {tracking.tracking_uri()}"
-            ) from exc
-    return run_id
-
-
-def resolve_run(client, run: str, project_dir: Path) -> tuple[str, Path]:
-    """MLflow run id and local checkpoint of ``run``.
-
-    ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
-    ``variant/preset/seedS``: the one finished run of that name trained with the preset's own
-    config (an error listing the candidates when there are none or several).
-    """
-    run_id = resolve_run_id(client, run)
-    if (Path(run) / "run.json").exists():
-        return run_id, Path(run) / "model.pt"
-    local = Path(client.get_run(run_id).data.tags.get("run_dir", "")) / "model.pt"
-    if not local.exists():
-        import mlflow
-
-        local = Path(
-            mlflow.artifacts.download_artifacts(
-                run_id=run_id, artifact_path="model.pt", tracking_uri=client.tracking_uri
-            )
-        )
-    return run_id, local
-
-
 def evaluation_name(root: str | Path, frames: str, key: str) -> str:
     """Metric prefix of an evaluation on ``frames`` of the dataset at ``root``.
 
@@ -240,6 +120,7 @@ def evaluate(
     progress: bool = True,
     log: bool = True,
     device: str = "auto",
+    own_data: Prepared | None = None,
 ) -> EvalOutcome:
     """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
 
@@ -252,25 +133,26 @@ def evaluate(
         icp: also evaluate after ICP refinement.
         log: log the table and metrics to the run in MLflow.
         device: where the network runs ("auto": CUDA when available, as in training).
+        own_data: the run's own data, prepared (the pipeline passes what it trained on);
+            default: prepared here from the run's config.
 
     Raises:
         ValueError: no instance to evaluate; a reserved ``name`` with ``data``; ``name``
             already holding an evaluation of other data in this run.
     """
-    from cloudpose.data.cache import cache_key, ensure_dataset, only_classes, segments_for
+    from cloudpose.data.cache import cache_key, segments_for
+    from cloudpose.data.dataset import only_classes, prepare_data
     from cloudpose.data.ycb import YCBVideo
-    from cloudpose.train import load_checkpoint
+    from cloudpose.infer import load_checkpoint
 
     project_dir = (project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)
-    run_id, ckpt = resolve_run(client, run, project_dir)
+    run_id, ckpt = resolve_run(client, run)
     model, cfg = load_checkpoint(ckpt, device)
     device = next(model.buffers()).device
     if data is None:
-        _, segs = ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
-        from cloudpose.train import train_set_root
-
-        dataset = YCBVideo(train_set_root(cfg, project_dir))
+        own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
+        segs, dataset = own.test, YCBVideo(own.root)
         name, data_key = name or OWN_TEST, segs.key
         data_label = f"the run's own test set ({dataset.root})"
     else:

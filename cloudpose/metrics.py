@@ -13,8 +13,8 @@ infinite and it counts in every denominator, as in the toolbox.
 
 Fast and reference twins: ``add_distance`` / ``adds_distance`` evaluate many instances at once
 (ADS maps the ground-truth-posed points into the estimate's model frame, q = R^T((R x + t) - t^),
-and queries one KD-tree per model, built once and cached); ``add_distance_reference`` /
-``adds_distance_reference`` loop over instances and, for ADS, build a KD-tree on every
+and queries the model's ``data.models.ModelIndex``, built once per model and shared with ICP);
+``add_distance_reference`` / ``adds_distance_reference`` loop over instances and, for ADS, build a KD-tree on every
 estimate as bop_toolkit's ``adi`` does. Tests show they agree.
 
 Where numba is installed, ``adds_distance`` runs the compiled kernel
@@ -26,15 +26,14 @@ exact. The pykdtree path stays as the fallback and as a test twin.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from pykdtree.kdtree import KDTree
 
 from cloudpose import kernels
+from cloudpose.data.models import ModelIndex
 
 AUC_MAX_THRESHOLD = 0.1
 """Upper end of the AUC threshold range, metres (YCB-Video toolbox)."""
@@ -141,56 +140,6 @@ def add_distance_reference(
     return _out(out, single)
 
 
-class ModelTree:
-    """A model's points (in Morton order, for cache-friendly queries) and their KD-tree.
-
-    Build one per model and pass it as ``tree=`` to share it; ``adds_distance`` also keeps a
-    small cache keyed by the model's bytes, so repeated calls with the same points reuse it.
-
-    Attributes:
-        points: (P, 3) model points, metres, reordered along a Morton curve.
-        tree: pykdtree KD-tree over ``points``.
-        ads_index: the compiled ADS kernel's k-d tree and neighbour lists
-            (``cloudpose.kernels.build_nn_index``), or None without numba.
-    """
-
-    def __init__(self, model_points: np.ndarray) -> None:
-        X = _check_model(model_points)
-        self.points = X[_morton_order(X)]
-        self.tree = KDTree(self.points)
-        self.ads_index = kernels.build_nn_index(X) if kernels.HAVE_NUMBA else None
-
-
-def _morton_order(X: np.ndarray) -> np.ndarray:
-    """Indices sorting points along a 3-D Morton (Z-order) curve, 10 bits per axis."""
-    lo = X.min(axis=0)
-    span = float((X.max(axis=0) - lo).max()) or 1.0
-    g = np.clip(((X - lo) / span * 1023).astype(np.int64), 0, 1023)  # (P, 3)
-
-    def spread(v: np.ndarray) -> np.ndarray:
-        v = (v | (v << 16)) & 0x030000FF
-        v = (v | (v << 8)) & 0x0300F00F
-        v = (v | (v << 4)) & 0x030C30C3
-        return (v | (v << 2)) & 0x09249249
-
-    code = spread(g[:, 0]) | (spread(g[:, 1]) << 1) | (spread(g[:, 2]) << 2)
-    return np.argsort(code, kind="stable")
-
-
-_TREE_CACHE: dict[tuple[tuple[int, ...], bytes], ModelTree] = {}
-_TREE_CACHE_SIZE = 64
-
-
-def _tree_for(X: np.ndarray) -> ModelTree:
-    key = (X.shape, hashlib.blake2b(np.ascontiguousarray(X).tobytes(), digest_size=16).digest())
-    tree = _TREE_CACHE.get(key)
-    if tree is None:
-        if len(_TREE_CACHE) >= _TREE_CACHE_SIZE:
-            _TREE_CACHE.clear()
-        tree = _TREE_CACHE[key] = ModelTree(X)
-    return tree
-
-
 def adds_distance(
     model_points: np.ndarray,
     R_gt: np.ndarray,
@@ -198,7 +147,7 @@ def adds_distance(
     R_est: np.ndarray,
     t_est: np.ndarray,
     *,
-    tree: ModelTree | None = None,
+    index: ModelIndex | None = None,
 ) -> np.ndarray:
     """ADS: mean over ground-truth-posed points of the distance to the nearest estimate-posed
     point (vectorised, one KD-tree per model).
@@ -213,26 +162,26 @@ def adds_distance(
         R_est, t_est: (M, 3, 3), (M, 3) estimated poses; R_est must be orthonormal (the
             mapping uses R^T as the inverse: a float32-rounded rotation, off by ~1e-7, gives
             ADS within ~1e-7 relative of the per-instance tree's).
-        tree: optional prebuilt ``ModelTree(model_points)``.
+        index: optional prebuilt ``ModelIndex(model_points)`` (default: the cached one).
 
     Returns:
         (M,) ADS in metres (a 0-d array for one unbatched pose).
     """
     X = _check_model(model_points)
     R_gt, t_gt, R_est, t_est, single = _check_poses(R_gt, t_gt, R_est, t_est)
-    index = tree if tree is not None else _tree_for(X)
+    index = index if index is not None else ModelIndex.of(X)
     if index.points.shape != X.shape:
         raise ValueError(
-            f"tree: built on {index.points.shape[0]} points, model_points has {X.shape[0]}"
+            f"index: built on {index.points.shape[0]} points, model_points has {X.shape[0]}"
         )
-    Y = index.points  # the same points in Morton order (ADS is a mean: order-free)
+    Y = index.sorted_points  # the same points in Morton order (ADS is a mean: order-free)
     P = len(Y)
     A = np.swapaxes(R_est, 1, 2) @ R_gt  # (M, 3, 3): gt model frame -> est model frame
     b = np.einsum("mji,mj->mi", R_est, t_gt - t_est)  # (M, 3) = R^T (t - t^)
     W = np.concatenate([A, b[:, :, None]], axis=2)  # (M, 3, 4)
-    if index.ads_index is not None and np.isfinite(W).all():
+    if index.compiled is not None and np.isfinite(W).all():
         # compiled: a neighbour walk with an exactness certificate, k-d tree where it fails
-        return _out(kernels.adds_mean(index.ads_index, W), single)
+        return _out(kernels.adds_mean(index.compiled, W), single)
     Yh = np.concatenate([Y, np.ones((P, 1))], axis=1)  # (P, 4)
     out = np.empty(len(W))
     step = max(1, _ADS_CHUNK_POINTS // P)

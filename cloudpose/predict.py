@@ -63,13 +63,13 @@ def parse_intrinsics(text: str | None) -> np.ndarray:
 def load_model_for(checkpoint: str, device: str = "auto"):
     """(model, config) from a ``model.pt``, a run folder, an MLflow run id or a run name."""
     from cloudpose import tracking
-    from cloudpose.evaluate import resolve_run
-    from cloudpose.train import load_checkpoint
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.runs import resolve_run
 
     path = Path(checkpoint)
     if path.is_file():
         return load_checkpoint(path, device)
-    _, ckpt = resolve_run(tracking.setup(), checkpoint, Path.cwd())
+    _, ckpt = resolve_run(tracking.setup(), checkpoint)
     return load_checkpoint(ckpt, device)
 
 
@@ -95,7 +95,7 @@ def predict(
     """
     from cloudpose.data.segments import check_depth_scale, extract_segments
     from cloudpose.data.ycb import YCBVideo, read_frame
-    from cloudpose.evaluate import estimate_poses, refine_poses
+    from cloudpose.infer import estimate_poses, refine_poses
 
     model, cfg = load_model_for(checkpoint, device)
     K = None if meta is not None else parse_intrinsics(intrinsics)

@@ -48,9 +48,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from cloudpose import kernels
+from cloudpose.data.models import ModelIndex
+from cloudpose.geometry.rigid import umeyama_from_moments
 
 
 @dataclass(frozen=True)
@@ -130,93 +131,17 @@ def _degenerate(R: np.ndarray, t: np.ndarray, why: str) -> ICPSolution:
 
 
 # ---------------------------------------------------------------------------------------------
-# Closed-form alignment
-
-
-def umeyama_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid motion taking ``src`` onto ``dst`` (Umeyama 1991, no scale).
-
-    Eigen's ``umeyama(src, dst, false)``, which Open3D's point-to-point estimation calls: the
-    SVD of the cross-covariance, with the last singular direction flipped when
-    det(U) det(V) < 0 so the result is a rotation.
-
-    Args:
-        src: (n, 3) points, n >= 1.
-        dst: (n, 3) corresponding points.
-
-    Returns:
-        R (3, 3) and t (3,) with ``dst ~ src @ R.T + t``.
-    """
-    mu_s = src.mean(axis=0)
-    mu_d = dst.mean(axis=0)
-    sigma = (dst - mu_d).T @ (src - mu_s)  # (3, 3); the 1/n factor changes nothing here
-    U, _, Vt = np.linalg.svd(sigma)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        U = U.copy()
-        U[:, 2] = -U[:, 2]
-    R = U @ Vt
-    return R, mu_d - R @ mu_s
-
-
-def _umeyama_from_moments(S: np.ndarray) -> np.ndarray:
-    """Umeyama (no scale) from the homogeneous moment matrix of the correspondences.
-
-    Args:
-        S: (4, 4) sum over pairs of [d, 1]^T [s, 1]: S[:3, :3] = sum d s^T, S[:3, 3] = sum d,
-            S[3, :3] = sum s, S[3, 3] = n.
-
-    Returns:
-        (4, 4) rigid transform taking s onto d; the identity when n = 0 (Open3D's behaviour)
-        and a pure translation when n < 3 (one or two pairs fix no rotation).
-    """
-    T = np.eye(4)
-    n = S[3, 3]
-    if n == 0:
-        return T
-    mu_d = S[:3, 3] / n
-    mu_s = S[3, :3] / n
-    if n < 3:
-        T[:3, 3] = mu_d - mu_s
-        return T
-    # sum (d - mu_d)(s - mu_s)^T; model-frame coordinates are centred near the origin, so
-    # forming it from raw moments costs no accuracy that matters (agrees with Eigen to ~1e-15).
-    sigma = S[:3, :3] - n * np.outer(mu_d, mu_s)
-    U, _, Vt = np.linalg.svd(sigma)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:  # det(U) det(V) < 0: flip the weakest direction (Eigen's umeyama)
-        R -= 2.0 * np.outer(U[:, 2], Vt[2])
-    T[:3, :3] = R
-    T[:3, 3] = mu_d - R @ mu_s
-    return T
-
-
-# ---------------------------------------------------------------------------------------------
 # Fast path
 
 
-class ModelIndex:
-    """A model's points with a KD-tree in the model frame, shared by every instance of it.
-
-    Attributes:
-        points: (P, 3) model points, metres.
-        tree: pykdtree KD-tree over ``points``.
-        points_h: (P + 1, 4) homogeneous points plus a zero row at index P, the index pykdtree
-            returns for "no neighbour within the bound", so a gather needs no mask.
-        kernel_index: the compiled ICP loop's k-d tree and neighbour lists
-            (``cloudpose.kernels.build_nn_index``), or
-            None without numba.
-    """
-
-    def __init__(self, model_points: np.ndarray) -> None:
-        self.points = _check_points("model_points", model_points)
-        if len(self.points) == 0:
-            raise ValueError("model_points: expected at least one point, got 0")
-        self.tree = KDTree(self.points)
-        P = len(self.points)
-        self.points_h = np.zeros((P + 1, 4))
-        self.points_h[:P, :3] = self.points
-        self.points_h[:P, 3] = 1.0
-        self.kernel_index = kernels.build_nn_index(self.points) if kernels.HAVE_NUMBA else None
+def _index_of(model_points: np.ndarray | ModelIndex) -> ModelIndex:
+    """The model's shared index (built once per distinct point set, see ``ModelIndex.of``)."""
+    if isinstance(model_points, ModelIndex):
+        return model_points
+    X = _check_points("model_points", model_points)
+    if len(X) == 0:
+        raise ValueError("model_points: expected at least one point, got 0")
+    return ModelIndex.of(X)
 
 
 _controller = None
@@ -266,8 +191,8 @@ def icp_refine(
     R_init, t_init = _check_pose(R_init, t_init)
     if len(observed) < 3:
         return _degenerate(R_init, t_init, f"{len(observed)} observed points, need >= 3")
-    index = model_points if isinstance(model_points, ModelIndex) else ModelIndex(model_points)
-    if index.kernel_index is not None:  # compiled: no BLAS or OpenMP threads to hold back
+    index = _index_of(model_points)
+    if index.compiled is not None:  # compiled: no BLAS or OpenMP threads to hold back
         return _icp_model_frame(observed, index, R_init, t_init, settings.radii())
     with _single_threaded():
         return _icp_model_frame(observed, index, R_init, t_init, settings.radii())
@@ -277,9 +202,9 @@ def _icp_model_frame(
     observed: np.ndarray, index: ModelIndex, R_init: np.ndarray, t_init: np.ndarray, radii
 ) -> ICPSolution:
     N = len(observed)
-    if index.kernel_index is not None and np.isfinite(observed).all():
+    if index.compiled is not None and np.isfinite(observed).all():
         T_acc, n_inl, sum_d2 = kernels.icp_model_frame(
-            index.kernel_index, (observed - t_init) @ R_init, np.asarray(radii, dtype=np.float64)
+            index.compiled, (observed - t_init) @ R_init, np.asarray(radii, dtype=np.float64)
         )
         if n_inl < 0:
             return _degenerate(R_init, t_init, f"no model point within {radii[0]} m")
@@ -290,14 +215,14 @@ def _icp_model_frame(
     cur[:, :3] = (observed - t_init) @ R_init  # R^T (p - t), row-major
     cur[:, 3] = 1.0
     T_acc = np.eye(4)  # accumulated correction: cur = src_h @ T_acc.T
-    tree, model_h = index.tree, index.points_h
+    tree, model_h = index.tree, index.sorted_h
     for i, r in enumerate(radii):
         _, idx = tree.query(cur[:, :3], k=1, distance_upper_bound=r, sqr_dists=True)
         matched = np.take(model_h, idx, axis=0)  # (N, 4); zero rows for "no neighbour"
         S = matched.T @ cur  # (4, 4) moments of the correspondences
         if i == 0 and S[3, 3] == 0:
             return _degenerate(R_init, t_init, f"no model point within {r} m")
-        T_u = _umeyama_from_moments(S)
+        T_u = umeyama_from_moments(S)
         cur = cur @ T_u.T
         T_acc = T_u @ T_acc
     r = radii[-1]
@@ -320,7 +245,7 @@ def icp_refine_batch(
 ) -> list[ICPSolution]:
     """Refine many pose estimates (the same result as ``icp_refine`` on each).
 
-    Instances that share a model (the same array or ``ModelIndex`` object) share one KD-tree.
+    Instances that share a model (the same points or ``ModelIndex``) share one index.
 
     Args:
         observed: M arrays (N_i, 3), camera frame, metres.
@@ -344,7 +269,6 @@ def icp_refine_batch(
         raise ValueError(f"R_init: expected shape ({M}, 3, 3), got {R_init.shape}")
     if t_init.shape != (M, 3):
         raise ValueError(f"t_init: expected shape ({M}, 3), got {t_init.shape}")
-    indexes: dict[int, ModelIndex] = {}
     out = []
     radii = settings.radii()
     with _single_threaded():
@@ -355,13 +279,7 @@ def icp_refine_batch(
                     _degenerate(R_init[i], t_init[i], f"{len(obs)} observed points, need >= 3")
                 )
                 continue
-            mp = model_points[i]
-            if isinstance(mp, ModelIndex):
-                index = mp
-            else:
-                index = indexes.get(id(mp))
-                if index is None:
-                    index = indexes[id(mp)] = ModelIndex(mp)
+            index = _index_of(model_points[i])
             out.append(_icp_model_frame(obs, index, R_init[i], t_init[i], radii))
     return out
 

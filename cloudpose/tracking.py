@@ -6,9 +6,10 @@
 - One experiment per ablation group (``cloudpose-shared``, ``cloudpose-rotation``, ...). A run
   lives in the experiment of the group it was trained for; a variant listed in several groups
   (``shared-0``) is trained once and found by tags from every group's report.
-- Run name ``{variant}/{preset}/seed{seed}``; tags ``variant``, ``group``, ``preset``, ``seed``,
-  ``data`` (the data fingerprint), ``config`` (:meth:`Config.fingerprint`), ``git_commit``. Metric keys are split-prefixed
-  (``train/loss``, ``val/ads_auc``, ``test/ads_auc``, ``test_icp/ads_auc``).
+- Tags ``variant``, ``group``, ``preset``, ``seed``, ``data`` (the data fingerprint), ``config``
+  (:meth:`Config.fingerprint`), ``git_commit``; names and identity in :mod:`cloudpose.runs`.
+  Metric keys are split-prefixed (``train/loss``, ``val/ads_auc``, ``test/ads_auc``,
+  ``test_icp/ads_auc``).
 """
 
 from __future__ import annotations
@@ -95,23 +96,6 @@ def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
     return client.create_experiment(name, artifact_location=location, tags={"group": group})
 
 
-def run_name(variant: str, preset: str, seed: int) -> str:
-    """Deterministic run name, ``shared-3/cpu/seed1``."""
-    return f"{variant}/{preset}/seed{seed}"
-
-
-def display_name(cfg) -> str:
-    """The MLflow run name of ``cfg``: :func:`run_name`, plus ``+{config fingerprint}`` when
-    ``cfg`` is not its preset's own config (overrides), so that runs of different configs never
-    share a name in the UI."""
-    from cloudpose.config import resolve
-
-    name = run_name(cfg.variant, cfg.preset, cfg.seed)
-    root = {"data": {"root": cfg.data.root}} if cfg.data.root else None
-    own = resolve(cfg.variant, cfg.preset, cfg.seed, root)
-    return name if own.fingerprint() == cfg.fingerprint() else f"{name}+{cfg.fingerprint()[:8]}"
-
-
 def metric_key(*parts: str) -> str:
     """Join parts with ``/`` and replace characters MLflow keys do not allow."""
     return _KEY_BAD.sub("_", "/".join(parts))
@@ -177,45 +161,3 @@ def find_runs(
 def flat_params(d: dict[str, Any]) -> dict[str, str]:
     """MLflow params from a flat config dict: values as strings, keys sanitised."""
     return {metric_key(k): str(v) for k, v in d.items()}
-
-
-def run_has_config(run, cfg) -> bool:
-    """Whether an MLflow ``run`` was made with exactly the config ``cfg``.
-
-    By the ``config`` tag; a run from before that tag existed is compared on its logged params
-    (every ``section.field`` of ``cfg`` must be there with the same value).
-    """
-    tag = run.data.tags.get("config")
-    if tag is not None:
-        return tag == cfg.fingerprint()
-    params = run.data.params
-    return all(params.get(k) == v for k, v in flat_params(cfg.flat()).items())
-
-
-def is_preset_config(run) -> bool:
-    """Whether an MLflow ``run`` was trained with its preset's own config (no override).
-
-    Its tags name variant, preset and seed; the config those resolve to today (with the run's
-    dataset root) must have the run's ``config`` fingerprint. A run made with ``--set`` or
-    ``--epochs``, or under an edited preset, is another config and answers False.
-    """
-    from cloudpose.config import resolve
-
-    tags, params = run.data.tags, run.data.params
-    root = params.get("data.root", "")
-    try:
-        cfg = resolve(tags["variant"], tags["preset"], int(tags["seed"]),
-                      {"data": {"root": root}} if root else None)  # fmt: skip
-    except (KeyError, ValueError):
-        return False
-    return tags.get("config") == cfg.fingerprint()
-
-
-def describe_run(run) -> str:
-    """One line naming a run: id, name, config and data fingerprints, start time."""
-    import datetime
-
-    t = run.data.tags
-    start = datetime.datetime.fromtimestamp((run.info.start_time or 0) / 1000)
-    return (f"{run.info.run_id} ({run.info.run_name}, config {t.get('config', '?')}, "
-            f"data {t.get('data', '?')[:10]}, started {start:%Y-%m-%d %H:%M})")  # fmt: skip

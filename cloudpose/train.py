@@ -18,29 +18,29 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from cloudpose import tracking
+from cloudpose import runs, runtime, tracking
 from cloudpose.config import Config, groups_of
+from cloudpose.data.dataset import Prepared
+from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import (
     SymmetryTensors,
     rotation_errors_modulo_symmetry,
     symmetries_for,
 )
+from cloudpose.infer import forward_in_batches
 from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
 from cloudpose.models import build_model, count_parameters
 from cloudpose.models.fused import fuse_model
-from cloudpose.models.inference import fold_for_inference
 
 
 @dataclass(frozen=True)
@@ -51,19 +51,6 @@ class TrainOutcome:
     run_dir: Path
     checkpoint: Path
     metrics: dict[str, float]
-
-
-def pick_device(name: str = "auto") -> torch.device:
-    """``auto``: CUDA when available, else CPU; anything else is passed to ``torch.device``."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as exc:
-        raise ValueError(f"device {name!r}: expected auto, cpu, cuda or cuda:N") from exc
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {name!r}: CUDA is not available here; use auto or cpu")
-    return device
 
 
 def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
@@ -112,12 +99,6 @@ class Batchable:
         return Batchable(self.points[index], self.cls_id[index], self.R[index], self.t[index])
 
 
-def _save_atomic(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 @torch.no_grad()
 def validate(
     model: torch.nn.Module,
@@ -139,12 +120,9 @@ def validate(
     """
     if len(data) == 0:
         return {}
-    model.eval()
     Rs, ts, totals = [], [], []
-    for i in range(0, len(data), batch_size):
-        sl = slice(i, i + batch_size)
+    for sl, out in forward_in_batches(model, data.points, data.cls_id, device, batch_size):
         cls_id = data.cls_id[sl].to(device)
-        out = model(data.points[sl].to(device), cls_id)
         terms = pose_loss(
             out.R, out.t, data.R[sl].to(device), data.t[sl].to(device),
             rotation=cfg.loss.rotation, alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw,
@@ -153,7 +131,6 @@ def validate(
         totals.append(float(terms.total) * out.R.shape[0])
         Rs.append(out.R.float().cpu())
         ts.append(out.t.float().cpu())
-    model.train()
     R_est, t_est = torch.cat(Rs).numpy(), torch.cat(ts).numpy()
     R_gt, t_gt = data.R.numpy(), data.t.numpy()
     cls_id = data.cls_id.numpy()
@@ -286,14 +263,9 @@ def lr_at(cfg: Config, step: int, total: int) -> float:
     return cfg.train.lr
 
 
-def run_dir_for(cfg: Config, data_key: str, project_dir: Path) -> Path:
-    """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{config[:8]}`` under the project folder."""
-    name = f"seed{cfg.seed}-{data_key[:10]}-{cfg.fingerprint()[:8]}"
-    return project_dir / "runs" / cfg.variant / cfg.preset / name
-
-
 def train(
     cfg: Config,
+    data: Prepared,
     *,
     project_dir: Path | None = None,
     group: str | None = None,
@@ -301,10 +273,13 @@ def train(
     checkpoint_every_s: float = 60.0,
     max_steps: int | None = None,
 ) -> TrainOutcome:
-    """Train ``cfg`` (resuming if its run folder has a checkpoint) and log it to MLflow.
+    """Train ``cfg`` on prepared data (resuming if its run folder has a checkpoint) and log it
+    to MLflow. Making the data is the caller's step (:func:`cloudpose.pipeline.train_run`).
 
     Args:
         cfg: the full resolved config (:func:`cloudpose.config.resolve`).
+        data: ``cfg.data`` prepared (:func:`cloudpose.data.dataset.prepare_data`); its
+            training segments are fitted and validated on, its key names the run.
         project_dir: folder holding ``data/``, ``runs/`` and the default MLflow store (cwd).
         group: ablation group whose experiment receives a new run; default the variant's
             first group.
@@ -317,18 +292,15 @@ def train(
         The run's id, folder, final checkpoint and final metrics. A finished run is returned
         as it is, without training again.
     """
-    from cloudpose.data.cache import data_fingerprint, ensure_dataset
     from cloudpose.data.ycb import YCBVideo
 
     project_dir = (project_dir or Path.cwd()).resolve()
-    device = pick_device(cfg.train.device)
-    train_set, _ = ensure_dataset(cfg.data, project_dir=project_dir, progress=progress)
-    data_key = data_fingerprint(cfg.data, project_dir=project_dir)
-    rdir = run_dir_for(cfg, data_key, project_dir)
+    device = runtime.pick_device(cfg.train.device)
+    train_set, data_key = data.train, data.key
+    rdir = runs.run_dir(cfg, data_key, project_dir)
     rdir.mkdir(parents=True, exist_ok=True)
     last, final = rdir / "last.pt", rdir / "model.pt"
-    info_path = rdir / "run.json"
-    info = json.loads(info_path.read_text()) if info_path.exists() else {}
+    info = runs.read_info(rdir)
     if info.get("finished") and final.exists():
         return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
 
@@ -340,7 +312,7 @@ def train(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
             f"{cfg.train.batch_size}; render more frames (data.train_frames)"
         )
-    dataset = YCBVideo(train_set_root(cfg, project_dir))
+    dataset = YCBVideo(data.root)
     models_by_class = dataset.models()
     class_names = list(dataset.classes)
     symmetry = None
@@ -376,7 +348,7 @@ def train(
             "data": data_key, "config": cfg.fingerprint(), "git_commit": tracking.git_commit(),
             "run_dir": str(rdir),
         }  # fmt: skip
-        run = client.create_run(exp, tags=tags, run_name=tracking.display_name(cfg))
+        run = client.create_run(exp, tags=tags, run_name=runs.display_name(cfg))
         run_id = run.info.run_id
         params = tracking.flat_params(cfg.flat())
         params.update({"model.parameters": str(count_parameters(model)),
@@ -386,7 +358,7 @@ def train(
             client.log_param(run_id, k, v)
         client.log_text(run_id, json.dumps(cfg.to_dict(), indent=2), "config.json")
         info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
-        info_path.write_text(json.dumps(info, indent=2))
+        runs.write_info(rdir, info)
     else:
         client.update_run(run_id, status="RUNNING")
 
@@ -395,7 +367,7 @@ def train(
     steps_here, t_ckpt = 0, time.monotonic()
     model.train()
     bar = tqdm(total=cfg.train.epochs * n_batches, initial=epoch * n_batches + batch,
-               disable=not progress, desc=tracking.run_name(cfg.variant, cfg.preset, cfg.seed),
+               disable=not progress, desc=runs.run_name(cfg.variant, cfg.preset, cfg.seed),
                unit="step", dynamic_ncols=True)  # fmt: skip
     metrics: dict[str, float] = {}
     total_steps = cfg.train.epochs * n_batches
@@ -462,11 +434,12 @@ def train(
         t_ckpt = time.monotonic()
     bar.close()
 
-    _save_atomic({"model": model.state_dict(), "config": cfg.to_dict()}, final)
+    state = {"model": model.state_dict(), "config": cfg.to_dict()}
+    atomic_write(final, lambda tmp: torch.save(state, tmp))
     client.log_artifact(run_id, str(final))
     final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
     info.update({"finished": True, "metrics": final_metrics})
-    info_path.write_text(json.dumps(info, indent=2))
+    runs.write_info(rdir, info)
     client.set_terminated(run_id, "FINISHED")
     return TrainOutcome(run_id, rdir, final, final_metrics)
 
@@ -488,19 +461,10 @@ class TrainingInterrupted(RuntimeError):
     """Raised when ``max_steps`` stops a run before its end (its checkpoint is saved)."""
 
 
-def train_set_root(cfg: Config, project_dir: Path) -> Path:
-    """Dataset root of ``cfg.data`` (the synthetic default or the user's YCB-Video)."""
-    from cloudpose.data.cache import dataset_root
-
-    return dataset_root(cfg.data, project_dir=project_dir)
-
-
 def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sums: dict) -> None:
-    _save_atomic(
-        {"model": model.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
-         "epoch": epoch, "batch": batch, "sums": dict(sums)},
-        path,
-    )  # fmt: skip
+    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
+             "epoch": epoch, "batch": batch, "sums": dict(sums)}  # fmt: skip
+    atomic_write(path, lambda tmp: torch.save(state, tmp))
 
 
 def _mlflow_metrics(metrics: dict[str, float], step: int):
@@ -508,36 +472,3 @@ def _mlflow_metrics(metrics: dict[str, float], step: int):
 
     now = int(time.time() * 1000)
     return [Metric(k, float(v), now, step) for k, v in metrics.items()]
-
-
-def load_checkpoint(
-    path: str | Path, device: str | torch.device = "cpu"
-) -> tuple[torch.nn.Module, Config]:
-    """Inference model and config from a ``model.pt`` or ``last.pt`` checkpoint.
-
-    ``device``: where the model goes ("auto": CUDA when available, :func:`pick_device`).
-
-    The model is the trained network folded for inference (no training from it).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    device = pick_device(device)
-    try:
-        # weights_only: a checkpoint holds tensors and plain data; any other pickle is refused
-        state = torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # a text file, a torn file, a foreign or unsafe pickle
-        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
-        raise ValueError(f"{path} is not a cloudpose checkpoint ({reason})") from exc
-    if not isinstance(state, dict) or "model" not in state or "config" not in state:
-        raise ValueError(f"{path} is not a cloudpose checkpoint (expected keys 'model', 'config')")
-    cfg = Config.from_dict(state["config"])
-    model = build_model(cfg.model).to(device)
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: the weights do not fit its config's network ({exc})") from exc
-    model.eval()
-    # Inference only: every BatchNorm folded into its layer, both networks as one batched
-    # product (same outputs as eval mode to ~1e-7 in float32; cloudpose.models.inference).
-    return fold_for_inference(model), cfg

@@ -1,20 +1,106 @@
-"""Shared fixtures: the smoke preset's synthetic data and one trained smoke model, made once."""
+"""Shared fixtures (the smoke preset's synthetic data and one trained smoke model, made once)
+and the suite's hermeticity: nothing is written into the checkout.
+
+Caches that would land in the checkout go to ``$XDG_CACHE_HOME/cloudpose-tests`` (numba's
+compiled kernels, kept between runs so only the first run compiles; hypothesis's example
+database). Every test starts in an empty temporary folder, and ``MLFLOW_TRACKING_URI`` is
+unset, so a command that writes into the current folder (``mlflow.db``, ``data/``, ``runs/``)
+writes there. After the session the controller compares ``git status`` with the one it found at the
+start and fails the run, naming the files, if the suite left anything behind.
+"""
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
 
 DATA = Path(__file__).parent / "data"
+REPO = Path(__file__).resolve().parents[1]
+
+_CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cloudpose-tests"
+os.environ.setdefault("NUMBA_CACHE_DIR", str(_CACHE / "numba"))  # before numba is imported
+
+
+def _hypothesis_profile() -> None:
+    try:
+        from hypothesis import settings
+        from hypothesis.configuration import set_hypothesis_home_dir
+        from hypothesis.database import DirectoryBasedExampleDatabase
+    except ImportError:  # pragma: no cover - hypothesis is a dev dependency
+        return
+    set_hypothesis_home_dir(str(_CACHE / "hypothesis"))  # its other caches, e.g. constants/
+    settings.register_profile(
+        "cloudpose", database=DirectoryBasedExampleDatabase(str(_CACHE / "hypothesis"))
+    )
+    settings.load_profile("cloudpose")
+
+
+_hypothesis_profile()
+
+
+def _git_status() -> set[str] | None:
+    """Untracked paths of the checkout, ignored ones included, or None without git.
+
+    Edits of tracked files are left out: the suite writes no tracked file, and a person may
+    edit one while it runs.
+    """
+    try:
+        out = subprocess.run(
+            ["git", "status", "--porcelain", "--ignored", "--untracked-files=all"],
+            cwd=REPO, capture_output=True, text=True, timeout=60, check=True,
+        ).stdout  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    # bytecode is Python's own business, and the virtualenv is where the suite runs from
+    skip = ("__pycache__/", ".venv/", ".pytest_cache/", ".egg-info/", ".ruff_cache/")
+    return {
+        line[3:]
+        for line in out.splitlines()
+        if line[:2] in ("??", "!!") and not any(k in line for k in skip)
+    }
+
+
+def pytest_sessionstart(session) -> None:
+    if not hasattr(session.config, "workerinput"):  # the xdist controller (or a plain run)
+        session.config._git_status_before = _git_status()
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    before = getattr(session.config, "_git_status_before", None)
+    if before is None:
+        return
+    after = _git_status() or set()
+    left = sorted(after - before)
+    if left:
+        session.config._git_left = left
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    left = getattr(config, "_git_left", None)
+    if left:
+        terminalreporter.section("the suite wrote into the checkout (tests must not)", red=True)
+        for line in left:
+            terminalreporter.write_line(line)
+
+
+@pytest.fixture(autouse=True)
+def _in_a_scratch_folder(tmp_path_factory, monkeypatch):
+    """Every test runs in an empty folder of its own; the MLflow store follows the project
+    folder (the current one unless a test names another), never a store set outside."""
+    monkeypatch.chdir(tmp_path_factory.mktemp("cwd"))
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
 
 
 @pytest.fixture(scope="session")
 def smoke_data(tmp_path_factory) -> Path:
     """``data/`` folder holding the smoke preset's synthetic set and its segment caches."""
     from cloudpose.config import resolve
-    from cloudpose.data.cache import ensure_dataset
+    from cloudpose.data.dataset import ensure_dataset
 
     root = tmp_path_factory.mktemp("smoke-data")
     ensure_dataset(resolve("shared-0", "smoke").data, project_dir=root, progress=False)
@@ -33,12 +119,12 @@ def make_project(path: Path, smoke_data: Path, monkeypatch) -> Path:
 def smoke_run(tmp_path_factory, smoke_data):
     """(project folder, TrainOutcome) of shared-0 trained on the smoke preset."""
     from cloudpose.config import resolve
-    from cloudpose.train import train
+    from cloudpose.pipeline import train_run
 
     mp = pytest.MonkeyPatch()
     try:
         proj = make_project(tmp_path_factory.mktemp("smoke-run") / "proj", smoke_data, mp)
-        out = train(resolve("shared-0", "smoke", seed=1), project_dir=proj, progress=False)
+        out = train_run(resolve("shared-0", "smoke", seed=1), project_dir=proj, progress=False)
     finally:
         mp.undo()
     return proj, out

@@ -8,17 +8,16 @@ preset, seed and data; FINISHED after training; test metrics after evaluation.
 from __future__ import annotations
 
 import shutil
-import sys
 import types
 from pathlib import Path
 
 import pytest
 
-from cloudpose import ablate, tracking
+from cloudpose import ablate, runs, tracking
 
 
 class Fakes:
-    """Fake train/evaluate/data_fingerprint recording their calls."""
+    """Fake train/evaluate/prepare_data recording their calls."""
 
     def __init__(self, root: Path):
         self.root = root
@@ -30,10 +29,10 @@ class Fakes:
         self.runs: dict[tuple[str, int, str, str], str] = {}  # resumable: same run, same settings
         self.config_tag = True  # False: runs as made before the ``config`` tag existed
 
-    def data_fingerprint(self, data_cfg, project_dir=None):
-        return self.fingerprint
+    def prepare_data(self, data_cfg, project_dir=None, progress=True):
+        return types.SimpleNamespace(key=self.fingerprint)
 
-    def train(self, cfg, *, project_dir=None, group=None, progress=True, **_):
+    def train(self, cfg, data=None, *, project_dir=None, group=None, progress=True, **_):
         key = (cfg.variant, cfg.seed)
         self.trained.append(key)
         if key in self.fail_train:
@@ -47,7 +46,7 @@ class Fakes:
             if self.config_tag:
                 tags["config"] = cfg.fingerprint()
             run = client.create_run(exp, tags=tags,
-                                    run_name=tracking.run_name(cfg.variant, cfg.preset, cfg.seed))  # fmt: skip
+                                    run_name=runs.run_name(cfg.variant, cfg.preset, cfg.seed))  # fmt: skip
             for k, v in tracking.flat_params(cfg.flat()).items():
                 client.log_param(run.info.run_id, k, v)
             self.runs[rkey] = run.info.run_id
@@ -91,16 +90,11 @@ def fakes(tmp_path, monkeypatch, empty_store):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     monkeypatch.chdir(tmp_path)
     f = Fakes(tmp_path)
+    import cloudpose.data.dataset
     import cloudpose.evaluate
     import cloudpose.train
 
-    try:
-        import cloudpose.data.cache as cache
-    except ImportError:  # the data pipeline has not landed: stand in a module
-        cache = types.ModuleType("cloudpose.data.cache")
-        monkeypatch.setitem(sys.modules, "cloudpose.data.cache", cache)
-    monkeypatch.setattr(cache, "data_fingerprint", f.data_fingerprint, raising=False)
-    monkeypatch.setattr(cache, "ensure_dataset", lambda *a, **k: None, raising=False)
+    monkeypatch.setattr(cloudpose.data.dataset, "prepare_data", f.prepare_data)
     monkeypatch.setattr(cloudpose.train, "train", f.train)
     monkeypatch.setattr(cloudpose.evaluate, "evaluate", f.evaluate)
     return f

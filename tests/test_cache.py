@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from cloudpose.config import DataConfig
-from cloudpose.data import cache
+from cloudpose.data import cache, dataset
 from cloudpose.data.segments import Segment
 from cloudpose.data.synth import synthesize
+from cloudpose.report.plots import occlusion_histogram
 
 REAL = Path(__file__).parent / "data" / "ycb_real"
 CFG = DataConfig(train_frames=2, test_frames=1, n_fps=64)
@@ -23,7 +24,7 @@ CFG = DataConfig(train_frames=2, test_frames=1, n_fps=64)
 def project(tmp_path_factory) -> Path:
     """A project folder whose synthetic default data (2 train, 1 test frames) exists."""
     d = tmp_path_factory.mktemp("project")
-    synthesize(cache.synthetic_root(CFG, d), 2, 1, workers=1, progress=False)
+    synthesize(dataset.synthetic_root(CFG, d), 2, 1, workers=1, progress=False)
     return d
 
 
@@ -75,7 +76,7 @@ def test_load_rejects_bad_files(tmp_path):
 
 def test_prepare_and_keys(project, tmp_path):
     root = tmp_path / "ds"
-    shutil.copytree(cache.synthetic_root(CFG, project), root)
+    shutil.copytree(dataset.synthetic_root(CFG, project), root)
     cdir = tmp_path / "cache"
     p = cache.prepare(root, "train", CFG, cdir, workers=1, progress=False)
     s = cache.SegmentSet.load(p)
@@ -106,6 +107,13 @@ def test_prepare_and_keys(project, tmp_path):
     copy = tmp_path / "copy" / root.name
     shutil.copytree(root, copy)  # a copy (new mtimes) is the same data
     assert cache.cache_key(copy, "train", CFG) == key
+    meta = copy / "data" / "0000" / "000001-meta.mat"  # rewritten later: a new "Created on"
+    raw = meta.read_bytes()
+    assert raw.startswith(b"MATLAB 5.0 MAT-file") and b"Created on" in raw[: cache.MAT_TEXT_HEADER]
+    meta.write_bytes(b"MATLAB 5.0 MAT-file, written another day".ljust(116, b" ") + raw[116:])
+    assert cache.cache_key(copy, "train", CFG) == key  # a re-render is the same data
+    meta.write_bytes(raw[:-1] + bytes([raw[-1] ^ 1]))  # any other byte still counts
+    assert cache.cache_key(copy, "train", CFG) != key
     label = root / "data" / "0000" / "000002-label.png"
     label.write_bytes(label.read_bytes() + b"\0")  # new content
     key2 = cache.cache_key(root, "train", CFG, memo_dir=cdir)
@@ -122,17 +130,17 @@ def test_prepare_and_keys(project, tmp_path):
 
 
 def test_ensure_dataset_synthetic(project):
-    train, test = cache.ensure_dataset(CFG, project, workers=1, progress=False)
+    train, test = dataset.ensure_dataset(CFG, project, workers=1, progress=False)
     assert set(train.frame_id.tolist()) == {"0000/000001", "0000/000002"}
     assert set(test.frame_id.tolist()) == {"1000/000001"}
     assert train.points.shape[1] == 64
-    fp = cache.data_fingerprint(CFG, project)
-    assert fp == cache.data_fingerprint(CFG, project) and len(fp) == 16
-    assert cache.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
-    assert cache.synthetic_root(CFG, project).name == "synth-seed0"
-    assert cache.dataset_root(CFG, project) == cache.synthetic_root(CFG, project)
+    fp = dataset.data_fingerprint(CFG, project)
+    assert fp == dataset.data_fingerprint(CFG, project) and len(fp) == 16
+    assert dataset.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
+    assert dataset.synthetic_root(CFG, project).name == "synth-seed0"
+    assert dataset.dataset_root(CFG, project) == dataset.synthetic_root(CFG, project)
     cfg2 = dataclasses.replace(CFG, noise=False, uniform_rotation=True, synth_seed=2)
-    assert cache.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise"
+    assert dataset.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise"
 
 
 def test_ensure_dataset_real_root(tmp_path):
@@ -145,13 +153,13 @@ def test_ensure_dataset_real_root(tmp_path):
     (root / "keyframe.txt").write_text("0000/000001\n")
     before = sorted(p.relative_to(root) for p in root.rglob("*"))
     cfg = DataConfig(root=str(root), n_fps=128)
-    train, test = cache.ensure_dataset(cfg, tmp_path / "proj", workers=1, progress=False)
+    train, test = dataset.ensure_dataset(cfg, tmp_path / "proj", workers=1, progress=False)
     assert sorted(p.relative_to(root) for p in root.rglob("*")) == before
     assert len(train) == 3 and train.cls_id.tolist() == [8, 14, 21]
     assert np.array_equal(train.points, test.points)
     assert np.isfinite(train.occlusion).all()
     assert list((tmp_path / "proj" / "data" / "cache").glob("ycb-*.npz"))
-    assert cache.dataset_root(cfg, tmp_path / "proj") == root
+    assert dataset.dataset_root(cfg, tmp_path / "proj") == root
     from cloudpose.data.ycb import YCBVideo
 
     every = cache.segments_for(YCBVideo(root), "all", cfg, tmp_path / "c2", progress=False)
@@ -159,13 +167,13 @@ def test_ensure_dataset_real_root(tmp_path):
     assert np.array_equal(every.points, train.points)
     assert not (root / "cache").exists()
     with pytest.raises(FileNotFoundError, match=r"data\.root"):
-        cache.ensure_dataset(DataConfig(root=str(tmp_path / "nope")), tmp_path, progress=False)
+        dataset.ensure_dataset(DataConfig(root=str(tmp_path / "nope")), tmp_path, progress=False)
 
 
 def test_occlusion_histogram(tmp_path):
     s = cache.SegmentSet.from_segments([_segment(i) for i in range(3)], 8)
     s.occlusion = np.array([0.0, 0.15, 1.0], np.float32)
     png = tmp_path / "h.png"
-    counts = cache.occlusion_histogram(s, png, "test")
+    counts = occlusion_histogram(s, png, "test")
     assert counts.tolist() == [1, 1, 0, 0, 0, 0, 0, 0, 0, 1]
     assert png.stat().st_size > 1000

@@ -77,7 +77,7 @@ def test_a_malicious_pickle_is_refused_in_one_line(project, tmp_path):
     path.write_bytes(pickle.dumps({"model": Evil(), "config": {}}))
     res = cli("evaluate", "--run", str(tmp_path), "--no-progress")  # not a run folder either
     one_line_error(res)
-    from cloudpose.train import load_checkpoint
+    from cloudpose.infer import load_checkpoint
 
     with pytest.raises(ValueError, match="not a cloudpose checkpoint"):
         load_checkpoint(path)
@@ -140,7 +140,7 @@ def test_an_empty_frame_list_is_an_error(project, tmp_path):
 def test_a_run_name_resolves_to_the_presets_own_config(project):
     proj, out = project
     name = "shared-0/smoke/seed1"
-    from cloudpose.evaluate import resolve_run_id
+    from cloudpose.runs import resolve_run_id
 
     client = tracking.setup(proj)
     assert resolve_run_id(client, name) == out.run_id
@@ -177,7 +177,7 @@ def test_device_is_one_choice(project):
     import torch
 
     _, out = project
-    from cloudpose.train import load_checkpoint
+    from cloudpose.infer import load_checkpoint
 
     model, _ = load_checkpoint(out.checkpoint, "auto")
     want = "cuda" if torch.cuda.is_available() else "cpu"

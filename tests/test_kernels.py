@@ -11,7 +11,9 @@ from cloudpose import kernels as K
 from cloudpose.conventions import resource_path
 from cloudpose.data.segments import farthest_point_sampling_reference
 
-pytestmark = pytest.mark.skipif(not K.HAVE_NUMBA, reason="numba not installed")
+pytestmark = pytest.mark.skipif(
+    not K.enabled(), reason="compiled kernels off (numba missing or CLOUDPOSE_NO_NUMBA)"
+)
 
 
 def clouds(rng):
@@ -72,7 +74,7 @@ def _brute_adds(model, W):
 def graph_kind(request, monkeypatch):
     """Both neighbour structures: the Delaunay graph, and the lists used where there is none."""
     if request.param == "lists":
-        monkeypatch.setattr(K, "_delaunay_graph", lambda P: None)
+        monkeypatch.setattr(K.graph, "_delaunay_graph", lambda P: None)
     return request.param
 
 
@@ -151,14 +153,14 @@ def test_fps_order_equals_the_numpy_loop_with_ties():
 @pytest.mark.parametrize("P", [3, 6, 40])
 def test_icp_on_flat_and_tiny_models_equals_the_pykdtree_loop(P):
     """Models without a 3-D triangulation (flat, few points) use the neighbour lists."""
-    from cloudpose.refine import ModelIndex, icp_refine
+    from cloudpose.data.models import ModelIndex
+    from cloudpose.refine import icp_refine
 
     rng = np.random.default_rng(P)
     model = np.c_[rng.uniform(-0.03, 0.03, size=(P, 2)), np.zeros(P)]  # a flat plate
     index = ModelIndex(model)
-    assert index.kernel_index is not None and len(index.kernel_index.adj) == 0
-    plain = ModelIndex(model)
-    plain.kernel_index = None
+    assert index.compiled is not None and len(index.compiled.adj) == 0
+    plain = ModelIndex(model, compiled=False)
     obs = model[rng.integers(P, size=200)] + rng.normal(0, 0.002, (200, 3))
     R0 = Rotation.from_rotvec([0.02, -0.01, 0.03]).as_matrix()
     t0 = np.array([0.001, 0.002, -0.001])

@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import resource_path
+from cloudpose.data.models import ModelIndex
 from cloudpose.metrics import (
     SUMMARY_KEYS,
-    ModelTree,
     accuracy_curve,
     add_distance,
     add_distance_reference,
@@ -83,7 +83,9 @@ def test_chunks_and_prebuilt_tree_give_the_same_values(monkeypatch):
     monkeypatch.setattr(metrics, "_AD_CHUNK_POINTS", 3 * len(model))
     monkeypatch.setattr(metrics, "_ADS_CHUNK_POINTS", 7 * len(model))
     np.testing.assert_allclose(add_distance(model, *poses), ad, rtol=1e-13)
-    np.testing.assert_allclose(adds_distance(model, *poses, tree=ModelTree(model)), ads, rtol=1e-13)
+    np.testing.assert_allclose(
+        adds_distance(model, *poses, index=ModelIndex(model)), ads, rtol=1e-13
+    )
 
 
 def test_single_pose_and_float32():
@@ -140,8 +142,8 @@ def test_bad_shapes_raise():
         add_distance(model[:, :2], R, t, R, t)
     with pytest.raises(ValueError, match="t_est"):
         adds_distance(model, R, t, R, np.zeros((2, 3)))
-    with pytest.raises(ValueError, match="tree"):
-        adds_distance(model, R, t, R, t, tree=ModelTree(model[:100]))
+    with pytest.raises(ValueError, match="index: built on"):
+        adds_distance(model, R, t, R, t, index=ModelIndex(model[:100]))
 
 
 # --- rotation / translation errors ----------------------------------------------------------
@@ -370,15 +372,14 @@ def test_compiled_ads_equals_the_pykdtree_path(deg, mm, monkeypatch):
     to rounding over the whole error range, and both with the per-instance reference."""
     from cloudpose import kernels
 
-    if not kernels.HAVE_NUMBA:
-        pytest.skip("numba not installed")
+    if not kernels.enabled():
+        pytest.skip("compiled kernels off (numba not installed or CLOUDPOSE_NO_NUMBA)")
     model = load_model("035_power_drill")
     poses = random_poses(np.random.default_rng(int(deg) + 1), 40, deg, mm)
-    tree = ModelTree(model)
-    assert tree.ads_index is not None
-    fast = adds_distance(model, *poses, tree=tree)
-    tree.ads_index = None  # the pykdtree path
-    slow = adds_distance(model, *poses, tree=tree)
+    index = ModelIndex(model)
+    assert index.compiled is not None
+    fast = adds_distance(model, *poses, index=index)
+    slow = adds_distance(model, *poses, index=ModelIndex(model, compiled=False))  # pykdtree
     np.testing.assert_allclose(fast, slow, rtol=1e-13, atol=1e-17)
     ref = adds_distance_reference(model, *[p[:8] for p in poses])
     np.testing.assert_allclose(fast[:8], ref, rtol=1e-12, atol=1e-15)

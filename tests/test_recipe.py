@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from cloudpose.config import resolve
-from cloudpose.train import train
+from cloudpose.pipeline import train_run
 
 SMALL = {"data": {"train_frames": 100, "test_frames": 4},
          "train": {"epochs": 16, "batch_size": 32, "n_points": 64}}  # fmt: skip
@@ -26,7 +26,7 @@ LITERAL = {"model": {"rotation_input": "raw", "xyz_scale": 1.0},
 
 @pytest.fixture
 def small_project(tmp_path) -> Path:
-    from cloudpose.data.cache import ensure_dataset
+    from cloudpose.data.dataset import ensure_dataset
 
     proj = tmp_path / "recipe"
     ensure_dataset(resolve("shared-0", "smoke", 1, SMALL).data, project_dir=proj, progress=False)
@@ -44,13 +44,14 @@ def _overrides(*deltas: dict) -> dict:
 def _train(proj: Path, *deltas: dict, monkeypatch):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     cfg = resolve("shared-0", "smoke", 1, _overrides(SMALL, *deltas))
-    return cfg, train(cfg, project_dir=proj, progress=False)
+    return cfg, train_run(cfg, project_dir=proj, progress=False)
 
 
 @pytest.mark.slow
 def test_recipe_fits_rotation_and_every_class(small_project, monkeypatch):
-    from cloudpose.data.cache import ensure_dataset
-    from cloudpose.train import Batchable, load_checkpoint
+    from cloudpose.data.dataset import ensure_dataset
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.train import Batchable
 
     cfg, out = _train(small_project, monkeypatch=monkeypatch)
     assert cfg.model.xyz_scale == 0.03 and cfg.loss.symmetric  # the smoke preset's recipe

@@ -344,7 +344,11 @@ def test_small_rotation_noise_is_accepted(copy_root):
     poses = scipy.io.loadmat(frame_file(REAL, "meta"))["poses"].copy()
     poses[:, :3, 0] *= 1 + 2e-4
     edit_meta(copy_root, poses=poses)
-    YCBVideo(copy_root).frame(FID)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        frame = YCBVideo(copy_root).frame(FID)
+    # accepted as given: the rotations are read, not silently re-orthonormalised
+    np.testing.assert_allclose(frame.poses[0, :, :3], poses[:, :3, 0])
 
 
 @pytest.mark.parametrize("field", ["cls_indexes", "poses", "intrinsic_matrix", "factor_depth"])
@@ -443,4 +447,7 @@ def test_annotated_class_without_pixels_is_legal(copy_root):
 def test_real_frame_reads_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        YCBVideo(REAL).frame(FID)
+        frame = YCBVideo(REAL).frame(FID)
+    assert frame.depth.shape == frame.label.shape == (480, 640)
+    assert len(frame.cls_ids) > 0 and frame.poses.shape == (len(frame.cls_ids), 3, 4)
+    assert set(frame.cls_ids.tolist()) <= set(np.unique(frame.label).tolist())

@@ -1,4 +1,4 @@
-"""The segment cache (``cloudpose prepare``) and the dataset entry point for training.
+"""The segment cache: segments of a dataset split, extracted once and kept as one file.
 
 :func:`prepare` runs :func:`cloudpose.data.segments.extract_segments` over a split's frames (all
 cores) and writes one uncompressed ``.npz`` of columnar arrays (:class:`SegmentSet`) that loads
@@ -7,8 +7,8 @@ the frame list, the content of each frame file and model file, and the segment
 settings (n_fps, outlier_radius, segmentation, FPS seed, pipeline version). A changed frame or
 setting gives a new key, so a stale cache is never read.
 
-:func:`ensure_dataset` is what training calls: the synthetic default data (rendered on first use,
-resumable) or a real YCB-Video root, prepared and loaded.
+Which dataset a config means, and its preparation for training, are in
+:mod:`cloudpose.data.dataset`.
 
 Points are stored as float32 (12 KiB per segment of 1024 points; float16 would round
 camera-frame coordinates near 1 m to 0.5-1 mm, too coarse beside the 1 cm accuracy thresholds).
@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloudpose.files import atomic_text, atomic_write
 from cloudpose.data.segments import Segment, SegmentWarning, extract_segments, get_mask_source
 
 if TYPE_CHECKING:
@@ -109,13 +110,9 @@ class SegmentSet:
 
     def save(self, path: str | Path) -> None:
         """Write one uncompressed ``.npz`` (atomically: temporary name, then rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
         arrays = {n: getattr(self, n) for n in self._ARRAYS}
         arrays["frame_id"] = np.asarray(self.frame_id, dtype=str)
-        np.savez(tmp, key=np.array(self.key), **arrays)
-        os.replace(tmp, path)
+        atomic_write(path, lambda tmp: np.savez(tmp, key=np.array(self.key), **arrays), ".npz")
 
     @classmethod
     def load(cls, path: str | Path) -> SegmentSet:
@@ -187,8 +184,8 @@ def cache_key(
 
     Byte-identical data gives the same key wherever it lies and whenever it was written (a
     ``cp -r`` copy, a re-render in another clone). Content digests are remembered by path,
-    size and modification time in ``memo_dir/digests.json`` (when given), so a large dataset
-    is read once, not on every command.
+    size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
+    so a large dataset is read once, not on every command.
     """
     from cloudpose.data.ycb import YCBVideo
 
@@ -217,16 +214,35 @@ def cache_key(
     return h.hexdigest()[:20]
 
 
+MAT_TEXT_HEADER = 116
+"""Bytes of a MAT-file's descriptive text header: ``MATLAB 5.0 MAT-file ... Created on: <time>``.
+``scipy.io.savemat`` writes the time of writing there, so two renders of the same frame differ
+in it alone; the digest of a ``.mat`` file leaves it out."""
+
+
+DIGEST_MEMO = "digests-v2.json"
+"""The memo of file digests; its name changes with the digest's definition (v2: a ``.mat``
+file's text header left out), so no digest of an older definition is reused."""
+
+
+def _file_digest(path: Path) -> str:
+    with open(path, "rb") as f:
+        if path.suffix == ".mat":
+            f.seek(MAT_TEXT_HEADER)
+        return hashlib.file_digest(f, "blake2b").hexdigest()[:32]
+
+
 def content_digests(paths: list[Path], memo_dir: str | Path | None = None) -> list[str]:
-    """BLAKE2b digests (32 hex digits) of the files' bytes, in order.
+    """BLAKE2b digests (32 hex digits) of the files' bytes, in order (a ``.mat`` file's bytes
+    after its descriptive text header, which holds the time it was written).
 
     Args:
         paths: files to hash.
-        memo_dir: folder of the memo ``digests.json`` (absolute path -> size, mtime_ns,
+        memo_dir: folder of the memo :data:`DIGEST_MEMO` (absolute path -> size, mtime_ns,
             digest); a file whose size and mtime match its entry is not read again. None =
             no memo.
     """
-    memo_path = Path(memo_dir) / "digests.json" if memo_dir else None
+    memo_path = Path(memo_dir) / DIGEST_MEMO if memo_dir else None
     memo: dict[str, list] = {}
     if memo_path is not None and memo_path.is_file():
         try:
@@ -239,15 +255,11 @@ def content_digests(paths: list[Path], memo_dir: str | Path | None = None) -> li
         key, stamp = str(Path(p).resolve()), [st.st_size, st.st_mtime_ns]
         entry = memo.get(key)
         if entry is None or entry[:2] != stamp:
-            with open(p, "rb") as f:
-                entry = memo[key] = [*stamp, hashlib.file_digest(f, "blake2b").hexdigest()[:32]]
+            entry = memo[key] = [*stamp, _file_digest(Path(p))]
             changed = True
         out.append(entry[2])
     if changed and memo_path is not None:
-        memo_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = memo_path.with_name(f"{memo_path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(memo))
-        os.replace(tmp, memo_path)
+        atomic_text(memo_path, json.dumps(memo))
     return out
 
 
@@ -371,35 +383,7 @@ def prepare(
     return path
 
 
-# --------------------------------------------------------------------------- entry point
-
-
-def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:
-    """The synthetic default root: ``project_dir/data/synth-seed{S}[-uniform][-nonoise]``."""
-    from cloudpose.config import DataConfig
-
-    base = DataConfig()
-    name = f"synth-seed{cfg.synth_seed}"
-    if cfg.uniform_rotation != base.uniform_rotation:
-        name += "-uniform"
-    if cfg.noise != base.noise:
-        name += "-nonoise"
-    return Path(project_dir or Path.cwd()) / "data" / name
-
-
-def _dataset_root(cfg: DataConfig, project_dir: Path) -> tuple[Path, Path]:
-    if cfg.root == "":
-        root = synthetic_root(cfg, project_dir)
-        return root, root / "cache"
-    root = Path(cfg.root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"data.root {root}: dataset root not found")
-    return root, project_dir / "data" / "cache"
-
-
-def dataset_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:
-    """Dataset root of ``cfg``: ``cfg.root``, or the synthetic default (:func:`synthetic_root`)."""
-    return _dataset_root(cfg, Path(project_dir or Path.cwd()))[0]
+# --------------------------------------------------------------------------- other folders
 
 
 def segments_for(
@@ -427,108 +411,3 @@ def segments_for(
     cache_dir = Path(cache_dir) if cache_dir else Path.cwd() / "data" / "cache"
     path = prepare(root, frames, cfg, cache_dir, workers=workers, progress=progress)
     return SegmentSet.load(path)
-
-
-def ensure_dataset(
-    cfg: DataConfig,
-    project_dir: str | Path | None = None,
-    workers: int | None = None,
-    progress: bool = True,
-) -> tuple[SegmentSet, SegmentSet]:
-    """The (train, test) segments that ``cfg`` asks for, made on first use.
-
-    With ``cfg.root == ""`` the synthetic default (:func:`synthetic_root`) is rendered or
-    completed to ``cfg.train_frames`` / ``cfg.test_frames`` (resumable); a real root is never
-    written to (its caches go to ``project_dir/data/cache``). Train = image_sets/train.txt,
-    test = keyframe.txt.
-    """
-    project_dir = Path(project_dir or Path.cwd())
-    root, cache_dir = _dataset_root(cfg, project_dir)
-    if cfg.root == "":
-        from cloudpose.data.synth import synthesize
-
-        synthesize(
-            root,
-            cfg.train_frames,
-            cfg.test_frames,
-            seed=cfg.synth_seed,
-            noise=cfg.noise,
-            uniform_rotation=cfg.uniform_rotation,
-            workers=workers,
-            progress=progress,
-        )
-    sets = []
-    for split in ("train", "test"):
-        path = prepare(root, split, cfg, cache_dir, workers=workers, progress=progress)
-        sets.append(only_classes(SegmentSet.load(path), root, cfg.classes))
-    return sets[0], sets[1]
-
-
-def only_classes(segs: SegmentSet, root: str | Path, classes: tuple[str, ...]) -> SegmentSet:
-    """The segments of the named classes (``DataConfig.classes``); all of them when empty.
-
-    Raises:
-        ValueError: a name that is not in the dataset's ``classes.txt``.
-    """
-    if not classes:
-        return segs
-    from cloudpose.data.ycb import load_classes
-
-    names = load_classes(Path(root) / "classes.txt")
-    unknown = [c for c in classes if c not in names]
-    if unknown:
-        raise ValueError(f"data.classes: unknown classes {unknown}; {root}/classes.txt has {names}")
-    ids = [names.index(c) + 1 for c in classes]
-    return segs.subset(np.isin(segs.cls_id, ids))
-
-
-def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> str:
-    """One key for the train and test data and settings (for MLflow params); 16 hex digits.
-
-    Needs the data to exist (call after :func:`ensure_dataset`).
-    """
-    project_dir = Path(project_dir or Path.cwd())
-    root, cache_dir = _dataset_root(cfg, project_dir)
-    keys = [cache_key(root, split, cfg, memo_dir=cache_dir) for split in ("train", "test")]
-    return hashlib.sha256("+".join(keys).encode()).hexdigest()[:16]
-
-
-# --------------------------------------------------------------------------- reports
-
-
-def occlusion_histogram(
-    segments: SegmentSet, path: str | Path | None = None, title: str = ""
-) -> np.ndarray:
-    """Counts of instances per 10%-wide occlusion-factor bin; optionally a PNG bar chart.
-
-    Args:
-        segments: the instances (NaN occlusions are left out).
-        path: where to write the PNG (None: no plot).
-        title: the plot title (name the command and settings).
-
-    Returns:
-        (10,) int64 counts for [0, 10%), ..., [90%, 100%] (the last bin includes 100%).
-    """
-    occ = np.asarray(segments.occlusion, dtype=np.float64)
-    occ = occ[np.isfinite(occ)]
-    counts, edges = np.histogram(occ, bins=np.linspace(0.0, 1.0, 11))
-    if path is not None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4))
-        centres = (edges[:-1] + edges[1:]) / 2 * 100
-        ax.bar(centres, counts, width=9.0, color="tab:blue")
-        for x, c in zip(centres, counts, strict=True):
-            ax.text(x, c, str(c), ha="center", va="bottom", fontsize=8)
-        ax.set_xticks(edges * 100)
-        ax.set_xlabel("occlusion factor O = 1 - visible / alone pixels (%)")
-        ax.set_ylabel("instances")
-        ax.set_title(title or f"occlusion factors of {len(occ)} instances", fontsize=9)
-        fig.tight_layout()
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-    return counts

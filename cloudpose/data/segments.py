@@ -19,7 +19,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import fpsample
 import numpy as np
 
 from cloudpose import kernels
@@ -68,8 +67,8 @@ def farthest_point_sampling(
     """Exact farthest point sampling, in float32.
 
     The compiled bucket FPS of :func:`cloudpose.kernels.fps_order` (a k-d tree skips the
-    points a new sample cannot get closer to) where numba is installed, else fpsample's
-    vanilla FPS. Both give the order of :func:`farthest_point_sampling_reference`, index for
+    points a new sample cannot get closer to) where the kernels are enabled, else fpsample's
+    vanilla FPS (:func:`cloudpose.kernels.farthest_order` picks). Both give the order of :func:`farthest_point_sampling_reference`, index for
     index, ties included (the highest index wins a tie, as in fpsample, so segment caches
     made with either are the same).
 
@@ -87,11 +86,8 @@ def farthest_point_sampling(
     m = min(k, len(pts))
     if m == 1:
         order = np.array([s], dtype=np.int64)
-    elif kernels.HAVE_NUMBA and np.isfinite(pts).all():
-        order = kernels.fps_order(pts, m, s)
     else:
-        # fps_sampling honours start_idx exactly (the bucket/kd variants in 1.0.2 do not)
-        order = np.asarray(fpsample.fps_sampling(pts, m, start_idx=s), dtype=np.int64)
+        order = kernels.farthest_order(pts, m, s)
     return _fill(order, k) if m < k else order
 
 

@@ -58,6 +58,7 @@ import scipy.io
 from scipy import ndimage
 from scipy.spatial import ConvexHull
 
+from cloudpose.files import atomic_text
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS, resource_path
 
 GENERATOR_VERSION = 1
@@ -751,12 +752,6 @@ class SynthSummary(NamedTuple):
     seconds: float
 
 
-def _atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
 
 def _pid_alive(pid: int) -> bool:
     try:
@@ -809,7 +804,7 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) ->
             )
     root.mkdir(parents=True, exist_ok=True)
     _clean_staging(root)
-    _atomic_text(info, json.dumps(settings, indent=2) + "\n")
+    atomic_text(info, json.dumps(settings, indent=2) + "\n")
     shutil.copyfile(resource_path("classes.txt"), root / "classes.txt")
     from cloudpose.data.ycb import load_classes
 
@@ -879,7 +874,7 @@ def synthesize(
     _clean_staging(root)
     train_ids = [frame_id("train", i) for i in range(train_frames)]
     test_ids = [frame_id("test", i) for i in range(test_frames)]
-    _atomic_text(root / "image_sets" / "train.txt", "".join(f + "\n" for f in train_ids))
-    _atomic_text(root / "image_sets" / "test.txt", "".join(f + "\n" for f in test_ids))
-    _atomic_text(root / "keyframe.txt", "".join(f + "\n" for f in test_ids))
+    atomic_text(root / "image_sets" / "train.txt", "".join(f + "\n" for f in train_ids))
+    atomic_text(root / "image_sets" / "test.txt", "".join(f + "\n" for f in test_ids))
+    atomic_text(root / "keyframe.txt", "".join(f + "\n" for f in test_ids))
     return SynthSummary(len(jobs), len(wanted) - len(jobs), time.perf_counter() - t0)

@@ -31,6 +31,7 @@ import numpy as np
 import scipy.io
 from PIL import Image, UnidentifiedImageError
 
+from cloudpose.files import atomic_write
 from cloudpose.conventions import DEPTH_FACTOR_YCB, resource_path
 
 ROTATION_TOL = 1e-3
@@ -401,14 +402,6 @@ def read_frame(
     return Frame(frame_id, depth, label, K, cls_ids, poses, color)
 
 
-def _atomic_save(path: Path, save) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        save(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def write_frame(
@@ -474,19 +467,19 @@ def write_frame(
     d = Path(root) / "data" / seq
     d.mkdir(parents=True, exist_ok=True)
     depth_img = Image.fromarray(raw.astype(np.uint16))
-    _atomic_save(d / f"{name}-depth.png", lambda p: depth_img.save(p, format="PNG"))
+    atomic_write(d / f"{name}-depth.png", lambda p: depth_img.save(p, format="PNG"))
     label_img = Image.fromarray(label.astype(np.uint8), mode="L")
-    _atomic_save(d / f"{name}-label.png", lambda p: label_img.save(p, format="PNG"))
+    atomic_write(d / f"{name}-label.png", lambda p: label_img.save(p, format="PNG"))
     if color is not None:
         color_img = Image.fromarray(color, mode="RGB")
-        _atomic_save(d / f"{name}-color.png", lambda p: color_img.save(p, format="PNG"))
+        atomic_write(d / f"{name}-color.png", lambda p: color_img.save(p, format="PNG"))
     meta = {
         "cls_indexes": cls.reshape(-1, 1).astype(np.float64),
         "poses": np.moveaxis(poses, 0, 2),
         "intrinsic_matrix": K,
         "factor_depth": np.array([[float(depth_factor)]]),
     }
-    _atomic_save(
+    atomic_write(
         d / f"{name}-meta.mat",
         lambda p: scipy.io.savemat(p, meta, do_compression=True, format="5"),
     )

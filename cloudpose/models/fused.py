@@ -1,4 +1,4 @@
-"""The last per-point layer and the max pool as one autograd function (issue 6, training speed).
+"""The last per-point layer and the max pool as one autograd function (training speed).
 
 :class:`~cloudpose.models.basenet.PointLayerMaxPool` computes, for input points x (B, n, C)::
 

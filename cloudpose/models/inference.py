@@ -1,4 +1,4 @@
-"""Inference-only pose networks: every BatchNorm folded into its Linear (issue 6, inference speed).
+"""Inference-only pose networks: every BatchNorm folded into its Linear (inference speed).
 
 In eval mode a BatchNorm is an affine map per channel, ``z = a * (y - mean) + beta`` with
 ``a = gamma / sqrt(running_var + eps)``, so ``BN(x W^T + b) = x (a W)^T + a (b - mean) + beta``:

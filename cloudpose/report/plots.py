@@ -5,6 +5,7 @@
 - accuracy-threshold curves: share of instances with AD (ADS) below a threshold, 0-10 cm.
 - training curves: training loss and validation ADS AUC per epoch, mean over seeds with a band.
 - rotation-error histograms per variant.
+- the test set's occlusion histogram (``cloudpose prepare --histogram``).
 
 Every figure carries a footer naming the command, preset, data, seeds and code that made it.
 """
@@ -241,3 +242,34 @@ def _save(fig, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def occlusion_histogram(segments, path: str | Path | None = None, title: str = "") -> np.ndarray:
+    """Counts of instances per 10%-wide occlusion-factor bin; optionally a PNG bar chart.
+
+    Args:
+        segments: the instances, a ``SegmentSet`` (NaN occlusions are left out).
+        path: where to write the PNG (None: no plot).
+        title: the plot title (name the command and settings).
+
+    Returns:
+        (10,) int64 counts for [0, 10%), ..., [90%, 100%] (the last bin includes 100%).
+    """
+    occ = np.asarray(segments.occlusion, dtype=np.float64)
+    occ = occ[np.isfinite(occ)]
+    counts, edges = np.histogram(occ, bins=OCCLUSION_EDGES)
+    if path is not None:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        centres = (edges[:-1] + edges[1:]) / 2 * 100
+        ax.bar(centres, counts, width=9.0, color="tab:blue")
+        for x, c in zip(centres, counts, strict=True):
+            ax.text(x, c, str(c), ha="center", va="bottom", fontsize=8)
+        ax.set_xticks(edges * 100)
+        ax.set_xlabel("occlusion factor O = 1 - visible / alone pixels (%)")
+        ax.set_ylabel("instances")
+        ax.set_title(title or f"occlusion factors of {len(occ)} instances", fontsize=9)
+        fig.tight_layout()
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+    return counts

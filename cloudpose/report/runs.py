@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose import tracking
+from cloudpose.runs import is_preset_config
 
 TEST_KEY = "test/ads_auc"
 """A run counts as evaluated when it has this metric."""
@@ -158,14 +159,14 @@ def load_runs(preset: str, *, data: str | None = None, client=None,
         if r.data.tags.get("variant") and r.data.tags.get("seed") and TEST_KEY in r.data.metrics
     ]  # fmt: skip
     # a run with overrides (--set, --epochs) or from an edited preset is another config
-    other = [r for r in runs if not tracking.is_preset_config(r)]
+    other = [r for r in runs if not is_preset_config(r)]
     if other:
         warnings.warn(
             f"{len(other)} finished run(s) tagged preset {preset!r} were made with another "
             "config (overrides or an older preset) and are left out of the report",
             stacklevel=2,
         )
-        runs = [r for r in runs if tracking.is_preset_config(r)]
+        runs = [r for r in runs if is_preset_config(r)]
     if not runs:
         return RunSet(preset, data, [])
     if data is None:

@@ -1,4 +1,4 @@
-"""Process-level speed settings: memory allocator and threads (issue 6).
+"""Runtime settings of a process: the device, the memory allocator and threads.
 
 glibc's malloc gives large blocks (the (B*n, 1024) activations of a training step, 128 MiB each)
 back to the kernel on ``free`` and takes them again on the next step, so half of a plain
@@ -25,6 +25,7 @@ __all__ = [
     "ALLOCATOR_LIBS",
     "active_allocator",
     "configure_threads",
+    "pick_device",
     "preferred_allocator",
     "reexec_with_allocator",
     "tune_glibc_malloc",
@@ -181,3 +182,18 @@ def configure_threads(num_threads: int | None = None) -> int:
     except RuntimeError:  # already set, or parallel work already ran
         pass
     return torch.get_num_threads()
+
+
+def pick_device(name: str = "auto"):
+    """``auto``: CUDA when available, else CPU; anything else is passed to ``torch.device``."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"device {name!r}: expected auto, cpu, cuda or cuda:N") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r}: CUDA is not available here; use auto or cpu")
+    return device

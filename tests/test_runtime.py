@@ -1,4 +1,4 @@
-"""Allocator and thread setup (cloudpose.perf) and the benchmark's analytic FLOP count."""
+"""Allocator and thread setup (cloudpose.runtime) and the benchmark's analytic FLOP count."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cloudpose.perf import (
+from cloudpose.runtime import (
     active_allocator,
     configure_threads,
     preferred_allocator,
@@ -26,7 +26,7 @@ def _child(env_extra: dict[str, str]) -> str:
     """Run a fresh interpreter that calls reexec_with_allocator(); returns what it printed."""
     code = textwrap.dedent(
         """
-        from cloudpose.perf import active_allocator, reexec_with_allocator
+        from cloudpose.runtime import active_allocator, reexec_with_allocator
         reexec_with_allocator()
         print(active_allocator())
         """
@@ -56,7 +56,9 @@ def test_reexec_respects_opt_out() -> None:
 
 
 def test_reexec_never_restarts_pytest() -> None:
-    reexec_with_allocator()  # would replace this process if it did; returning is the test
+    pid, argv = os.getpid(), list(sys.argv)
+    assert reexec_with_allocator() is None  # an exec would not return at all
+    assert os.getpid() == pid and sys.argv == argv
 
 
 def test_configure_threads() -> None:
@@ -69,7 +71,7 @@ def test_configure_threads() -> None:
 
 
 def test_train_flops_match_a_hand_count() -> None:
-    """464 MFLOP per sample for shared-0 (issue 6), counted here from the layer widths."""
+    """464 MFLOP per sample for shared-0, counted here from the layer widths."""
     bench = pytest.importorskip("benchmarks.bench_train")
     n, k = 256, 21
     widths = [3 + k, 64, 64, 64, 128, 1024]

@@ -1,0 +1,68 @@
+"""The pipeline: data -> train -> evaluate, the one place that chains the stages.
+
+Each stage does one thing and receives what it needs: :func:`cloudpose.data.dataset.prepare_data`
+makes a config's data (rendering the synthetic default on first use), :func:`cloudpose.train.train`
+fits a run on prepared data, :func:`cloudpose.evaluate.evaluate` scores a run. The commands that
+chain them (``cloudpose train``, ``cloudpose run``, the ablation runner) call the functions here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from cloudpose.data.dataset import Prepared, prepare_data
+
+if TYPE_CHECKING:
+    from cloudpose.config import Config
+    from cloudpose.evaluate import EvalOutcome
+    from cloudpose.train import TrainOutcome
+
+__all__ = ["RunOutcome", "train_and_evaluate", "train_run"]
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """A trained and evaluated run."""
+
+    train: TrainOutcome
+    evaluation: EvalOutcome
+    data: Prepared
+
+
+def train_run(
+    cfg: Config,
+    *,
+    project_dir: Path | None = None,
+    group: str | None = None,
+    progress: bool = True,
+    data: Prepared | None = None,
+    **train_kwargs,
+) -> TrainOutcome:
+    """Prepare ``cfg``'s data (unless given) and train ``cfg`` on it (resumable)."""
+    from cloudpose.train import train
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    data = data or prepare_data(cfg.data, project_dir, progress=progress)
+    return train(cfg, data, project_dir=project_dir, group=group, progress=progress,
+                 **train_kwargs)  # fmt: skip
+
+
+def train_and_evaluate(
+    cfg: Config,
+    *,
+    project_dir: Path | None = None,
+    group: str | None = None,
+    progress: bool = True,
+    data: Prepared | None = None,
+) -> RunOutcome:
+    """The main job for one config: data, training, evaluation on its own test set (with and
+    without ICP), all logged to the run."""
+    from cloudpose.evaluate import evaluate
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    data = data or prepare_data(cfg.data, project_dir, progress=progress)
+    out = train_run(cfg, project_dir=project_dir, group=group, progress=progress, data=data)
+    ev = evaluate(str(out.run_dir), project_dir=project_dir, progress=progress, own_data=data)
+    return RunOutcome(out, ev, data)

@@ -1,0 +1,40 @@
+"""Prediction on a frame without poses (the real demo frame) and its intrinsics option."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cloudpose.predict import parse_intrinsics, predict
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.mark.slow
+def test_predict_on_a_real_frame_without_poses(smoke_project, tmp_path):
+    _, out = smoke_project
+    overlay = tmp_path / "overlay.png"
+    res = predict(
+        DATA / "demo_no_gt" / "depth.png", DATA / "demo_no_gt" / "label.png",
+        str(out.checkpoint), color=DATA / "demo_no_gt" / "color.png", overlay=overlay,
+    )  # fmt: skip
+    assert sorted(p.cls_id for p in res.poses) == [2, 4, 5, 10, 15]
+    for p in res.poses:
+        np.testing.assert_allclose(p.R @ p.R.T, np.eye(3), atol=1e-6)
+        assert 0.3 < p.t[2] < 2.0  # in front of the camera, at table distance
+    from PIL import Image
+
+    img = Image.open(overlay)
+    assert (
+        img.size[0] >= 600
+        and len(np.unique(np.asarray(img.convert("RGB")).reshape(-1, 3), axis=0)) > 100
+    )
+
+
+def test_parse_intrinsics():
+    K = parse_intrinsics("1066.8,1067.5,313.0,241.3")
+    assert K[0, 0] == 1066.8 and K[1, 2] == 241.3 and K[2, 2] == 1
+    with pytest.raises(ValueError, match="fx,fy,cx,cy"):
+        parse_intrinsics("1,2,3")

@@ -1,0 +1,62 @@
+"""Run identity (cloudpose.runs): names, folders, run.json, and resolving a user's name for a run."""
+
+from __future__ import annotations
+
+import types
+from pathlib import Path
+
+import pytest
+
+from cloudpose import runs, tracking
+from cloudpose.config import resolve
+
+
+def test_names_and_folders_follow_config_and_data():
+    cfg = resolve("shared-3", "smoke", seed=2)
+    assert runs.run_name("shared-3", "smoke", 2) == "shared-3/smoke/seed2"
+    assert runs.display_name(cfg) == "shared-3/smoke/seed2"  # the preset's own config
+    other = resolve("shared-3", "smoke", 2, {"train": {"lr": 3e-4}})
+    assert runs.display_name(other) == f"shared-3/smoke/seed2+{other.fingerprint()[:8]}"
+    d = runs.run_dir(cfg, "0123456789abcdef", Path("/p"))
+    assert d == Path(f"/p/runs/shared-3/smoke/seed2-0123456789-{cfg.fingerprint()[:8]}")
+    assert runs.run_dir(other, "0123456789abcdef", Path("/p")) != d
+    assert runs.run_dir(cfg, "fedcba9876543210", Path("/p")) != d
+
+
+def test_run_json_round_trip_is_atomic(tmp_path):
+    assert runs.read_info(tmp_path) == {}
+    assert not runs.is_run_folder(tmp_path)
+    runs.write_info(tmp_path, {"run_id": "abc", "finished": False})
+    runs.write_info(tmp_path, {"run_id": "abc", "finished": True})
+    assert runs.read_info(tmp_path) == {"run_id": "abc", "finished": True}
+    assert runs.is_run_folder(tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["run.json"]  # no temporary file left
+
+
+def _run(tags: dict, params: dict | None = None):
+    data = types.SimpleNamespace(tags=tags, params=params or {}, metrics={})
+    return types.SimpleNamespace(data=data)
+
+
+def test_config_matching_by_tag_and_by_params():
+    cfg = resolve("l2", "smoke", seed=1)
+    own = {"variant": "l2", "preset": "smoke", "seed": "1", "config": cfg.fingerprint()}
+    assert runs.run_has_config(_run(own), cfg) and runs.is_preset_config(_run(own))
+    edited = {**own, "config": "0" * 16}
+    assert not runs.run_has_config(_run(edited), cfg) and not runs.is_preset_config(_run(edited))
+    untagged = {k: v for k, v in own.items() if k != "config"}  # a run from before the tag
+    assert runs.run_has_config(_run(untagged, tracking.flat_params(cfg.flat())), cfg)
+    assert not runs.run_has_config(_run(untagged, {"train.lr": "1"}), cfg)
+    assert not runs.is_preset_config(_run({"variant": "nope", "preset": "smoke", "seed": "1"}))
+
+
+def test_resolve_run_id_errors(tmp_path):
+    client = tracking.setup(tmp_path)
+    with pytest.raises(ValueError, match="expected variant/preset/seedN"):
+        runs.resolve_run_id(client, "shared-0/smoke/first")
+    with pytest.raises(ValueError, match="no finished run named 'shared-0/smoke/seed1'"):
+        runs.resolve_run_id(client, "shared-0/smoke/seed1")
+    with pytest.raises(ValueError, match="neither a run folder"):
+        runs.resolve_run_id(client, "not-a-run")
+    runs.write_info(tmp_path / "r", {"run_id": "from-the-folder"})
+    assert runs.resolve_run_id(client, str(tmp_path / "r")) == "from-the-folder"
