@@ -18,7 +18,7 @@ from cloudpose.data.ycb import YCBVideo
 
 @pytest.fixture(scope="module")
 def gen():
-    return synth._generator()
+    return synth.frames._generator()
 
 
 @pytest.fixture(scope="module")
@@ -100,8 +100,8 @@ def test_table_scenes_are_plausible(gen):
         cells = [
             {
                 tuple(x)
-                for x in synth._footprint_cells((gen.models[c] @ P[:, :3].T)[:, :2])
-                + np.floor(P[:2, 3] / synth._GRID).astype(int)
+                for x in synth.scenes._footprint_cells((gen.models[c] @ P[:, :3].T)[:, :2])
+                + np.floor(P[:2, 3] / synth.scenes._GRID).astype(int)
             }
             for c, P in zip(sc.cls_ids, sc.model_to_world, strict=True)
         ]
@@ -128,7 +128,7 @@ def test_floating_scenes_have_uniform_rotations_and_no_overlap(gen):
             for b in range(a + 1, len(P)):
                 assert np.linalg.norm(P[a, :, 3] - P[b, :, 3]) > radii[a] + radii[b]
     # rotations of many objects: the mean of a uniform SO(3) sample is near 0
-    Rs = synth._random_rotations(np.random.default_rng(0), 4000)
+    Rs = synth.scenes._random_rotations(np.random.default_rng(0), 4000)
     assert np.abs(Rs.mean(0)).max() < 0.05
 
 

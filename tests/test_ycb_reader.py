@@ -187,6 +187,17 @@ def test_write_frame_quantises_depth_to_a_tenth_millimetre(tmp_path):
     assert np.abs(back.depth - depth).max() <= 0.5e-4 + 1e-6
 
 
+def test_write_frame_extra_meta_fields(tmp_path):
+    empty = (np.zeros((6, 5)), np.zeros((6, 5)), YCB_INTRINSICS, [], np.zeros((0, 3, 4)))
+    write_frame(tmp_path, "s/f", *empty, extra_meta={"alone_pixels": np.zeros((0, 1))})
+    meta = scipy.io.loadmat(tmp_path / "data" / "s" / "f-meta.mat")
+    assert "alone_pixels" in meta and meta["alone_pixels"].size == 0
+    assert float(meta["factor_depth"][0, 0]) == 10000.0
+    with pytest.raises(ValueError, match=r"extra_meta may not replace the fields \['poses'\]"):
+        write_frame(tmp_path, "s/g", *empty, extra_meta={"poses": np.zeros((3, 4, 0))})
+    assert not (tmp_path / "data" / "s" / "g-depth.png").exists()  # refused before writing
+
+
 def test_single_object_meta_with_matlab_2d_poses(tmp_path, real):
     """MATLAB stores a 3x4x1 array as 3x4: one-object frames must still read."""
     write_frame(

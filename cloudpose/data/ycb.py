@@ -414,6 +414,7 @@ def write_frame(
     poses: np.ndarray,
     depth_factor: float = DEPTH_FACTOR_YCB,
     color: np.ndarray | None = None,
+    extra_meta: dict[str, np.ndarray] | None = None,
 ) -> None:
     """Write one frame in the YCB-Video layout under ``root/data/SEQ/``.
 
@@ -433,9 +434,15 @@ def write_frame(
         poses: (N, 3, 4) object->camera ``[R | t]``, metres.
         depth_factor: depth PNG units per metre.
         color: optional (H, W, 3) uint8 RGB.
+        extra_meta: more ``meta.mat`` fields after the standard ones (the synthetic frames'
+            ``alone_pixels``); a standard field's name is refused.
     """
     if not _FRAME_ID.match(frame_id):
         raise ValueError(f"frame_id {frame_id!r} is not 'SEQ/FRAME'")
+    clash = sorted(set(extra_meta or {}) & {"cls_indexes", "poses", "intrinsic_matrix",
+                                            "factor_depth"})  # fmt: skip
+    if clash:
+        raise ValueError(f"write_frame: extra_meta may not replace the fields {clash}")
     depth_m = np.asarray(depth_m, dtype=np.float64)
     label = np.asarray(label)
     if depth_m.ndim != 2:
@@ -479,6 +486,7 @@ def write_frame(
         "intrinsic_matrix": K,
         "factor_depth": np.array([[float(depth_factor)]]),
     }
+    meta.update(extra_meta or {})
     atomic_write(
         d / f"{name}-meta.mat",
         lambda p: scipy.io.savemat(p, meta, do_compression=True, format="5"),
