@@ -75,7 +75,7 @@ def test_fast_matches_reference(name, deg, mm):
 
 
 def test_chunks_and_prebuilt_tree_give_the_same_values(monkeypatch):
-    import cloudpose.metrics as metrics
+    import cloudpose.metrics.errors as metrics
 
     model = load_model("011_banana")
     poses = random_poses(np.random.default_rng(0), 30, 10, 10)
@@ -383,3 +383,17 @@ def test_compiled_ads_equals_the_pykdtree_path(deg, mm, monkeypatch):
     np.testing.assert_allclose(fast, slow, rtol=1e-13, atol=1e-17)
     ref = adds_distance_reference(model, *[p[:8] for p in poses])
     np.testing.assert_allclose(fast[:8], ref, rtol=1e-12, atol=1e-15)
+
+
+def test_one_occlusion_binning_for_the_plot_and_the_histogram():
+    from types import SimpleNamespace
+
+    from cloudpose.metrics import occlusion_bin_index, occlusion_bins
+    from cloudpose.report.plots import occlusion_histogram
+
+    occ = np.array([-0.05, 0.0, 0.1, 0.95, 1.0, np.nan])
+    index, n_bins = occlusion_bin_index(occ)
+    assert n_bins == 10 and index.tolist() == [0, 0, 1, 9, 9, -1]
+    plot = occlusion_bins(occ, np.zeros(6))["count"].to_numpy()
+    hist = occlusion_histogram(SimpleNamespace(occlusion=occ))
+    assert plot.tolist() == hist.tolist() == [2, 1, 0, 0, 0, 0, 0, 0, 0, 2]

@@ -248,16 +248,20 @@ def occlusion_histogram(segments, path: str | Path | None = None, title: str = "
     """Counts of instances per 10%-wide occlusion-factor bin; optionally a PNG bar chart.
 
     Args:
-        segments: the instances, a ``SegmentSet`` (NaN occlusions are left out).
+        segments: the instances, a ``SegmentSet``; binned as the occlusion plot
+            (:func:`cloudpose.metrics.occlusion_bin_index`: NaN left out, below 0 in the
+            first bin).
         path: where to write the PNG (None: no plot).
         title: the plot title (name the command and settings).
 
     Returns:
         (10,) int64 counts for [0, 10%), ..., [90%, 100%] (the last bin includes 100%).
     """
-    occ = np.asarray(segments.occlusion, dtype=np.float64)
-    occ = occ[np.isfinite(occ)]
-    counts, edges = np.histogram(occ, bins=OCCLUSION_EDGES)
+    from cloudpose.metrics import occlusion_bin_index
+
+    index, n_bins = occlusion_bin_index(segments.occlusion, width=OCCLUSION_EDGES[1])
+    counts = np.bincount(index[index >= 0], minlength=n_bins)
+    edges = OCCLUSION_EDGES
     if path is not None:
         fig, ax = plt.subplots(figsize=(7, 4))
         centres = (edges[:-1] + edges[1:]) / 2 * 100
@@ -267,7 +271,7 @@ def occlusion_histogram(segments, path: str | Path | None = None, title: str = "
         ax.set_xticks(edges * 100)
         ax.set_xlabel("occlusion factor O = 1 - visible / alone pixels (%)")
         ax.set_ylabel("instances")
-        ax.set_title(title or f"occlusion factors of {len(occ)} instances", fontsize=9)
+        ax.set_title(title or f"occlusion factors of {int(counts.sum())} instances", fontsize=9)
         fig.tight_layout()
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=120)
