@@ -14,9 +14,7 @@ Usage: ``python -m benchmarks.bench_data [--quick]``
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import json
 import os
 import sys
 import tempfile
@@ -29,6 +27,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import quick_main
 from cloudpose import kernels
 from cloudpose.config import DataConfig
 from cloudpose.data.cache import SegmentSet, prepare
@@ -114,10 +113,7 @@ def run(quick: bool = False, frames: int | None = None, workdir: str | None = No
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    print(json.dumps(run(quick=args.quick), indent=2))
+    quick_main(run, __doc__)
 
 
 if __name__ == "__main__":

@@ -15,8 +15,6 @@ Usage: ``python -m benchmarks.bench_fps [--quick]``
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import sys
 import time
@@ -28,6 +26,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import quick_main
 from cloudpose.data import segments as sg
 from cloudpose.data.ycb import read_frame
 
@@ -148,10 +147,7 @@ def run(quick: bool = False, repeats: int | None = None) -> dict[str, Any]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    print(json.dumps(run(quick=args.quick), indent=2))
+    quick_main(run, __doc__)
 
 
 if __name__ == "__main__":

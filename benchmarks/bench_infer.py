@@ -19,8 +19,6 @@ Usage: ``python -m benchmarks.bench_infer [--quick]``
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import sys
 import time
@@ -33,7 +31,7 @@ from torch import nn
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import gemm_rate
+from benchmarks.common import gemm_rate, quick_main
 from cloudpose.config import resolve
 from cloudpose.models import build_model
 from cloudpose.models.fused import fuse_model
@@ -184,13 +182,9 @@ def run(quick: bool = False, repeats: int | None = None, variant: str = "shared-
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
     from cloudpose.runtime import configure_threads
 
-    configure_threads()
-    print(json.dumps(run(quick=args.quick), indent=2))
+    quick_main(run, __doc__, setup=configure_threads)
 
 
 if __name__ == "__main__":

@@ -150,3 +150,16 @@ def gemm_peak(dtype: torch.dtype = torch.float32, repeats: int = 9, quick: bool 
         "peak_shape": best,
         "per_shape": per_shape,
     }
+
+
+def quick_main(run: Callable[..., dict], doc: str | None, setup: Callable[[], None] | None = None):
+    """The command line of a benchmark module: ``--quick``, then ``run(quick=...)`` as JSON."""
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(description=(doc or "").splitlines()[0] if doc else None)
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    if setup is not None:
+        setup()
+    print(json.dumps(run(quick=args.quick), indent=2))
