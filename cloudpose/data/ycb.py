@@ -1,5 +1,8 @@
 """YCB-Video reader and writer (the real dataset's layout; the synthetic set uses the same).
 
+Reader, writer and their field checks stay in one file over ~450 lines on purpose: they are
+the two halves of one file format and must change together (tests read back what is written).
+
 Layout under a dataset root (DESIGN.md, "Data")::
 
     classes.txt                      one class name per line; line i -> class id i + 1

@@ -1,5 +1,8 @@
 """The last per-point layer and the max pool as one autograd function (training speed).
 
+One algorithm (its forward, its hand-written backward, and the module swap that uses it), so
+one file of ~500 lines.
+
 :class:`~cloudpose.models.basenet.PointLayerMaxPool` computes, for input points x (B, n, C)::
 
     y = x W^T + b            (B*n, D)   D = 1024, 87% of the network's FLOPs
