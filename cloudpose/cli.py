@@ -112,6 +112,27 @@ def _main(
     runtime.configure_threads()
 
 
+def recorded_command(ctx: typer.Context) -> str:
+    """The running command as the user gave it (the options they set, in a canonical order):
+    the provenance line written beside a report or figure. Read from the command's context, so
+    it is the same however the command was started (console script, ``python -m``, a test)."""
+    import shlex
+
+    parts = ["cloudpose", *ctx.command_path.split()[1:]]
+    for p in ctx.command.params:
+        value = ctx.params.get(p.name)
+        source = ctx.get_parameter_source(p.name)
+        given = source is not None and source.name != "DEFAULT"
+        if p.param_type_name != "option" or value is None or not given:
+            continue
+        if p.is_flag:
+            parts.append(p.opts[0] if value else (p.secondary_opts or p.opts)[0])
+            continue
+        for v in value if p.multiple else [value]:
+            parts += [p.opts[0], str(v)]
+    return shlex.join(parts)
+
+
 def tracking_name(cfg) -> str:
     from cloudpose.runs import run_name
 
@@ -181,6 +202,7 @@ def symmetries(
 
 @app.command()
 def experiments(
+    ctx: typer.Context,
     group: Annotated[str, typer.Option(help="Group whose MLflow experiment to list.")],
     out: Annotated[
         Path, typer.Option(help="Markdown file to write (the values go beside it as .csv).")
@@ -191,13 +213,9 @@ def experiments(
     ] = None,
 ) -> None:
     """An experiment log: every finished run of a group, its overrides and its rotation errors."""
-    import shlex
-    import sys
-
     from cloudpose.report.experiments import write_log
 
-    command = "cloudpose " + shlex.join(sys.argv[1:])
-    path = write_log(group, out, command, against=against)
+    path = write_log(group, out, recorded_command(ctx), against=against)
     typer.echo(f"wrote {path}")
 
 
@@ -206,12 +224,8 @@ def synth(
     out: Annotated[Path, typer.Option(help="Output root (YCB-Video layout).")] = Path(
         "data/synth-seed0"
     ),
-    train_frames: Annotated[
-        int | None, typer.Option(help="Training frames (default: the cpu preset's).")
-    ] = None,
-    test_frames: Annotated[
-        int | None, typer.Option(help="Test frames, listed in keyframe.txt (default: cpu's).")
-    ] = None,
+    train_frames: Annotated[int, typer.Option(help="Training frames.")] = 800,
+    test_frames: Annotated[int, typer.Option(help="Test frames, listed in keyframe.txt.")] = 150,
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
     noise: Annotated[bool, typer.Option("--noise/--no-noise", help="Depth-sensor noise.")] = True,
     uniform_rotation: Annotated[
@@ -223,9 +237,6 @@ def synth(
     """Render a synthetic YCB-Video-layout dataset from the 21 real model point sets (resumable)."""
     from cloudpose.data.synth import synthesize
 
-    cpu = _config("shared-0", "cpu", 1).data
-    train_frames = cpu.train_frames if train_frames is None else train_frames
-    test_frames = cpu.test_frames if test_frames is None else test_frames
     s = synthesize(
         out, train_frames, test_frames, seed=seed, noise=noise,
         uniform_rotation=uniform_rotation, workers=workers, progress=progress,
@@ -425,6 +436,7 @@ def ablate(
 
 @app.command()
 def report(
+    ctx: typer.Context,
     group: Annotated[
         list[str] | None, typer.Option(help="Group(s) to render (repeatable); default all.")
     ] = None,
@@ -441,12 +453,14 @@ def report(
     from cloudpose.report import render_reports
 
     groups = None if all_groups or not group else list(group)
-    res = render_reports(preset, groups, project_dir=Path.cwd(), data=data, log_mlflow=mlflow)
+    res = render_reports(preset, groups, project_dir=Path.cwd(), data=data, log_mlflow=mlflow,
+                         command=recorded_command(ctx))  # fmt: skip
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 
 
 @app.command()
 def curves(
+    ctx: typer.Context,
     run: Annotated[
         list[str],
         typer.Option(help="Run (repeatable): name variant/preset/seedS, MLflow run id or folder."),
@@ -464,21 +478,11 @@ def curves(
     x: Annotated[str, typer.Option(help="x axis: epoch, or step (Adam steps).")] = "epoch",
 ) -> None:
     """Per-epoch curves of any runs side by side (one panel per metric), from MLflow."""
-    import shlex
-
     from cloudpose import tracking
     from cloudpose.report.curves import curves_csv, fetch_curves, plot_curves
 
     metrics = list(metric or ["train/loss_rot", "val/rot_err_median_deg"])
-    args = ["cloudpose", "curves", *(a for r in run for a in ("--run", r)), "--out", str(out)]
-    args += [a for m in metrics for a in ("--metric", m)] + ["--x", x]
-    if title:
-        args += ["--title", title]
-    if mark_epoch is not None:
-        args += ["--mark-epoch", str(mark_epoch)] + (
-            ["--mark-label", mark_label] * bool(mark_label)
-        )
-    command = "`" + shlex.join(args) + "`"
+    command = f"`{recorded_command(ctx)}`"
     found = fetch_curves(tracking.setup(Path.cwd()), run, metrics)
     png = plot_curves(found, metrics, out, command=command, title=title,
                       mark_epoch=mark_epoch, mark_label=mark_label, x=x)  # fmt: skip

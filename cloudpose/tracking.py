@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
 import subprocess
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -99,6 +101,13 @@ def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
 def metric_key(*parts: str) -> str:
     """Join parts with ``/`` and replace characters MLflow keys do not allow."""
     return _KEY_BAD.sub("_", "/".join(parts))
+
+
+def command_line() -> str:
+    """The command line of this process, as a user would type it (``cloudpose report ...``)."""
+    argv = list(sys.argv)
+    prog = Path(argv[0]).name if argv else "python"
+    return shlex.join([prog, *argv[1:]])
 
 
 def git_commit(repo: Path | None = None) -> str:

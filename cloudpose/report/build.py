@@ -15,9 +15,7 @@ Each group's files (and the overall ones) are also logged as artifacts of one ru
 
 from __future__ import annotations
 
-import shlex
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote, urlparse
@@ -67,13 +65,6 @@ class ReportResult:
     """group -> run id of its report run."""
 
 
-def default_command() -> str:
-    """The command line of this process, as a user would type it."""
-    argv = list(sys.argv)
-    prog = Path(argv[0]).name if argv else "python"
-    return shlex.join([prog, *argv[1:]])
-
-
 def render_reports(
     preset: str,
     group_names: list[str] | None = None,
@@ -107,7 +98,7 @@ def render_reports(
         get_group(g)  # unknown names raise with the valid list
     out_dir = out_dir or project_dir / "reports" / preset
     out_dir.mkdir(parents=True, exist_ok=True)
-    command = command or default_command()
+    command = command or tracking.command_line()
     renderer = tracking.git_commit()
     runs = load_runs(preset, data=data, client=client)
     prov_all = Provenance.of(runs, command, renderer)
