@@ -53,7 +53,7 @@ variants: ## print the variant registry with parameter counts
 MLFLOW_URI ?= $(or $(MLFLOW_TRACKING_URI),sqlite:///$(CURDIR)/mlflow.db)
 MLFLOW_PORT ?= 5000
 GROUP ?=
-.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations occlusion-report tables mlflow-ui
+.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations baselines occlusion-report tables mlflow-ui
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
 	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS)
@@ -68,6 +68,10 @@ ablation-symmetry: ## rotation loss modulo symmetry vs the plain geodesic x SEED
 	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS)
 
 ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups
+
+baselines: ## classical baselines (FPFH + RANSAC, point-pair features) on PRESET's test set, with and without ICP
+	$(CLI) baseline --method fpfh --preset $(PRESET)
+	$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT))
 
 occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing runs; GROUP=... adds a group's variants)
 	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))

@@ -414,6 +414,27 @@ def run(
 
 
 @app.command()
+def baseline(
+    method: Annotated[str, typer.Option(help="fpfh (FPFH + RANSAC) or ppf (point-pair features).")],
+    preset: PresetOpt = "cpu",
+    seed: SeedOpt = 1,
+    limit: Annotated[
+        int | None, typer.Option(help="An evenly spaced subsample of this many test instances.")
+    ] = None,
+    icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
+    progress: ProgressOpt = True,
+) -> None:
+    """A classical baseline on a preset's test set, with and without ICP; logs to MLflow."""
+    from cloudpose.baselines.run import run_baseline
+
+    out = run_baseline(method, preset, seed, limit=limit, icp=icp, progress=progress)
+    typer.echo(f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
+               f"{out.failures} not registered (misses); MLflow run {out.run_id}")  # fmt: skip
+    _print_summary(out.metrics)
+    typer.echo(f"{out.metrics['test/net_ms_per_object']:.0f} ms per object ({method} alone)")
+
+
+@app.command()
 def ablate(
     group: Annotated[str, typer.Option(help="Ablation group: shared, rotation or loss.")],
     preset: PresetOpt = "cpu",

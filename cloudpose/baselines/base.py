@@ -1,0 +1,77 @@
+"""What every baseline shares: its settings (from ``ablations/baselines.toml``), its result, and
+the checks of its input."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class BaselineSettings:
+    """A method's settings: ``values`` as written in ``baselines.toml`` (without ``why``)."""
+
+    method: str
+    why: str
+    values: dict[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, key: str) -> Any:
+        try:
+            return self.values[key]
+        except KeyError:
+            raise KeyError(f"baselines.toml [baseline.{self.method}] has no {key!r}") from None
+
+
+def load_settings(method: str, path: Path | None = None) -> BaselineSettings:
+    """The settings of ``method`` from ``ablations/baselines.toml``."""
+    from ablations import BASELINES_FILE
+
+    raw = tomllib.loads((path or BASELINES_FILE).read_text())
+    table = raw.get("baseline", {})
+    if method not in table:
+        raise ValueError(f"baseline method {method!r}: expected one of {', '.join(table)}")
+    values = dict(table[method])
+    return BaselineSettings(method, str(values.pop("why", "")), values)
+
+
+class NotRegistered(ValueError):
+    """A segment the method cannot register (too few points, no pose found): a miss, as a
+    network's empty segment is. Any other error is a bug and is raised."""
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """One estimate: rotation (3, 3) and translation (3,) model -> camera, metres, and the
+    method's own score (inlier fitness for fpfh, votes for ppf; higher is better)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    score: float
+
+
+class Estimator(Protocol):
+    """A pose estimator for the models it was built with."""
+
+    def estimate(self, points: np.ndarray, cls_id: int) -> PoseEstimate:
+        """Pose of class ``cls_id`` from its observed segment (N, 3), camera frame, metres."""
+        ...
+
+
+def check_segment(points: np.ndarray, cls_id: int, models: dict, min_points: int) -> np.ndarray:
+    """(N, 3) float64 finite points of a segment, or a ValueError saying what is wrong."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"segment: expected points of shape (N, 3), got {pts.shape}")
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < min_points:
+        raise NotRegistered(
+            f"segment of class {cls_id}: {len(pts)} finite points, a baseline needs at least "
+            f"{min_points} (min_points in ablations/baselines.toml)"
+        )
+    if int(cls_id) not in models:
+        raise ValueError(f"class {cls_id}: no model points (have classes {sorted(models)})")
+    return pts

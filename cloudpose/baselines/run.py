@@ -1,0 +1,124 @@
+"""A baseline evaluated like a network: the preset's test set, the same ICP after, the same
+instance table and metrics, logged to MLflow (experiment ``cloudpose-baselines``).
+
+A segment the method cannot register (too few points, no pose found) counts as a miss: its
+errors are infinite, as for a network's miss. The run is named ``baseline-{method}/{preset}/
+seed{S}`` and tagged like a training run (``variant`` = ``baseline-{method}``, ``preset``,
+``seed``, ``data``, ``config`` = a hash of the settings), so a finished one is found again and
+not recomputed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from cloudpose import tracking
+from cloudpose.baselines import load_settings, make
+from cloudpose.baselines.base import NotRegistered
+
+GROUP = "baselines"
+
+
+@dataclass(frozen=True)
+class BaselineOutcome:
+    """The instance table, the logged metrics and the MLflow run."""
+
+    table: pd.DataFrame
+    metrics: dict[str, float]
+    run_id: str | None
+    failures: int
+
+
+def subsample(n: int, limit: int | None) -> np.ndarray:
+    """Indices of an evenly spaced subsample of ``limit`` of ``n`` instances (all if None)."""
+    if limit is None or limit >= n:
+        return np.arange(n)
+    if limit < 1:
+        raise ValueError(f"--limit {limit}: expected a positive number of instances")
+    return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
+
+
+def run_baseline(
+    method: str,
+    preset: str = "cpu",
+    seed: int = 1,
+    *,
+    project_dir: Path | None = None,
+    limit: int | None = None,
+    icp: bool = True,
+    progress: bool = True,
+    log: bool = True,
+) -> BaselineOutcome:
+    """Evaluate baseline ``method`` on ``preset``'s test set (or an evenly spaced ``limit`` of
+    its instances) with and without ICP; log to MLflow when ``log``."""
+    from cloudpose.config import resolve
+    from cloudpose.data.dataset import prepare_data
+    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.evaluate import instance_table, summary_metrics
+    from cloudpose.infer import Estimates, refine_poses
+
+    project_dir = (project_dir or Path.cwd()).resolve()
+    settings = load_settings(method)
+    data = prepare_data(resolve("shared-0", preset, seed).data, project_dir, progress=progress)
+    dataset = YCBVideo(data.root)
+    models = dataset.models()
+    segs = data.test.subset(subsample(len(data.test), limit))
+    estimator = make(method, models, settings, seed=seed)
+    R = np.tile(np.eye(3), (len(segs), 1, 1))
+    t = np.zeros((len(segs), 3))
+    ok = np.asarray(segs.valid, dtype=bool).copy()
+    seconds = 0.0
+    for i in tqdm(np.flatnonzero(ok), disable=not progress, desc=method, unit="obj"):
+        k = int(min(segs.count[i], segs.points.shape[1]))
+        t0 = time.perf_counter()
+        try:
+            pose = estimator.estimate(segs.points[i, :k], int(segs.cls_id[i]))
+        except NotRegistered:
+            ok[i] = False
+            continue
+        finally:
+            seconds += time.perf_counter() - t0
+        R[i], t[i] = pose.R, pose.t
+    n_valid = int(np.sum(segs.valid))
+    failures = n_valid - int(ok.sum())
+    segs.valid = ok  # a segment the method could not register is a miss
+    est = {"net": Estimates(R, t)}
+    if icp:
+        est["icp"], _ = refine_poses(segs, est["net"], models, progress=progress)
+    table = instance_table(segs, est, models, dataset.classes)
+    metrics = summary_metrics(table, "test")
+    metrics["test/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
+    metrics["test/failures"] = float(failures)
+    run_id = _log(method, preset, seed, settings, data.key, table, metrics, limit) if log else None
+    return BaselineOutcome(table, metrics, run_id, failures)
+
+
+def _log(method, preset, seed, settings, data_key, table, metrics, limit) -> str:
+    from cloudpose.evaluate import _metrics
+
+    client = tracking.setup()
+    exp = tracking.experiment_id(client, GROUP)
+    config = hashlib.sha256(json.dumps(settings.values, sort_keys=True).encode()).hexdigest()
+    tags = {"variant": f"baseline-{method}", "group": GROUP, "preset": preset,
+            "seed": str(seed), "data": data_key, "config": config[:16], "kind": "baseline",
+            "subsample": str(limit or "all"), "git_commit": tracking.git_commit()}  # fmt: skip
+    run = client.create_run(exp, tags=tags, run_name=f"baseline-{method}/{preset}/seed{seed}")
+    run_id = run.info.run_id
+    for k, v in settings.values.items():
+        client.log_param(run_id, f"baseline.{k}", v)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "instances.csv"
+        table.to_csv(path, index=False)
+        client.log_artifact(run_id, str(path), artifact_path="eval/test")
+    client.log_batch(run_id, metrics=_metrics(metrics))
+    client.set_terminated(run_id, "FINISHED")
+    return run_id
