@@ -3,6 +3,8 @@ the checks of its input."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +43,22 @@ def load_settings(method: str, path: Path | None = None) -> BaselineSettings:
 class NotRegistered(ValueError):
     """A segment the method cannot register (too few points, no pose found): a miss, as a
     network's empty segment is. Any other error is a bug and is raised."""
+
+
+def settings_fingerprint(settings: BaselineSettings) -> str:
+    """16 hex digits of the method and its settings (MLflow tag ``config`` of a baseline run)."""
+    text = json.dumps({"method": settings.method, **settings.values}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def is_current(run) -> bool:
+    """Whether an MLflow baseline run was made with today's settings of its method."""
+    variant = run.data.tags.get("variant", "")
+    try:
+        settings = load_settings(variant.removeprefix("baseline-"))
+    except ValueError:
+        return False
+    return run.data.tags.get("config") == settings_fingerprint(settings)
 
 
 @dataclass(frozen=True)

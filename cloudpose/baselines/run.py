@@ -10,8 +10,6 @@ not recomputed.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import tempfile
 import time
 from dataclasses import dataclass
@@ -23,7 +21,7 @@ from tqdm.auto import tqdm
 
 from cloudpose import tracking
 from cloudpose.baselines import load_settings, make
-from cloudpose.baselines.base import NotRegistered
+from cloudpose.baselines.base import NotRegistered, settings_fingerprint
 
 GROUP = "baselines"
 
@@ -68,7 +66,8 @@ def run_baseline(
 
     project_dir = (project_dir or Path.cwd()).resolve()
     settings = load_settings(method)
-    data = prepare_data(resolve("shared-0", preset, seed).data, project_dir, progress=progress)
+    cfg = resolve("shared-0", preset, seed)
+    data = prepare_data(cfg.data, project_dir, progress=progress)
     dataset = YCBVideo(data.root)
     models = dataset.models()
     segs = data.test.subset(subsample(len(data.test), limit))
@@ -92,29 +91,37 @@ def run_baseline(
     failures = n_valid - int(ok.sum())
     segs.valid = ok  # a segment the method could not register is a miss
     est = {"net": Estimates(R, t)}
+    t_icp = 0.0
     if icp:
+        t0 = time.perf_counter()
         est["icp"], _ = refine_poses(segs, est["net"], models, progress=progress)
+        t_icp = time.perf_counter() - t0
     table = instance_table(segs, est, models, dataset.classes)
     metrics = summary_metrics(table, "test")
     metrics["test/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
+    if icp:
+        metrics["test/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
     metrics["test/failures"] = float(failures)
-    run_id = _log(method, preset, seed, settings, data.key, table, metrics, limit) if log else None
+    data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
+    run_id = (_log(method, preset, seed, settings, data.key, table, metrics, limit, data_params)
+              if log else None)  # fmt: skip
     return BaselineOutcome(table, metrics, run_id, failures)
 
 
-def _log(method, preset, seed, settings, data_key, table, metrics, limit) -> str:
+def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_params) -> str:
     from cloudpose.evaluate import _metrics
 
     client = tracking.setup()
     exp = tracking.experiment_id(client, GROUP)
-    config = hashlib.sha256(json.dumps(settings.values, sort_keys=True).encode()).hexdigest()
     tags = {"variant": f"baseline-{method}", "group": GROUP, "preset": preset,
-            "seed": str(seed), "data": data_key, "config": config[:16], "kind": "baseline",
+            "seed": str(seed), "data": data_key, "config": settings_fingerprint(settings),
+            "kind": "baseline",
             "subsample": str(limit or "all"), "git_commit": tracking.git_commit()}  # fmt: skip
     run = client.create_run(exp, tags=tags, run_name=f"baseline-{method}/{preset}/seed{seed}")
     run_id = run.info.run_id
-    for k, v in settings.values.items():
-        client.log_param(run_id, f"baseline.{k}", v)
+    params = {f"baseline.{k}": v for k, v in settings.values.items()}
+    for k, v in {**params, **tracking.flat_params(data_params)}.items():
+        client.log_param(run_id, k, v)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "instances.csv"
         table.to_csv(path, index=False)

@@ -107,7 +107,9 @@ def render_reports(
     base = runs.subset(["shared-0"])
     if base.records:
         prov = Provenance.of(base, command, renderer)
-        written["overall"] += table1_overall(base).write(out_dir, prov)
+        with_baselines = runs.subset(["shared-0", *(v for v in runs.variants
+                                                    if v.startswith("baseline-"))])  # fmt: skip
+        written["overall"] += table1_overall(with_baselines).write(out_dir, prov)
         written["overall"] += table2_per_class(base).write(out_dir, prov)
         written["overall"] += _occlusion_overall(base, out_dir, prov)
     results = evaluate_claims(runs)

@@ -142,6 +142,15 @@ class RunSet:
         return f"{names} (data {fp})"
 
 
+def _current(run) -> bool:
+    """A training run of its preset's own config, or a baseline run of today's settings."""
+    if run.data.tags.get("kind") == "baseline":
+        from cloudpose.baselines.base import is_current
+
+        return is_current(run)
+    return is_preset_config(run)
+
+
 def load_runs(preset: str, *, data: str | None = None, client=None,
               project_dir: Path | None = None) -> RunSet:  # fmt: skip
     """Finished runs of ``preset`` with test metrics, one per (variant, seed), on one dataset.
@@ -159,14 +168,14 @@ def load_runs(preset: str, *, data: str | None = None, client=None,
         if r.data.tags.get("variant") and r.data.tags.get("seed") and TEST_KEY in r.data.metrics
     ]  # fmt: skip
     # a run with overrides (--set, --epochs) or from an edited preset is another config
-    other = [r for r in runs if not is_preset_config(r)]
+    other = [r for r in runs if not _current(r)]
     if other:
         warnings.warn(
             f"{len(other)} finished run(s) tagged preset {preset!r} were made with another "
             "config (overrides or an older preset) and are left out of the report",
             stacklevel=2,
         )
-        runs = [r for r in runs if is_preset_config(r)]
+        runs = [r for r in runs if _current(r)]
     if not runs:
         return RunSet(preset, data, [])
     if data is None:
