@@ -337,6 +337,9 @@ def test_table1_has_the_baselines_with_their_time(rendered):
     assert row["seeds"] == 3 and row["ms_per_object"] == pytest.approx(300.0)
     assert df.loc["FPFH + RANSAC (baseline-fpfh + ICP)", "ms_per_object"] == pytest.approx(302.0)
     assert "| FPFH + RANSAC w/o ICP (baseline-fpfh) |" in md and "ms/object" in md
+    t2 = (result.out_dir / "table2_per_class.md").read_text()
+    assert "FPFH + RANSAC + ICP" in t2  # its per-class column ('–': no per-class metrics logged)
+    assert "baseline-fpfh_ads_auc_mean" in _read_csv(result.out_dir / "table2_per_class.csv")
 
 
 def test_table2_per_class(rendered):

@@ -110,8 +110,8 @@ def render_reports(
         with_baselines = runs.subset(["shared-0", *(v for v in runs.variants
                                                     if v.startswith("baseline-"))])  # fmt: skip
         written["overall"] += table1_overall(with_baselines).write(out_dir, prov)
-        written["overall"] += table2_per_class(base).write(out_dir, prov)
-        written["overall"] += _occlusion_overall(base, out_dir, prov)
+        written["overall"] += table2_per_class(with_baselines).write(out_dir, prov)
+        written["overall"] += _occlusion_overall(with_baselines, out_dir, prov)
     results = evaluate_claims(runs)
     (out_dir / "claims.md").write_text(claims_markdown(results, prov_all), encoding="utf-8")
     claims_csv = f"# {prov_all.line()}\n" + claims_frame(results).to_csv(
@@ -141,13 +141,19 @@ def _series(runs: RunSet, variant: str, label: str, method: str = "net"):
 
 
 def _occlusion_overall(runs: RunSet, out_dir: Path, prov: Provenance) -> list[Path]:
-    series = [s for s in (_series(runs, "shared-0", "shared-0, network alone", "net"),
-                          _series(runs, "shared-0", "shared-0 + ICP", "icp")) if s]  # fmt: skip
+    from cloudpose.report.tables import BASELINE_LABELS
+
+    candidates = [_series(runs, "shared-0", "shared-0, network alone", "net"),
+                  _series(runs, "shared-0", "shared-0 + ICP", "icp")]  # fmt: skip
+    candidates += [_series(runs, b, f"{BASELINE_LABELS.get(b, b)} + ICP", "icp")
+                   for b in runs.variants if b.startswith("baseline-")]  # fmt: skip
+    series = [s for s in candidates if s]
     series = [s for s in series if f"{s.method}_ads" in s.tables[0]]
     if not series:
         return []
     png = plots.plot_occlusion(series, out_dir / "occlusion.png", prov,
-                               "ADS < 1 cm accuracy vs occlusion (shared-0)")  # fmt: skip
+                               "ADS < 1 cm accuracy vs occlusion (shared-0"
+                               + (" and the baselines)" if len(series) > 2 else ")"))  # fmt: skip
     csv = out_dir / "occlusion.csv"
     csv.write_text(f"# {prov.line()}\n" + plots.occlusion_frame(series).to_csv(
         index=False, float_format="%.2f"), encoding="utf-8")  # fmt: skip

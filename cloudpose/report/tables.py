@@ -218,7 +218,7 @@ def table1_overall(runs: RunSet) -> Table:
 
 
 def _add_ours(runs, prefix: str, metrics, cells: list, row: dict, rows: list, data: list,
-              variant: str = "shared-0", icp: int = 0) -> None:  # fmt: skip
+              variant: str = "shared-0", icp: int = 0, timed: bool = True) -> None:  # fmt: skip
     """Append ``variant``'s ``{prefix}/{metric}`` mean ± std cells and CSV fields and its time
     per object (estimate, plus ICP when ``icp``), then the row."""
     n = 0
@@ -228,6 +228,11 @@ def _add_ours(runs, prefix: str, metrics, cells: list, row: dict, rows: list, da
         row[f"{m}_mean"], row[f"{m}_std"] = ms.mean * 100, ms.std * 100
         n = max(n, ms.n)
     times = [v for v in runs.values(variant, "test/net_ms_per_object").values()]
+    if not timed:
+        row["seeds"] = n
+        rows.append([*cells, str(n)])
+        data.append(row)
+        return
     if icp:
         extra = runs.values(variant, "test/icp_ms_per_object")
         times = [v + extra[s] for s, v in runs.values(variant, "test/net_ms_per_object").items()
@@ -256,24 +261,39 @@ def table2_per_class(runs: RunSet) -> Table:
     paper_cols = ("Ours_AD", "Ours_ADS", "Ours_lt_1cm")
     paper = paper_table("table2_per_class")
     ours_group = "ours + ICP"
+    baselines = [v for v in runs.variants if v.startswith("baseline-")]
     header = [("", "object")]
     header += [(PAPER_SOURCE, METRIC_LABELS[m]) for m in metrics]
     header += [(ours_group, METRIC_LABELS[m]) for m in metrics] + [("", "seeds")]
+    header += [(f"{BASELINE_LABELS.get(b, b)} + ICP", METRIC_LABELS["ads_auc"]) for b in baselines]
     rows, data = [], []
     for _, p in paper.iterrows():
         cls = p["object"]
         cells = [cls, *(_paper(p[c]) for c in paper_cols)]
         row = {"object": cls, **{f"paper_{m}": _num(p[c]) for m, c in zip(metrics, paper_cols,
                                                                           strict=True)}}  # fmt: skip
-        _add_ours(runs, f"test_icp/class/{cls}", metrics, cells, row, rows, data)
+        _add_ours(runs, f"test_icp/class/{cls}", metrics, cells, row, rows, data, timed=False)
+        for b in baselines:
+            ms, text = _ours(runs, b, f"test_icp/class/{cls}/ads_auc")
+            rows[-1].append(text)
+            row[f"{b}_ads_auc_mean"] = ms.mean * 100
     outliers = outlier_classes({r["object"]: r["ads_auc_mean"] for r in data})
     rows.append(None)
     cells, row = ["class mean", "–", "–", "–"], {"object": "class mean"}
-    _add_ours(runs, "test_icp/class_mean", metrics, cells, row, rows, data)
+    _add_ours(runs, "test_icp/class_mean", metrics, cells, row, rows, data, timed=False)
+    for b in baselines:
+        ms, text = _ours(runs, b, "test_icp/class_mean/ads_auc")
+        rows[-1].append(text)
+        row[f"{b}_ads_auc_mean"] = ms.mean * 100
     notes = [
         "Paper columns: Gao et al. (ICRA 2020), Table II, 'Ours' (with ICP), real YCB-Video.",
         f"Our columns: shared-0 + ICP, mean ± sample std over seeds on {runs.data_label()}; "
-        "percent; '–' where a class has no test instance.",
+        "percent; '–' where a class has no test instance."
+        + (
+            " Baseline columns: the same test set and ICP (`cloudpose baseline`)."
+            if baselines
+            else ""
+        ),
         "Outlier classes (ADS AUC more than 3 median absolute deviations below the median "
         "class, a sign of a class the network did not fit): "
         + (", ".join(f"{c} ({v:.1f})" for c, v in outliers.items()) or "none")
