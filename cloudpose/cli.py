@@ -421,17 +421,27 @@ def baseline(
     limit: Annotated[
         int | None, typer.Option(help="An evenly spaced subsample of this many test instances.")
     ] = None,
+    split: Annotated[
+        str, typer.Option(help="test, or val (held-out training frames: where to tune).")
+    ] = "test",
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
+    ] = None,
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
     progress: ProgressOpt = True,
 ) -> None:
     """A classical baseline on a preset's test set, with and without ICP; logs to MLflow."""
     from cloudpose.baselines.run import run_baseline
 
-    out = run_baseline(method, preset, seed, limit=limit, icp=icp, progress=progress)
+    overrides = {k: v for section in parse_sets([f"b.{s}" for s in set_ or []]).values()
+                 for k, v in section.items()}  # fmt: skip
+    out = run_baseline(method, preset, seed, limit=limit, split=split, overrides=overrides,
+                       icp=icp, progress=progress)  # fmt: skip
     typer.echo(f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
                f"{out.failures} not registered (misses); MLflow run {out.run_id}")  # fmt: skip
     _print_summary(out.metrics)
-    typer.echo(f"{out.metrics['test/net_ms_per_object']:.0f} ms per object ({method} alone)")
+    typer.echo(f"{out.metrics[f'{split}/net_ms_per_object']:.0f} ms per object ({method} alone)")
 
 
 @app.command()

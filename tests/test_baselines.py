@@ -81,3 +81,20 @@ def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project):
     assert run.data.tags["variant"] == "baseline-fpfh" and run.data.tags["subsample"] == "8"
     assert "test/ads_auc" in run.data.metrics and "test/net_ms_per_object" in run.data.metrics
     assert subsample(10, 4).tolist() == [0, 3, 6, 9] and len(subsample(5, None)) == 5
+
+
+def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
+    from cloudpose import tracking
+    from cloudpose.baselines.run import run_baseline
+
+    proj, _ = smoke_project
+    out = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=4, split="val",
+                       overrides={"voxel": 0.004}, icp=False, progress=False)  # fmt: skip
+    assert "val/ads_auc" in out.metrics and not any(k.startswith("test/") for k in out.metrics)
+    run = tracking.setup(proj).get_run(out.run_id)
+    assert run.data.tags["split"] == "val" and run.data.params["baseline.voxel"] == "0.004"
+    assert run.info.run_name.startswith("baseline-fpfh/smoke/seed1+val-")
+    with pytest.raises(ValueError, match=r"unknown settings \['voxl'\]"):
+        load_settings("fpfh").with_overrides({"voxl": 1})
+    with pytest.raises(ValueError, match="expected test or val"):
+        run_baseline("fpfh", "smoke", split="train", project_dir=proj)

@@ -21,6 +21,14 @@ class BaselineSettings:
     why: str
     values: dict[str, Any] = field(default_factory=dict)
 
+    def with_overrides(self, overrides: dict[str, Any] | None) -> BaselineSettings:
+        """These settings with some values replaced (each key must exist)."""
+        unknown = sorted(set(overrides or {}) - set(self.values))
+        if unknown:
+            raise ValueError(f"baseline {self.method}: unknown settings {unknown}; "
+                             f"expected some of {sorted(self.values)}")  # fmt: skip
+        return BaselineSettings(self.method, self.why, {**self.values, **(overrides or {})})
+
     def __getitem__(self, key: str) -> Any:
         try:
             return self.values[key]

@@ -52,12 +52,21 @@ def run_baseline(
     *,
     project_dir: Path | None = None,
     limit: int | None = None,
+    split: str = "test",
+    overrides: dict | None = None,
     icp: bool = True,
     progress: bool = True,
     log: bool = True,
 ) -> BaselineOutcome:
     """Evaluate baseline ``method`` on ``preset``'s test set (or an evenly spaced ``limit`` of
-    its instances) with and without ICP; log to MLflow when ``log``."""
+    its instances) with and without ICP; log to MLflow when ``log``.
+
+    ``split="val"`` evaluates on the validation frames held out of the training set (the same
+    frames every network validates on), with metrics under ``val/``: where settings are
+    chosen (``overrides`` replaces some of ``baselines.toml``'s values), never on the test set.
+    """
+    if split not in ("test", "val"):
+        raise ValueError(f"--split {split!r}: expected test or val")
     from cloudpose.config import resolve
     from cloudpose.data.dataset import prepare_data
     from cloudpose.data.ycb import YCBVideo
@@ -65,12 +74,18 @@ def run_baseline(
     from cloudpose.infer import Estimates, refine_poses
 
     project_dir = (project_dir or Path.cwd()).resolve()
-    settings = load_settings(method)
+    settings = load_settings(method).with_overrides(overrides)
     cfg = resolve("shared-0", preset, seed)
     data = prepare_data(cfg.data, project_dir, progress=progress)
     dataset = YCBVideo(data.root)
     models = dataset.models()
-    segs = data.test.subset(subsample(len(data.test), limit))
+    if split == "test":
+        pool = data.test
+    else:
+        from cloudpose.train import split_frames
+
+        pool = data.train.subset(split_frames(data.train.frame_id, cfg.train.val_fraction))
+    segs = pool.subset(subsample(len(pool), limit))
     estimator = make(method, models, settings, seed=seed)
     R = np.tile(np.eye(3), (len(segs), 1, 1))
     t = np.zeros((len(segs), 3))
@@ -97,18 +112,19 @@ def run_baseline(
         est["icp"], _ = refine_poses(segs, est["net"], models, progress=progress)
         t_icp = time.perf_counter() - t0
     table = instance_table(segs, est, models, dataset.classes)
-    metrics = summary_metrics(table, "test")
-    metrics["test/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
+    metrics = summary_metrics(table, split)
+    metrics[f"{split}/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
     if icp:
-        metrics["test/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
-    metrics["test/failures"] = float(failures)
+        metrics[f"{split}/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
+    metrics[f"{split}/failures"] = float(failures)
     data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
-    run_id = (_log(method, preset, seed, settings, data.key, table, metrics, limit, data_params)
-              if log else None)  # fmt: skip
+    run_id = (_log(method, preset, seed, settings, data.key, table, metrics, limit, data_params,
+                   split) if log else None)  # fmt: skip
     return BaselineOutcome(table, metrics, run_id, failures)
 
 
-def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_params) -> str:
+def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_params,
+         split) -> str:  # fmt: skip
     from cloudpose.evaluate import _metrics
 
     client = tracking.setup()
@@ -116,8 +132,12 @@ def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_p
     tags = {"variant": f"baseline-{method}", "group": GROUP, "preset": preset,
             "seed": str(seed), "data": data_key, "config": settings_fingerprint(settings),
             "kind": "baseline",
-            "subsample": str(limit or "all"), "git_commit": tracking.git_commit()}  # fmt: skip
-    run = client.create_run(exp, tags=tags, run_name=f"baseline-{method}/{preset}/seed{seed}")
+            "subsample": str(limit or "all"), "split": split,
+            "git_commit": tracking.git_commit()}  # fmt: skip
+    name = f"baseline-{method}/{preset}/seed{seed}"
+    if split != "test" or tags["config"] != settings_fingerprint(load_settings(method)):
+        name += f"+{split}-{tags['config'][:8]}"
+    run = client.create_run(exp, tags=tags, run_name=name)
     run_id = run.info.run_id
     params = {f"baseline.{k}": v for k, v in settings.values.items()}
     for k, v in {**params, **tracking.flat_params(data_params)}.items():
@@ -125,7 +145,7 @@ def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_p
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "instances.csv"
         table.to_csv(path, index=False)
-        client.log_artifact(run_id, str(path), artifact_path="eval/test")
+        client.log_artifact(run_id, str(path), artifact_path=f"eval/{split}")
     client.log_batch(run_id, metrics=_metrics(metrics))
     client.set_terminated(run_id, "FINISHED")
     return run_id
