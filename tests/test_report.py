@@ -496,6 +496,17 @@ def test_report_runs_logged_and_replaced(rendered):
     assert [r.info.run_id for r in live] == [again.mlflow_runs["shared"]]
 
 
+def test_an_unresolved_difference_says_why():
+    few = stats.difference({1: 0.9, 2: 0.8}, {1: 0.1, 2: 0.2})
+    assert few.verdict == stats.UNRESOLVED and few.why == "2 seed(s) of 3 needed"
+    same = stats.difference({1: 0.5, 2: 0.6, 3: 0.7}, {1: 0.4, 2: 0.5, 3: 0.6})
+    assert same.verdict == stats.UNRESOLVED and "same difference" in same.why
+    wide = stats.difference({1: 0.5, 2: 0.9, 3: 0.1}, {1: 0.5, 2: 0.5, 3: 0.5})
+    assert wide.verdict == stats.UNRESOLVED and wide.why == "the interval contains 0"
+    clear = stats.difference({1: 0.9, 2: 0.95, 3: 0.92}, {1: 0.1, 2: 0.12, 3: 0.2})
+    assert clear.verdict == stats.SUPPORTED and clear.why == ""
+
+
 def test_outlier_classes_flags_a_class_far_below_the_rest():
     from cloudpose.report.tables import outlier_classes
 

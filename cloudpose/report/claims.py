@@ -15,7 +15,7 @@ import pandas as pd
 
 from cloudpose.config import get_group
 from cloudpose.report.runs import RunSet
-from cloudpose.report.stats import MIN_SEEDS, Difference, difference
+from cloudpose.report.stats import MIN_SEEDS, UNRESOLVED, Difference, difference
 from cloudpose.report.tables import METRIC_LABELS, Provenance, paper_table
 
 
@@ -126,6 +126,7 @@ def claims_frame(results: list[ClaimResult]) -> pd.DataFrame:
                 "seeds": r.diff.n,
                 "paired": r.diff.paired,
                 "verdict": r.diff.verdict,
+                "why_unresolved": r.diff.why,
             }
             for r in results
         ]
@@ -152,6 +153,13 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
     for r in results:
         counts[r.diff.verdict] = counts.get(r.diff.verdict, 0) + 1
     lines.append("Summary: " + "; ".join(f"{v}: {n}" for v, n in sorted(counts.items())) + ".")
+    why: dict[str, int] = {}
+    for r in results:
+        if r.diff.why:
+            why[r.diff.why] = why.get(r.diff.why, 0) + 1
+    if why:
+        lines.append("Not resolved because: " + "; ".join(f"{w} ({n})" for w, n in
+                                                         sorted(why.items())) + ".")  # fmt: skip
     n_ci = sum(math.isfinite(r.diff.low) for r in results)
     if n_ci:
         lines += ["", f"{n_ci} intervals at 95% each, not corrected for multiple comparisons: were "
@@ -167,7 +175,7 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
                       "|---|---|---:|---:|---:|---:|---|"]  # fmt: skip
         ci = f"[{_pp(d.low)}, {_pp(d.high)}]" if math.isfinite(d.low) else "–"
         seeds = f"{d.n}" + ("" if d.paired or d.n < 2 else " (unpaired)")
-        verdict = f"**{d.verdict}**" if d.verdict != "not resolved at this size" else d.verdict
+        verdict = f"**{d.verdict}**" if d.verdict != UNRESOLVED else f"{d.verdict} ({d.why})"
         lines.append(f"| {c.statement} | {METRIC_LABELS.get(c.metric, c.metric)} | "
                      f"{_pp(c.paper / 100)} | {_pp(d.mean)} | {ci} | {seeds} | {verdict} |")  # fmt: skip
     return "\n".join(lines) + "\n"

@@ -66,6 +66,8 @@ class Difference(NamedTuple):
         n: seeds used (paired: seeds both sides have; unpaired: the smaller side).
         paired: whether the interval is a paired t-interval (else Welch's).
         verdict: :data:`SUPPORTED`, :data:`CONTRADICTED` or :data:`UNRESOLVED`.
+        why: for :data:`UNRESOLVED`, the reason in words (too few seeds, an interval that
+            contains 0, or one of zero width); "" otherwise.
     """
 
     mean: float
@@ -74,6 +76,7 @@ class Difference(NamedTuple):
     n: int
     paired: bool
     verdict: str
+    why: str = ""
 
 
 def _t_interval(mean: float, se: float, dof: float, level: float) -> tuple[float, float]:
@@ -136,12 +139,20 @@ def difference(
             mean = float(np.mean(list(a.values())) - np.mean(list(b.values())))
         else:
             mean = math.nan
-        return Difference(mean, math.nan, math.nan, min(len(a), len(b)), False, UNRESOLVED)
+        n = min(len(a), len(b))
+        return Difference(mean, math.nan, math.nan, n, False, UNRESOLVED,
+                          f"{n} seed(s) of {min_seeds} needed")  # fmt: skip
     # zero width up to float rounding (per-seed differences equal but for the last bits)
-    decided = n >= min_seeds and high - low > 1e-9 * max(1.0, abs(mean))
-    return Difference(
-        mean, low, high, n, paired, verdict(low, high, expect) if decided else UNRESOLVED
-    )
+    if n < min_seeds:
+        why = f"{n} seed(s) of {min_seeds} needed"
+    elif not high - low > 1e-9 * max(1.0, abs(mean)):
+        why = "every seed gives the same difference (below the test set's resolution)"
+    else:
+        why = ""
+    result = verdict(low, high, expect) if not why else UNRESOLVED
+    if result == UNRESOLVED and not why:
+        why = "the interval contains 0"
+    return Difference(mean, low, high, n, paired, result, why)
 
 
 def verdict(low: float, high: float, expect: int = 1) -> str:
