@@ -311,13 +311,20 @@ def evaluate(
         typer.Option(help="Metric prefix (default: test, or the --data folder's identity)."),
     ] = None,
     device: DeviceOpt = "auto",
+    segmentation: Annotated[
+        str | None,
+        typer.Option(
+            help="Test masks: gt, or degraded-mild|medium|strong (imitated network "
+            "errors); default the run's own."
+        ),
+    ] = None,
     progress: ProgressOpt = True,
 ) -> None:
     """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
     from cloudpose.evaluate import evaluate as evaluate_fn
 
     out = evaluate_fn(run, data=data, frames=frames, name=name, icp=icp, progress=progress,
-                      device=device)  # fmt: skip
+                      device=device, segmentation=segmentation)  # fmt: skip
     typer.echo(f"evaluated {out.source}; logged as {out.name}/... and {out.name}_icp/...")
     _print_summary(out.metrics)
     if show_instances:
@@ -339,14 +346,15 @@ of instances under a threshold (* = rotation error modulo the object's symmetrie
 def _print_summary(metrics: dict[str, float]) -> None:
     keys = list(SUMMARY_COLUMNS)
     prefixes = sorted({k.split("/")[0] for k in metrics})
-    typer.echo(f"{'(%)':<16}" + "".join(f"{SUMMARY_COLUMNS[k]:>12}" for k in keys))
+    w = max([16] + [len(p.replace("_icp", " + ICP")) + 2 for p in prefixes])
+    typer.echo(f"{'(%)':<{w}}" + "".join(f"{SUMMARY_COLUMNS[k]:>12}" for k in keys))
     for p in prefixes:
         vals = [metrics.get(f"{p}/{k}") for k in keys]
         if all(v is None for v in vals):
             continue
         label = p.replace("_icp", " + ICP")
-        typer.echo(f"{label:<16}" + "".join(f"{100 * v:>12.1f}" if v is not None else f"{'':>12}"
-                                            for v in vals))  # fmt: skip
+        typer.echo(f"{label:<{w}}" + "".join(f"{100 * v:>12.1f}" if v is not None else f"{'':>12}"
+                                             for v in vals))  # fmt: skip
 
 
 def _next_steps(preset: str) -> None:

@@ -9,6 +9,7 @@ network alone and ``{name}_icp/...`` after ICP; the per-instance table is an art
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 import time
 from dataclasses import dataclass
@@ -121,6 +122,7 @@ def evaluate(
     log: bool = True,
     device: str = "auto",
     own_data: Prepared | None = None,
+    segmentation: str | None = None,
 ) -> EvalOutcome:
     """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
 
@@ -135,6 +137,9 @@ def evaluate(
         device: where the network runs ("auto": CUDA when available, as in training).
         own_data: the run's own data, prepared (the pipeline passes what it trained on);
             default: prepared here from the run's config.
+        segmentation: where the test masks come from, if not from the run's config (e.g.
+            ``degraded-medium``, :mod:`cloudpose.data.masks`); the evaluation is then named
+            ``{test or the data's name}-{segmentation}``.
 
     Raises:
         ValueError: no instance to evaluate; a reserved ``name`` with ``data``; ``name``
@@ -150,7 +155,17 @@ def evaluate(
     run_id, ckpt = resolve_run(client, run)
     model, cfg = load_checkpoint(ckpt, device)
     device = next(model.buffers()).device
-    if data is None:
+    masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
+    if data is None and masks is not None:
+        own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
+        dataset = YCBVideo(own.root)
+        seg_cfg = dataclasses.replace(cfg.data, segmentation=masks)
+        cache_dir = project_dir / "data" / "cache"
+        segs = only_classes(segments_for(dataset, "keyframe", seg_cfg, cache_dir=cache_dir,
+                                         progress=progress), own.root, cfg.data.classes)  # fmt: skip
+        name, data_key = name or f"{OWN_TEST}-{masks}", segs.key
+        data_label = f"the run's own test set ({dataset.root}) with {masks} masks"
+    elif data is None:
         own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
         segs, dataset = own.test, YCBVideo(own.root)
         name, data_key = name or OWN_TEST, segs.key
@@ -162,11 +177,12 @@ def evaluate(
                 "name the evaluation by its data"
             )
         dataset = YCBVideo(data)
-        data_key = cache_key(data, frames, cfg.data, memo_dir=project_dir / "data" / "cache")
+        seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
+        data_key = cache_key(data, frames, seg_cfg, memo_dir=project_dir / "data" / "cache")
         segs = only_classes(
-            segments_for(dataset, frames, cfg.data, progress=progress), data, cfg.data.classes
+            segments_for(dataset, frames, seg_cfg, progress=progress), data, cfg.data.classes
         )
-        name = name or evaluation_name(data, frames, data_key)
+        name = name or evaluation_name(data, frames, data_key) + (f"-{masks}" if masks else "")
         data_label = f"{Path(data).resolve()} (frames {frames!r})"
     if len(segs) == 0:
         raise ValueError(

@@ -136,6 +136,8 @@ def register_mask_source(name: str, source: MaskSource) -> None:
 def get_mask_source(name: str) -> MaskSource:
     """The segmentation source ``name``; unknown names raise with the list of valid ones."""
     if name not in MASK_SOURCES:
+        import cloudpose.data.masks  # noqa: F401  (registers the degraded sources)
+    if name not in MASK_SOURCES:
         raise ValueError(
             f"unknown segmentation {name!r}; valid segmentations: {', '.join(MASK_SOURCES)}"
         )
