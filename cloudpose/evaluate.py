@@ -156,20 +156,17 @@ def evaluate(
     model, cfg = load_checkpoint(ckpt, device)
     device = next(model.buffers()).device
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
-    if data is None and masks is not None:
-        own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
-        dataset = YCBVideo(own.root)
-        seg_cfg = dataclasses.replace(cfg.data, segmentation=masks)
-        cache_dir = project_dir / "data" / "cache"
-        segs = only_classes(segments_for(dataset, "keyframe", seg_cfg, cache_dir=cache_dir,
-                                         progress=progress), own.root, cfg.data.classes)  # fmt: skip
-        name, data_key = name or f"{OWN_TEST}-{masks}", segs.key
-        data_label = f"the run's own test set ({dataset.root}) with {masks} masks"
-    elif data is None:
+    seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
+    if data is None:
         own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
         segs, dataset = own.test, YCBVideo(own.root)
-        name, data_key = name or OWN_TEST, segs.key
         data_label = f"the run's own test set ({dataset.root})"
+        if masks:  # the same frames, segmented otherwise (cached beside the run's own)
+            segs = only_classes(segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir,
+                                             progress=progress), own.root, cfg.data.classes)  # fmt: skip
+            data_label += f" with {masks} masks"
+        name = name or (f"{OWN_TEST}-{masks}" if masks else OWN_TEST)
+        data_key = segs.key
     else:
         if name in (OWN_TEST, f"{OWN_TEST}_icp"):
             raise ValueError(
@@ -177,7 +174,6 @@ def evaluate(
                 "name the evaluation by its data"
             )
         dataset = YCBVideo(data)
-        seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
         data_key = cache_key(data, frames, seg_cfg, memo_dir=project_dir / "data" / "cache")
         segs = only_classes(
             segments_for(dataset, frames, seg_cfg, progress=progress), data, cfg.data.classes
@@ -215,19 +211,18 @@ def evaluate(
     if icp:
         metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
     if log:
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "instances.csv"
-            table.to_csv(path, index=False)
-            client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
-        client.log_batch(run_id, metrics=_metrics(metrics))
+        log_evaluation(client, run_id, name, table, metrics)
         client.set_tag(run_id, tag, data_key)
     source = f"run {run_id}, checkpoint {ckpt}, {len(segs)} instances of {data_label}"
     return EvalOutcome(table, metrics, run_id, name, source)
 
 
-def _metrics(metrics: dict[str, float]):
-    from mlflow.entities import Metric
-
-    now = int(time.time() * 1000)
-    finite = {k: v for k, v in metrics.items() if np.isfinite(v)}
-    return [Metric(k, float(v), now, 0) for k, v in finite.items()]
+def log_evaluation(client, run_id: str, name: str, table: pd.DataFrame,
+                   metrics: dict[str, float]) -> None:  # fmt: skip
+    """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.csv``
+    (what the reports read) and the finite metrics."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "instances.csv"
+        table.to_csv(path, index=False)
+        client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
+    client.log_batch(run_id, metrics=tracking.metric_batch(metrics, finite_only=True))

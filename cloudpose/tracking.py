@@ -167,6 +167,19 @@ def find_runs(
     )
 
 
+def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:
+    """MLflow ``Metric`` entities of ``metrics`` at ``step``, stamped now (for ``log_batch``);
+    ``finite_only`` leaves out NaN and infinite values."""
+    import math
+    import time
+
+    from mlflow.entities import Metric
+
+    now = int(time.time() * 1000)
+    return [Metric(k, float(v), now, step) for k, v in metrics.items()
+            if not finite_only or math.isfinite(v)]  # fmt: skip
+
+
 def flat_params(d: dict[str, Any]) -> dict[str, str]:
     """MLflow params from a flat config dict: values as strings, keys sanitised."""
     return {metric_key(k): str(v) for k, v in d.items()}

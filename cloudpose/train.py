@@ -428,7 +428,7 @@ def train(
         for data_, prefix in ((val, "val"), (probe, "fit")):
             metrics.update(validate(model, data_, models_by_class, cfg, device,
                                     class_names=class_names, symmetry=symmetry, prefix=prefix))  # fmt: skip
-        client.log_batch(run_id, metrics=_mlflow_metrics(metrics, epoch + 1))
+        client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
         epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
         _checkpoint(last, model, opt, cfg, epoch, batch, sums)
         t_ckpt = time.monotonic()
@@ -465,10 +465,3 @@ def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sum
     state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
              "epoch": epoch, "batch": batch, "sums": dict(sums)}  # fmt: skip
     atomic_write(path, lambda tmp: torch.save(state, tmp))
-
-
-def _mlflow_metrics(metrics: dict[str, float], step: int):
-    from mlflow.entities import Metric
-
-    now = int(time.time() * 1000)
-    return [Metric(k, float(v), now, step) for k, v in metrics.items()]

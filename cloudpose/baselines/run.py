@@ -4,13 +4,13 @@ instance table and metrics, logged to MLflow (experiment ``cloudpose-baselines``
 A segment the method cannot register (too few points, no pose found) counts as a miss: its
 errors are infinite, as for a network's miss. The run is named ``baseline-{method}/{preset}/
 seed{S}`` and tagged like a training run (``variant`` = ``baseline-{method}``, ``preset``,
-``seed``, ``data``, ``config`` = a hash of the settings), so a finished one is found again and
-not recomputed.
+``seed``, ``data``, ``config`` = a hash of the settings), so the reports find it beside the
+networks and leave out runs of other settings. Every call computes and logs a new run; the
+reports take the newest per seed.
 """
 
 from __future__ import annotations
 
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -119,16 +119,18 @@ def run_baseline(
     metrics[f"{split}/failures"] = float(failures)
     data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
     run_id = (_log(method, preset, seed, settings, data.key, table, metrics, limit, data_params,
-                   split) if log else None)  # fmt: skip
+                   split, project_dir) if log else None)  # fmt: skip
     return BaselineOutcome(table, metrics, run_id, failures)
 
 
 def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_params,
-         split) -> str:  # fmt: skip
-    from cloudpose.evaluate import _metrics
+         split, project_dir) -> str:  # fmt: skip
+    from mlflow.entities import Param
 
-    client = tracking.setup()
-    exp = tracking.experiment_id(client, GROUP)
+    from cloudpose.evaluate import log_evaluation
+
+    client = tracking.setup(project_dir)
+    exp = tracking.experiment_id(client, GROUP, project_dir)
     tags = {"variant": f"baseline-{method}", "group": GROUP, "preset": preset,
             "seed": str(seed), "data": data_key, "config": settings_fingerprint(settings),
             "kind": "baseline",
@@ -139,13 +141,8 @@ def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_p
         name += f"+{split}-{tags['config'][:8]}"
     run = client.create_run(exp, tags=tags, run_name=name)
     run_id = run.info.run_id
-    params = {f"baseline.{k}": v for k, v in settings.values.items()}
-    for k, v in {**params, **tracking.flat_params(data_params)}.items():
-        client.log_param(run_id, k, v)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "instances.csv"
-        table.to_csv(path, index=False)
-        client.log_artifact(run_id, str(path), artifact_path=f"eval/{split}")
-    client.log_batch(run_id, metrics=_metrics(metrics))
+    params = {f"baseline.{k}": v for k, v in settings.values.items()} | data_params
+    client.log_batch(run_id, params=[Param(k, v) for k, v in tracking.flat_params(params).items()])
+    log_evaluation(client, run_id, split, table, metrics)
     client.set_terminated(run_id, "FINISHED")
     return run_id

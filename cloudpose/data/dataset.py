@@ -45,12 +45,15 @@ class Prepared:
             set (keyframe.txt).
         key: :func:`data_fingerprint` of both.
         root: the dataset root (models and class names are read from it).
+        cache_dir: where its segment caches are (other segment settings of the same frames
+            go there too).
     """
 
     train: SegmentSet
     test: SegmentSet
     key: str
     root: Path
+    cache_dir: Path
 
 
 def prepare_data(
@@ -59,7 +62,8 @@ def prepare_data(
     """The data of ``cfg``, made on first use (:func:`ensure_dataset`), with its key."""
     project_dir = Path(project_dir or Path.cwd())
     train, test = ensure_dataset(cfg, project_dir=project_dir, progress=progress)
-    return Prepared(train, test, data_fingerprint(cfg, project_dir), dataset_root(cfg, project_dir))
+    root, cache_dir = _dataset_root(cfg, project_dir)
+    return Prepared(train, test, data_fingerprint(cfg, project_dir), root, cache_dir)
 
 
 def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:

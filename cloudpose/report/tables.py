@@ -227,18 +227,13 @@ def _add_ours(runs, prefix: str, metrics, cells: list, row: dict, rows: list, da
         cells.append(text)
         row[f"{m}_mean"], row[f"{m}_std"] = ms.mean * 100, ms.std * 100
         n = max(n, ms.n)
-    times = [v for v in runs.values(variant, "test/net_ms_per_object").values()]
-    if not timed:
-        row["seeds"] = n
-        rows.append([*cells, str(n)])
-        data.append(row)
-        return
-    if icp:
-        extra = runs.values(variant, "test/icp_ms_per_object")
-        times = [v + extra[s] for s, v in runs.values(variant, "test/net_ms_per_object").items()
-                 if s in extra]  # fmt: skip
-    row["ms_per_object"] = float(np.mean(times)) if times else math.nan
-    cells.append(f"{row['ms_per_object']:.1f}" if times else "–")
+    if timed:
+        times = runs.values(variant, "test/net_ms_per_object")
+        if icp:
+            extra = runs.values(variant, "test/icp_ms_per_object")
+            times = {s: v + extra[s] for s, v in times.items() if s in extra}
+        row["ms_per_object"] = float(np.mean(list(times.values()))) if times else math.nan
+        cells.append(f"{row['ms_per_object']:.1f}" if times else "–")
     row["seeds"] = n
     rows.append([*cells, str(n)])
     data.append(row)
