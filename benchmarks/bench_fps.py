@@ -38,9 +38,10 @@ TARGET_MS = 6.0
 def real_segments() -> list[np.ndarray]:
     """The back-projected depth segments (N_i, 3) float32, metres, of the real test frame."""
     f = read_frame(
-        REAL_FRAME / "000001-depth.png", REAL_FRAME / "000001-label.png",
+        REAL_FRAME / "000001-depth.png",
+        REAL_FRAME / "000001-label.png",
         REAL_FRAME / "000001-meta.mat",
-    )  # fmt: skip
+    )
     return [
         sg.backproject(f.depth, f.label == c, f.K).astype(np.float32) for c in f.cls_ids.tolist()
     ]

@@ -116,9 +116,14 @@ def make_step(variant: str, impl: str, B: int, n: int, compile_mode: str | None 
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             out = net(pts, cls)
         loss = pose_loss(
-            out.R.float(), out.t.float(), R, t, rotation=cfg.loss.rotation,
-            alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw.float(),
-        ).total  # fmt: skip
+            out.R.float(),
+            out.t.float(),
+            R,
+            t,
+            rotation=cfg.loss.rotation,
+            alpha=cfg.loss.alpha,
+            rotvec_pred=out.rot_raw.float(),
+        ).total
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

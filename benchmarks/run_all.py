@@ -186,10 +186,12 @@ def cpu_variant_from_store(project_dir: Path | None = None) -> dict[str, Any]:
     timed = [r for r in runs if r.info.end_time and r.info.start_time]
     if not timed:
         return _cpu_figure(
-            None, "cpu preset, train + evaluate", {"store": tracking.tracking_uri(project_dir)},
+            None,
+            "cpu preset, train + evaluate",
+            {"store": tracking.tracking_uri(project_dir)},
             "no finished cpu-preset run in the MLflow store; run `python -m benchmarks.run_all "
             "--only cpu_variant --cpu-variant` (or the ablations) first",
-        )  # fmt: skip
+        )
     newest = timed[0]
     walls = [(r.info.end_time - r.info.start_time) / 1000.0 for r in timed]
     walls_sorted = sorted(walls)
@@ -221,20 +223,36 @@ def cpu_variant_run(variant: str = "shared-0", seed: int = 1) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="cloudpose-bench-mlflow-") as tmp:
         env["MLFLOW_TRACKING_URI"] = f"sqlite:///{Path(tmp) / 'mlflow.db'}"
         # synthesis and segment caching (skipped when cached) are not part of the figure
-        subprocess.run([*cli, "prepare", "--preset", "cpu", "--no-progress"], cwd=ROOT, env=env,
-                       check=True)  # fmt: skip
+        subprocess.run(
+            [*cli, "prepare", "--preset", "cpu", "--no-progress"], cwd=ROOT, env=env, check=True
+        )
         t0 = time.perf_counter()
         proc = subprocess.run(
-            [*cli, "run", "--variant", variant, "--preset", "cpu", "--seed", str(seed),
-             "--no-progress"],
-            cwd=ROOT, env=env, capture_output=True, text=True, check=False,
-        )  # fmt: skip
+            [
+                *cli,
+                "run",
+                "--variant",
+                variant,
+                "--preset",
+                "cpu",
+                "--seed",
+                str(seed),
+                "--no-progress",
+            ],
+            cwd=ROOT,
+            env=env,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         wall = time.perf_counter() - t0
     if proc.returncode != 0:
         return _cpu_figure(
-            None, f"cloudpose run --variant {variant} --preset cpu", {"stderr": proc.stderr[-2000:]},
+            None,
+            f"cloudpose run --variant {variant} --preset cpu",
+            {"stderr": proc.stderr[-2000:]},
             f"the run failed (exit {proc.returncode})",
-        )  # fmt: skip
+        )
     return _cpu_figure(
         wall,
         f"cloudpose run --variant {variant} --preset cpu --seed {seed} (train + evaluate), "
@@ -254,8 +272,11 @@ def git_commit() -> str:
         ).stdout.strip()
         dirty = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=ROOT, capture_output=True, text=True, check=False,
-        ).stdout.strip()  # fmt: skip
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
         return out + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
@@ -420,9 +441,10 @@ def main(argv: list[str] | None = None) -> None:
         "--only", default="", help="NAME[,NAME]: figure keys or groups " + str(list(GROUPS))
     )
     ap.add_argument(
-        "--cpu-variant", action="store_true",
+        "--cpu-variant",
+        action="store_true",
         help="run one cpu-preset variant (train + evaluate) for real instead of reading MLflow",
-    )  # fmt: skip
+    )
     ap.add_argument("--variant", default="shared-0", help="variant for --cpu-variant")
     ap.add_argument("--seed", type=int, default=1, help="seed for --cpu-variant")
     ap.add_argument("--out", type=Path, default=None, help="report folder (default reports/)")

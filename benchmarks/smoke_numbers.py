@@ -48,8 +48,19 @@ def record(
         where.mkdir(parents=True, exist_ok=True)
         env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{where / 'mlflow.db'}"}
         for name in names:
-            cmd = [sys.executable, "-m", "cloudpose.cli", "run", "--variant", name,
-                   "--preset", "smoke", "--seed", str(seed), "--no-progress"]  # fmt: skip
+            cmd = [
+                sys.executable,
+                "-m",
+                "cloudpose.cli",
+                "run",
+                "--variant",
+                name,
+                "--preset",
+                "smoke",
+                "--seed",
+                str(seed),
+                "--no-progress",
+            ]
             typer.echo(f"{name}: {' '.join(cmd[2:])}")
             subprocess.run(cmd, cwd=where, env=env, check=True, capture_output=True)
         rows = _metrics(env["MLFLOW_TRACKING_URI"], names, seed)
@@ -63,8 +74,11 @@ def _metrics(uri: str, names: list[str], seed: int) -> pd.DataFrame:
     mlflow.set_tracking_uri(uri)
     runs = mlflow.search_runs(search_all_experiments=True, filter_string="tags.preset = 'smoke'")
     runs = runs[runs["tags.variant"].isin(names) & (runs["tags.seed"] == str(seed))]
-    cols = sorted(c for c in runs.columns if c.startswith("metrics.") and "time" not in c
-                  and "per_s" not in c and "_ms" not in c)  # fmt: skip
+    cols = sorted(
+        c
+        for c in runs.columns
+        if c.startswith("metrics.") and "time" not in c and "per_s" not in c and "_ms" not in c
+    )
     out = runs[["tags.variant", *cols]].rename(columns=lambda c: c.split(".", 1)[-1])
     return out.sort_values("variant").reset_index(drop=True)
 

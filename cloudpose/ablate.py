@@ -63,8 +63,11 @@ def seed_list(seeds: int | Iterable[int]) -> list[int]:
 
 def _seconds_per_run_before(client, preset: str, epochs: int) -> float | None:
     """Estimated training seconds of one run from earlier runs' ``time/epoch_s`` (last epoch)."""
-    per_epoch = [r.data.metrics["time/epoch_s"] for r in tracking.find_runs(client, preset=preset)
-                 if "time/epoch_s" in r.data.metrics]  # fmt: skip
+    per_epoch = [
+        r.data.metrics["time/epoch_s"]
+        for r in tracking.find_runs(client, preset=preset)
+        if "time/epoch_s" in r.data.metrics
+    ]
     return sum(per_epoch) / len(per_epoch) * epochs if per_epoch else None
 
 
@@ -128,9 +131,11 @@ def ensure_runs(
     prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
     durations: list[float] = []
     out: list[RunStatus] = []
-    echo(f"ablation {group}/{preset}: {len(todo)} runs ({len(variants)} variants x "
-         f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run; "
-         f"log {log_path}")  # fmt: skip
+    echo(
+        f"ablation {group}/{preset}: {len(todo)} runs ({len(variants)} variants x "
+        f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run; "
+        f"log {log_path}"
+    )
     for k, cfg in enumerate(todo, 1):
         name = run_name(cfg.variant, cfg.preset, cfg.seed)
         data = fingerprint(cfg)
@@ -143,20 +148,29 @@ def ensure_runs(
             continue
         left = len(pending) - pending.index(cfg) if cfg in pending else 1
         per_run = sum(durations) / len(durations) if durations else prior
-        echo(f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
-             f"estimated {_fmt_s(per_run * left if per_run else None)} to go")  # fmt: skip
+        echo(
+            f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
+            f"estimated {_fmt_s(per_run * left if per_run else None)} to go"
+        )
         t0 = time.monotonic()
         try:
-            result = pipeline.train_and_evaluate(cfg, project_dir=project_dir, group=group,
-                                                 progress=progress, data=data_of(cfg))  # fmt: skip
+            result = pipeline.train_and_evaluate(
+                cfg, project_dir=project_dir, group=group, progress=progress, data=data_of(cfg)
+            )
             outcome, ev = result.train, result.evaluation
         except KeyboardInterrupt:
             st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
             _log(log_path, k, len(todo), name, st, None)
             raise
         except Exception as exc:
-            st = RunStatus(cfg.variant, cfg.seed, "failed", None, time.monotonic() - t0,
-                           f"{type(exc).__name__}: {exc}")  # fmt: skip
+            st = RunStatus(
+                cfg.variant,
+                cfg.seed,
+                "failed",
+                None,
+                time.monotonic() - t0,
+                f"{type(exc).__name__}: {exc}",
+            )
             out.append(st)
             _log(log_path, k, len(todo), name, st, None)
             echo(f"[{k}/{len(todo)}] {name}: FAILED ({st.error})")
@@ -168,16 +182,20 @@ def ensure_runs(
         st = RunStatus(cfg.variant, cfg.seed, "trained", outcome.run_id, seconds)
         out.append(st)
         _log(log_path, k, len(todo), name, st, ev.metrics.get(TEST_KEY))
-        echo(f"[{k}/{len(todo)}] {name}: done in {_fmt_s(seconds)}; test ADS AUC "
-             f"{100 * ev.metrics.get(TEST_KEY, math.nan):.1f}")  # fmt: skip
+        echo(
+            f"[{k}/{len(todo)}] {name}: done in {_fmt_s(seconds)}; test ADS AUC "
+            f"{100 * ev.metrics.get(TEST_KEY, math.nan):.1f}"
+        )
     return out
 
 
 def _log(path: Path, k: int, n: int, name: str, st: RunStatus, ads_auc: float | None) -> None:
     stamp = time.strftime("%Y-%m-%d %H:%M:%S")
     auc = f"{100 * ads_auc:.1f}" if ads_auc is not None else "-"
-    line = (f"{stamp}\t{k}/{n}\t{name}\t{st.status}\t{st.seconds:.1f}s\t"
-            f"run_id={st.run_id or '-'}\ttest_ads_auc={auc}")  # fmt: skip
+    line = (
+        f"{stamp}\t{k}/{n}\t{name}\t{st.status}\t{st.seconds:.1f}s\t"
+        f"run_id={st.run_id or '-'}\ttest_ads_auc={auc}"
+    )
     if st.error:
         line += f"\terror={st.error}"
     with path.open("a", encoding="utf-8") as f:
@@ -213,11 +231,20 @@ def run_group(
     """
     g = get_group(group)
     project_dir = (project_dir or Path.cwd()).resolve()
-    statuses = ensure_runs(list(g.members), preset, seeds, group=group, project_dir=project_dir,
-                           progress=progress, keep_going=keep_going, overrides=overrides,
-                           echo=echo)  # fmt: skip
-    result = SuiteResult(group, preset, statuses,
-                         log=project_dir / "runs" / f"ablate-{group}-{preset}.log")  # fmt: skip
+    statuses = ensure_runs(
+        list(g.members),
+        preset,
+        seeds,
+        group=group,
+        project_dir=project_dir,
+        progress=progress,
+        keep_going=keep_going,
+        overrides=overrides,
+        echo=echo,
+    )
+    result = SuiteResult(
+        group, preset, statuses, log=project_dir / "runs" / f"ablate-{group}-{preset}.log"
+    )
     if report:
         from cloudpose.report import render_reports
 
@@ -246,7 +273,15 @@ def occlusion_report(
     project_dir = (project_dir or Path.cwd()).resolve()
     variants = list(get_group(group).members) if group else ["shared-0"]
     if train:
-        ensure_runs(variants, preset, seeds, group=group or "shared", project_dir=project_dir,
-                    progress=progress, echo=echo)  # fmt: skip
-    return render_reports(preset, [group] if group else [], project_dir=project_dir,
-                          command=command)  # fmt: skip
+        ensure_runs(
+            variants,
+            preset,
+            seeds,
+            group=group or "shared",
+            project_dir=project_dir,
+            progress=progress,
+            echo=echo,
+        )
+    return render_reports(
+        preset, [group] if group else [], project_dir=project_dir, command=command
+    )

@@ -238,11 +238,19 @@ def synth(
     from cloudpose.data.synth import synthesize
 
     s = synthesize(
-        out, train_frames, test_frames, seed=seed, noise=noise,
-        uniform_rotation=uniform_rotation, workers=workers, progress=progress,
-    )  # fmt: skip
-    typer.echo(f"{out}: {s.frames_written} frames written, {s.frames_skipped} already there, "
-               f"{s.seconds:.1f} s")  # fmt: skip
+        out,
+        train_frames,
+        test_frames,
+        seed=seed,
+        noise=noise,
+        uniform_rotation=uniform_rotation,
+        workers=workers,
+        progress=progress,
+    )
+    typer.echo(
+        f"{out}: {s.frames_written} frames written, {s.frames_skipped} already there, "
+        f"{s.seconds:.1f} s"
+    )
 
 
 @app.command()
@@ -289,8 +297,9 @@ def train(
     """Train one variant (resumes an interrupted run of the same settings)."""
     from cloudpose.pipeline import train_run
 
-    cfg = _config(variant, preset, seed, data, set_, epochs=epochs, precision=precision,
-                  device=device)  # fmt: skip
+    cfg = _config(
+        variant, preset, seed, data, set_, epochs=epochs, precision=precision, device=device
+    )
     out = train_run(cfg, group=group, progress=progress)
     typer.echo(f"run {out.run_id}  {out.run_dir}")
     for k, v in sorted(out.metrics.items()):
@@ -323,8 +332,16 @@ def evaluate(
     """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
     from cloudpose.evaluate import evaluate as evaluate_fn
 
-    out = evaluate_fn(run, data=data, frames=frames, name=name, icp=icp, progress=progress,
-                      device=device, segmentation=segmentation)  # fmt: skip
+    out = evaluate_fn(
+        run,
+        data=data,
+        frames=frames,
+        name=name,
+        icp=icp,
+        progress=progress,
+        device=device,
+        segmentation=segmentation,
+    )
     typer.echo(f"evaluated {out.source}; logged as {out.name}/... and {out.name}_icp/...")
     _print_summary(out.metrics)
     if show_instances:
@@ -353,8 +370,10 @@ def _print_summary(metrics: dict[str, float]) -> None:
         if all(v is None for v in vals):
             continue
         label = p.replace("_icp", " + ICP")
-        typer.echo(f"{label:<{w}}" + "".join(f"{100 * v:>12.1f}" if v is not None else f"{'':>12}"
-                                             for v in vals))  # fmt: skip
+        typer.echo(
+            f"{label:<{w}}"
+            + "".join(f"{100 * v:>12.1f}" if v is not None else f"{'':>12}" for v in vals)
+        )
 
 
 def _next_steps(preset: str) -> None:
@@ -365,9 +384,11 @@ def _next_steps(preset: str) -> None:
         "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing.",
     }.get(preset, f"preset {preset!r}: {presets().get(preset, '')}")
     typer.echo(f"\nWhat this is: {meaning}")
-    typer.echo("Next: `make mlflow-ui` and open http://127.0.0.1:5000 to browse the run; "
-               "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation "
-               "(~10 min a run here) and renders its tables into reports/cpu/.")  # fmt: skip
+    typer.echo(
+        "Next: `make mlflow-ui` and open http://127.0.0.1:5000 to browse the run; "
+        "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation "
+        "(~10 min a run here) and renders its tables into reports/cpu/."
+    )
 
 
 @app.command()
@@ -391,9 +412,17 @@ def predict(
     from cloudpose.predict import predict as predict_fn
 
     result = predict_fn(
-        depth, label, checkpoint, color=color, meta=meta, intrinsics=intrinsics,
-        depth_factor=depth_factor, icp=icp, overlay=overlay, device=device,
-    )  # fmt: skip
+        depth,
+        label,
+        checkpoint,
+        color=color,
+        meta=meta,
+        intrinsics=intrinsics,
+        depth_factor=depth_factor,
+        icp=icp,
+        overlay=overlay,
+        device=device,
+    )
     for p in result.poses:
         typer.echo(p.describe())
     typer.echo(f"overlay: {overlay}")
@@ -442,12 +471,25 @@ def baseline(
     """A classical baseline on a preset's test set, with and without ICP; logs to MLflow."""
     from cloudpose.baselines.run import run_baseline
 
-    overrides = {k: v for section in parse_sets([f"b.{s}" for s in set_ or []]).values()
-                 for k, v in section.items()}  # fmt: skip
-    out = run_baseline(method, preset, seed, limit=limit, split=split, overrides=overrides,
-                       icp=icp, progress=progress)  # fmt: skip
-    typer.echo(f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
-               f"{out.failures} not registered (misses); MLflow run {out.run_id}")  # fmt: skip
+    overrides = {
+        k: v
+        for section in parse_sets([f"b.{s}" for s in set_ or []]).values()
+        for k, v in section.items()
+    }
+    out = run_baseline(
+        method,
+        preset,
+        seed,
+        limit=limit,
+        split=split,
+        overrides=overrides,
+        icp=icp,
+        progress=progress,
+    )
+    typer.echo(
+        f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
+        f"{out.failures} not registered (misses); MLflow run {out.run_id}"
+    )
     _print_summary(out.metrics)
     typer.echo(f"{out.metrics[f'{split}/net_ms_per_object']:.0f} ms per object ({method} alone)")
 
@@ -466,11 +508,21 @@ def ablate(
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
     from cloudpose.ablate import run_group
 
-    res = run_group(group, preset, seeds, Path.cwd(), progress, keep_going=keep_going,
-                    overrides=parse_sets(set_) or None)  # fmt: skip
+    res = run_group(
+        group,
+        preset,
+        seeds,
+        Path.cwd(),
+        progress,
+        keep_going=keep_going,
+        overrides=parse_sets(set_) or None,
+    )
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
-    typer.echo(f"{group}/{preset}: " + ", ".join(f"{n} {s}" for s, n in counts.items())
-               + f"; reports in {res.report.out_dir}; log {res.log}")  # fmt: skip
+    typer.echo(
+        f"{group}/{preset}: "
+        + ", ".join(f"{n} {s}" for s, n in counts.items())
+        + f"; reports in {res.report.out_dir}; log {res.log}"
+    )
 
 
 @app.command()
@@ -492,8 +544,14 @@ def report(
     from cloudpose.report import render_reports
 
     groups = None if all_groups or not group else list(group)
-    res = render_reports(preset, groups, project_dir=Path.cwd(), data=data, log_mlflow=mlflow,
-                         command=recorded_command(ctx))  # fmt: skip
+    res = render_reports(
+        preset,
+        groups,
+        project_dir=Path.cwd(),
+        data=data,
+        log_mlflow=mlflow,
+        command=recorded_command(ctx),
+    )
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 
 
@@ -523,8 +581,16 @@ def curves(
     metrics = list(metric or ["train/loss_rot", "val/rot_err_median_deg"])
     command = f"`{recorded_command(ctx)}`"
     found = fetch_curves(tracking.setup(Path.cwd()), run, metrics)
-    png = plot_curves(found, metrics, out, command=command, title=title,
-                      mark_epoch=mark_epoch, mark_label=mark_label, x=x)  # fmt: skip
+    png = plot_curves(
+        found,
+        metrics,
+        out,
+        command=command,
+        title=title,
+        mark_epoch=mark_epoch,
+        mark_label=mark_label,
+        x=x,
+    )
     typer.echo(f"{png}\n{curves_csv(found, metrics, out.with_suffix('.csv'), command)}")
 
 

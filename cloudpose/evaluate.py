@@ -57,9 +57,14 @@ def instance_table(
         R_est = np.where(miss[:, None, None], np.eye(3), est.R)
         t_est = np.where(miss[:, None], 0.0, est.t)
         err = pose_errors(
-            models_by_class, segs.cls_id.astype(int), segs.R.astype(np.float64),
-            segs.t.astype(np.float64), R_est, t_est, miss=miss,
-        )  # fmt: skip
+            models_by_class,
+            segs.cls_id.astype(int),
+            segs.R.astype(np.float64),
+            segs.t.astype(np.float64),
+            R_est,
+            t_est,
+            miss=miss,
+        )
         for key in ("ad", "ads", "rot_err_deg", "trans_err"):
             df[f"{method}_{key}"] = err[key]
         df[f"{method}_rot_sym_err_deg"] = rotation_errors_modulo_symmetry(
@@ -162,8 +167,11 @@ def evaluate(
         segs, dataset = own.test, YCBVideo(own.root)
         data_label = f"the run's own test set ({dataset.root})"
         if masks:  # the same frames, segmented otherwise (cached beside the run's own)
-            segs = only_classes(segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir,
-                                             progress=progress), own.root, cfg.data.classes)  # fmt: skip
+            segs = only_classes(
+                segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir, progress=progress),
+                own.root,
+                cfg.data.classes,
+            )
             data_label += f" with {masks} masks"
         name = name or (f"{OWN_TEST}-{masks}" if masks else OWN_TEST)
         data_key = segs.key
@@ -217,8 +225,9 @@ def evaluate(
     return EvalOutcome(table, metrics, run_id, name, source)
 
 
-def log_evaluation(client, run_id: str, name: str, table: pd.DataFrame,
-                   metrics: dict[str, float]) -> None:  # fmt: skip
+def log_evaluation(
+    client, run_id: str, name: str, table: pd.DataFrame, metrics: dict[str, float]
+) -> None:
     """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.csv``
     (what the reports read) and the finite metrics."""
     with tempfile.TemporaryDirectory() as tmp:

@@ -105,9 +105,12 @@ def refine_poses(
         for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
             k = int(min(segs.count[i], segs.points.shape[1]))
             sol = icp_refine(
-                segs.points[i, :k].astype(np.float64), index[int(segs.cls_id[i])],
-                est.R[i], est.t[i], settings,
-            )  # fmt: skip
+                segs.points[i, :k].astype(np.float64),
+                index[int(segs.cls_id[i])],
+                est.R[i],
+                est.t[i],
+                settings,
+            )
             R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
     if caught:
         # One line instead of one per object: far-off estimates leave ICP nothing to match.

@@ -45,8 +45,7 @@ def train_run(
 
     project_dir = (project_dir or Path.cwd()).resolve()
     data = data or prepare_data(cfg.data, project_dir, progress=progress)
-    return train(cfg, data, project_dir=project_dir, group=group, progress=progress,
-                 **train_kwargs)  # fmt: skip
+    return train(cfg, data, project_dir=project_dir, group=group, progress=progress, **train_kwargs)
 
 
 def train_and_evaluate(

@@ -100,13 +100,21 @@ def predict(
     model, cfg = load_model_for(checkpoint, device)
     K = None if meta is not None else parse_intrinsics(intrinsics)
     frame = read_frame(
-        depth, label, meta_mat=meta, color_png=color, K=K, depth_factor=depth_factor,
+        depth,
+        label,
+        meta_mat=meta,
+        color_png=color,
+        K=K,
+        depth_factor=depth_factor,
         frame_id=Path(depth).stem,
-    )  # fmt: skip
+    )
     segs = extract_segments(
-        frame, n_fps=cfg.data.n_fps, outlier_radius=cfg.data.outlier_radius,
-        rng=np.random.default_rng(seed), with_gt=False,
-    )  # fmt: skip
+        frame,
+        n_fps=cfg.data.n_fps,
+        outlier_radius=cfg.data.outlier_radius,
+        rng=np.random.default_rng(seed),
+        with_gt=False,
+    )
     from cloudpose.data.cache import SegmentSet
 
     segs = SegmentSet.from_segments(segs)
@@ -115,9 +123,11 @@ def predict(
     valid = np.flatnonzero(segs.valid)
     check_depth_scale(
         [segs.points[i, : min(int(segs.count[i]), segs.points.shape[1])] for i in valid],
-        [int(segs.cls_id[i]) for i in valid], models_by_class, str(depth),
+        [int(segs.cls_id[i]) for i in valid],
+        models_by_class,
+        str(depth),
         "--depth-factor" if meta is None else f"factor_depth in {meta}",
-    )  # fmt: skip
+    )
     est = estimate_poses(model, segs, cfg.train.n_points, device=next(model.buffers()).device)
     fitness = np.full(len(segs), np.nan)
     if icp:
@@ -125,8 +135,11 @@ def predict(
     poses = []
     for i in np.flatnonzero(segs.valid):
         c = int(segs.cls_id[i])
-        poses.append(ObjectPose(c, dataset.classes[c - 1], est.R[i], est.t[i],
-                                int(segs.count[i]), float(fitness[i])))  # fmt: skip
+        poses.append(
+            ObjectPose(
+                c, dataset.classes[c - 1], est.R[i], est.t[i], int(segs.count[i]), float(fitness[i])
+            )
+        )
     skipped = [int(c) for c in segs.cls_id[~segs.valid]]
     if overlay is not None:
         draw_overlay(frame, poses, models_by_class, overlay)

@@ -61,8 +61,11 @@ def display_name(cfg: Config) -> str:
     """The MLflow run name of ``cfg``: :func:`run_name`, plus ``+{config fingerprint}`` when
     ``cfg`` is not its preset's own config (overrides)."""
     name = run_name(cfg.variant, cfg.preset, cfg.seed)
-    return name if _is_own(cfg.variant, cfg.preset, cfg.seed, cfg.data.root,
-                           cfg.fingerprint()) else f"{name}+{cfg.fingerprint()[:8]}"  # fmt: skip
+    return (
+        name
+        if _is_own(cfg.variant, cfg.preset, cfg.seed, cfg.data.root, cfg.fingerprint())
+        else f"{name}+{cfg.fingerprint()[:8]}"
+    )
 
 
 def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:
@@ -131,8 +134,10 @@ def describe_run(run) -> str:
     """One line naming a run: id, name, config and data fingerprints, start time."""
     t = run.data.tags
     start = datetime.datetime.fromtimestamp((run.info.start_time or 0) / 1000)
-    return (f"{run.info.run_id} ({run.info.run_name}, config {t.get('config', '?')}, "
-            f"data {t.get('data', '?')[:10]}, started {start:%Y-%m-%d %H:%M})")  # fmt: skip
+    return (
+        f"{run.info.run_id} ({run.info.run_name}, config {t.get('config', '?')}, "
+        f"data {t.get('data', '?')[:10]}, started {start:%Y-%m-%d %H:%M})"
+    )
 
 
 def finished_run(client, cfg: Config, data: str):
@@ -142,8 +147,9 @@ def finished_run(client, cfg: Config, data: str):
     edit of the preset or the variant, or a run with overrides, the runs of the old config are
     not taken for the new one.
     """
-    for r in tracking.find_runs(client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed,
-                                data=data):  # fmt: skip
+    for r in tracking.find_runs(
+        client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed, data=data
+    ):
         if TEST_KEY in r.data.metrics and run_has_config(r, cfg):
             return r
     return None

@@ -176,8 +176,11 @@ def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = F
     from mlflow.entities import Metric
 
     now = int(time.time() * 1000)
-    return [Metric(k, float(v), now, step) for k, v in metrics.items()
-            if not finite_only or math.isfinite(v)]  # fmt: skip
+    return [
+        Metric(k, float(v), now, step)
+        for k, v in metrics.items()
+        if not finite_only or math.isfinite(v)
+    ]
 
 
 def flat_params(d: dict[str, Any]) -> dict[str, str]:

@@ -124,10 +124,16 @@ def validate(
     for sl, out in forward_in_batches(model, data.points, data.cls_id, device, batch_size):
         cls_id = data.cls_id[sl].to(device)
         terms = pose_loss(
-            out.R, out.t, data.R[sl].to(device), data.t[sl].to(device),
-            rotation=cfg.loss.rotation, alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw,
-            symmetry=symmetry, cls_id=cls_id,
-        )  # fmt: skip
+            out.R,
+            out.t,
+            data.R[sl].to(device),
+            data.t[sl].to(device),
+            rotation=cfg.loss.rotation,
+            alpha=cfg.loss.alpha,
+            rotvec_pred=out.rot_raw,
+            symmetry=symmetry,
+            cls_id=cls_id,
+        )
         totals.append(float(terms.total) * out.R.shape[0])
         Rs.append(out.R.float().cpu())
         ts.append(out.t.float().cpu())
@@ -150,11 +156,13 @@ def validate(
     }
     if class_names is not None:
         sym = rotation_errors_modulo_symmetry(cls_id, R_gt, R_est, class_names)
-        out.update({
-            "rot_sym_err_median_deg": float(np.median(sym)),
-            "rot_sym_lt_10deg": float(np.mean(sym < 10)),
-            "rot_sym_lt_20deg": float(np.mean(sym < 20)),
-        })  # fmt: skip
+        out.update(
+            {
+                "rot_sym_err_median_deg": float(np.median(sym)),
+                "rot_sym_lt_10deg": float(np.mean(sym < 10)),
+                "rot_sym_lt_20deg": float(np.mean(sym < 20)),
+            }
+        )
     return {f"{prefix}/{k}": v for k, v in out.items()}
 
 
@@ -164,8 +172,14 @@ def bn_modules(model: torch.nn.Module) -> list[torch.nn.BatchNorm1d]:
 
 
 @torch.no_grad()
-def recalibrate_bn(model: torch.nn.Module, data: Batchable, batches: int, batch_size: int,
-                   seed: int, device: torch.device) -> None:  # fmt: skip
+def recalibrate_bn(
+    model: torch.nn.Module,
+    data: Batchable,
+    batches: int,
+    batch_size: int,
+    seed: int,
+    device: torch.device,
+) -> None:
     """Re-estimate every BatchNorm's running statistics on training batches ("precise BN").
 
     Each running mean and variance becomes the plain average of its batch statistics over
@@ -191,15 +205,18 @@ def recalibrate_bn(model: torch.nn.Module, data: Batchable, batches: int, batch_
 
 
 @torch.no_grad()
-def batch_stats_rotation_error(model: torch.nn.Module, data: Batchable, batch_size: int,
-                               device: torch.device) -> float:  # fmt: skip
+def batch_stats_rotation_error(
+    model: torch.nn.Module, data: Batchable, batch_size: int, device: torch.device
+) -> float:
     """Median rotation error (degrees) of ``model`` in *train* mode (batch statistics).
 
     The same segments in eval mode give ``validate``'s number; the two agree when the running
     statistics match the training distribution. BatchNorm buffers are restored afterwards.
     """
-    saved = [(bn, bn.running_mean.clone(), bn.running_var.clone(), bn.num_batches_tracked.clone())
-             for bn in bn_modules(model)]  # fmt: skip
+    saved = [
+        (bn, bn.running_mean.clone(), bn.running_var.clone(), bn.num_batches_tracked.clone())
+        for bn in bn_modules(model)
+    ]
     was_training = model.training
     model.train()
     errs = []
@@ -235,9 +252,12 @@ def epoch_order(fit: Batchable, sampler: str, seed: int, epoch: int, n: int) -> 
 
 
 def roll_about_optical_axis(
-    points: torch.Tensor, R: torch.Tensor, t: torch.Tensor, max_deg: float,
+    points: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    max_deg: float,
     generator: torch.Generator,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Segments and poses as seen by the camera rolled about its optical (z) axis.
 
     Args:
@@ -344,16 +364,27 @@ def train(
     if run_id is None:
         exp = tracking.experiment_id(client, group, project_dir)
         tags = {
-            "variant": cfg.variant, "group": group, "preset": cfg.preset, "seed": str(cfg.seed),
-            "data": data_key, "config": cfg.fingerprint(), "git_commit": tracking.git_commit(),
+            "variant": cfg.variant,
+            "group": group,
+            "preset": cfg.preset,
+            "seed": str(cfg.seed),
+            "data": data_key,
+            "config": cfg.fingerprint(),
+            "git_commit": tracking.git_commit(),
             "run_dir": str(rdir),
-        }  # fmt: skip
+        }
         run = client.create_run(exp, tags=tags, run_name=runs.display_name(cfg))
         run_id = run.info.run_id
         params = tracking.flat_params(cfg.flat())
-        params.update({"model.parameters": str(count_parameters(model)),
-                       "data.fingerprint": data_key, "data.train_segments": str(len(fit)),
-                       "data.val_segments": str(len(val)), "device": str(device)})  # fmt: skip
+        params.update(
+            {
+                "model.parameters": str(count_parameters(model)),
+                "data.fingerprint": data_key,
+                "data.train_segments": str(len(fit)),
+                "data.val_segments": str(len(val)),
+                "device": str(device),
+            }
+        )
         for k, v in params.items():
             client.log_param(run_id, k, v)
         client.log_text(run_id, json.dumps(cfg.to_dict(), indent=2), "config.json")
@@ -366,9 +397,14 @@ def train(
     n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
     steps_here, t_ckpt = 0, time.monotonic()
     model.train()
-    bar = tqdm(total=cfg.train.epochs * n_batches, initial=epoch * n_batches + batch,
-               disable=not progress, desc=runs.run_name(cfg.variant, cfg.preset, cfg.seed),
-               unit="step", dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=cfg.train.epochs * n_batches,
+        initial=epoch * n_batches + batch,
+        disable=not progress,
+        desc=runs.run_name(cfg.variant, cfg.preset, cfg.seed),
+        unit="step",
+        dynamic_ncols=True,
+    )
     metrics: dict[str, float] = {}
     total_steps = cfg.train.epochs * n_batches
     while epoch < cfg.train.epochs:
@@ -382,15 +418,22 @@ def train(
             R_gt, t_gt = fit.R[idx].to(device), fit.t[idx].to(device)
             if cfg.train.augment_roll_deg > 0:
                 g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 100_003 + batch)
-                pts, R_gt, t_gt = roll_about_optical_axis(pts, R_gt, t_gt,
-                                                          cfg.train.augment_roll_deg, g)  # fmt: skip
+                pts, R_gt, t_gt = roll_about_optical_axis(
+                    pts, R_gt, t_gt, cfg.train.augment_roll_deg, g
+                )
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
                 out = model(pts, cls_id)
             terms = pose_loss(
-                out.R.float(), out.t.float(), R_gt, t_gt, rotation=cfg.loss.rotation,
-                alpha=cfg.loss.alpha, rotvec_pred=out.rot_raw.float(), symmetry=symmetry,
+                out.R.float(),
+                out.t.float(),
+                R_gt,
+                t_gt,
+                rotation=cfg.loss.rotation,
+                alpha=cfg.loss.alpha,
+                rotvec_pred=out.rot_raw.float(),
+                symmetry=symmetry,
                 cls_id=cls_id,
-            )  # fmt: skip
+            )
             opt.zero_grad(set_to_none=True)
             terms.total.backward()
             opt.step()
@@ -426,8 +469,18 @@ def train(
         if cfg.train.bn_recalibrate:
             recalibrate_bn(model, fit, cfg.train.bn_recalibrate, bs, cfg.seed + epoch, device)
         for data_, prefix in ((val, "val"), (probe, "fit")):
-            metrics.update(validate(model, data_, models_by_class, cfg, device,
-                                    class_names=class_names, symmetry=symmetry, prefix=prefix))  # fmt: skip
+            metrics.update(
+                validate(
+                    model,
+                    data_,
+                    models_by_class,
+                    cfg,
+                    device,
+                    class_names=class_names,
+                    symmetry=symmetry,
+                    prefix=prefix,
+                )
+            )
         client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
         epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
         _checkpoint(last, model, opt, cfg, epoch, batch, sums)
@@ -462,6 +515,12 @@ class TrainingInterrupted(RuntimeError):
 
 
 def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sums: dict) -> None:
-    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
-             "epoch": epoch, "batch": batch, "sums": dict(sums)}  # fmt: skip
+    state = {
+        "model": model.state_dict(),
+        "optimizer": opt.state_dict(),
+        "config": cfg.to_dict(),
+        "epoch": epoch,
+        "batch": batch,
+        "sums": dict(sums),
+    }
     atomic_write(path, lambda tmp: torch.save(state, tmp))

@@ -51,8 +51,12 @@ def _git_status() -> set[str] | None:
     try:
         out = subprocess.run(
             ["git", "status", "--porcelain", "--ignored", "--untracked-files=all"],
-            cwd=REPO, capture_output=True, text=True, timeout=60, check=True,
-        ).stdout  # fmt: skip
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=True,
+        ).stdout
     except (OSError, subprocess.SubprocessError):
         return None
     # bytecode is Python's own business, and the virtualenv is where the suite runs from

@@ -41,12 +41,19 @@ class Fakes:
         rkey = (cfg.variant, cfg.seed, self.fingerprint, cfg.fingerprint())
         if rkey not in self.runs:
             exp = tracking.experiment_id(client, group, project_dir)
-            tags = {"variant": cfg.variant, "group": group, "preset": cfg.preset,
-                    "seed": str(cfg.seed), "data": self.fingerprint, "git_commit": "c0ffee"}  # fmt: skip
+            tags = {
+                "variant": cfg.variant,
+                "group": group,
+                "preset": cfg.preset,
+                "seed": str(cfg.seed),
+                "data": self.fingerprint,
+                "git_commit": "c0ffee",
+            }
             if self.config_tag:
                 tags["config"] = cfg.fingerprint()
-            run = client.create_run(exp, tags=tags,
-                                    run_name=runs.run_name(cfg.variant, cfg.preset, cfg.seed))  # fmt: skip
+            run = client.create_run(
+                exp, tags=tags, run_name=runs.run_name(cfg.variant, cfg.preset, cfg.seed)
+            )
             for k, v in tracking.flat_params(cfg.flat()).items():
                 client.log_param(run.info.run_id, k, v)
             self.runs[rkey] = run.info.run_id
@@ -102,8 +109,9 @@ def fakes(tmp_path, monkeypatch, empty_store):
 
 def _run(tmp_path, seeds=2, **kw):
     lines = []
-    res = ablate.run_group("loss", "smoke", seeds, tmp_path, progress=False, report=False,
-                           echo=lines.append, **kw)  # fmt: skip
+    res = ablate.run_group(
+        "loss", "smoke", seeds, tmp_path, progress=False, report=False, echo=lines.append, **kw
+    )
     return res, lines
 
 
@@ -128,9 +136,11 @@ def test_a_missing_seed_is_trained(fakes, tmp_path):
     res, _ = _run(tmp_path, seeds=[1, 2])
     assert sorted(fakes.trained) == [("l2", 2), ("shared-0", 2)]
     assert sorted((r.variant, r.seed, r.status) for r in res.runs) == [
-        ("l2", 1, "skipped"), ("l2", 2, "trained"),
-        ("shared-0", 1, "skipped"), ("shared-0", 2, "trained"),
-    ]  # fmt: skip
+        ("l2", 1, "skipped"),
+        ("l2", 2, "trained"),
+        ("shared-0", 1, "skipped"),
+        ("shared-0", 2, "trained"),
+    ]
 
 
 def test_interrupted_suite_resumes_where_it_stopped(fakes, tmp_path):
@@ -229,11 +239,20 @@ def test_run_group_loss_smoke_for_real(tmp_path, monkeypatch):
     res = ablate.run_group("loss", "smoke", 1, tmp_path, progress=False, echo=lines.append)
     assert [(r.variant, r.status) for r in res.runs] == [("shared-0", "trained"), ("l2", "trained")]
     out = tmp_path / "reports" / "smoke"
-    for name in ("table1_overall.md", "table2_per_class.tex", "table4_rotation.csv", "claims.md",
-                 "occlusion.png", "curves_loss.png", "training_loss.png", "rot_err_loss.png",
-                 "README.md"):  # fmt: skip
+    for name in (
+        "table1_overall.md",
+        "table2_per_class.tex",
+        "table4_rotation.csv",
+        "claims.md",
+        "occlusion.png",
+        "curves_loss.png",
+        "training_loss.png",
+        "rot_err_loss.png",
+        "README.md",
+    ):
         assert (out / name).exists(), name
     assert "not resolved at this size" in (out / "claims.md").read_text()  # one seed
-    res = ablate.run_group("loss", "smoke", 1, tmp_path, progress=False, report=False,
-                           echo=lines.append)  # fmt: skip
+    res = ablate.run_group(
+        "loss", "smoke", 1, tmp_path, progress=False, report=False, echo=lines.append
+    )
     assert [r.status for r in res.runs] == ["skipped", "skipped"]

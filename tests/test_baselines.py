@@ -88,8 +88,17 @@ def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
     from cloudpose.baselines.run import run_baseline
 
     proj, _ = smoke_project
-    out = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=4, split="val",
-                       overrides={"voxel": 0.004}, icp=False, progress=False)  # fmt: skip
+    out = run_baseline(
+        "fpfh",
+        "smoke",
+        1,
+        project_dir=proj,
+        limit=4,
+        split="val",
+        overrides={"voxel": 0.004},
+        icp=False,
+        progress=False,
+    )
     assert "val/ads_auc" in out.metrics and not any(k.startswith("test/") for k in out.metrics)
     run = tracking.setup(proj).get_run(out.run_id)
     assert run.data.tags["split"] == "val" and run.data.params["baseline.voxel"] == "0.004"

@@ -53,12 +53,16 @@ def test_train_figures_are_mapped_from_bench_train(tmp_path, monkeypatch):
         "machine": {},
         "gemm_fp32_gflops": {"peak_gflops": 100.0},
         "train_fraction_of_peak": {
-            "value": 0.82, "what": "shared-0 fused", "samples_per_s": 180.0,
-            "plain_samples_per_s": 60.0, "plain_fraction_of_peak": 0.28, "per_variant": {},
+            "value": 0.82,
+            "what": "shared-0 fused",
+            "samples_per_s": 180.0,
+            "plain_samples_per_s": 60.0,
+            "plain_fraction_of_peak": 0.28,
+            "per_variant": {},
         },
         "train_bf16_samples_per_s": {"value": None, "skipped": "no bf16 hardware"},
         "train_by_allocator": {"tcmalloc": {"plain": 60.0, "fused": 180.0}},
-    }  # fmt: skip
+    }
     monkeypatch.setattr(bench_train, "run", lambda quick=False: fake)
     report = run_all.run(["train"], quick=True, out_dir=tmp_path)
     figs = report["figures"]

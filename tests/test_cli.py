@@ -19,9 +19,16 @@ def test_cli_predict_and_evaluate_errors(smoke_project, tmp_path):
     assert res.exit_code == 2 and "no-such-run" in res.output
     res = runner.invoke(
         app,
-        ["predict", "--depth", str(tmp_path / "missing.png"), "--label", str(tmp_path / "x.png"),
-         "--checkpoint", str(out.checkpoint)],
-    )  # fmt: skip
+        [
+            "predict",
+            "--depth",
+            str(tmp_path / "missing.png"),
+            "--label",
+            str(tmp_path / "x.png"),
+            "--checkpoint",
+            str(out.checkpoint),
+        ],
+    )
     assert res.exit_code == 2 and "missing.png" in res.output
 
 

@@ -61,8 +61,15 @@ def test_a_file_that_is_not_a_checkpoint(project, tmp_path):
     text = tmp_path / "notes.pt"
     text.write_text("these are my notes, not a model\n" * 10)
     for bad in (text, DATA / "demo_no_gt" / "depth.png"):
-        res = cli("predict", "--depth", str(DATA / "demo_no_gt" / "depth.png"), "--label",
-                  str(DATA / "demo_no_gt" / "label.png"), "--checkpoint", str(bad))  # fmt: skip
+        res = cli(
+            "predict",
+            "--depth",
+            str(DATA / "demo_no_gt" / "depth.png"),
+            "--label",
+            str(DATA / "demo_no_gt" / "label.png"),
+            "--checkpoint",
+            str(bad),
+        )
         one_line_error(res, str(bad), "not a cloudpose checkpoint")
 
 
@@ -99,8 +106,16 @@ def test_evaluating_another_folder_named_test_keeps_the_runs_own_results(project
             lab = np.array(Image.open(meta))
             lab[lab == 21] = 0  # drop the foam brick
             Image.fromarray(lab).save(meta)
-        res = cli("evaluate", "--run", str(out.run_dir), "--data", str(folder), "--frames",
-                  frames, "--no-progress")  # fmt: skip
+        res = cli(
+            "evaluate",
+            "--run",
+            str(out.run_dir),
+            "--data",
+            str(folder),
+            "--frames",
+            frames,
+            "--no-progress",
+        )
         assert res.exit_code == 0, res.output
         assert "checkpoint" in res.output and str(folder) in res.output
     metrics = client.get_run(out.run_id).data.metrics
@@ -115,14 +130,34 @@ def test_evaluating_another_folder_named_test_keeps_the_runs_own_results(project
         "eval/test"
     } | {f"eval/{n}" for n in names}
     # the reserved name cannot be taken by other data
-    res = cli("evaluate", "--run", str(out.run_dir), "--data", str(folder), "--frames", "all",
-              "--name", "test", "--no-progress")  # fmt: skip
+    res = cli(
+        "evaluate",
+        "--run",
+        str(out.run_dir),
+        "--data",
+        str(folder),
+        "--frames",
+        "all",
+        "--name",
+        "test",
+        "--no-progress",
+    )
     one_line_error(res, "reserved")
     # a name already holding other data is not overwritten; the same bytes may be re-evaluated
     codes = []
     for name in sorted(names):
-        res = cli("evaluate", "--run", str(out.run_dir), "--data", str(DATA / "ycb_real"),
-                  "--frames", "all", "--name", name, "--no-progress")  # fmt: skip
+        res = cli(
+            "evaluate",
+            "--run",
+            str(out.run_dir),
+            "--data",
+            str(DATA / "ycb_real"),
+            "--frames",
+            "all",
+            "--name",
+            name,
+            "--no-progress",
+        )
         codes.append(res.exit_code)
         if res.exit_code:
             one_line_error(res, "other data")
@@ -152,8 +187,11 @@ def test_a_run_name_resolves_to_the_presets_own_config(project):
     names = {r.info.run_name for r in tracking.find_runs(client, variant="shared-0", seed=1)}
     assert name in names and any(n.startswith(name + "+") for n in names)  # never one name
     # two finished runs of the preset's own config (here: the same run tagged again)
-    twin = client.create_run(client.get_run(out.run_id).info.experiment_id,
-                             tags=dict(client.get_run(out.run_id).data.tags), run_name=name)  # fmt: skip
+    twin = client.create_run(
+        client.get_run(out.run_id).info.experiment_id,
+        tags=dict(client.get_run(out.run_id).data.tags),
+        run_name=name,
+    )
     client.log_param(twin.info.run_id, "data.root", "")
     client.set_terminated(twin.info.run_id, "FINISHED")
     with pytest.raises(ValueError, match=r"2 finished runs .*Pass the run id") as info:
@@ -167,8 +205,17 @@ def test_depth_in_millimetres_is_caught(project, tmp_path):
     depth = np.array(Image.open(DATA / "demo_no_gt" / "depth.png")).astype(np.uint32)
     mm = tmp_path / "depth_mm.png"
     Image.fromarray((depth // 10).astype(np.uint16)).save(mm)  # 0.1 mm -> mm
-    args = ["predict", "--depth", str(mm), "--label", str(DATA / "demo_no_gt" / "label.png"),
-            "--checkpoint", str(out.checkpoint), "--overlay", str(tmp_path / "o.png")]  # fmt: skip
+    args = [
+        "predict",
+        "--depth",
+        str(mm),
+        "--label",
+        str(DATA / "demo_no_gt" / "label.png"),
+        "--checkpoint",
+        str(out.checkpoint),
+        "--overlay",
+        str(tmp_path / "o.png"),
+    ]
     one_line_error(cli(*args), str(mm), "10 times too small", "--depth-factor")
     res = cli(*args, "--depth-factor", "1000")
     assert res.exit_code == 0, res.output

@@ -90,8 +90,11 @@ def test_paper_literal_preset_is_the_papers_recipe():
     assert cfg.model == ModelConfig() and cfg.loss == LossConfig()  # raw xyz in metres
     assert cfg.train.bn_recalibrate == 0 and cfg.train.lr_schedule == "constant"
     assert (cfg.train.epochs, cfg.train.batch_size, cfg.train.lr, cfg.train.n_points) == (
-        90, 128, 0.0008, 256,
-    )  # fmt: skip
+        90,
+        128,
+        0.0008,
+        256,
+    )
     assert cfg.model.bn_momentum == 0.01  # the released code's BN decay 0.99
     assert cfg.model.point_mlp == (64, 64, 64, 128, 1024) and cfg.model.head == (512, 256)
     assert cfg.loss.alpha == 10.0 and cfg.loss.rotation == "geodesic"
@@ -100,8 +103,10 @@ def test_paper_literal_preset_is_the_papers_recipe():
     paper = resolve("shared-0", "paper")
     assert paper.train == dataclasses.replace(cfg.train, bn_recalibrate=50)
     assert (paper.model.xyz_scale, paper.model.rotation_input, paper.loss.symmetric) == (
-        0.03, "centred", True,
-    )  # fmt: skip
+        0.03,
+        "centred",
+        True,
+    )
     cpu, cpu_paper = resolve("shared-0", "cpu"), resolve("shared-0", "cpu-paper")
     assert cpu.data == cpu_paper.data and cpu.train.epochs == cpu_paper.train.epochs
     assert cpu_paper.model == ModelConfig() and cpu_paper.loss == LossConfig()
@@ -288,8 +293,15 @@ def test_new_training_fields_are_checked():
 def test_cli_set_parses_toml_values():
     from cloudpose.cli import parse_sets
 
-    got = parse_sets(["train.epochs=3", "model.rotation_input=centred", "loss.symmetric=true",
-                      "data.classes=['011_banana', '025_mug']", "model.xyz_scale=0.1"])  # fmt: skip
+    got = parse_sets(
+        [
+            "train.epochs=3",
+            "model.rotation_input=centred",
+            "loss.symmetric=true",
+            "data.classes=['011_banana', '025_mug']",
+            "model.xyz_scale=0.1",
+        ]
+    )
     assert got == {
         "train": {"epochs": 3},
         "model": {"rotation_input": "centred", "xyz_scale": 0.1},

@@ -26,8 +26,14 @@ def store(tmp_path_factory):
         client = tracking.setup(root)
         exp = tracking.experiment_id(client, "loss", root)
         for name, rot in ROT.items():
-            tags = {"variant": "shared-0", "preset": name, "seed": "1", "data": "d" * 16,
-                    "config": resolve("shared-0", name, 1).fingerprint(), "git_commit": "c0ffee"}  # fmt: skip
+            tags = {
+                "variant": "shared-0",
+                "preset": name,
+                "seed": "1",
+                "data": "d" * 16,
+                "config": resolve("shared-0", name, 1).fingerprint(),
+                "git_commit": "c0ffee",
+            }
             run = client.create_run(exp, tags=tags, run_name=f"shared-0/{name}/seed1")
             rid = run.info.run_id
             client.log_param(rid, "data.train_segments", str(SEGMENTS[name]))
@@ -73,8 +79,15 @@ def test_unknown_run_or_metric_is_a_clear_error(client):
 def test_plot_and_csv(client, tmp_path):
     got = fetch_curves(client, ["shared-0/cpu/seed1", "shared-0/smoke/seed1"], METRICS)
     for x in ("epoch", "step"):
-        png = plot_curves(got, METRICS, tmp_path / f"c_{x}.png", command="test", x=x,
-                          mark_epoch=2, mark_label="here")  # fmt: skip
+        png = plot_curves(
+            got,
+            METRICS,
+            tmp_path / f"c_{x}.png",
+            command="test",
+            x=x,
+            mark_epoch=2,
+            mark_label="here",
+        )
         assert png.stat().st_size > 10_000
     with pytest.raises(ValueError, match="x must be"):
         plot_curves(got, METRICS, tmp_path / "bad.png", command="test", x="time")
@@ -89,8 +102,20 @@ def test_plot_and_csv(client, tmp_path):
 
 def test_cli_writes_png_and_csv(client, store):
     out = store / "out" / "rot.png"
-    res = CliRunner().invoke(app, ["curves", "--run", "shared-0/cpu/seed1", "--run",
-                                   "shared-0/smoke/seed1", "--out", str(out), "--x", "step"])  # fmt: skip
+    res = CliRunner().invoke(
+        app,
+        [
+            "curves",
+            "--run",
+            "shared-0/cpu/seed1",
+            "--run",
+            "shared-0/smoke/seed1",
+            "--out",
+            str(out),
+            "--x",
+            "step",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert out.is_file() and out.with_suffix(".csv").is_file()
     assert "--x step" in out.with_suffix(".csv").read_text().splitlines()[0]

@@ -46,9 +46,12 @@ def test_evaluate_own_test_set_logs_table_and_metrics(project):
 def test_evaluate_on_the_real_ycb_frame(project):
     proj, out = project
     ev = evaluate(
-        str(out.run_dir), data=str(DATA / "ycb_real"), frames="all", project_dir=proj,
+        str(out.run_dir),
+        data=str(DATA / "ycb_real"),
+        frames="all",
+        project_dir=proj,
         progress=False,
-    )  # fmt: skip
+    )
     df = ev.table
     assert sorted(df["class"]) == ["009_gelatin_box", "025_mug", "061_foam_brick"]
     assert not df.miss.any()

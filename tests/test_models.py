@@ -140,9 +140,14 @@ def test_variant_overfits_tiny_batch(name, batch):
     for _ in range(300):
         out = model(points, cls_id)
         terms = pose_loss(
-            out.R, out.t, R_gt, t_gt, cfg.loss.rotation, cfg.loss.alpha,
+            out.R,
+            out.t,
+            R_gt,
+            t_gt,
+            cfg.loss.rotation,
+            cfg.loss.alpha,
             rotvec_pred=out.rot_raw if rotvec else None,
-        )  # fmt: skip
+        )
         if first is None:
             first = terms
         if terms.total < first.total / 10:
@@ -269,8 +274,15 @@ def test_basenet_layout():
     net = BaseNet(24, 7, bn_momentum=0.01)
     linears = [m for m in net.modules() if isinstance(m, nn.Linear)]
     assert [(m.in_features, m.out_features) for m in linears] == [
-        (24, 64), (64, 64), (64, 64), (64, 128), (128, 1024), (1024, 512), (512, 256), (256, 7),
-    ]  # fmt: skip
+        (24, 64),
+        (64, 64),
+        (64, 64),
+        (64, 128),
+        (128, 1024),
+        (1024, 512),
+        (512, 256),
+        (256, 7),
+    ]
     bns = [m for m in net.modules() if isinstance(m, nn.BatchNorm1d)]
     assert [m.num_features for m in bns] == [64, 64, 64, 128, 1024, 512, 256]
     assert all(m.momentum == 0.01 for m in bns)
@@ -329,9 +341,14 @@ def test_point_layer_max_pool_matches_loop():
         ref[s] = torch.stack(feats).max(dim=0).values
     torch.testing.assert_close(layer(x), ref)
     assert set(layer.state_dict()) == {
-        "linear.weight", "linear.bias", "bn.weight", "bn.bias",
-        "bn.running_mean", "bn.running_var", "bn.num_batches_tracked",
-    }  # fmt: skip
+        "linear.weight",
+        "linear.bias",
+        "bn.weight",
+        "bn.bias",
+        "bn.running_mean",
+        "bn.running_var",
+        "bn.num_batches_tracked",
+    }
 
 
 def test_rotation_outputs_convert():

@@ -17,9 +17,12 @@ def test_predict_on_a_real_frame_without_poses(smoke_project, tmp_path):
     _, out = smoke_project
     overlay = tmp_path / "overlay.png"
     res = predict(
-        DATA / "demo_no_gt" / "depth.png", DATA / "demo_no_gt" / "label.png",
-        str(out.checkpoint), color=DATA / "demo_no_gt" / "color.png", overlay=overlay,
-    )  # fmt: skip
+        DATA / "demo_no_gt" / "depth.png",
+        DATA / "demo_no_gt" / "label.png",
+        str(out.checkpoint),
+        color=DATA / "demo_no_gt" / "color.png",
+        overlay=overlay,
+    )
     assert sorted(p.cls_id for p in res.poses) == [2, 4, 5, 10, 15]
     for p in res.poses:
         np.testing.assert_allclose(p.R @ p.R.T, np.eye(3), atol=1e-6)

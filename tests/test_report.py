@@ -24,8 +24,15 @@ DATA = "f00dfeed1234567890"
 COMMIT = "abc1234def"
 COMMAND = "cloudpose report --all --preset smoke"
 SEEDS = (1, 2, 3)
-METRICS = ("ad_auc", "ads_auc", "ads_lt_1cm", "rot_lt_10deg", "rot_lt_15deg", "rot_lt_20deg",
-           "trans_lt_1cm")  # fmt: skip
+METRICS = (
+    "ad_auc",
+    "ads_auc",
+    "ads_lt_1cm",
+    "rot_lt_10deg",
+    "rot_lt_15deg",
+    "rot_lt_20deg",
+    "trans_lt_1cm",
+)
 CLASSES = [
     line.strip()
     for line in (Path(__file__).parents[1] / "cloudpose/resources/classes.txt").read_text().split()
@@ -49,8 +56,9 @@ def _test_set(m: int = 240) -> pd.DataFrame:
     rng = np.random.default_rng(99)
     occ = rng.uniform(0.0, 1.0, m)
     occ[:3] = [0.0, 0.999, 1.0]  # the edges: first bin, last bin, last bin (1.0 included)
-    return pd.DataFrame({"occlusion": occ, "miss": rng.uniform(size=m) < 0.05,
-                         "cls_id": rng.integers(1, 22, m)})  # fmt: skip
+    return pd.DataFrame(
+        {"occlusion": occ, "miss": rng.uniform(size=m) < 0.05, "cls_id": rng.integers(1, 22, m)}
+    )
 
 
 TEST_SET = _test_set()
@@ -64,17 +72,36 @@ def _instances(rng: np.random.Generator) -> pd.DataFrame:
     net_ad = net_ads * rng.uniform(1.0, 3.0, m)
     icp_ad = icp_ads * rng.uniform(1.0, 2.0, m)
     rot = rng.gamma(2.0, 6.0, m)
-    df = pd.DataFrame({
-        "frame_id": [f"0048/{i // 5:06d}" for i in range(m)], "instance": np.arange(m) % 5,
-        "cls_id": cls, "class": [CLASSES[c - 1] for c in cls], "occlusion": occ,
-        "points": rng.integers(50, 2000, m), "miss": miss,
-        "net_ad": net_ad, "net_ads": net_ads, "net_rot_err_deg": rot,
-        "net_trans_err": net_ads * 0.8,
-        "icp_ad": icp_ad, "icp_ads": icp_ads, "icp_rot_err_deg": rot * 0.7,
-        "icp_trans_err": icp_ads * 0.8, "icp_fitness": rng.uniform(0.5, 1, m),
-    })  # fmt: skip
-    for c in ("net_ad", "net_ads", "net_rot_err_deg", "net_trans_err", "icp_ad", "icp_ads",
-              "icp_rot_err_deg", "icp_trans_err"):  # fmt: skip
+    df = pd.DataFrame(
+        {
+            "frame_id": [f"0048/{i // 5:06d}" for i in range(m)],
+            "instance": np.arange(m) % 5,
+            "cls_id": cls,
+            "class": [CLASSES[c - 1] for c in cls],
+            "occlusion": occ,
+            "points": rng.integers(50, 2000, m),
+            "miss": miss,
+            "net_ad": net_ad,
+            "net_ads": net_ads,
+            "net_rot_err_deg": rot,
+            "net_trans_err": net_ads * 0.8,
+            "icp_ad": icp_ad,
+            "icp_ads": icp_ads,
+            "icp_rot_err_deg": rot * 0.7,
+            "icp_trans_err": icp_ads * 0.8,
+            "icp_fitness": rng.uniform(0.5, 1, m),
+        }
+    )
+    for c in (
+        "net_ad",
+        "net_ads",
+        "net_rot_err_deg",
+        "net_trans_err",
+        "icp_ad",
+        "icp_ads",
+        "icp_rot_err_deg",
+        "icp_trans_err",
+    ):
         df.loc[miss, c] = np.inf
     return df
 
@@ -100,13 +127,23 @@ def _make_store(root: Path) -> dict:
             n_params = int(rng.integers(1_000_000, 4_000_000))
             logged["params"][variant] = n_params
             for i, seed in enumerate(seeds):
-                tags = {"variant": variant, "group": gname, "preset": PRESET, "seed": str(seed),
-                        "data": DATA, "git_commit": COMMIT, "run_dir": str(root / variant),
-                        "config": resolve(variant, PRESET, seed).fingerprint()}  # fmt: skip
+                tags = {
+                    "variant": variant,
+                    "group": gname,
+                    "preset": PRESET,
+                    "seed": str(seed),
+                    "data": DATA,
+                    "git_commit": COMMIT,
+                    "run_dir": str(root / variant),
+                    "config": resolve(variant, PRESET, seed).fingerprint(),
+                }
                 run = client.create_run(exp, tags=tags, run_name=f"{variant}/{PRESET}/seed{seed}")
                 rid = run.info.run_id
-                params = [Param("model.parameters", str(n_params)), Param("data.root", ""),
-                          Param("data.synth_seed", "0")]  # fmt: skip
+                params = [
+                    Param("model.parameters", str(n_params)),
+                    Param("data.root", ""),
+                    Param("data.synth_seed", "0"),
+                ]
                 ms = {}
                 for m in METRICS:
                     if variant in OFFSETS:
@@ -122,11 +159,16 @@ def _make_store(root: Path) -> dict:
                     for c in CLASSES[:-1]:  # the last class has no test instance
                         for m in ("ad_auc", "ads_auc", "ads_lt_1cm"):
                             ms[f"test_icp/class/{c}/{m}"] = rng.uniform(0.5, 1.0)
-                hist = {"train/loss": np.exp(-np.arange(1, 6) / 3) + rng.uniform(0, .1, 5),
-                        "val/ads_auc": np.linspace(0.2, 0.7, 5) + rng.uniform(0, .05, 5)}  # fmt: skip
+                hist = {
+                    "train/loss": np.exp(-np.arange(1, 6) / 3) + rng.uniform(0, 0.1, 5),
+                    "val/ads_auc": np.linspace(0.2, 0.7, 5) + rng.uniform(0, 0.05, 5),
+                }
                 metrics = [Metric(k, v, 0, 0) for k, v in ms.items()]
-                metrics += [Metric(k, float(v), e, e + 1) for k, vals in hist.items()
-                            for e, v in enumerate(vals)]  # fmt: skip
+                metrics += [
+                    Metric(k, float(v), e, e + 1)
+                    for k, vals in hist.items()
+                    for e, v in enumerate(vals)
+                ]
                 client.log_batch(rid, metrics=metrics, params=params)
                 df = _instances(rng)
                 path = root / "logged" / rid / "instances.csv"
@@ -143,35 +185,75 @@ def _make_store(root: Path) -> dict:
     bexp = tracking.experiment_id(client, "baselines", root)
     current = settings_fingerprint(load_settings("fpfh"))
     for seed, config in ((1, current), (2, current), (3, current), (1, "0ldsettings00000")):
-        tags = {"variant": "baseline-fpfh", "group": "baselines", "preset": PRESET,
-                "seed": str(seed), "data": DATA, "git_commit": COMMIT, "config": config,
-                "kind": "baseline"}  # fmt: skip
+        tags = {
+            "variant": "baseline-fpfh",
+            "group": "baselines",
+            "preset": PRESET,
+            "seed": str(seed),
+            "data": DATA,
+            "git_commit": COMMIT,
+            "config": config,
+            "kind": "baseline",
+        }
         run = client.create_run(bexp, tags=tags, run_name=f"baseline-fpfh/{PRESET}/seed{seed}")
-        ms = {"test/ads_auc": 0.9 + 0.01 * seed, "test_icp/ads_auc": 0.95, "test/ad_auc": 0.5,
-              "test_icp/ad_auc": 0.55, "test/ads_lt_1cm": 0.8, "test_icp/ads_lt_1cm": 0.85,
-              "test/net_ms_per_object": 300.0, "test/icp_ms_per_object": 2.0}  # fmt: skip
+        ms = {
+            "test/ads_auc": 0.9 + 0.01 * seed,
+            "test_icp/ads_auc": 0.95,
+            "test/ad_auc": 0.5,
+            "test_icp/ad_auc": 0.55,
+            "test/ads_lt_1cm": 0.8,
+            "test_icp/ads_lt_1cm": 0.85,
+            "test/net_ms_per_object": 300.0,
+            "test/icp_ms_per_object": 2.0,
+        }
         if config != current:
             ms["test/ads_auc"] = 0.0
-        client.log_batch(run.info.run_id, metrics=[Metric(k, v, 0, 0) for k, v in ms.items()],
-                         params=[Param("data.root", ""), Param("data.synth_seed", "0")])  # fmt: skip
+        client.log_batch(
+            run.info.run_id,
+            metrics=[Metric(k, v, 0, 0) for k, v in ms.items()],
+            params=[Param("data.root", ""), Param("data.synth_seed", "0")],
+        )
         client.set_terminated(run.info.run_id, "FINISHED")
         if config == current:
             logged["metrics"][("baseline-fpfh", seed)] = ms
     # a run on other data and an unfinished run: both must stay out of the report
     exp = tracking.experiment_id(client, "shared", root)
-    other = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
-                                         "data": "0therdata00", "git_commit": "zzz",
-                                         "config": resolve("shared-0", PRESET, 1).fingerprint()})  # fmt: skip
+    other = client.create_run(
+        exp,
+        tags={
+            "variant": "shared-0",
+            "preset": PRESET,
+            "seed": "1",
+            "data": "0therdata00",
+            "git_commit": "zzz",
+            "config": resolve("shared-0", PRESET, 1).fingerprint(),
+        },
+    )
     client.log_metric(other.info.run_id, "test/ads_auc", 0.0)
     client.set_terminated(other.info.run_id, "FINISHED")
-    running = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
-                                           "data": DATA, "git_commit": "yyy"})  # fmt: skip
+    running = client.create_run(
+        exp,
+        tags={
+            "variant": "shared-0",
+            "preset": PRESET,
+            "seed": "1",
+            "data": DATA,
+            "git_commit": "yyy",
+        },
+    )
     client.log_metric(running.info.run_id, "test/ads_auc", 0.0)
     # a finished run of the same name, data and preset, trained with an override (the newest)
-    over = client.create_run(exp, tags={"variant": "shared-0", "preset": PRESET, "seed": "1",
-                                        "data": DATA, "git_commit": "xxx",
-                                        "config": resolve("shared-0", PRESET, 1,
-                                                          {"train": {"epochs": 1}}).fingerprint()})  # fmt: skip
+    over = client.create_run(
+        exp,
+        tags={
+            "variant": "shared-0",
+            "preset": PRESET,
+            "seed": "1",
+            "data": DATA,
+            "git_commit": "xxx",
+            "config": resolve("shared-0", PRESET, 1, {"train": {"epochs": 1}}).fingerprint(),
+        },
+    )
     client.log_metric(over.info.run_id, "test/ads_auc", 0.0)
     client.set_terminated(over.info.run_id, "FINISHED")
     return logged
@@ -281,8 +363,9 @@ def test_table3_mean_std_and_paper_beside(rendered):
     _root, logged, result = rendered
     out = result.out_dir
     df = _read_csv(out / "table3_shared_layers.csv").set_index("variant")
-    paper = pd.read_csv(Path(__file__).parents[1] / "cloudpose/resources/paper/"
-                        "table3_shared_layers.csv").set_index("shared_layers")  # fmt: skip
+    paper = pd.read_csv(
+        Path(__file__).parents[1] / "cloudpose/resources/paper/table3_shared_layers.csv"
+    ).set_index("shared_layers")
     for variant in get_group("shared").members:
         seeds = [s for (v, s) in logged["metrics"] if v == variant]
         for m in ("ad_auc", "ads_auc", "rot_lt_10deg", "trans_lt_1cm"):
@@ -345,8 +428,9 @@ def test_table1_has_the_baselines_with_their_time(rendered):
 def test_table2_per_class(rendered):
     _, logged, result = rendered
     df = _read_csv(result.out_dir / "table2_per_class.csv").set_index("object")
-    paper = pd.read_csv(Path(__file__).parents[1] / "cloudpose/resources/paper/"
-                        "table2_per_class.csv").set_index("object")  # fmt: skip
+    paper = pd.read_csv(
+        Path(__file__).parents[1] / "cloudpose/resources/paper/table2_per_class.csv"
+    ).set_index("object")
     cls = CLASSES[3]
     vals = [logged["metrics"][("shared-0", s)][f"test_icp/class/{cls}/ads_auc"] for s in SEEDS]
     assert df.loc[cls, "ads_auc_mean"] == pytest.approx(100 * np.mean(vals), abs=1e-3)
@@ -423,19 +507,21 @@ def test_occlusion_bins_and_counts(rendered):
             b = np.minimum((t["occlusion"].to_numpy() * 10).astype(int), 9)
             counts = np.bincount(b, minlength=10)
             hit = t[f"{method}_ads"].to_numpy() < 0.01
-            accs.append([100 * hit[b == i].mean() if (b == i).any() else np.nan
-                         for i in range(10)])  # fmt: skip
+            accs.append([100 * hit[b == i].mean() if (b == i).any() else np.nan for i in range(10)])
         np.testing.assert_array_equal(sub["count"].to_numpy(), counts)
-        np.testing.assert_allclose(sub["accuracy_mean_pct"].to_numpy(),
-                                   np.nanmean(accs, axis=0), atol=0.01)  # fmt: skip
+        np.testing.assert_allclose(
+            sub["accuracy_mean_pct"].to_numpy(), np.nanmean(accs, axis=0), atol=0.01
+        )
         assert list(sub["bin_low_pct"]) == list(range(0, 100, 10))
 
 
 def test_pngs_exist_and_are_not_blank(rendered):
     _, _, result = rendered
-    names = ["occlusion.png"] + [f"{k}_{g}.png" for k in ("occlusion", "curves", "training",
-                                                          "rot_err")
-                                 for g in ("shared", "rotation", "loss")]  # fmt: skip
+    names = ["occlusion.png"] + [
+        f"{k}_{g}.png"
+        for k in ("occlusion", "curves", "training", "rot_err")
+        for g in ("shared", "rotation", "loss")
+    ]
     for name in names:
         path = result.out_dir / name
         assert path.exists(), name

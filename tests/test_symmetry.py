@@ -87,8 +87,9 @@ def test_equivalent_ground_truths_have_zero_error(name):
 def test_continuous_error_is_the_minimum_over_the_axis():
     sym = load_symmetries()["024_bowl"]  # continuous about z, no flip
     R_gt, R_est = _random_R(50, 2), _random_R(50, 3)
-    turns = np.stack([Rotation.from_rotvec(sym.axis * a).as_matrix()
-                      for a in np.linspace(0, 2 * np.pi, 3601)])  # fmt: skip
+    turns = np.stack(
+        [Rotation.from_rotvec(sym.axis * a).as_matrix() for a in np.linspace(0, 2 * np.pi, 3601)]
+    )
     brute = np.min([rotation_error_deg(R_gt @ S, R_est) for S in turns], axis=0)
     np.testing.assert_allclose(symmetric_rotation_error_deg(R_gt, R_est, sym), brute, atol=0.06)
     # and never more than the plain error
@@ -113,8 +114,9 @@ def test_torch_distance_matches_numpy_and_has_finite_gradients(dtype):
     ref = np.empty(n)
     for i in range(n):
         s = syms[int(cls_id[i]) - 1]
-        ref[i] = symmetric_rotation_error_deg(R_gt[i : i + 1].numpy(),
-                                              R_est[i : i + 1].detach().numpy(), s)[0]  # fmt: skip
+        ref[i] = symmetric_rotation_error_deg(
+            R_gt[i : i + 1].numpy(), R_est[i : i + 1].detach().numpy(), s
+        )[0]
     tol = 0.05 if dtype == torch.float32 else 1e-6
     np.testing.assert_allclose(np.degrees(d.detach().numpy()), ref, atol=tol)
     assert d[:5].abs().max() < 1e-3
@@ -131,8 +133,9 @@ def test_closest_ground_truth_and_symmetric_l2_loss():
 
     syms = symmetries_for(NAMES)
     table = SymmetryTensors(syms)
-    cls_id = torch.tensor([NAMES.index(n) + 1 for n in ("003_cracker_box", "002_master_chef_can",
-                                                        "035_power_drill")])  # fmt: skip
+    cls_id = torch.tensor(
+        [NAMES.index(n) + 1 for n in ("003_cracker_box", "002_master_chef_can", "035_power_drill")]
+    )
     R_gt = torch.from_numpy(_random_R(3, 7)).float()
     box, can = load_symmetries()["003_cracker_box"], load_symmetries()["002_master_chef_can"]
     turn = torch.from_numpy(Rotation.from_rotvec(can.axis * 1.0).as_matrix()).float()

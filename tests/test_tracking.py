@@ -26,10 +26,11 @@ def test_concurrent_first_use_of_a_new_store(tmp_path, monkeypatch):
         """
     )
     procs = [
-        subprocess.Popen([sys.executable, "-c", script, str(tmp_path), str(i)],
-                         stderr=subprocess.PIPE, text=True)
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(tmp_path), str(i)], stderr=subprocess.PIPE, text=True
+        )
         for i in range(4)
-    ]  # fmt: skip
+    ]
     errors = [p.communicate(timeout=300)[1] for p in procs]
     assert [p.returncode for p in procs] == [0, 0, 0, 0], errors
     client = tracking.setup(tmp_path)
@@ -50,9 +51,22 @@ def test_cli_says_a_broken_store_in_one_line(tmp_path):
     env = {k: v for k, v in __import__("os").environ.items() if k != "MLFLOW_TRACKING_URI"}
     env["CLOUDPOSE_NO_TCMALLOC"] = "1"
     out = subprocess.run(
-        [sys.executable, "-m", "cloudpose.cli", "experiments", "--group", "shared", "--out", "log.md"],
-        cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "cloudpose.cli",
+            "experiments",
+            "--group",
+            "shared",
+            "--out",
+            "log.md",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert out.returncode == 2, out.stderr
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "mlflow.db" in lines[0] and "mv " in lines[0], out.stderr

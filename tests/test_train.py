@@ -177,9 +177,13 @@ def test_recalibrated_bn_makes_eval_mode_match_train_mode(kernel):
     bn0 = model.translation_net.stages[0].bn
     with torch.no_grad():
         lin0 = model.translation_net.stages[0].linear
-        x0 = torch.cat([data.points - data.points.mean(1, keepdim=True),
-                        torch.nn.functional.one_hot(data.cls_id - 1, 21)[:, None].expand(-1, 32, -1)],
-                       dim=-1)  # fmt: skip
+        x0 = torch.cat(
+            [
+                data.points - data.points.mean(1, keepdim=True),
+                torch.nn.functional.one_hot(data.cls_id - 1, 21)[:, None].expand(-1, 32, -1),
+            ],
+            dim=-1,
+        )
         true_var = lin0(x0.reshape(-1, 24)).var(0)
     assert (bn0.running_var / true_var).median() > 3  # still near its initial 1
     recalibrate_bn(model, data, batches=40, batch_size=64, seed=1, device=torch.device("cpu"))

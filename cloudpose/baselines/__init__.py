@@ -35,8 +35,9 @@ __all__ = [
 METHODS = ("fpfh", "ppf")
 
 
-def make(method: str, models_by_class: dict, settings: BaselineSettings | None = None,
-         seed: int = 1) -> Estimator:  # fmt: skip
+def make(
+    method: str, models_by_class: dict, settings: BaselineSettings | None = None, seed: int = 1
+) -> Estimator:
     """The estimator ``method`` (one of :data:`METHODS`) for these models."""
     settings = settings or load_settings(method)
     if method == "fpfh":

@@ -25,8 +25,10 @@ class BaselineSettings:
         """These settings with some values replaced (each key must exist)."""
         unknown = sorted(set(overrides or {}) - set(self.values))
         if unknown:
-            raise ValueError(f"baseline {self.method}: unknown settings {unknown}; "
-                             f"expected some of {sorted(self.values)}")  # fmt: skip
+            raise ValueError(
+                f"baseline {self.method}: unknown settings {unknown}; "
+                f"expected some of {sorted(self.values)}"
+            )
         return BaselineSettings(self.method, self.why, {**self.values, **(overrides or {})})
 
     def __getitem__(self, key: str) -> Any:

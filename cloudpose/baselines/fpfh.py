@@ -31,8 +31,9 @@ def _o3d():
 class FPFHEstimator:
     """FPFH + RANSAC for a set of models (class id -> (P, 3) points, metres)."""
 
-    def __init__(self, models_by_class: dict[int, np.ndarray], settings: BaselineSettings,
-                 seed: int = 1) -> None:  # fmt: skip
+    def __init__(
+        self, models_by_class: dict[int, np.ndarray], settings: BaselineSettings, seed: int = 1
+    ) -> None:
         self.settings = settings
         self.seed = int(seed)
         self._calls = 0
@@ -44,8 +45,9 @@ class FPFHEstimator:
         s = self.settings
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, np.float64)))
         pcd = pcd.voxel_down_sample(s["voxel"])
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=s["normal_radius"],
-                                                                  max_nn=30))  # fmt: skip
+        pcd.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=s["normal_radius"], max_nn=30)
+        )
         if towards_camera:
             pcd.orient_normals_towards_camera_location(np.zeros(3))
         else:  # outwards: away from the centre of a closed surface
@@ -72,17 +74,27 @@ class FPFHEstimator:
         model, model_feat = self._model(int(cls_id))
         seg, seg_feat = self._features(pts, towards_camera=True)
         if len(seg.points) < 3:
-            raise NotRegistered(f"segment of class {cls_id}: {len(seg.points)} points after "
-                             f"the {s['voxel']} m voxel grid, need 3")  # fmt: skip
+            raise NotRegistered(
+                f"segment of class {cls_id}: {len(seg.points)} points after "
+                f"the {s['voxel']} m voxel grid, need 3"
+            )
         self._calls += 1
         o3d.utility.random.seed(self.seed * 1_000_003 + self._calls)
         d = s["ransac_distance"]
         res = reg.registration_ransac_based_on_feature_matching(
-            model, seg, model_feat, seg_feat, True, d,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(s["edge_length_ratio"]),
-             reg.CorrespondenceCheckerBasedOnDistance(d)],
+            model,
+            seg,
+            model_feat,
+            seg_feat,
+            True,
+            d,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [
+                reg.CorrespondenceCheckerBasedOnEdgeLength(s["edge_length_ratio"]),
+                reg.CorrespondenceCheckerBasedOnDistance(d),
+            ],
             reg.RANSACConvergenceCriteria(s["ransac_iterations"], s["ransac_confidence"]),
-        )  # fmt: skip
+        )
         T = np.asarray(res.transformation)
         return PoseEstimate(T[:3, :3].copy(), T[:3, 3].copy(), float(res.fitness))

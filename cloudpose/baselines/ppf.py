@@ -56,8 +56,9 @@ def _with_normals(points: np.ndarray, k: int, viewpoint: np.ndarray | None) -> n
 class PPFEstimator:
     """PPF voting for a set of models (class id -> (P, 3) points, metres)."""
 
-    def __init__(self, models_by_class: dict[int, np.ndarray], settings: BaselineSettings,
-                 seed: int = 1) -> None:  # fmt: skip
+    def __init__(
+        self, models_by_class: dict[int, np.ndarray], settings: BaselineSettings, seed: int = 1
+    ) -> None:
         self.settings = settings
         self.seed = int(seed)
         self._models = {int(c): np.asarray(m, dtype=np.float64) for c, m in models_by_class.items()}
@@ -68,8 +69,9 @@ class PPFEstimator:
             cv2 = _cv2()
             s = self.settings
             model = _with_normals(self._models[cls_id], s["normal_neighbours"], None)
-            det = cv2.ppf_match_3d_PPF3DDetector(s["relative_sampling_step"],
-                                                 s["relative_distance_step"])  # fmt: skip
+            det = cv2.ppf_match_3d_PPF3DDetector(
+                s["relative_sampling_step"], s["relative_distance_step"]
+            )
             det.trainModel(model)
             self._detectors[cls_id] = det
         return self._detectors[cls_id]

@@ -118,24 +118,47 @@ def run_baseline(
         metrics[f"{split}/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
     metrics[f"{split}/failures"] = float(failures)
     data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
-    run_id = (_log(method, preset, seed, settings, data.key, table, metrics, limit, data_params,
-                   split, project_dir) if log else None)  # fmt: skip
+    run_id = (
+        _log(
+            method,
+            preset,
+            seed,
+            settings,
+            data.key,
+            table,
+            metrics,
+            limit,
+            data_params,
+            split,
+            project_dir,
+        )
+        if log
+        else None
+    )
     return BaselineOutcome(table, metrics, run_id, failures)
 
 
-def _log(method, preset, seed, settings, data_key, table, metrics, limit, data_params,
-         split, project_dir) -> str:  # fmt: skip
+def _log(
+    method, preset, seed, settings, data_key, table, metrics, limit, data_params, split, project_dir
+) -> str:
     from mlflow.entities import Param
 
     from cloudpose.evaluate import log_evaluation
 
     client = tracking.setup(project_dir)
     exp = tracking.experiment_id(client, GROUP, project_dir)
-    tags = {"variant": f"baseline-{method}", "group": GROUP, "preset": preset,
-            "seed": str(seed), "data": data_key, "config": settings_fingerprint(settings),
-            "kind": "baseline",
-            "subsample": str(limit or "all"), "split": split,
-            "git_commit": tracking.git_commit()}  # fmt: skip
+    tags = {
+        "variant": f"baseline-{method}",
+        "group": GROUP,
+        "preset": preset,
+        "seed": str(seed),
+        "data": data_key,
+        "config": settings_fingerprint(settings),
+        "kind": "baseline",
+        "subsample": str(limit or "all"),
+        "split": split,
+        "git_commit": tracking.git_commit(),
+    }
     name = f"baseline-{method}/{preset}/seed{seed}"
     if split != "test" or tags["config"] != settings_fingerprint(load_settings(method)):
         name += f"+{split}-{tags['config'][:8]}"

@@ -443,7 +443,7 @@ def write_frame(
     if not _FRAME_ID.match(frame_id):
         raise ValueError(f"frame_id {frame_id!r} is not 'SEQ/FRAME'")
     clash = sorted(set(extra_meta or {}) & {"cls_indexes", "poses", "intrinsic_matrix",
-                                            "factor_depth"})  # fmt: skip
+                                            "factor_depth"})
     if clash:
         raise ValueError(f"write_frame: extra_meta may not replace the fields {clash}")
     depth_m = np.asarray(depth_m, dtype=np.float64)

@@ -36,9 +36,23 @@ def _adds_kernel(P, box, left, right, start, end, nbr, nbr_d2, W, n_walk):
             # the previous point's neighbour (stored order is spatially local).
             c = i if _d2(P, i, x, y, z) <= _d2(P, prev, x, y, z) else prev
             best, prev = _nearest_from(
-                P, box, left, right, start, end, nbr, nbr_d2, n_walk, x, y, z, c, np.inf,
-                stack, stack_d2,
-            )  # fmt: skip
+                P,
+                box,
+                left,
+                right,
+                start,
+                end,
+                nbr,
+                nbr_d2,
+                n_walk,
+                x,
+                y,
+                z,
+                c,
+                np.inf,
+                stack,
+                stack_d2,
+            )
             total += math.sqrt(best)
         out[m] = total / n
     return out

@@ -177,9 +177,22 @@ def _icp_kernel(P, box, left, right, start, end, nbr, nbr_d2, cur, radii):
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
             d2, j = _match(
-                P, box, left, right, start, end, nbr, nbr_d2, x, y, z, match[k], r2, stack,
+                P,
+                box,
+                left,
+                right,
+                start,
+                end,
+                nbr,
+                nbr_d2,
+                x,
+                y,
+                z,
+                match[k],
+                r2,
+                stack,
                 stack_d2,
-            )  # fmt: skip
+            )
             match[k] = j
             if j >= 0:
                 m = (P[j, 0], P[j, 1], P[j, 2], 1.0)

@@ -192,9 +192,20 @@ def _nearest_many(P, box, left, right, start, end, Q, bound_d2):
     stack_d2 = np.empty(_STACK)
     for k in range(n):
         d2[k], idx[k] = _nearest(
-            P, box, left, right, start, end, Q[k, 0], Q[k, 1], Q[k, 2], bound_d2, -1,
-            stack, stack_d2,
-        )  # fmt: skip
+            P,
+            box,
+            left,
+            right,
+            start,
+            end,
+            Q[k, 0],
+            Q[k, 1],
+            Q[k, 2],
+            bound_d2,
+            -1,
+            stack,
+            stack_d2,
+        )
     return d2, idx
 
 

@@ -425,10 +425,18 @@ class FusedPointLayerMaxPool(nn.Module):
         params = (x, lin.weight, bias, gamma, beta)
         if torch.is_grad_enabled() and any(t.requires_grad for t in params):
             out, mean_y, var_y = fused_point_max_pool(
-                x, lin.weight, bias, gamma, beta, bn.running_mean, bn.running_var,
-                use_batch_stats=use_batch_stats, eps=bn.eps, bf16=self.bf16,
+                x,
+                lin.weight,
+                bias,
+                gamma,
+                beta,
+                bn.running_mean,
+                bn.running_var,
+                use_batch_stats=use_batch_stats,
+                eps=bn.eps,
+                bf16=self.bf16,
                 chunk_rows=self.chunk_rows,
-            )  # fmt: skip
+            )
         else:
             with torch.no_grad(), torch.autocast(device_type=x.device.type, enabled=False):
                 if use_batch_stats:

@@ -232,9 +232,13 @@ class FoldedPoseNet(nn.Module):
             self.rot_size = getattr(rh, f"w{rh.n - 1}").shape[1]
 
     def _first(
-        self, stages: _FoldedStages, w_xyz: torch.Tensor, w_cls: torch.Tensor,
-        xyz: torch.Tensor, cls0: torch.Tensor,
-    ) -> torch.Tensor:  # fmt: skip
+        self,
+        stages: _FoldedStages,
+        w_xyz: torch.Tensor,
+        w_cls: torch.Tensor,
+        xyz: torch.Tensor,
+        cls0: torch.Tensor,
+    ) -> torch.Tensor:
         """First per-point layer from xyz (B, n, 3) and 0-based classes (B,): (B, n, C)."""
         B, n, _ = xyz.shape
         bias = stages.bias(0) + w_cls[cls0]  # (B, C) the one-hot term is a class bias

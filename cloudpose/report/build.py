@@ -107,8 +107,9 @@ def render_reports(
     base = runs.subset(["shared-0"])
     if base.records:
         prov = Provenance.of(base, command, renderer)
-        with_baselines = runs.subset(["shared-0", *(v for v in runs.variants
-                                                    if v.startswith("baseline-"))])  # fmt: skip
+        with_baselines = runs.subset(
+            ["shared-0", *(v for v in runs.variants if v.startswith("baseline-"))]
+        )
         written["overall"] += table1_overall(with_baselines).write(out_dir, prov)
         written["overall"] += table2_per_class(with_baselines).write(out_dir, prov)
         written["overall"] += _occlusion_overall(with_baselines, out_dir, prov)
@@ -129,8 +130,9 @@ def render_reports(
     if log_mlflow:
         for g in names:
             if written[g]:
-                mlflow_runs[g] = log_report_run(client, g, preset, written[g] + written["overall"],
-                                                prov_all, project_dir)  # fmt: skip
+                mlflow_runs[g] = log_report_run(
+                    client, g, preset, written[g] + written["overall"], prov_all, project_dir
+                )
     files = sorted({p for ps in written.values() for p in ps})
     return ReportResult(out_dir, files, runs, results, mlflow_runs)
 
@@ -143,20 +145,32 @@ def _series(runs: RunSet, variant: str, label: str, method: str = "net"):
 def _occlusion_overall(runs: RunSet, out_dir: Path, prov: Provenance) -> list[Path]:
     from cloudpose.report.tables import BASELINE_LABELS
 
-    candidates = [_series(runs, "shared-0", "shared-0, network alone", "net"),
-                  _series(runs, "shared-0", "shared-0 + ICP", "icp")]  # fmt: skip
-    candidates += [_series(runs, b, f"{BASELINE_LABELS.get(b, b)} + ICP", "icp")
-                   for b in runs.variants if b.startswith("baseline-")]  # fmt: skip
+    candidates = [
+        _series(runs, "shared-0", "shared-0, network alone", "net"),
+        _series(runs, "shared-0", "shared-0 + ICP", "icp"),
+    ]
+    candidates += [
+        _series(runs, b, f"{BASELINE_LABELS.get(b, b)} + ICP", "icp")
+        for b in runs.variants
+        if b.startswith("baseline-")
+    ]
     series = [s for s in candidates if s]
     series = [s for s in series if f"{s.method}_ads" in s.tables[0]]
     if not series:
         return []
-    png = plots.plot_occlusion(series, out_dir / "occlusion.png", prov,
-                               "ADS < 1 cm accuracy vs occlusion (shared-0"
-                               + (" and the baselines)" if len(series) > 2 else ")"))  # fmt: skip
+    png = plots.plot_occlusion(
+        series,
+        out_dir / "occlusion.png",
+        prov,
+        "ADS < 1 cm accuracy vs occlusion (shared-0"
+        + (" and the baselines)" if len(series) > 2 else ")"),
+    )
     csv = out_dir / "occlusion.csv"
-    csv.write_text(f"# {prov.line()}\n" + plots.occlusion_frame(series).to_csv(
-        index=False, float_format="%.2f"), encoding="utf-8")  # fmt: skip
+    csv.write_text(
+        f"# {prov.line()}\n"
+        + plots.occlusion_frame(series).to_csv(index=False, float_format="%.2f"),
+        encoding="utf-8",
+    )
     return [png, csv]
 
 
@@ -178,19 +192,39 @@ def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: s
     if series:
         base_icp = _series(sub, "shared-0", "shared-0 + ICP", "icp")
         occ = series + ([base_icp] if base_icp and "icp_ads" in base_icp.tables[0] else [])
-        files.append(plots.plot_occlusion(occ, out_dir / f"occlusion_{g}.png", prov,
-                                          f"ADS < 1 cm accuracy vs occlusion, group {g}"))  # fmt: skip
-        files.append(plots.plot_threshold_curves(series, out_dir / f"curves_{g}.png", prov,
-                                                 f"Accuracy-threshold curves, group {g}, "
-                                                 "without ICP"))  # fmt: skip
-        files.append(plots.plot_rotation_histograms(series, out_dir / f"rot_err_{g}.png", prov,
-                                                    f"Rotation error, group {g}, without ICP"))  # fmt: skip
+        files.append(
+            plots.plot_occlusion(
+                occ,
+                out_dir / f"occlusion_{g}.png",
+                prov,
+                f"ADS < 1 cm accuracy vs occlusion, group {g}",
+            )
+        )
+        files.append(
+            plots.plot_threshold_curves(
+                series,
+                out_dir / f"curves_{g}.png",
+                prov,
+                f"Accuracy-threshold curves, group {g}, without ICP",
+            )
+        )
+        files.append(
+            plots.plot_rotation_histograms(
+                series,
+                out_dir / f"rot_err_{g}.png",
+                prov,
+                f"Rotation error, group {g}, without ICP",
+            )
+        )
     histories = {
         labels[v]: [{k: r.history(k) for k in ("train/loss", "val/ads_auc")} for r in sub.of(v)]
         for v in present
     }
-    files.append(plots.plot_training_curves(histories, out_dir / f"training_{g}.png", prov,
-                                            f"Training curves, group {g}"))  # fmt: skip
+    files.append(
+        plots.plot_training_curves(
+            histories, out_dir / f"training_{g}.png", prov, f"Training curves, group {g}"
+        )
+    )
     return files
 
 
@@ -208,11 +242,19 @@ def _write_index(out_dir: Path, prov: Provenance, preset: str) -> Path:
     for p in sorted(out_dir.iterdir()):
         if p.is_file() and p.name != "README.md" and p.suffix in (".md", ".tex", ".csv", ".png"):
             stems.setdefault(p.stem, []).append(p.name)
-    lines = [f"# Reports, preset `{preset}`", "", f"_{prov.line()}_", "",
-             f"Rendered from the MLflow runs only (`cloudpose report --all --preset {preset}` "
-             "renders them again; `make mlflow-ui` shows the runs). Our numbers are mean ± "
-             "sample std over seeds, in percent; the paper's are its single runs on real "
-             "YCB-Video.", "", "| report | files |", "|---|---|"]  # fmt: skip
+    lines = [
+        f"# Reports, preset `{preset}`",
+        "",
+        f"_{prov.line()}_",
+        "",
+        f"Rendered from the MLflow runs only (`cloudpose report --all --preset {preset}` "
+        "renders them again; `make mlflow-ui` shows the runs). Our numbers are mean ± "
+        "sample std over seeds, in percent; the paper's are its single runs on real "
+        "YCB-Video.",
+        "",
+        "| report | files |",
+        "|---|---|",
+    ]
     order = [k.split("{g}")[0] for k in DESCRIPTIONS]
 
     def rank(stem: str) -> tuple[int, str]:
@@ -228,8 +270,14 @@ def _write_index(out_dir: Path, prov: Provenance, preset: str) -> Path:
     return path
 
 
-def log_report_run(client, group: str, preset: str, files: list[Path], prov: Provenance,
-                   project_dir: Path | None = None) -> str:  # fmt: skip
+def log_report_run(
+    client,
+    group: str,
+    preset: str,
+    files: list[Path],
+    prov: Provenance,
+    project_dir: Path | None = None,
+) -> str:
     """Log ``files`` as the artifacts of run ``report/{group}/{preset}``, replacing an older one.
 
     The run carries tags ``kind=report``, ``report_group``, ``report_preset`` (and no
@@ -238,16 +286,24 @@ def log_report_run(client, group: str, preset: str, files: list[Path], prov: Pro
     exp = tracking.experiment_id(client, group, project_dir)
     name = f"report/{group}/{preset}"
     old = client.search_runs(
-        [exp], f"tags.kind = 'report' and tags.report_group = '{group}' and "
+        [exp],
+        f"tags.kind = 'report' and tags.report_group = '{group}' and "
         f"tags.report_preset = '{preset}'",
-    )  # fmt: skip
+    )
     for r in old:
         _remove_local_artifacts(r.info.artifact_uri)
         client.delete_run(r.info.run_id)
     note = _summary_note(group, preset, files, prov)
-    tags = {"kind": "report", "report_group": group, "report_preset": preset,
-            "command": prov.command, "data": prov.data, "seeds": ",".join(map(str, prov.seeds)),
-            "git_commit": ",".join(prov.commits), "mlflow.note.content": note}  # fmt: skip
+    tags = {
+        "kind": "report",
+        "report_group": group,
+        "report_preset": preset,
+        "command": prov.command,
+        "data": prov.data,
+        "seeds": ",".join(map(str, prov.seeds)),
+        "git_commit": ",".join(prov.commits),
+        "mlflow.note.content": note,
+    }
     # The experiment's description is the first thing its page shows: the group's table, so
     # the numbers that matter are there without choosing any column.
     client.set_experiment_tag(exp, "mlflow.note.content", note)
@@ -263,8 +319,10 @@ def _summary_note(group: str, preset: str, files: list[Path], prov: Provenance) 
     """Markdown for the MLflow UI: the group's table (as rendered) and where it comes from."""
     table = next((p for p in files if p.name == f"{GROUP_TABLE.get(group, '')}.md"), None)
     body = table.read_text(encoding="utf-8") if table is not None and table.exists() else ""
-    return (f"**Report of group `{group}`, preset `{preset}`** (run `report/{group}/{preset}` "
-            f"holds every table and plot as artifacts).\n\n{body}\n\n{prov.line()}")  # fmt: skip
+    return (
+        f"**Report of group `{group}`, preset `{preset}`** (run `report/{group}/{preset}` "
+        f"holds every table and plot as artifacts).\n\n{body}\n\n{prov.line()}"
+    )
 
 
 def _remove_local_artifacts(uri: str | None) -> None:

@@ -52,44 +52,88 @@ def paper_claims() -> list[Claim]:
     t3.index = t3.index.astype(str)
     shared = get_group("shared")
     # rot_sym_*: the rotation error modulo symmetry (no paper value; see table4_rotation)
-    cols3 = {"ad_auc": "AD_auc", "ads_auc": "ADS_auc", "rot_lt_10deg": "rot_err_lt_10deg",
-             "rot_sym_lt_10deg": None, "trans_lt_1cm": "trans_err_lt_1cm"}  # fmt: skip
+    cols3 = {
+        "ad_auc": "AD_auc",
+        "ads_auc": "ADS_auc",
+        "rot_lt_10deg": "rot_err_lt_10deg",
+        "rot_sym_lt_10deg": None,
+        "trans_lt_1cm": "trans_err_lt_1cm",
+    }
     for v in shared.members[1:]:
         label = shared.labels.get(v, v)
         for m, col in cols3.items():
             known = col is not None and label in t3.index
             paper = (t3.loc["none", col] - t3.loc[label, col]) if known else math.nan
-            claims.append(Claim("Separate networks vs shared layers (Table III, without ICP)",
-                                f"separate (none) beats shared {label}", ("shared-0", "test"),
-                                (v, "test"), m, float(paper)))  # fmt: skip
+            claims.append(
+                Claim(
+                    "Separate networks vs shared layers (Table III, without ICP)",
+                    f"separate (none) beats shared {label}",
+                    ("shared-0", "test"),
+                    (v, "test"),
+                    m,
+                    float(paper),
+                )
+            )
     t4 = paper_table("table4_rotation").set_index(["ablation", "variant"])
-    cols4 = {"rot_lt_10deg": "rot_err_lt_10deg", "rot_lt_15deg": "rot_err_lt_15deg",
-             "rot_lt_20deg": "rot_err_lt_20deg", "rot_sym_lt_10deg": None,
-             "rot_sym_lt_20deg": None}  # fmt: skip
+    cols4 = {
+        "rot_lt_10deg": "rot_err_lt_10deg",
+        "rot_lt_15deg": "rot_err_lt_15deg",
+        "rot_lt_20deg": "rot_err_lt_20deg",
+        "rot_sym_lt_10deg": None,
+        "rot_sym_lt_20deg": None,
+    }
     for topic, section, fav, oth, other_variant in (
-        ("Axis-angle vs quaternion (Table IV, without ICP)", "representation", "axis-angle",
-         "quaternion", "quaternion"),
+        (
+            "Axis-angle vs quaternion (Table IV, without ICP)",
+            "representation",
+            "axis-angle",
+            "quaternion",
+            "quaternion",
+        ),
         ("Geodesic vs L2 rotation loss (Table IV, without ICP)", "loss", "geodesic", "L2", "l2"),
-    ):  # fmt: skip
+    ):
         for m, col in cols4.items():
             paper = (
                 math.nan
                 if col is None
                 else t4.loc[(section, fav), col] - t4.loc[(section, oth), col]
             )
-            claims.append(Claim(topic, f"{fav} beats {oth}", ("shared-0", "test"),
-                                (other_variant, "test"), m, float(paper)))  # fmt: skip
+            claims.append(
+                Claim(
+                    topic,
+                    f"{fav} beats {oth}",
+                    ("shared-0", "test"),
+                    (other_variant, "test"),
+                    m,
+                    float(paper),
+                )
+            )
     for m in ("rot_sym_lt_10deg", "rot_sym_lt_20deg", "ads_auc"):
         # ours, not the paper's: training modulo symmetry against the plain geodesic loss
-        claims.append(Claim("Loss modulo symmetry vs plain geodesic (ours, without ICP)",
-                            "modulo symmetry beats plain", ("shared-0", "test"),
-                            ("geodesic-plain", "test"), m, math.nan))  # fmt: skip
+        claims.append(
+            Claim(
+                "Loss modulo symmetry vs plain geodesic (ours, without ICP)",
+                "modulo symmetry beats plain",
+                ("shared-0", "test"),
+                ("geodesic-plain", "test"),
+                m,
+                math.nan,
+            )
+        )
     t1 = paper_table("table1_overall").set_index("method")
     cols1 = {"ad_auc": "AD_auc", "ads_auc": "ADS_auc", "ads_lt_1cm": "ADS_lt_1cm"}
     for m, col in cols1.items():
         paper = t1.loc["Ours", col] - t1.loc["Ours w/o ICP", col]
-        claims.append(Claim("With vs without ICP (Table I, shared-0)", "ICP improves the estimate",
-                            ("shared-0", "test_icp"), ("shared-0", "test"), m, float(paper)))  # fmt: skip
+        claims.append(
+            Claim(
+                "With vs without ICP (Table I, shared-0)",
+                "ICP improves the estimate",
+                ("shared-0", "test_icp"),
+                ("shared-0", "test"),
+                m,
+                float(paper),
+            )
+        )
     return claims
 
 
@@ -158,24 +202,34 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
         if r.diff.why:
             why[r.diff.why] = why.get(r.diff.why, 0) + 1
     if why:
-        lines.append("Not resolved because: " + "; ".join(f"{w} ({n})" for w, n in
-                                                         sorted(why.items())) + ".")  # fmt: skip
+        lines.append(
+            "Not resolved because: " + "; ".join(f"{w} ({n})" for w, n in sorted(why.items())) + "."
+        )
     n_ci = sum(math.isfinite(r.diff.low) for r in results)
     if n_ci:
-        lines += ["", f"{n_ci} intervals at 95% each, not corrected for multiple comparisons: were "
-                  f"no claimed difference real, about {0.05 * n_ci:.1f} of them would still exclude "
-                  "0 by chance, so a lone verdict among many unresolved rows is weak evidence."]  # fmt: skip
+        lines += [
+            "",
+            f"{n_ci} intervals at 95% each, not corrected for multiple comparisons: were "
+            f"no claimed difference real, about {0.05 * n_ci:.1f} of them would still exclude "
+            "0 by chance, so a lone verdict among many unresolved rows is weak evidence.",
+        ]
     topic = None
     for r in results:
         c, d = r.claim, r.diff
         if c.topic != topic:
             topic = c.topic
-            lines += ["", f"## {topic}", "",
-                      "| claim | metric | paper (pp) | ours (pp) | 95% CI (pp) | seeds | verdict |",
-                      "|---|---|---:|---:|---:|---:|---|"]  # fmt: skip
+            lines += [
+                "",
+                f"## {topic}",
+                "",
+                "| claim | metric | paper (pp) | ours (pp) | 95% CI (pp) | seeds | verdict |",
+                "|---|---|---:|---:|---:|---:|---|",
+            ]
         ci = f"[{_pp(d.low)}, {_pp(d.high)}]" if math.isfinite(d.low) else "–"
         seeds = f"{d.n}" + ("" if d.paired or d.n < 2 else " (unpaired)")
         verdict = f"**{d.verdict}**" if d.verdict != UNRESOLVED else f"{d.verdict} ({d.why})"
-        lines.append(f"| {c.statement} | {METRIC_LABELS.get(c.metric, c.metric)} | "
-                     f"{_pp(c.paper / 100)} | {_pp(d.mean)} | {ci} | {seeds} | {verdict} |")  # fmt: skip
+        lines.append(
+            f"| {c.statement} | {METRIC_LABELS.get(c.metric, c.metric)} | "
+            f"{_pp(c.paper / 100)} | {_pp(d.mean)} | {ci} | {seeds} | {verdict} |"
+        )
     return "\n".join(lines) + "\n"

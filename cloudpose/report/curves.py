@@ -82,12 +82,23 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
             steps = int(params["data.train_segments"]) // int(params["train.batch_size"])
         except (KeyError, ValueError):
             steps = None
-        out.append(RunCurves(label or r.info.run_name or run_id, run_id, series, tags.get("data", "?"),
-                             tags.get("config", "?"), tags.get("git_commit", "?"), steps))  # fmt: skip
+        out.append(
+            RunCurves(
+                label or r.info.run_name or run_id,
+                run_id,
+                series,
+                tags.get("data", "?"),
+                tags.get("config", "?"),
+                tags.get("git_commit", "?"),
+                steps,
+            )
+        )
     for key in metrics:
         if not any(len(c.series[key]) for c in out):
-            raise ValueError(f"metric {key!r} was not logged by any of the runs {list(runs)}; "
-                             f"per-epoch metrics: {sorted(METRIC_LABELS)}")  # fmt: skip
+            raise ValueError(
+                f"metric {key!r} was not logged by any of the runs {list(runs)}; "
+                f"per-epoch metrics: {sorted(METRIC_LABELS)}"
+            )
     return out
 
 
@@ -114,8 +125,9 @@ def plot_curves(
         raise ValueError(f"x must be 'epoch' or 'step', got {x!r}")
     if x == "step" and any(c.steps_per_epoch is None for c in curves):
         missing = [c.label for c in curves if c.steps_per_epoch is None]
-        raise ValueError(f"x='step' needs params data.train_segments and train.batch_size; "
-                         f"missing in {missing}")  # fmt: skip
+        raise ValueError(
+            f"x='step' needs params data.train_segments and train.batch_size; missing in {missing}"
+        )
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.5 * len(metrics), 4.4), squeeze=False)
     for ax, key in zip(axes[0], metrics, strict=True):
         for c in curves:
@@ -127,8 +139,15 @@ def plot_curves(
             at = mark_epoch * (curves[0].steps_per_epoch if x == "step" else 1)
             ax.axvline(at, color="0.4", linestyle="--", linewidth=1)
             if mark_label:
-                ax.annotate(mark_label, (at, 1.0), xycoords=("data", "axes fraction"),
-                            xytext=(3, -12), textcoords="offset points", fontsize=8, color="0.3")  # fmt: skip
+                ax.annotate(
+                    mark_label,
+                    (at, 1.0),
+                    xycoords=("data", "axes fraction"),
+                    xytext=(3, -12),
+                    textcoords="offset points",
+                    fontsize=8,
+                    color="0.3",
+                )
         ax.set_xlabel("epoch" if x == "epoch" else "Adam steps")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(METRIC_LABELS.get(key, key))
@@ -137,14 +156,24 @@ def plot_curves(
     axes[0][0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    ids = "; ".join(f"{c.label}: run {c.run_id[:8]}, data {c.data[:10]}, config {c.config[:8]}, "
-                    f"code {c.commit}" for c in curves)  # fmt: skip
+    ids = "; ".join(
+        f"{c.label}: run {c.run_id[:8]}, data {c.data[:10]}, config {c.config[:8]}, code {c.commit}"
+        for c in curves
+    )
     # room for the footer: ~190 characters per line at this size and font
     width_chars = 190 * len(metrics) / 2
     lines = 1 + int(len(command) / width_chars) + 1 + int(len(ids) / width_chars)
     fig.tight_layout(rect=(0, min(0.3, 0.025 * lines + 0.015), 1, 1))
-    fig.text(0.01, 0.005, f"made by {command}\n{ids}", fontsize=6, color="0.35", ha="left",
-             va="bottom", wrap=True)  # fmt: skip
+    fig.text(
+        0.01,
+        0.005,
+        f"made by {command}\n{ids}",
+        fontsize=6,
+        color="0.35",
+        ha="left",
+        va="bottom",
+        wrap=True,
+    )
     return _save(fig, path)
 
 

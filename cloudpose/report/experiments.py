@@ -58,22 +58,32 @@ def config_changes(cfg: Config, against: str | None = None) -> dict[str, object]
 
 def _command(cfg: Config, changes: dict[str, object], group: str) -> str:
     own = config_changes(cfg)  # what --set must say under the run's own preset
-    sets = " ".join(f"--set {k}={json.dumps(v) if not isinstance(v, str) else v}"
-                    for k, v in own.items() if k != "preset")  # fmt: skip
-    return (f"cloudpose run --variant {cfg.variant} --preset {cfg.preset} --seed {cfg.seed} "
-            f"--group {group} {sets}").strip()  # fmt: skip
+    sets = " ".join(
+        f"--set {k}={json.dumps(v) if not isinstance(v, str) else v}"
+        for k, v in own.items()
+        if k != "preset"
+    )
+    return (
+        f"cloudpose run --variant {cfg.variant} --preset {cfg.preset} --seed {cfg.seed} "
+        f"--group {group} {sets}"
+    ).strip()
 
 
-def collect(group: str, project_dir: Path | None = None,
-            against: str | None = None) -> list[Experiment]:  # fmt: skip
+def collect(
+    group: str, project_dir: Path | None = None, against: str | None = None
+) -> list[Experiment]:
     """The finished runs of ``group``'s experiment, oldest first (changes: see
     :func:`config_changes`)."""
     client = tracking.setup(project_dir)
     exp = client.get_experiment_by_name(tracking.EXPERIMENT_PREFIX + group)
     if exp is None:
         raise ValueError(f"no MLflow experiment for group {group!r} in {tracking.tracking_uri()}")
-    runs = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'",
-                              order_by=["attributes.start_time ASC"], max_results=1000)  # fmt: skip
+    runs = client.search_runs(
+        [exp.experiment_id],
+        "attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time ASC"],
+        max_results=1000,
+    )
     out = []
     for run in runs:
         p = run.data.params
@@ -104,8 +114,9 @@ def _config_path(client, run) -> str:
         return str(local)
     import mlflow
 
-    return mlflow.artifacts.download_artifacts(run_id=run.info.run_id, artifact_path="config.json",
-                                               tracking_uri=client.tracking_uri)  # fmt: skip
+    return mlflow.artifacts.download_artifacts(
+        run_id=run.info.run_id, artifact_path="config.json", tracking_uri=client.tracking_uri
+    )
 
 
 def experiment_table(experiments: list[Experiment]) -> pd.DataFrame:
@@ -129,8 +140,9 @@ def _markdown(df: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def write_log(group: str, out: Path, command: str, project_dir: Path | None = None,
-              against: str | None = None) -> Path:  # fmt: skip
+def write_log(
+    group: str, out: Path, command: str, project_dir: Path | None = None, against: str | None = None
+) -> Path:
     """Write the log of ``group`` as Markdown to ``out`` (and the values as CSV beside it)."""
     experiments = collect(group, project_dir, against)
     if not experiments:

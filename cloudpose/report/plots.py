@@ -50,8 +50,16 @@ class Series:
 
 
 def _footer(fig, prov: Provenance) -> None:
-    fig.text(0.01, 0.005, prov.line().replace("`", ""), fontsize=6, color="0.35", ha="left",
-             va="bottom", wrap=True)  # fmt: skip
+    fig.text(
+        0.01,
+        0.005,
+        prov.line().replace("`", ""),
+        fontsize=6,
+        color="0.35",
+        ha="left",
+        va="bottom",
+        wrap=True,
+    )
 
 
 def occlusion_accuracy(table: pd.DataFrame, method: str = "net") -> tuple[np.ndarray, np.ndarray]:
@@ -72,8 +80,12 @@ def occlusion_accuracy(table: pd.DataFrame, method: str = "net") -> tuple[np.nda
     col = f"{method}_ads"
     if col not in table or "occlusion" not in table:
         raise ValueError(f"instance table lacks column 'occlusion' or {col!r}; has {list(table)}")
-    bins = occlusion_bins(table["occlusion"].to_numpy(float), table[col].to_numpy(float),
-                          width=OCCLUSION_EDGES[1], threshold=ADS_HIT_M)  # fmt: skip
+    bins = occlusion_bins(
+        table["occlusion"].to_numpy(float),
+        table[col].to_numpy(float),
+        width=OCCLUSION_EDGES[1],
+        threshold=ADS_HIT_M,
+    )
     return bins["ads_lt_1cm"].to_numpy(float), bins["count"].to_numpy(int)
 
 
@@ -84,19 +96,23 @@ def occlusion_frame(series: Sequence[Series]) -> pd.DataFrame:
         accs, counts = zip(*(occlusion_accuracy(t, s.method) for t in s.tables), strict=True)
         accs = np.array(accs) * 100  # (S, 10)
         if any((c != counts[0]).any() for c in counts):
-            warnings.warn(f"{s.label}: the seeds' test sets differ; bin counts are seed 1's",
-                          stacklevel=2)  # fmt: skip
+            warnings.warn(
+                f"{s.label}: the seeds' test sets differ; bin counts are seed 1's", stacklevel=2
+            )
         for i in range(len(OCCLUSION_EDGES) - 1):
             col = accs[:, i][np.isfinite(accs[:, i])]
-            rows.append({
-                "series": s.label, "method": s.method,
-                "bin_low_pct": round(100 * OCCLUSION_EDGES[i]),
-                "bin_high_pct": round(100 * OCCLUSION_EDGES[i + 1]),
-                "count": int(counts[0][i]),
-                "accuracy_mean_pct": float(col.mean()) if col.size else np.nan,
-                "accuracy_std_pct": float(col.std(ddof=1)) if col.size > 1 else np.nan,
-                "seeds": len(s.tables),
-            })  # fmt: skip
+            rows.append(
+                {
+                    "series": s.label,
+                    "method": s.method,
+                    "bin_low_pct": round(100 * OCCLUSION_EDGES[i]),
+                    "bin_high_pct": round(100 * OCCLUSION_EDGES[i + 1]),
+                    "count": int(counts[0][i]),
+                    "accuracy_mean_pct": float(col.mean()) if col.size else np.nan,
+                    "accuracy_std_pct": float(col.std(ddof=1)) if col.size > 1 else np.nan,
+                    "seeds": len(s.tables),
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -112,13 +128,22 @@ def plot_occlusion(series: Sequence[Series], path: Path, prov: Provenance, title
     for k, s in enumerate(series):
         sub = df[df["series"] == s.label]
         err = sub["accuracy_std_pct"].fillna(0).to_numpy() if len(s.tables) > 1 else None
-        ax.bar(x + (k - (len(series) - 1) / 2) * width, sub["accuracy_mean_pct"].fillna(0),
-               width, yerr=err, capsize=2, label=f"{s.label} ({len(s.tables)} seed"
-               f"{'s' if len(s.tables) != 1 else ''})")  # fmt: skip
+        ax.bar(
+            x + (k - (len(series) - 1) / 2) * width,
+            sub["accuracy_mean_pct"].fillna(0),
+            width,
+            yerr=err,
+            capsize=2,
+            label=f"{s.label} ({len(s.tables)} seed{'s' if len(s.tables) != 1 else ''})",
+        )
     ax.set_xticks(x)
-    ax.set_xticklabels([f"{round(100 * lo)}–{round(100 * hi)}%\n({c})" for lo, hi, c in
-                        zip(OCCLUSION_EDGES[:-1], OCCLUSION_EDGES[1:], counts, strict=True)],
-                       fontsize=8)  # fmt: skip
+    ax.set_xticklabels(
+        [
+            f"{round(100 * lo)}–{round(100 * hi)}%\n({c})"
+            for lo, hi, c in zip(OCCLUSION_EDGES[:-1], OCCLUSION_EDGES[1:], counts, strict=True)
+        ],
+        fontsize=8,
+    )
     ax.set_xlabel("occlusion factor (instances in parentheses)")
     ax.set_ylabel("ADS < 1 cm accuracy (%)")
     ax.set_ylim(0, 105)
@@ -140,8 +165,9 @@ def accuracy_curves(tables: Sequence[pd.DataFrame], column: str, thresholds_m: n
     return np.array([accuracy_curve(t[column].to_numpy(float), thresholds_m) for t in tables])
 
 
-def plot_threshold_curves(series: Sequence[Series], path: Path, prov: Provenance,
-                          title: str) -> Path:  # fmt: skip
+def plot_threshold_curves(
+    series: Sequence[Series], path: Path, prov: Provenance, title: str
+) -> Path:
     """AD and ADS accuracy-threshold curves (0-10 cm), mean over seeds, one line per series."""
     thresholds = np.linspace(0.0, 0.1, 201)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), sharey=True)
@@ -151,8 +177,14 @@ def plot_threshold_curves(series: Sequence[Series], path: Path, prov: Provenance
             mean = acc.mean(axis=0)
             (line,) = ax.plot(thresholds * 100, mean, label=s.label)
             if len(acc) > 1:
-                ax.fill_between(thresholds * 100, acc.min(axis=0), acc.max(axis=0),
-                                color=line.get_color(), alpha=0.15, linewidth=0)  # fmt: skip
+                ax.fill_between(
+                    thresholds * 100,
+                    acc.min(axis=0),
+                    acc.max(axis=0),
+                    color=line.get_color(),
+                    alpha=0.15,
+                    linewidth=0,
+                )
         ax.set_xlabel(f"{name} threshold (cm)")
         ax.set_title(f"{name}")
         ax.set_xlim(0, 10)
@@ -166,16 +198,19 @@ def plot_threshold_curves(series: Sequence[Series], path: Path, prov: Provenance
     return _save(fig, path)
 
 
-def plot_training_curves(histories: dict[str, list[dict[str, pd.Series]]], path: Path,
-                         prov: Provenance, title: str) -> Path:  # fmt: skip
+def plot_training_curves(
+    histories: dict[str, list[dict[str, pd.Series]]], path: Path, prov: Provenance, title: str
+) -> Path:
     """Training loss and validation ADS AUC per epoch, mean over seeds, band = ± 1 std.
 
     Args:
         histories: label -> one dict per seed with ``train/loss`` and ``val/ads_auc`` series
             (index: epoch).
     """
-    panels = (("train/loss", "training loss (10·m + rad)", 1.0),
-              ("val/ads_auc", "validation ADS AUC (%)", 100.0))  # fmt: skip
+    panels = (
+        ("train/loss", "training loss (10·m + rad)", 1.0),
+        ("val/ads_auc", "validation ADS AUC (%)", 100.0),
+    )
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
     for ax, (key, ylabel, scale) in zip(axes, panels, strict=True):
         for label, seeds in histories.items():
@@ -187,8 +222,14 @@ def plot_training_curves(histories: dict[str, list[dict[str, pd.Series]]], path:
             (line,) = ax.plot(mean.index, mean.to_numpy(), marker=".", label=label)
             if frame.shape[1] > 1:
                 std = frame.std(axis=1, ddof=1).fillna(0)
-                ax.fill_between(mean.index, mean - std, mean + std, color=line.get_color(),
-                                alpha=0.15, linewidth=0)  # fmt: skip
+                ax.fill_between(
+                    mean.index,
+                    mean - std,
+                    mean + std,
+                    color=line.get_color(),
+                    alpha=0.15,
+                    linewidth=0,
+                )
         ax.set_xlabel("epoch")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(ylabel)
@@ -203,14 +244,21 @@ def plot_training_curves(histories: dict[str, list[dict[str, pd.Series]]], path:
     return _save(fig, path)
 
 
-def plot_rotation_histograms(series: Sequence[Series], path: Path, prov: Provenance,
-                             title: str) -> Path:  # fmt: skip
+def plot_rotation_histograms(
+    series: Sequence[Series], path: Path, prov: Provenance, title: str
+) -> Path:
     """Histogram of rotation errors (degrees), one panel per series, pooled over seeds."""
     bins = np.arange(0, 182.5, 2.5)
     ncols = 1 if len(series) <= 3 else 3
     nrows = -(-len(series) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(8 if ncols == 1 else 15, 1.3 + 2.0 * nrows),
-                             sharex=True, sharey=True, squeeze=False)  # fmt: skip
+    fig, axes = plt.subplots(
+        nrows,
+        ncols,
+        figsize=(8 if ncols == 1 else 15, 1.3 + 2.0 * nrows),
+        sharex=True,
+        sharey=True,
+        squeeze=False,
+    )
     for ax, s in zip(axes.flat, series, strict=False):
         err = np.concatenate([t[f"{s.method}_rot_err_deg"].to_numpy(float) for t in s.tables])
         finite = err[np.isfinite(err)]
@@ -220,9 +268,16 @@ def plot_rotation_histograms(series: Sequence[Series], path: Path, prov: Provena
             ax.axvline(thr, color="C3", linestyle=style, linewidth=0.8)
         median = np.median(err) if err.size else np.nan
         ax.set_title(s.label, fontsize=9)
-        ax.text(0.98, 0.92, f"median {median:.1f}°\n< 10°: {100 * np.mean(err < 10):.1f}%\n"
-                f"n = {err.size} ({int(np.sum(~np.isfinite(err)))} misses)",
-                transform=ax.transAxes, ha="right", va="top", fontsize=8)  # fmt: skip
+        ax.text(
+            0.98,
+            0.92,
+            f"median {median:.1f}°\n< 10°: {100 * np.mean(err < 10):.1f}%\n"
+            f"n = {err.size} ({int(np.sum(~np.isfinite(err)))} misses)",
+            transform=ax.transAxes,
+            ha="right",
+            va="top",
+            fontsize=8,
+        )
         ax.grid(alpha=0.3)
     for ax in axes.flat[len(series) :]:
         ax.set_visible(False)

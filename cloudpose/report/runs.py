@@ -118,8 +118,9 @@ class RunSet:
     def subset(self, variants) -> RunSet:
         """The runs of the given variants only."""
         keep = set(variants)
-        return RunSet(self.preset, self.data, [r for r in self.records if r.variant in keep],
-                      self.ignored)  # fmt: skip
+        return RunSet(
+            self.preset, self.data, [r for r in self.records if r.variant in keep], self.ignored
+        )
 
     @property
     def seeds(self) -> list[int]:
@@ -151,8 +152,9 @@ def _current(run) -> bool:
     return is_preset_config(run)
 
 
-def load_runs(preset: str, *, data: str | None = None, client=None,
-              project_dir: Path | None = None) -> RunSet:  # fmt: skip
+def load_runs(
+    preset: str, *, data: str | None = None, client=None, project_dir: Path | None = None
+) -> RunSet:
     """Finished runs of ``preset`` with test metrics, one per (variant, seed), on one dataset.
 
     Args:
@@ -164,9 +166,10 @@ def load_runs(preset: str, *, data: str | None = None, client=None,
     client = client or tracking.setup(project_dir)
     runs = tracking.find_runs(client, preset=preset)
     runs = [
-        r for r in runs
+        r
+        for r in runs
         if r.data.tags.get("variant") and r.data.tags.get("seed") and TEST_KEY in r.data.metrics
-    ]  # fmt: skip
+    ]
     # a run with overrides (--set, --epochs) or from an edited preset is another config
     other = [r for r in runs if not _current(r)]
     if other:
@@ -197,11 +200,18 @@ def load_runs(preset: str, *, data: str | None = None, client=None,
         if key in chosen:
             continue
         chosen[key] = RunRecord(
-            run_id=r.info.run_id, variant=key[0], seed=key[1], preset=preset, data=data,
-            git_commit=tags.get("git_commit", "unknown"), start_time=r.info.start_time or 0,
-            params=dict(r.data.params), metrics=dict(r.data.metrics),
-            artifact_uri=r.info.artifact_uri or "", client=client,
-        )  # fmt: skip
+            run_id=r.info.run_id,
+            variant=key[0],
+            seed=key[1],
+            preset=preset,
+            data=data,
+            git_commit=tags.get("git_commit", "unknown"),
+            start_time=r.info.start_time or 0,
+            params=dict(r.data.params),
+            metrics=dict(r.data.metrics),
+            artifact_uri=r.info.artifact_uri or "",
+            client=client,
+        )
     if ignored:
         warnings.warn(
             f"{ignored} finished run(s) of preset {preset!r} were trained on other data than "

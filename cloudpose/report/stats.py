@@ -140,8 +140,9 @@ def difference(
         else:
             mean = math.nan
         n = min(len(a), len(b))
-        return Difference(mean, math.nan, math.nan, n, False, UNRESOLVED,
-                          f"{n} seed(s) of {min_seeds} needed")  # fmt: skip
+        return Difference(
+            mean, math.nan, math.nan, n, False, UNRESOLVED, f"{n} seed(s) of {min_seeds} needed"
+        )
     # zero width up to float rounding (per-seed differences equal but for the last bits)
     if n < min_seeds:
         why = f"{n} seed(s) of {min_seeds} needed"

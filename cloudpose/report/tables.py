@@ -48,14 +48,22 @@ class Provenance:
 
     @classmethod
     def of(cls, runs: RunSet, command: str, renderer: str = "") -> Provenance:
-        return cls(command, runs.preset, runs.data_label(), tuple(runs.seeds),
-                   tuple(runs.commits), renderer)  # fmt: skip
+        return cls(
+            command,
+            runs.preset,
+            runs.data_label(),
+            tuple(runs.seeds),
+            tuple(runs.commits),
+            renderer,
+        )
 
     def line(self) -> str:
         seeds = ", ".join(map(str, self.seeds)) or "none"
         commits = ", ".join(self.commits) or "none"
-        text = (f"made by `{self.command}`; preset {self.preset}; data: {self.data}; "
-                f"seeds {seeds}; code {commits} (git commit of the runs)")  # fmt: skip
+        text = (
+            f"made by `{self.command}`; preset {self.preset}; data: {self.data}; "
+            f"seeds {seeds}; code {commits} (git commit of the runs)"
+        )
         if self.renderer:
             text += f"; rendered by code {self.renderer}"
         return text
@@ -100,10 +108,15 @@ class Table:
     def latex(self, prov: Provenance) -> str:
         n = len(self.header)
         align = "l" * self.text_cols + "r" * (n - self.text_cols)
-        out = [f"% {prov.line()}", "% needs \\usepackage{booktabs,amssymb}",
-               "\\begin{table}[t]", "\\centering",
-               f"\\caption{{{_tex(self.title)}}}", f"\\begin{{tabular}}{{{align}}}",
-               "\\toprule"]  # fmt: skip
+        out = [
+            f"% {prov.line()}",
+            "% needs \\usepackage{booktabs,amssymb}",
+            "\\begin{table}[t]",
+            "\\centering",
+            f"\\caption{{{_tex(self.title)}}}",
+            f"\\begin{{tabular}}{{{align}}}",
+            "\\toprule",
+        ]
         if any(g for g, _ in self.header):
             top, rules, i = [], [], 0
             while i < n:
@@ -134,17 +147,35 @@ class Table:
         """Write ``{name}.md``, ``.tex`` and ``.csv`` into ``out_dir``; returns the paths."""
         out_dir.mkdir(parents=True, exist_ok=True)
         paths = []
-        for ext, text in (("md", self.markdown(prov)), ("tex", self.latex(prov)),
-                          ("csv", self.csv(prov))):  # fmt: skip
+        for ext, text in (
+            ("md", self.markdown(prov)),
+            ("tex", self.latex(prov)),
+            ("csv", self.csv(prov)),
+        ):
             p = out_dir / f"{self.name}.{ext}"
             p.write_text(text, encoding="utf-8")
             paths.append(p)
         return paths
 
 
-_TEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
-        "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
-        "±": r"$\pm$", "<": r"$<$", ">": r"$>$", "°": r"$^\circ$", "–": "--", "✓": r"\checkmark"}  # fmt: skip
+_TEX = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "$": r"\$",
+    "#": r"\#",
+    "_": r"\_",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+    "±": r"$\pm$",
+    "<": r"$<$",
+    ">": r"$>$",
+    "°": r"$^\circ$",
+    "–": "--",
+    "✓": r"\checkmark",
+}
 
 
 def _tex(text: str) -> str:
@@ -157,8 +188,11 @@ def paper_table(name: str) -> pd.DataFrame:
 
 
 def _paper(value) -> str:
-    return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else (
-        f"{float(value):.1f}")  # fmt: skip
+    return (
+        "–"
+        if value is None or (isinstance(value, float) and math.isnan(value))
+        else (f"{float(value):.1f}")
+    )
 
 
 def _num(value) -> float:
@@ -187,19 +221,38 @@ def table1_overall(runs: RunSet) -> Table:
     mark = {1: "✓", 0: ""}
     for _, p in paper.iterrows():
         vals = [p["AD_auc"], p["ADS_auc"], p["ADS_lt_1cm"]]
-        rows.append([p["method"], PAPER_SOURCE, mark[int(p["rgb"])], mark[int(p["depth"])],
-                     mark[int(p["icp"])], *(_paper(v) for v in vals), "–", "1"])  # fmt: skip
-        data.append({"method": p["method"], "source": "paper", "icp": int(p["icp"]),
-                     **{f"{m}_mean": _num(v) for m, v in zip(metrics, vals, strict=True)},
-                     **{f"{m}_std": math.nan for m in metrics}, "seeds": 1})  # fmt: skip
+        rows.append(
+            [
+                p["method"],
+                PAPER_SOURCE,
+                mark[int(p["rgb"])],
+                mark[int(p["depth"])],
+                mark[int(p["icp"])],
+                *(_paper(v) for v in vals),
+                "–",
+                "1",
+            ]
+        )
+        data.append(
+            {
+                "method": p["method"],
+                "source": "paper",
+                "icp": int(p["icp"]),
+                **{f"{m}_mean": _num(v) for m, v in zip(metrics, vals, strict=True)},
+                **{f"{m}_std": math.nan for m in metrics},
+                "seeds": 1,
+            }
+        )
     rows.append(None)
     ours_source = f"ours, {runs.data_label()}"
     methods = [("Ours", "shared-0")] + [
         (BASELINE_LABELS.get(v, v), v) for v in runs.variants if v.startswith("baseline-")
     ]
     for name, variant in methods:
-        for label, prefix, icp in ((f"{name} w/o ICP ({variant})", "test", 0),
-                                   (f"{name} ({variant} + ICP)", "test_icp", 1)):  # fmt: skip
+        for label, prefix, icp in (
+            (f"{name} w/o ICP ({variant})", "test", 0),
+            (f"{name} ({variant} + ICP)", "test_icp", 1),
+        ):
             cells = [label, ours_source, "", "✓", "✓" if icp else ""]
             row = {"method": label, "source": ours_source, "icp": icp}
             _add_ours(runs, prefix, metrics, cells, row, rows, data, variant, icp)
@@ -213,12 +266,29 @@ def table1_overall(runs: RunSet) -> Table:
         "rows. Baseline rows (`cloudpose baseline`) use the same test set and the same ICP; a "
         "segment a baseline cannot register counts as a miss.",
     ]
-    return Table("table1_overall", "Table I: overall pose accuracy (%), without and with ICP",
-                 header, rows, pd.DataFrame(data), notes, text_cols=5)  # fmt: skip
+    return Table(
+        "table1_overall",
+        "Table I: overall pose accuracy (%), without and with ICP",
+        header,
+        rows,
+        pd.DataFrame(data),
+        notes,
+        text_cols=5,
+    )
 
 
-def _add_ours(runs, prefix: str, metrics, cells: list, row: dict, rows: list, data: list,
-              variant: str = "shared-0", icp: int = 0, timed: bool = True) -> None:  # fmt: skip
+def _add_ours(
+    runs,
+    prefix: str,
+    metrics,
+    cells: list,
+    row: dict,
+    rows: list,
+    data: list,
+    variant: str = "shared-0",
+    icp: int = 0,
+    timed: bool = True,
+) -> None:
     """Append ``variant``'s ``{prefix}/{metric}`` mean ± std cells and CSV fields and its time
     per object (estimate, plus ICP when ``icp``), then the row."""
     n = 0
@@ -265,8 +335,10 @@ def table2_per_class(runs: RunSet) -> Table:
     for _, p in paper.iterrows():
         cls = p["object"]
         cells = [cls, *(_paper(p[c]) for c in paper_cols)]
-        row = {"object": cls, **{f"paper_{m}": _num(p[c]) for m, c in zip(metrics, paper_cols,
-                                                                          strict=True)}}  # fmt: skip
+        row = {
+            "object": cls,
+            **{f"paper_{m}": _num(p[c]) for m, c in zip(metrics, paper_cols, strict=True)},
+        }
         _add_ours(runs, f"test_icp/class/{cls}", metrics, cells, row, rows, data, timed=False)
         for b in baselines:
             ms, text = _ours(runs, b, f"test_icp/class/{cls}/ads_auc")
@@ -294,12 +366,19 @@ def table2_per_class(runs: RunSet) -> Table:
         + (", ".join(f"{c} ({v:.1f})" for c, v in outliers.items()) or "none")
         + ".",
     ]
-    return Table("table2_per_class", "Table II: per-class accuracy after ICP (%)", header, rows,
-                 pd.DataFrame(data), notes)  # fmt: skip
+    return Table(
+        "table2_per_class",
+        "Table II: per-class accuracy after ICP (%)",
+        header,
+        rows,
+        pd.DataFrame(data),
+        notes,
+    )
 
 
-def _ablation_rows(runs: RunSet, members, labels, metrics, paper_by_label, paper_cols, section=None,
-                   params=False):  # fmt: skip
+def _ablation_rows(
+    runs: RunSet, members, labels, metrics, paper_by_label, paper_cols, section=None, params=False
+):
     rows, data = [], []
     for v in members:
         label = labels.get(v, v)
@@ -348,8 +427,9 @@ def table3_shared_layers(runs: RunSet) -> Table:
     for m in metrics:
         header += [(METRIC_LABELS[m], "ours"), (METRIC_LABELS[m], "paper")]
     header.append(("", "seeds"))
-    rows, data = _ablation_rows(runs, group.members, group.labels, metrics, by_label,
-                                paper_cols, params=True)  # fmt: skip
+    rows, data = _ablation_rows(
+        runs, group.members, group.labels, metrics, by_label, paper_cols, params=True
+    )
     notes = [
         "Without ICP, as in the paper. 'ours': mean ± sample std over seeds (percent) on "
         f"{runs.data_label()}; 'paper': Gao et al. (ICRA 2020), Table III, one run on real "
@@ -358,15 +438,26 @@ def table3_shared_layers(runs: RunSet) -> Table:
         "networks; doubling every width gives about twice as many, so every variant's count is "
         "listed and 'all (1.42x width)' matches the count.",
     ]
-    return Table("table3_shared_layers", "Table III: sharing layers between the rotation and "
-                 "translation networks (%, without ICP)", header, rows, pd.DataFrame(data),
-                 notes, text_cols=2)  # fmt: skip
+    return Table(
+        "table3_shared_layers",
+        "Table III: sharing layers between the rotation and translation networks (%, without ICP)",
+        header,
+        rows,
+        pd.DataFrame(data),
+        notes,
+        text_cols=2,
+    )
 
 
 def table4_rotation(runs: RunSet) -> Table:
     """Table IV: rotation representation and rotation loss; rotation error < 10/15/20 degrees."""
-    metrics = ("rot_lt_10deg", "rot_lt_15deg", "rot_lt_20deg", "rot_sym_lt_10deg",
-               "rot_sym_lt_20deg")  # fmt: skip
+    metrics = (
+        "rot_lt_10deg",
+        "rot_lt_15deg",
+        "rot_lt_20deg",
+        "rot_sym_lt_10deg",
+        "rot_sym_lt_20deg",
+    )
     paper_cols = ("rot_err_lt_10deg", "rot_err_lt_15deg", "rot_err_lt_20deg", None, None)
     paper = paper_table("table4_rotation")
     header = [("", "ablation"), ("", "representation / loss"), ("", "variant")]
@@ -374,12 +465,16 @@ def table4_rotation(runs: RunSet) -> Table:
         header += [(METRIC_LABELS[m], "ours"), (METRIC_LABELS[m], "paper")]
     header.append(("", "seeds"))
     rows, data = [], []
-    for section, group_name in (("representation", "rotation"), ("loss", "loss"),
-                                ("symmetry", "symmetry")):  # fmt: skip
+    for section, group_name in (
+        ("representation", "rotation"),
+        ("loss", "loss"),
+        ("symmetry", "symmetry"),
+    ):
         group = get_group(group_name)
         by_label = {r["variant"]: r for _, r in paper[paper["ablation"] == section].iterrows()}
-        r, d = _ablation_rows(runs, group.members, group.labels, metrics, by_label, paper_cols,
-                              section=section)  # fmt: skip
+        r, d = _ablation_rows(
+            runs, group.members, group.labels, metrics, by_label, paper_cols, section=section
+        )
         if rows:
             rows.append(None)
         rows += r
@@ -391,6 +486,13 @@ def table4_rotation(runs: RunSet) -> Table:
         "smallest angle to any rotation that looks the same in depth (cloudpose symmetries; "
         "the paper has no such column).",
     ]
-    return Table("table4_rotation", "Table IV: rotation representation and rotation loss "
-                 "(% of instances under a rotation error, without ICP)", header, rows,
-                 pd.DataFrame(data), notes, text_cols=3)  # fmt: skip
+    return Table(
+        "table4_rotation",
+        "Table IV: rotation representation and rotation loss "
+        "(% of instances under a rotation error, without ICP)",
+        header,
+        rows,
+        pd.DataFrame(data),
+        notes,
+        text_cols=3,
+    )

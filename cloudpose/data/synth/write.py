@@ -42,7 +42,7 @@ def _write(root: Path, f: SynthFrame) -> None:
     stage = root / ".staging" / f"{os.getpid()}"
     alone = {"alone_pixels": f.alone_pixels.astype(np.float64).reshape(-1, 1)}
     write_frame(stage, f.frame_id, f.depth, f.label, YCB_INTRINSICS, f.cls_ids, f.poses,
-                extra_meta=alone)  # fmt: skip
+                extra_meta=alone)
     seq, name = f.frame_id.split("/")
     src, dst = stage / "data" / seq, root / "data" / seq
     dst.mkdir(parents=True, exist_ok=True)
