@@ -29,7 +29,7 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install "$(TORCH_SPEC)"
-	$(PY) -m pip install -e '.[dev]'
+	$(PY) -m pip install -c constraints.txt -e '.[dev]'
 
 demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
