@@ -104,6 +104,13 @@ class EvalOutcome:
     """Which run, checkpoint and data were evaluated, in words."""
 
 
+def own_test_name(segmentation: str | None = None) -> str:
+    """Metric prefix of a run's evaluation on its own test set: :data:`OWN_TEST` with the run's
+    own masks (``segmentation`` None), ``test-{segmentation}`` under another mask source
+    (``test-degraded-medium``; the ``+ ICP`` results under ``test-degraded-medium_icp``)."""
+    return tracking.metric_key(f"{OWN_TEST}-{segmentation}") if segmentation else OWN_TEST
+
+
 def evaluation_name(root: str | Path, frames: str, key: str) -> str:
     """Metric prefix of an evaluation on ``frames`` of the dataset at ``root``.
 
@@ -173,7 +180,7 @@ def evaluate(
                 cfg.data.classes,
             )
             data_label += f" with {masks} masks"
-        name = name or (f"{OWN_TEST}-{masks}" if masks else OWN_TEST)
+        name = name or own_test_name(masks)
         data_key = segs.key
     else:
         if name in (OWN_TEST, f"{OWN_TEST}_icp"):
