@@ -9,6 +9,7 @@ load). Figures (JSON keys):
 - ``infer_ms_per_object``, ``infer_ms_frame8`` (``benchmarks.bench_infer``)
 - ``icp_ms_per_object``, ``ads_ms_per_10k`` (``benchmarks.bench_refine_metrics``)
 - ``fps_ms_20k`` (``benchmarks.bench_fps``)
+- ``baseline_fpfh_ms_per_object``, ``baseline_ppf_ms_per_object`` (``benchmarks.bench_baselines``)
 - ``synth_frames_per_s``, ``prepare_frames_per_s`` (``benchmarks.bench_data``)
 - ``cpu_variant_wall_s``: wall time of one ``cpu``-preset variant, train + evaluate. Not run by
   default (it takes minutes): read from the MLflow store (start to end of the newest finished
@@ -50,6 +51,8 @@ FIGURES = (
     "icp_ms_per_object",
     "fps_ms_20k",
     "ads_ms_per_10k",
+    "baseline_fpfh_ms_per_object",
+    "baseline_ppf_ms_per_object",
     "synth_frames_per_s",
     "prepare_frames_per_s",
     "cpu_variant_wall_s",
@@ -61,6 +64,7 @@ GROUPS = {
     "infer": ("infer_ms_per_object", "infer_ms_frame8"),
     "refine_metrics": ("icp_ms_per_object", "ads_ms_per_10k"),
     "fps": ("fps_ms_20k",),
+    "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),
     "cpu_variant": ("cpu_variant_wall_s",),
 }
@@ -128,6 +132,12 @@ def _fps(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
     return bench_fps.run(quick=quick)
 
 
+def _baselines(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_baselines
+
+    return bench_baselines.run(quick=quick)
+
+
 def _data(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
     from benchmarks import bench_data
 
@@ -145,6 +155,7 @@ RUNNERS: dict[str, Callable[[bool, argparse.Namespace], dict[str, Any]]] = {
     "infer": _infer,
     "refine_metrics": _refine_metrics,
     "fps": _fps,
+    "baselines": _baselines,
     "data": _data,
     "cpu_variant": _cpu_variant,
 }

@@ -84,3 +84,19 @@ def test_cpu_variant_is_null_without_runs_and_only_validates_names(tmp_path, mon
         run_all.select_groups(["nope"])
     with pytest.raises(SystemExit):
         run_all.main(["--only", "nope"])
+
+
+@pytest.mark.slow
+def test_baselines_bench_times_both_methods_beside_the_network():
+    """The baselines' figures come with the network's time on the same segments, and the
+    estimates they time are right (fpfh on half-visible asymmetric objects)."""
+    from benchmarks import bench_baselines
+
+    res = bench_baselines.run(quick=True)
+    assert set(res) == {"baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"}
+    for fig in res.values():
+        assert FIGURE_KEYS <= set(fig)
+        assert fig["value"] > 0 and fig["reference"]["value"] > 0
+        assert fig["ratio"] == pytest.approx(fig["value"] / fig["reference"]["value"])
+        assert len(fig["detail"]["ms_all"]) == fig["detail"]["segments"] == 2
+    assert res["baseline_fpfh_ms_per_object"]["detail"]["rotation_error_median_deg"] < 10
