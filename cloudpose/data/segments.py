@@ -8,8 +8,9 @@ first n. A segment with fewer points is filled by repeating its FPS order (the t
 kept); an instance without a usable point is kept as invalid (a miss at test time).
 
 The mask comes from a *segmentation source* (:data:`MASK_SOURCES`): "gt" = the ground-truth
-label image. A predicted segmentation (e.g. PoseCNN's published labels) is added with
-:func:`register_mask_source`. The occlusion factor always uses the ground-truth labels.
+label image; degraded masks (:mod:`cloudpose.data.masks`) and PoseCNN's published labels
+(``posecnn:DIR``, :mod:`cloudpose.data.posecnn`) are registered beside it. The occlusion factor
+always uses the ground-truth labels.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -127,21 +129,43 @@ def gt_mask(frame: Frame, cls_id: int) -> np.ndarray:
 MASK_SOURCES: dict[str, MaskSource] = {"gt": gt_mask}
 """Segmentation sources by name (DataConfig.segmentation)."""
 
+MASK_SOURCE_FAMILIES: dict[str, Callable[[str], MaskSource]] = {}
+"""Sources that take an argument, by prefix: ``posecnn:DIR`` -> ``factory("DIR")``. A source
+may have a method ``content_files(frame_id) -> list[Path]``: the files it reads, which then
+belong to the segments' cache key."""
+
 
 def register_mask_source(name: str, source: MaskSource) -> None:
-    """Add a segmentation source, e.g. "posecnn" reading PoseCNN's predicted labels."""
+    """Add a segmentation source, e.g. "degraded-mild"."""
     MASK_SOURCES[name] = source
+
+
+def register_mask_source_family(prefix: str, factory: Callable[[str], MaskSource]) -> None:
+    """Add sources named ``PREFIX:ARG``, made by ``factory(ARG)`` on first use."""
+    MASK_SOURCE_FAMILIES[prefix] = factory
 
 
 def get_mask_source(name: str) -> MaskSource:
     """The segmentation source ``name``; unknown names raise with the list of valid ones."""
     if name not in MASK_SOURCES:
-        import cloudpose.data.masks  # noqa: F401  (registers the degraded sources)
+        import cloudpose.data.masks
+        import cloudpose.data.posecnn  # noqa: F401  (registers posecnn:DIR)
+
+        family, sep, arg = name.partition(":")
+        if sep and family in MASK_SOURCE_FAMILIES:
+            MASK_SOURCES[name] = MASK_SOURCE_FAMILIES[family](arg)
     if name not in MASK_SOURCES:
-        raise ValueError(
-            f"unknown segmentation {name!r}; valid segmentations: {', '.join(MASK_SOURCES)}"
-        )
+        valid = [*MASK_SOURCES, *(f"{p}:DIR" for p in MASK_SOURCE_FAMILIES)]
+        raise ValueError(f"unknown segmentation {name!r}; valid segmentations: {', '.join(valid)}")
     return MASK_SOURCES[name]
+
+
+def mask_source_label(name: str) -> str:
+    """A short name of a segmentation source for metric prefixes: the name, or for a source
+    with an argument its prefix and the argument's last path part
+    (``posecnn:/data/results_PoseCNN_RSS2018`` -> ``posecnn-results_PoseCNN_RSS2018``)."""
+    family, sep, arg = name.partition(":")
+    return f"{family}-{Path(arg).name or arg}" if sep else name
 
 
 # --------------------------------------------------------------------------- segments

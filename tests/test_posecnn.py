@@ -1,0 +1,81 @@
+"""PoseCNN's released segmentation as a mask source (cloudpose.data.posecnn), on a tiny results
+folder written here for the real frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+from cloudpose.data.posecnn import PoseCNNMasks
+from cloudpose.data.segments import extract_segments, get_mask_source, mask_source_label
+from cloudpose.data.ycb import YCBVideo
+
+REAL = Path(__file__).parent / "data" / "ycb_real"
+FID = "0000/000001"
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return YCBVideo(REAL).frame(FID)
+
+
+def write_results(folder: Path, frame, detected: list[int], line: int = 1) -> Path:
+    """A results folder whose keyframe list has the real frame on ``line`` (0-based): PoseCNN's
+    labels are the ground truth's, its rois list ``detected`` (class id in column 2), and
+    every other line's file is absent."""
+    folder.mkdir(parents=True, exist_ok=True)
+    others = [f"0099/{i:06d}" for i in range(line)]
+    (folder / "keyframe.txt").write_text("\n".join([*others, FID]) + "\n")
+    rois = np.zeros((len(detected), 6))
+    rois[:, 1] = detected  # MATLAB column 2
+    rois[:, 2:] = [10, 20, 100, 200]
+    scipy.io.savemat(
+        folder / f"{line:06d}.mat", {"labels": frame.label.astype(np.int32), "rois": rois}
+    )
+    return folder
+
+
+def test_file_of_a_frame_is_its_keyframe_line(tmp_path, frame):
+    src = PoseCNNMasks(write_results(tmp_path / "r", frame, [8, 14, 21], line=2))
+    assert src.path(FID) == tmp_path / "r" / "000002.mat"
+    with pytest.raises(FileNotFoundError, match=r"000000\.mat"):
+        src.content_files("0099/000000")
+    with pytest.raises(ValueError, match="not in"):
+        src.path("0048/000001")
+    # without a list of its own, the toolbox's keyframes that ship in the package
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    assert PoseCNNMasks(bare).path("0048/000036") == bare / "000001.mat"
+    assert PoseCNNMasks(bare).path("0059/001857") == bare / "002948.mat"
+
+
+def test_masks_are_posecnn_labels_of_detected_classes(tmp_path, frame):
+    folder = write_results(tmp_path / "results_PoseCNN_RSS2018", frame, [8, 21])
+    name = f"posecnn:{folder}"
+    src = get_mask_source(name)
+    assert mask_source_label(name) == "posecnn-results_PoseCNN_RSS2018"
+    assert np.array_equal(src(frame, 8), frame.label == 8)
+    assert np.array_equal(src(frame, 21), frame.label == 21)
+    assert not src(frame, 14).any()  # labelled but not among the rois: no mask
+    segs = extract_segments(frame, segmentation=name, rng=np.random.default_rng(0))
+    valid = {s.cls_id: s.valid for s in segs}
+    assert valid == {8: True, 14: False, 21: True}  # the undetected mug is a miss
+    gt = extract_segments(frame, rng=np.random.default_rng(0))
+    assert np.array_equal(segs[0].points, gt[0].points)
+
+
+def test_bad_results_are_named(tmp_path, frame):
+    with pytest.raises(FileNotFoundError, match="PoseCNN results folder"):
+        get_mask_source(f"posecnn:{tmp_path / 'nope'}")
+    folder = write_results(tmp_path / "r", frame, [8], line=0)
+    scipy.io.savemat(folder / "000000.mat", {"labels": np.zeros((4, 4)), "rois": np.zeros((0, 6))})
+    with pytest.raises(ValueError, match="labels have shape"):
+        PoseCNNMasks(folder)(frame, 8)
+    scipy.io.savemat(folder / "000000.mat", {"labels": frame.label})
+    with pytest.raises(ValueError, match="no field 'rois'"):
+        PoseCNNMasks(folder)(frame, 8)
+    with pytest.raises(ValueError, match="posecnn:DIR"):
+        get_mask_source("posecnn-typo")
