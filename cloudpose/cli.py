@@ -52,7 +52,10 @@ PresetOpt = Annotated[
 ]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[
-    str, typer.Option("--data", help="YCB-Video-layout root; empty = the synthetic default.")
+    str,
+    typer.Option(
+        "--data", help="Dataset root, YCB-Video or BOP ycbv layout; empty = the synthetic default."
+    ),
 ]
 DeviceOpt = Annotated[
     str, typer.Option(help="auto (CUDA when available, as in training), cpu or cuda.")
@@ -179,6 +182,12 @@ def symmetries(
     write: Annotated[
         bool, typer.Option("--write/--check", help="Rewrite the packaged table, or compare.")
     ] = False,
+    bop: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also compare with a BOP ycbv root's models/models_info.json (or that file)."
+        ),
+    ] = None,
 ) -> None:
     """Print each class's symmetries as seen in depth (the table the losses and metrics use)."""
     import json
@@ -198,6 +207,16 @@ def symmetries(
         raise ValueError(f"{SYMMETRY_FILE} differs from the models' symmetries; run with --write")
     else:
         typer.echo(f"{SYMMETRY_FILE} matches")
+    if bop is not None:
+        from cloudpose.geometry.symmetry import bop_symmetry_disagreements
+
+        path = bop / "models" / "models_info.json" if bop.is_dir() else bop
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: BOP models_info.json not found")
+        diffs = bop_symmetry_disagreements(json.loads(path.read_text()), list(table["classes"]))
+        for line in diffs:
+            typer.echo(f"differs from BOP: {line}")
+        typer.echo(f"{path}: {len(diffs)} classes differ from the table")
 
 
 @app.command()
@@ -250,6 +269,35 @@ def synth(
     typer.echo(
         f"{out}: {s.frames_written} frames written, {s.frames_skipped} already there, "
         f"{s.seconds:.1f} s"
+    )
+
+
+@app.command()
+def export(
+    data: Annotated[
+        Path, typer.Option(help="YCB-Video-layout root to export (real or synthetic).")
+    ],
+    out: Annotated[Path, typer.Option(help="New folder for the exported dataset.")],
+    format_: Annotated[
+        str, typer.Option("--format", help="Target layout: bop (BOP ycbv).")
+    ] = "bop",
+    frames: Annotated[
+        str, typer.Option(help="Frames written to test/: keyframe, all, or an image set.")
+    ] = "keyframe",
+    train: Annotated[
+        bool, typer.Option("--train/--no-train", help="Also write image_sets/train.txt frames.")
+    ] = False,
+    progress: ProgressOpt = True,
+) -> None:
+    """Write a YCB-Video-layout dataset in the BOP ycbv layout (reads back to the same segments)."""
+    if format_ != "bop":
+        raise ValueError(f"--format {format_!r}: expected bop")
+    from cloudpose.data.bop import export_bop
+
+    s = export_bop(data, out, frames=frames, train=train, progress=progress)
+    typer.echo(
+        f"{s.root}: {s.frames} frames, {s.instances} instances, {s.targets} BOP19 targets "
+        "(BOP ycbv layout)"
     )
 
 
@@ -309,10 +357,15 @@ def train(
 @app.command()
 def evaluate(
     run: Annotated[str, typer.Option(help="Run folder, MLflow run id, or variant/preset/seedS.")],
-    data: Annotated[str | None, typer.Option(help="YCB-Video-layout root to test on.")] = None,
-    frames: Annotated[str, typer.Option(help="With --data: keyframe, all, or an image set.")] = (
-        "keyframe"
-    ),
+    data: Annotated[
+        str | None, typer.Option(help="Dataset root to test on, YCB-Video or BOP ycbv layout.")
+    ] = None,
+    frames: Annotated[
+        str,
+        typer.Option(
+            help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."
+        ),
+    ] = "keyframe",
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
     show_instances: Annotated[bool, typer.Option(help="Print every instance's errors.")] = False,
     name: Annotated[
@@ -323,8 +376,18 @@ def evaluate(
     segmentation: Annotated[
         str | None,
         typer.Option(
-            help="Test masks: gt, or degraded-mild|medium|strong (imitated network "
-            "errors); default the run's own."
+            "--segmentation",
+            "--masks",
+            help="Test masks: gt, degraded-mild|medium|strong (imitated network errors), or "
+            "posecnn:DIR (PoseCNN's results_PoseCNN_RSS2018 from the YCB_Video_toolbox); "
+            "default the run's own.",
+        ),
+    ] = None,
+    bop_csv: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write the poses (after ICP, or the network's with --no-icp) as a BOP "
+            "results CSV for bop_toolkit."
         ),
     ] = None,
     progress: ProgressOpt = True,
@@ -346,6 +409,18 @@ def evaluate(
     _print_summary(out.metrics)
     if show_instances:
         typer.echo(out.table.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
+    if bop_csv is not None:
+        from cloudpose.data.bop import check_results_csv, write_results_csv
+
+        method = "icp" if icp else "net"
+        ms = out.metrics[f"{out.name}/net_ms_per_object"]
+        if icp:
+            ms += out.metrics[f"{out.name}/icp_ms_per_object"]
+        n = write_results_csv(out.table, bop_csv, method, seconds_per_object=ms / 1000)
+        problems = check_results_csv(bop_csv)
+        if problems:
+            raise ValueError(f"{bop_csv} fails the BOP format check: {problems[0]}")
+        typer.echo(f"{bop_csv}: {n} poses ({method}) in the BOP results format")
 
 
 SUMMARY_COLUMNS = {

@@ -1,7 +1,10 @@
 """Evaluation of a trained run on a test set, with and without ICP, logged to MLflow.
 
-Per instance: AD, ADS, rotation error, translation error, occlusion factor, class, and whether it
-was a miss (no usable segment point: every error infinite, as the YCB-Video toolbox counts it).
+Per instance: AD, ADS, rotation error, translation error, the estimated pose, occlusion factor,
+class, and whether it was a miss (no usable segment point: every error infinite, as the
+YCB-Video toolbox counts it). Every evaluation names its frame list in words (MLflow tag
+``eval/{name}/split``: ``YCB-Video keyframe (2949 frames)``, ``BOP19 ycbv test targets (900
+images)``).
 Summaries (:func:`cloudpose.metrics.summarize`) are logged as metrics ``{name}/...`` for the
 network alone and ``{name}_icp/...`` after ICP; the per-instance table is an artifact
 ``eval/{name}/instances.csv``.
@@ -20,6 +23,7 @@ import pandas as pd
 
 from cloudpose import tracking
 from cloudpose.data.dataset import Prepared
+from cloudpose.data.segments import mask_source_label
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.infer import Estimates, estimate_poses, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
@@ -67,10 +71,19 @@ def instance_table(
         )
         for key in ("ad", "ads", "rot_err_deg", "trans_err"):
             df[f"{method}_{key}"] = err[key]
+        # the pose itself (for the BOP results CSV): R row-major, t in metres; "" for a miss
+        df[f"{method}_R"] = _number_lists(est.R.reshape(-1, 9), miss)
+        df[f"{method}_t"] = _number_lists(est.t, miss)
         df[f"{method}_rot_sym_err_deg"] = rotation_errors_modulo_symmetry(
             segs.cls_id, segs.R, R_est, class_names, miss
         )
     return df
+
+
+def _number_lists(rows: np.ndarray, miss: np.ndarray) -> list[str]:
+    """Each row of (M, k) numbers as one space-separated string (17 significant digits, so
+    float64 survives the CSV); "" where ``miss``."""
+    return ["" if m else " ".join(f"{v:.17g}" for v in r) for r, m in zip(rows, miss, strict=True)]
 
 
 def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
@@ -102,13 +115,19 @@ class EvalOutcome:
     """The metric prefix the evaluation was logged under."""
     source: str = ""
     """Which run, checkpoint and data were evaluated, in words."""
+    split: str = ""
+    """The frame list evaluated, in words (:func:`cloudpose.data.layout.describe_split`):
+    ``YCB-Video keyframe (2949 frames)``, ``BOP19 ycbv test targets (900 images)``; also the
+    run's MLflow tag ``eval/{name}/split``."""
 
 
 def own_test_name(segmentation: str | None = None) -> str:
     """Metric prefix of a run's evaluation on its own test set: :data:`OWN_TEST` with the run's
     own masks (``segmentation`` None), ``test-{segmentation}`` under another mask source
     (``test-degraded-medium``; the ``+ ICP`` results under ``test-degraded-medium_icp``)."""
-    return tracking.metric_key(f"{OWN_TEST}-{segmentation}") if segmentation else OWN_TEST
+    if not segmentation:
+        return OWN_TEST
+    return tracking.metric_key(f"{OWN_TEST}-{mask_source_label(segmentation)}")
 
 
 def evaluation_name(root: str | Path, frames: str, key: str) -> str:
@@ -140,8 +159,10 @@ def evaluate(
 
     Args:
         run: run folder, MLflow run id, or run name (:func:`resolve_run`).
-        data: dataset root in YCB-Video layout; None = the run's own test set.
-        frames: with ``data``: image set to read ("keyframe", "all", or an image_sets name).
+        data: dataset root in either layout (YCB-Video or BOP ycbv,
+            :mod:`cloudpose.data.layout`); None = the run's own test set.
+        frames: with ``data``: frame list to read ("keyframe" = YCB-Video's keyframes or the
+            BOP19 test targets, "all", or an image_sets name).
         name: metric prefix; default :data:`OWN_TEST` for the run's own test set, else
             :func:`evaluation_name` (a name of the user's must not be ``test``/``test_icp``).
         icp: also evaluate after ICP refinement.
@@ -150,8 +171,9 @@ def evaluate(
         own_data: the run's own data, prepared (the pipeline passes what it trained on);
             default: prepared here from the run's config.
         segmentation: where the test masks come from, if not from the run's config (e.g.
-            ``degraded-medium``, :mod:`cloudpose.data.masks`); the evaluation is then named
-            ``{test or the data's name}-{segmentation}``.
+            ``degraded-medium``, :mod:`cloudpose.data.masks`, or PoseCNN's results
+            ``posecnn:DIR``, :mod:`cloudpose.data.posecnn`); the evaluation is then named
+            ``{test or the data's name}-{label}`` (:func:`mask_source_label`).
 
     Raises:
         ValueError: no instance to evaluate; a reserved ``name`` with ``data``; ``name``
@@ -159,7 +181,7 @@ def evaluate(
     """
     from cloudpose.data.cache import cache_key, segments_for
     from cloudpose.data.dataset import only_classes, prepare_data
-    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.data.layout import describe_split, open_dataset
     from cloudpose.infer import load_checkpoint
 
     project_dir = (project_dir or Path.cwd()).resolve()
@@ -171,8 +193,9 @@ def evaluate(
     seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
     if data is None:
         own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
-        segs, dataset = own.test, YCBVideo(own.root)
-        data_label = f"the run's own test set ({dataset.root})"
+        segs, dataset = own.test, open_dataset(own.root)
+        split = describe_split(own.root, "test")
+        data_label = f"the run's own test set, {split} in {dataset.root}"
         if masks:  # the same frames, segmented otherwise (cached beside the run's own)
             segs = only_classes(
                 segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir, progress=progress),
@@ -188,13 +211,15 @@ def evaluate(
                 f"--name {name!r} is reserved for the run's own test set; leave it unset to "
                 "name the evaluation by its data"
             )
-        dataset = YCBVideo(data)
+        dataset = open_dataset(data)
         data_key = cache_key(data, frames, seg_cfg, memo_dir=project_dir / "data" / "cache")
         segs = only_classes(
             segments_for(dataset, frames, seg_cfg, progress=progress), data, cfg.data.classes
         )
-        name = name or evaluation_name(data, frames, data_key) + (f"-{masks}" if masks else "")
-        data_label = f"{Path(data).resolve()} (frames {frames!r})"
+        label = f"-{mask_source_label(masks)}" if masks else ""
+        name = name or tracking.metric_key(evaluation_name(data, frames, data_key) + label)
+        split = describe_split(data, frames)
+        data_label = f"{split} in {Path(data).resolve()}"
     if len(segs) == 0:
         raise ValueError(
             f"no instance to evaluate in {data_label} (no annotated object in its frames"
@@ -228,8 +253,11 @@ def evaluate(
     if log:
         log_evaluation(client, run_id, name, table, metrics)
         client.set_tag(run_id, tag, data_key)
+        client.set_tag(run_id, f"eval/{name}/split", split)
+        if masks:
+            client.set_tag(run_id, f"eval/{name}/segmentation", masks)
     source = f"run {run_id}, checkpoint {ckpt}, {len(segs)} instances of {data_label}"
-    return EvalOutcome(table, metrics, run_id, name, source)
+    return EvalOutcome(table, metrics, run_id, name, source, split)
 
 
 def log_evaluation(

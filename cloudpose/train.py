@@ -312,7 +312,7 @@ def train(
         The run's id, folder, final checkpoint and final metrics. A finished run is returned
         as it is, without training again.
     """
-    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.data.layout import open_dataset
 
     project_dir = (project_dir or Path.cwd()).resolve()
     device = runtime.pick_device(cfg.train.device)
@@ -332,7 +332,7 @@ def train(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
             f"{cfg.train.batch_size}; render more frames (data.train_frames)"
         )
-    dataset = YCBVideo(data.root)
+    dataset = open_dataset(data.root)
     models_by_class = dataset.models()
     class_names = list(dataset.classes)
     symmetry = None

@@ -79,3 +79,68 @@ def test_bad_results_are_named(tmp_path, frame):
         PoseCNNMasks(folder)(frame, 8)
     with pytest.raises(ValueError, match="posecnn:DIR"):
         get_mask_source("posecnn-typo")
+
+
+def test_posecnn_results_are_part_of_the_cache_key(tmp_path, frame):
+    from cloudpose.config import DataConfig
+    from cloudpose.data.cache import cache_key
+
+    folder = write_results(tmp_path / "r", frame, [8, 21], line=0)
+    cfg = DataConfig(segmentation=f"posecnn:{folder}")
+    key = cache_key(REAL, "all", cfg)
+    assert key != cache_key(REAL, "all", DataConfig())
+    write_results(folder, frame, [8, 14, 21], line=0)
+    assert cache_key(REAL, "all", cfg) != key
+
+
+@pytest.mark.slow
+def test_evaluate_with_posecnn_masks_counts_undetected_objects_as_misses(
+    smoke_project, tmp_path, frame
+):
+    """cloudpose evaluate --masks posecnn:DIR: the instance PoseCNN did not detect is a miss in
+    every error and AUC; the others are scored as with ground-truth masks."""
+    from typer.testing import CliRunner
+
+    from cloudpose import tracking
+    from cloudpose.cli import app
+    from cloudpose.evaluate import evaluate
+
+    proj, out = smoke_project
+    folder = write_results(tmp_path / "results_PoseCNN_RSS2018", frame, [8, 21], line=0)
+    gt = evaluate(str(out.run_dir), data=str(REAL), frames="all", progress=False)
+    res = CliRunner().invoke(
+        app,
+        [
+            "evaluate",
+            "--run",
+            str(out.run_dir),
+            "--data",
+            str(REAL),
+            "--frames",
+            "all",
+            "--masks",
+            f"posecnn:{folder}",
+            "--no-progress",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    ev = evaluate(
+        str(out.run_dir),
+        data=str(REAL),
+        frames="all",
+        segmentation=f"posecnn:{folder}",
+        progress=False,
+    )
+    assert ev.name.endswith("-posecnn-results_PoseCNN_RSS2018") and ev.name in res.output
+    t = ev.table.set_index("class")
+    assert bool(t.loc["025_mug", "miss"]) and not t.drop("025_mug")["miss"].any()
+    for col in ("net_ad", "net_ads", "icp_ad", "icp_ads", "icp_rot_err_deg", "icp_trans_err"):
+        assert np.isinf(t.loc["025_mug", col])
+    # the first instance's segment is the ground truth's (later ones draw other FPS starts:
+    # the miss draws none)
+    g = gt.table.set_index("class")
+    assert t.loc["009_gelatin_box", "icp_ads"] == pytest.approx(g.loc["009_gelatin_box", "icp_ads"])
+    assert not g["miss"].any()
+    assert ev.metrics[f"{ev.name}_icp/ads_auc"] <= gt.metrics[f"{gt.name}_icp/ads_auc"]
+    tags = tracking.setup(proj).get_run(out.run_id).data.tags
+    assert tags[f"eval/{ev.name}/segmentation"] == f"posecnn:{folder}"

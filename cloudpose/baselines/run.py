@@ -69,7 +69,7 @@ def run_baseline(
         raise ValueError(f"--split {split!r}: expected test or val")
     from cloudpose.config import resolve
     from cloudpose.data.dataset import prepare_data
-    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.data.layout import open_dataset
     from cloudpose.evaluate import instance_table, summary_metrics
     from cloudpose.infer import Estimates, refine_poses
 
@@ -77,7 +77,7 @@ def run_baseline(
     settings = load_settings(method).with_overrides(overrides)
     cfg = resolve("shared-0", preset, seed)
     data = prepare_data(cfg.data, project_dir, progress=progress)
-    dataset = YCBVideo(data.root)
+    dataset = open_dataset(data.root)
     models = dataset.models()
     if split == "test":
         pool = data.test

@@ -3,9 +3,9 @@
 :func:`prepare` runs :func:`cloudpose.data.segments.extract_segments` over a split's frames (all
 cores) and writes one uncompressed ``.npz`` of columnar arrays (:class:`SegmentSet`) that loads
 into memory in seconds. The file name holds a key that hashes everything the segments depend on:
-the frame list, the content of each frame file and model file, and the segment
-settings (n_fps, outlier_radius, segmentation, FPS seed, pipeline version). A changed frame or
-setting gives a new key, so a stale cache is never read.
+the frame list, the content of each frame file and model file (and of the files of a predicted
+segmentation), and the segment settings (n_fps, outlier_radius, segmentation, FPS seed,
+pipeline version). A changed frame or setting gives a new key, so a stale cache is never read.
 
 Which dataset a config means, and its preparation for training, are in
 :mod:`cloudpose.data.dataset`.
@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cloudpose.files import atomic_text, atomic_write
 from cloudpose.data.segments import Segment, SegmentWarning, extract_segments, get_mask_source
+from cloudpose.files import atomic_text, atomic_write
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -145,19 +145,12 @@ class SegmentSet:
 
 
 def _split_frames(root: Path, split: str) -> list[str]:
-    """Frame ids of a split: "train" -> image_sets/train.txt; "test" or "keyframe" ->
-    keyframe.txt; "all" -> every frame with a meta file under data/; else image_sets/SPLIT.txt."""
-    from cloudpose.data.ycb import YCBVideo
+    """Frame ids of a split of either layout (:mod:`cloudpose.data.layout`): "train" ->
+    image_sets/train.txt (BOP: train_real/); "test" or "keyframe" -> keyframe.txt (BOP: the
+    BOP19 test targets); "all" -> every frame; else image_sets/SPLIT.txt."""
+    from cloudpose.data.layout import open_dataset
 
-    if split == "all":
-        frames = sorted(
-            f"{p.parent.name}/{p.name[: -len('-meta.mat')]}"
-            for p in (root / "data").glob("*/*-meta.mat")
-        )
-        if not frames:
-            raise FileNotFoundError(f"{root / 'data'}: no frames (SEQ/FRAME-meta.mat) found")
-        return frames
-    ds = YCBVideo(root)
+    ds = open_dataset(root)
     name = "keyframe" if split in ("test", "keyframe") else split
     frames = ds.image_set(name)
     if not frames:
@@ -187,21 +180,21 @@ def cache_key(
     size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
     so a large dataset is read once, not on every command.
     """
-    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.data.layout import open_dataset
 
     root = Path(root)
-    ds = YCBVideo(root)
+    ds = open_dataset(root)
     frames = _split_frames(root, split)
+    mask_files = getattr(get_mask_source(cfg.segmentation), "content_files", None)
     files: list[Path] = []
     for fid in frames:
-        paths = ds.frame_paths(fid)
-        for kind in ("depth", "label", "meta"):
-            if not Path(paths[kind]).is_file():
-                raise FileNotFoundError(
-                    f"{paths[kind]}: {kind} file of frame {fid} (split {split!r}) not found"
-                )
-            files.append(Path(paths[kind]))
-    models = [ds.models_root / name / "points.xyz" for name in ds.classes]
+        try:
+            files += ds.content_files(fid)
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"{e} (split {split!r})") from e
+        if mask_files is not None:  # a predicted segmentation's files are data too
+            files += mask_files(fid)
+    models = ds.model_files()
     digests = content_digests(files + [p for p in models if p.is_file()], memo_dir)
     h = hashlib.sha256()
     h.update(json.dumps(_settings(cfg), sort_keys=True).encode())
@@ -269,17 +262,10 @@ _worker: dict = {}
 
 
 def _init_worker(root: str) -> None:
-    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.data.layout import open_dataset
 
     _worker.clear()
-    _worker["ds"] = YCBVideo(root)
-
-
-def _alone_from_meta(meta_path: Path) -> np.ndarray | None:
-    import scipy.io
-
-    m = scipy.io.loadmat(meta_path, variable_names=["alone_pixels"])
-    return np.asarray(m["alone_pixels"]).reshape(-1) if "alone_pixels" in m else None
+    _worker["ds"] = open_dataset(root)
 
 
 def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
@@ -291,7 +277,7 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
         alone = None
         renderer = None
         if frame.poses is not None:
-            alone = _alone_from_meta(ds.frame_paths(fid)["meta"])
+            alone = ds.alone_pixels(fid)
             if alone is None:
                 if "renderer" not in _worker:
                     from cloudpose.data.render import Renderer
@@ -342,9 +328,9 @@ def prepare(
     """Extract and cache the segments of a split (skipped when its keyed cache exists).
 
     Args:
-        root: dataset root in YCB-Video layout.
-        split: "train" (image_sets/train.txt), "test" or "keyframe" (keyframe.txt), "all" (every
-            frame with a meta file) or another image set name.
+        root: dataset root in either layout (:mod:`cloudpose.data.layout`).
+        split: "train" (image_sets/train.txt), "test" or "keyframe" (keyframe.txt; BOP: the
+            BOP19 test targets), "all" (every frame) or another image set name.
         cfg: segment settings (n_fps, outlier_radius, segmentation).
         cache_dir: folder of cache files (default ``root/cache``).
         workers: processes (default all cores); 1 extracts in this process.
@@ -394,10 +380,12 @@ def segments_for(
     workers: int | None = None,
     progress: bool = True,
 ) -> SegmentSet:
-    """Segments of any YCB-Video-layout folder (e.g. a real dataset to evaluate on), cached.
+    """Segments of any dataset folder of either layout (e.g. a real dataset to evaluate on),
+    cached.
 
     Args:
-        dataset: a :class:`~cloudpose.data.ycb.YCBVideo` or its root folder.
+        dataset: a :class:`~cloudpose.data.ycb.YCBVideo`, a :class:`~cloudpose.data.bop.BOPYcbv`
+            or its root folder.
         frames: "keyframe", "all", "train" or an image_sets name (see :func:`prepare`).
         cfg: segment settings (default :class:`~cloudpose.config.DataConfig`).
         cache_dir: cache folder (default ``./data/cache``, so a dataset folder is only read).
@@ -406,7 +394,7 @@ def segments_for(
     """
     from cloudpose.config import DataConfig
 
-    root = Path(getattr(dataset, "root", dataset))
+    root = Path(dataset if isinstance(dataset, (str, Path)) else dataset.root)
     cfg = cfg or DataConfig()
     cache_dir = Path(cache_dir) if cache_dir else Path.cwd() / "data" / "cache"
     path = prepare(root, frames, cfg, cache_dir, workers=workers, progress=progress)

@@ -137,12 +137,12 @@ def only_classes(segs: SegmentSet, root: str | Path, classes: tuple[str, ...]) -
     """
     if not classes:
         return segs
-    from cloudpose.data.ycb import load_classes
+    from cloudpose.data.layout import open_dataset
 
-    names = load_classes(Path(root) / "classes.txt")
+    names = open_dataset(root).classes
     unknown = [c for c in classes if c not in names]
     if unknown:
-        raise ValueError(f"data.classes: unknown classes {unknown}; {root}/classes.txt has {names}")
+        raise ValueError(f"data.classes: unknown classes {unknown}; {root} has {names}")
     ids = [names.index(c) + 1 for c in classes]
     return segs.subset(np.isin(segs.cls_id, ids))
 

@@ -23,7 +23,6 @@ a single valid depth pixel) warns with :class:`DegenerateDataWarning` and is cou
 
 from __future__ import annotations
 
-import os
 import re
 import warnings
 from collections import Counter
@@ -34,8 +33,8 @@ import numpy as np
 import scipy.io
 from PIL import Image, UnidentifiedImageError
 
-from cloudpose.files import atomic_write
 from cloudpose.conventions import DEPTH_FACTOR_YCB, resource_path
+from cloudpose.files import atomic_write
 
 ROTATION_TOL = 1e-3
 """Largest allowed ``max |R R^T - I|`` for a pose's rotation part."""
@@ -405,8 +404,6 @@ def read_frame(
     return Frame(frame_id, depth, label, K, cls_ids, poses, color)
 
 
-
-
 def write_frame(
     root: str | Path,
     frame_id: str,
@@ -442,8 +439,9 @@ def write_frame(
     """
     if not _FRAME_ID.match(frame_id):
         raise ValueError(f"frame_id {frame_id!r} is not 'SEQ/FRAME'")
-    clash = sorted(set(extra_meta or {}) & {"cls_indexes", "poses", "intrinsic_matrix",
-                                            "factor_depth"})
+    clash = sorted(
+        set(extra_meta or {}) & {"cls_indexes", "poses", "intrinsic_matrix", "factor_depth"}
+    )
     if clash:
         raise ValueError(f"write_frame: extra_meta may not replace the fields {clash}")
     depth_m = np.asarray(depth_m, dtype=np.float64)
@@ -551,10 +549,20 @@ class YCBVideo:
         return {c: self.model_points(c) for c in range(1, len(self.classes) + 1)}
 
     def image_set(self, name: str) -> list[str]:
-        """Frame ids "SEQ/FRAME" of a split: ``image_sets/NAME.txt``, or ``keyframe.txt`` for
-        name "keyframe"."""
+        """Frame ids "SEQ/FRAME" of a split: ``image_sets/NAME.txt``, ``keyframe.txt`` for
+        name "keyframe", or every frame with a meta file under ``data/`` for name "all"."""
         if name == "keyframe":
             return _read_lines(self.root / "keyframe.txt", "keyframe list")
+        if name == "all":
+            frames = sorted(
+                f"{p.parent.name}/{p.name[: -len('-meta.mat')]}"
+                for p in (self.root / "data").glob("*/*-meta.mat")
+            )
+            if not frames:
+                raise FileNotFoundError(
+                    f"{self.root / 'data'}: no frames (SEQ/FRAME-meta.mat) found"
+                )
+            return frames
         return _read_lines(self.root / "image_sets" / f"{name}.txt", f"image set {name!r}")
 
     def frame_paths(self, frame_id: str) -> dict[str, Path]:
@@ -567,6 +575,28 @@ class YCBVideo:
             k: d / f"{name}-{k}.{'mat' if k == 'meta' else 'png'}"
             for k in ("depth", "label", "meta", "color")
         }
+
+    def content_files(self, frame_id: str) -> list[Path]:
+        """The files a frame's segments are made from (depth, label, meta), for content keys.
+
+        Raises:
+            FileNotFoundError: one of them is missing.
+        """
+        paths = self.frame_paths(frame_id)
+        for kind in ("depth", "label", "meta"):
+            if not paths[kind].is_file():
+                raise FileNotFoundError(f"{paths[kind]}: {kind} file of frame {frame_id} not found")
+        return [paths["depth"], paths["label"], paths["meta"]]
+
+    def model_files(self) -> list[Path]:
+        """Every class's model point file, ``models_root/NAME/points.xyz`` (for content keys)."""
+        return [self.models_root / n / "points.xyz" for n in self.classes]
+
+    def alone_pixels(self, frame_id: str) -> np.ndarray | None:
+        """(N,) pixels of each instance rendered alone, as the synthetic meta stores them
+        (``alone_pixels``); None when the meta has no such field (real frames)."""
+        meta = scipy.io.loadmat(self.frame_paths(frame_id)["meta"], variable_names=["alone_pixels"])
+        return np.asarray(meta["alone_pixels"]).reshape(-1) if "alone_pixels" in meta else None
 
     def frame(self, frame_id: str, with_color: bool = False) -> Frame:
         """Read one annotated frame ("SEQ/FRAME") with its ground truth."""
