@@ -53,7 +53,7 @@ variants: ## print the variant registry with parameter counts
 MLFLOW_URI ?= $(or $(MLFLOW_TRACKING_URI),sqlite:///$(CURDIR)/mlflow.db)
 MLFLOW_PORT ?= 5000
 GROUP ?=
-.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations baselines occlusion-report tables mlflow-ui
+.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report tables mlflow-ui
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
 	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS)
@@ -68,6 +68,9 @@ ablation-symmetry: ## rotation loss modulo symmetry vs the plain geodesic x SEED
 	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS)
 
 ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups
+
+ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
+	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS)
 
 baselines: ## classical baselines (FPFH + RANSAC, point-pair features) on PRESET's test set, with and without ICP
 	$(CLI) baseline --method fpfh --preset $(PRESET)

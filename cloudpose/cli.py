@@ -600,11 +600,40 @@ def ablate(
     )
 
 
+@app.command("ablate-masks")
+def ablate_masks(
+    ctx: typer.Context,
+    preset: PresetOpt = "cpu",
+    seeds: Annotated[int, typer.Option(help="Seeds 1..S of shared-0.")] = 3,
+    progress: ProgressOpt = True,
+) -> None:
+    """Segmentation quality: shared-0 (trained on ground truth) under each test mask source.
+
+    Sources gt and degraded-mild|medium|strong, with and without ICP. Missing shared-0 seeds
+    are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
+    in reports/PRESET/ and the MLflow run report/masks/PRESET.
+    """
+    from cloudpose.ablate import mask_ablation
+
+    res = mask_ablation(preset, seeds, Path.cwd(), progress, command=recorded_command(ctx))
+    trained = sum(r.status == "trained" for r in res.runs)
+    done = sum(e.status == "evaluated" for e in res.evaluations)
+    typer.echo(
+        f"masks/{preset}: shared-0 {trained} trained, {len(res.runs) - trained} found; "
+        f"{done} evaluations made, {len(res.evaluations) - done} logged before; "
+        f"reports in {res.report.out_dir}; log {res.log}"
+    )
+
+
 @app.command()
 def report(
     ctx: typer.Context,
     group: Annotated[
-        list[str] | None, typer.Option(help="Group(s) to render (repeatable); default all.")
+        list[str] | None,
+        typer.Option(
+            help="Group(s) to render (repeatable), or masks (shared-0 under each mask source); "
+            "default all."
+        ),
     ] = None,
     all_groups: Annotated[bool, typer.Option("--all", help="Every group (the default).")] = False,
     preset: PresetOpt = "cpu",

@@ -5,6 +5,7 @@
 - :mod:`cloudpose.report.tables`: Tables I-IV (Markdown, LaTeX, CSV), the paper's beside ours.
 - :mod:`cloudpose.report.claims`: every difference the paper claims, with a verdict.
 - :mod:`cloudpose.report.plots`: occlusion, accuracy-threshold, training and rotation figures.
+- :mod:`cloudpose.report.segmentation`: shared-0 under each test-time mask source (table, plot).
 - :mod:`cloudpose.report.build`: renders all of it into ``reports/{preset}/`` and MLflow.
 """
 

@@ -7,6 +7,8 @@ Output folder ``reports/{preset}/``:
 - ``claims.md`` / ``claims.csv``: every difference the paper claims, with a 95% CI and a verdict;
 - ``occlusion.png`` / ``.csv`` (shared-0 without and with ICP) and per group
   ``occlusion_{group}``, ``curves_{group}``, ``training_{group}``, ``rot_err_{group}`` PNGs;
+- ``table_masks`` and ``occlusion_masks`` (report ``masks``, :mod:`cloudpose.report.segmentation`):
+  shared-0 under each test-time mask source, once such evaluations exist;
 - ``README.md``: the index.
 
 Each group's files (and the overall ones) are also logged as artifacts of one run named
@@ -22,7 +24,7 @@ from urllib.parse import unquote, urlparse
 
 from cloudpose import tracking
 from cloudpose.config import get_group, groups
-from cloudpose.report import plots
+from cloudpose.report import plots, segmentation
 from cloudpose.report.claims import ClaimResult, claims_frame, claims_markdown, evaluate_claims
 from cloudpose.report.runs import RunSet, load_runs
 from cloudpose.report.tables import (
@@ -35,7 +37,12 @@ from cloudpose.report.tables import (
 
 TABLE4_GROUPS = ("rotation", "loss", "symmetry")
 """The groups whose rows Table IV holds, one section each."""
-GROUP_TABLE = {"shared": "table3_shared_layers"} | dict.fromkeys(TABLE4_GROUPS, "table4_rotation")
+GROUP_TABLE = {
+    "shared": "table3_shared_layers",
+    **dict.fromkeys(TABLE4_GROUPS, "table4_rotation"),
+    segmentation.GROUP: "table_masks",
+}
+"""The table each report run's MLflow note shows."""
 OVERALL = ("table1_overall", "table2_per_class", "occlusion", "claims")
 
 DESCRIPTIONS = {
@@ -44,8 +51,11 @@ DESCRIPTIONS = {
     "table2_per_class": "Table II: per-class accuracy after ICP beside the paper's 'Ours' columns",
     "table3_shared_layers": "Table III: shared layers (without ICP), with parameter counts",
     "table4_rotation": "Table IV: rotation representation and loss, rotation error < 10/15/20°",
+    "table_masks": "segmentation quality: shared-0 under each test-time mask source (ground "
+    "truth, degraded), without and with ICP, beside the paper's PoseCNN-mask figures",
     "claims": "every difference the paper claims: measured difference, 95% CI over seeds, verdict",
     "occlusion": "ADS < 1 cm accuracy per occlusion bin, shared-0 without and with ICP",
+    "occlusion_masks": "ADS < 1 cm accuracy per occlusion bin, shared-0 under each mask source",
     "occlusion_{g}": "ADS < 1 cm accuracy per occlusion bin, variants of group {g}",
     "curves_{g}": "AD and ADS accuracy-threshold curves (0-10 cm), variants of group {g}",
     "training_{g}": "training loss and validation ADS AUC per epoch, variants of group {g}",
@@ -79,11 +89,13 @@ def render_reports(
     """Render the reports of ``group_names`` (default: every group) from MLflow runs.
 
     Tables I and II, the overall occlusion plot and claims.md are rendered every time (from
-    whatever runs exist); a group's table and figures only when its runs exist.
+    whatever runs exist); a group's table and figures only when its runs exist, the ``masks``
+    report only when shared-0 has evaluations under other mask sources.
 
     Args:
         preset: training preset whose runs to report.
-        group_names: ablation groups; None = all.
+        group_names: ablation groups, and ``masks`` (:mod:`cloudpose.report.segmentation`);
+            None = all of them.
         out_dir: output folder; default ``{project_dir}/reports/{preset}``.
         project_dir: folder of the default MLflow store (cwd).
         command: the command named in every file; default this process's command line.
@@ -93,9 +105,10 @@ def render_reports(
     """
     project_dir = (project_dir or Path.cwd()).resolve()
     client = client or tracking.setup(project_dir)
-    names = list(groups()) if group_names is None else list(group_names)
+    names = [*groups(), segmentation.GROUP] if group_names is None else list(group_names)
     for g in names:
-        get_group(g)  # unknown names raise with the valid list
+        if g != segmentation.GROUP:
+            get_group(g)  # unknown names raise with the valid list
     out_dir = out_dir or project_dir / "reports" / preset
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or tracking.command_line()
@@ -122,7 +135,10 @@ def render_reports(
     written["overall"] += [out_dir / "claims.md", out_dir / "claims.csv"]
 
     for g in names:
-        written[g] = _render_group(runs, g, out_dir, command, renderer)
+        if g == segmentation.GROUP:
+            written[g] = segmentation.render(runs, out_dir, command, renderer)
+        else:
+            written[g] = _render_group(runs, g, out_dir, command, renderer)
     readme = _write_index(out_dir, prov_all, preset)
     written["overall"].append(readme)
 
