@@ -82,6 +82,10 @@ occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing
 tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs (no training)
 	$(CLI) report --all --preset $(PRESET)
 
+.PHONY: renderer-vs-real
+renderer-vs-real: ## synthetic frames (generator versions 1 and 2) against the real frames in tests/data -> reports/renderer_vs_real.md
+	$(CLI) synth --compare-real tests/data/ycb_real --compare-real tests/data/demo_no_gt --compare-frames 20 --report reports/renderer_vs_real.md
+
 mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db)
 	$(VENV)/bin/mlflow ui --backend-store-uri $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT) --workers 1
 

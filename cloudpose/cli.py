@@ -240,9 +240,11 @@ def experiments(
 
 @app.command()
 def synth(
-    out: Annotated[Path, typer.Option(help="Output root (YCB-Video layout).")] = Path(
-        "data/synth-seed0"
-    ),
+    ctx: typer.Context,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Output root (YCB-Video layout); default data/synth-seedS[-vV]."),
+    ] = None,
     train_frames: Annotated[int, typer.Option(help="Training frames.")] = 800,
     test_frames: Annotated[int, typer.Option(help="Test frames, listed in keyframe.txt.")] = 150,
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
@@ -250,12 +252,49 @@ def synth(
     uniform_rotation: Annotated[
         bool, typer.Option("--uniform-rotation/--table", help="Objects in full SO(3).")
     ] = False,
+    synth_version: Annotated[
+        int | None,
+        typer.Option(help="Generator version (data.synth_version); default the newest."),
+    ] = None,
+    compare_real: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="Render nothing; compare synthetic frames of versions 1 and 2 with these real "
+            "frames (YCB-Video roots or depth.png + label.png folders; repeatable)."
+        ),
+    ] = None,
+    compare_frames: Annotated[
+        int, typer.Option(help="Synthetic test frames per version in --compare-real.")
+    ] = 20,
+    report: Annotated[
+        Path | None, typer.Option(help="Write the --compare-real table here (Markdown).")
+    ] = None,
     workers: Annotated[int | None, typer.Option(help="Processes (default: all cores).")] = None,
     progress: ProgressOpt = True,
 ) -> None:
-    """Render a synthetic YCB-Video-layout dataset from the 21 real model point sets (resumable)."""
+    """Render a synthetic YCB-Video-layout dataset from the 21 real model point sets (resumable),
+    or with --compare-real measure it against real frames."""
+    from cloudpose.config import DataConfig
+
+    if compare_real:
+        from cloudpose.data.synth.compare import compare_real as compare
+
+        versions = (synth_version,) if synth_version else (1, 2)
+        text = compare(compare_real, versions, compare_frames, seed, recorded_command(ctx))
+        if report is not None:
+            from cloudpose.files import atomic_text
+
+            atomic_text(report, text)
+            typer.echo(f"wrote {report}")
+        else:
+            typer.echo(text)
+        return
+    from cloudpose.data.dataset import synthetic_root
     from cloudpose.data.synth import synthesize
 
+    version = {} if synth_version is None else {"synth_version": synth_version}
+    cfg = DataConfig(synth_seed=seed, noise=noise, uniform_rotation=uniform_rotation, **version)
+    out = out or synthetic_root(cfg, Path.cwd())
     s = synthesize(
         out,
         train_frames,
@@ -265,6 +304,7 @@ def synth(
         uniform_rotation=uniform_rotation,
         workers=workers,
         progress=progress,
+        version=cfg.synth_version,
     )
     typer.echo(
         f"{out}: {s.frames_written} frames written, {s.frames_skipped} already there, "

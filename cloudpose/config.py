@@ -175,6 +175,10 @@ class DataConfig:
         synth_seed: seed of the synthetic scenes (independent of the training seed).
         noise: apply the depth-sensor noise model when rendering.
         uniform_rotation: objects float in full SO(3) instead of resting on a table.
+        synth_version: synthetic generator version (``cloudpose.data.synth.GENERATOR_VERSIONS``:
+            1 = solid handles, Kinect edge dropout, table only; 2 = through-holes kept, missing
+            depth fitted to real frames, stacked objects). Each version renders into its own
+            default root.
         n_fps: points kept per segment by farthest point sampling.
         outlier_radius: drop segment points farther than this from the segment mean, metres.
         segmentation: where segment masks come from; "gt" = ground-truth labels.
@@ -188,6 +192,7 @@ class DataConfig:
     synth_seed: int = 0
     noise: bool = True
     uniform_rotation: bool = False
+    synth_version: int = 2
     n_fps: int = 1024
     outlier_radius: float = 0.2
     segmentation: str = "gt"
@@ -195,6 +200,9 @@ class DataConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "classes", tuple(self.classes))
+        from cloudpose.data.synth.frames import check_version
+
+        check_version(self.synth_version)
 
 
 @dataclass(frozen=True)
@@ -218,8 +226,15 @@ class Config:
 
         Keys a run's folder and its MLflow tag ``config``: a run made under an edited preset or
         variant, or with overrides, is never taken for (nor resumed as) a run of another config.
+        A field of :data:`IMPLIED_FIELDS` at its implied value is left out, so a config stored
+        without it keeps its fingerprint.
         """
-        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        d = self.to_dict()
+        for section, fields in IMPLIED_FIELDS.items():
+            for name, value in fields.items():
+                if d[section].get(name) == value:
+                    del d[section][name]
+        text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def flat(self) -> dict[str, Any]:
@@ -241,12 +256,19 @@ class Config:
             if key not in sections:
                 raise ValueError(f"unknown config key {key!r}; expected one of {sorted(sections)}")
             if key in _SECTIONS:
+                value = {**IMPLIED_FIELDS.get(key, {}), **value}
                 value = _SECTIONS[key](**_check_delta("config", {key: value})[key])
             kwargs[key] = value
         return cls(**kwargs)
 
 
 _SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
+
+IMPLIED_FIELDS: dict[str, dict[str, Any]] = {"data": {"synth_version": 1}}
+"""Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
+synthetic frames of every run stored before ``data.synth_version`` existed are version 1.
+:meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
+value, so those runs keep their identity."""
 
 
 @dataclass(frozen=True)

@@ -137,10 +137,10 @@ def test_ensure_dataset_synthetic(project):
     fp = dataset.data_fingerprint(CFG, project)
     assert fp == dataset.data_fingerprint(CFG, project) and len(fp) == 16
     assert dataset.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
-    assert dataset.synthetic_root(CFG, project).name == "synth-seed0"
+    assert dataset.synthetic_root(CFG, project).name == "synth-seed0-v2"
     assert dataset.dataset_root(CFG, project) == dataset.synthetic_root(CFG, project)
     cfg2 = dataclasses.replace(CFG, noise=False, uniform_rotation=True, synth_seed=2)
-    assert dataset.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise"
+    assert dataset.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise-v2"
 
 
 def test_ensure_dataset_real_root(tmp_path):

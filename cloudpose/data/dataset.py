@@ -67,7 +67,11 @@ def prepare_data(
 
 
 def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:
-    """The synthetic default root: ``project_dir/data/synth-seed{S}[-uniform][-nonoise]``."""
+    """The synthetic default root: ``project_dir/data/synth-seed{S}[-uniform][-nonoise][-vV]``.
+
+    Generator version 1 has no suffix, every later version its own (``-v2``): frames of two
+    versions never share a folder.
+    """
     from cloudpose.config import DataConfig
 
     base = DataConfig()
@@ -76,6 +80,8 @@ def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Pa
         name += "-uniform"
     if cfg.noise != base.noise:
         name += "-nonoise"
+    if cfg.synth_version != 1:
+        name += f"-v{cfg.synth_version}"
     return Path(project_dir or Path.cwd()) / "data" / name
 
 
@@ -121,6 +127,7 @@ def ensure_dataset(
             uniform_rotation=cfg.uniform_rotation,
             workers=workers,
             progress=progress,
+            version=cfg.synth_version,
         )
     sets = []
     for split in ("train", "test"):

@@ -12,7 +12,8 @@ The output is a dataset root in the real YCB-Video layout (DESIGN.md, "Data"), s
     ROOT/keyframe.txt                       = image_sets/test.txt, as in YCB-Video
     ROOT/synth.json                         the generator settings (checked when resuming)
 
-Frame i of a split is a pure function of ``(seed, split, i)``: its random generator is
+Frame i of a split is a pure function of ``(seed, split, i)`` and the generator version
+(:data:`GENERATOR_VERSIONS`, ``DataConfig.synth_version``): its random generator is
 ``np.random.default_rng([seed, split_code, i])``. Asking for more frames later only adds frames,
 and a smaller preset uses a prefix of a bigger one. Train frames live in sequences 0000, 0001,
 ..., test frames in 1000, 1001, ..., :data:`FRAMES_PER_SEQ` frames each.
@@ -21,7 +22,9 @@ Scenes (default): 3 to 8 distinct objects resting on a table in stable poses (fa
 model's convex hull on which its centre of mass rests, drawn with probability proportional to
 their solid angle from the centre of mass, plus a random yaw), packed in a cluster without
 interpenetration (a 2D footprint check), seen by a camera 0.5-1.3 m from the look-at point
-(the scene centre) looking down 20-70 degrees. The table (label 0) and the floor below it are
+(the scene centre) looking down 20-70 degrees. In version 2 a share of the objects
+(:data:`STACK_SHARE`) rest on the top of an object standing on the table instead, where their
+centre of mass lies over the contact region and nothing else is in the way. The table (label 0) and the floor below it are
 rendered in depth, as real frames have background depth. With ``uniform_rotation`` the objects
 float in front of a wall in rotations drawn uniformly from SO(3).
 
@@ -30,23 +33,29 @@ Sensor noise (on by default; never changes the label image): Kinect-like axial G
 quantisation to 1/8 pixel (focal 580 px, baseline 7.5 cm: 2.9 mm steps at 1 m), missing and
 "flying" (mixed foreground/background) pixels at depth edges, and a small random dropout.
 Pixels without a reading have depth 0.
+Version 2 replaces the dropout on object pixels by :data:`REAL_DROPOUT`, a model fitted to the
+real frames (edges, grazing angles, a rate per class, in blobs), and renders surfaces that keep
+through-holes (:mod:`cloudpose.data.render`, surface version 2). ``cloudpose synth
+--compare-real`` (:mod:`~cloudpose.data.synth.compare`) measures both versions against real
+frames.
 
 Runs on the same root may overlap (e.g. parallel training runs that each ensure the data): a
 frame is written by renaming whole files, so two runs rendering the same frame leave identical,
-complete files. The frames depend on the renderer's surfaces: after a change to
-``cloudpose/data/render.py`` that alters them, render into a fresh root.
+complete files. ``synth.json`` records the generator version and the surface settings: a root
+holding frames of another version, or of other surfaces, is refused.
 
 ``alone_pixels``: each meta also stores, per instance, the pixel count of the object rendered
 alone at its pose (the occlusion factor's nu, DESIGN.md "Metrics"). The real dataset has no such
 field; the segment pipeline renders it when it is absent.
-Modules: ``scenes`` (resting poses, table and floating arrangements), ``sensor`` (background
-depth, noise), ``frames`` (one frame from its seed), ``write`` (the resumable writer,
-:func:`synthesize`).
+Modules: ``scenes`` (resting poses, table and floating arrangements, stacking), ``sensor``
+(background depth, noise, missing depth), ``frames`` (one frame from its seed and version),
+``write`` (the resumable writer, :func:`synthesize`), ``compare`` (against real frames).
 """
 
 from cloudpose.data.synth.frames import (
     FRAMES_PER_SEQ,
     GENERATOR_VERSION,
+    GENERATOR_VERSIONS,
     SEQ_OFFSET,
     SPLIT_CODES,
     SynthFrame,
@@ -60,6 +69,7 @@ from cloudpose.data.synth.scenes import (
     MIN_IN_IMAGE,
     MIN_VISIBLE_PIXELS,
     N_OBJECTS,
+    STACK_SHARE,
     Plane,
     RestingPoses,
     Scene,
@@ -67,8 +77,16 @@ from cloudpose.data.synth.scenes import (
     resting_poses,
     sample_floating_scene,
     sample_table_scene,
+    uniform_rotations,
 )
-from cloudpose.data.synth.sensor import NoiseModel, add_sensor_noise, background_depth
+from cloudpose.data.synth.sensor import (
+    REAL_DROPOUT,
+    DropoutModel,
+    NoiseModel,
+    add_sensor_noise,
+    add_sensor_noise_v2,
+    background_depth,
+)
 from cloudpose.data.synth.write import SynthSummary, synthesize
 
 __all__ = [
@@ -76,12 +94,16 @@ __all__ = [
     "CAMERA_ELEVATION_DEG",
     "FRAMES_PER_SEQ",
     "GENERATOR_VERSION",
+    "GENERATOR_VERSIONS",
     "MAX_RANGE",
     "MIN_IN_IMAGE",
     "MIN_VISIBLE_PIXELS",
     "N_OBJECTS",
+    "REAL_DROPOUT",
     "SEQ_OFFSET",
     "SPLIT_CODES",
+    "STACK_SHARE",
+    "DropoutModel",
     "NoiseModel",
     "Plane",
     "RestingPoses",
@@ -89,6 +111,7 @@ __all__ = [
     "SynthFrame",
     "SynthSummary",
     "add_sensor_noise",
+    "add_sensor_noise_v2",
     "background_depth",
     "frame_id",
     "generate_frame",
@@ -97,4 +120,5 @@ __all__ = [
     "sample_floating_scene",
     "sample_table_scene",
     "synthesize",
+    "uniform_rotations",
 ]

@@ -11,15 +11,30 @@ from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.synth.scenes import (
     MIN_VISIBLE_PIXELS,
     N_OBJECTS,
+    STACK_SHARE,
     Scene,
+    _random_rotations,
     resting_poses,
     sample_floating_scene,
     sample_table_scene,
+    uniform_rotations,
 )
-from cloudpose.data.synth.sensor import add_sensor_noise, background_depth
+from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, background_depth
 
-GENERATOR_VERSION = 1
-"""Bumped whenever a change makes frames differ; stored in ``synth.json``."""
+GENERATOR_VERSIONS = (1, 2)
+"""The generators frames can be made with (``DataConfig.synth_version``; stored in
+``synth.json``). A version's frames never change; a change that alters frames is a new version.
+
+1. Surfaces that close through-holes (render surface version 1), the Kinect noise model with
+   edge and random dropout (:func:`~cloudpose.data.synth.sensor.add_sensor_noise`), objects
+   only on the table.
+2. Surfaces that keep through-holes (render surface version 2); on object pixels missing depth
+   fitted to real frames (:func:`~cloudpose.data.synth.sensor.add_sensor_noise_v2`); a share
+   of objects resting on another (:data:`~cloudpose.data.synth.scenes.STACK_SHARE`); floating
+   rotations from scipy's sampler.
+"""
+GENERATOR_VERSION = 2
+"""The newest generator version (the default)."""
 
 SPLIT_CODES = {"train": 0, "test": 1}
 SEQ_OFFSET = {"train": 0, "test": 1000}
@@ -60,21 +75,32 @@ def frame_id(split: str, index: int) -> str:
     return f"{seq:04d}/{index % FRAMES_PER_SEQ + 1:06d}"
 
 
-class _Generator:
-    """Holds what every frame needs (renderer with meshes, models, resting poses); build it
-    with :func:`_generator` (one per process)."""
+def check_version(version: int) -> int:
+    """``version`` if it is one of :data:`GENERATOR_VERSIONS`, else ValueError."""
+    if version not in GENERATOR_VERSIONS:
+        raise ValueError(
+            f"synthetic generator version {version!r}: expected one of {GENERATOR_VERSIONS} "
+            "(data.synth_version)"
+        )
+    return int(version)
 
-    def __init__(self) -> None:
+
+class _Generator:
+    """Holds what every frame of a generator version needs (renderer with meshes, models,
+    resting poses); build it with :func:`_generator` (one per process and version)."""
+
+    def __init__(self, version: int = GENERATOR_VERSION) -> None:
         from cloudpose.data.render import Renderer, load_packaged_models
 
+        self.version = check_version(version)
         self.models = load_packaged_models()
-        self.renderer = Renderer(self.models)
+        self.renderer = Renderer(self.models, surface_version=self.version)
         self.resting = {c: resting_poses(p) for c, p in self.models.items()}
 
 
 @functools.cache
-def _generator() -> _Generator:
-    return _Generator()
+def _generator(version: int = GENERATOR_VERSION) -> _Generator:
+    return _Generator(version)
 
 
 def generate_frame(
@@ -84,23 +110,33 @@ def generate_frame(
     noise: bool = True,
     uniform_rotation: bool = False,
     generator: _Generator | None = None,
+    version: int = GENERATOR_VERSION,
 ) -> SynthFrame:
-    """Generate frame ``index`` of ``split``; a pure function of (seed, split, index, flags).
+    """Generate frame ``index`` of ``split``; a pure function of (seed, split, index, flags,
+    version).
 
-    Objects with fewer than :data:`MIN_VISIBLE_PIXELS` visible pixels are taken out and the
-    scene rendered again.
+    Objects with fewer than :data:`MIN_VISIBLE_PIXELS` visible pixels are taken out (with what
+    rests on them) and the scene rendered again.
+
+    Raises:
+        ValueError: an unknown version, or a ``generator`` of another version.
     """
-    gen = generator or _generator()
+    gen = generator or _generator(check_version(version))
+    if gen.version != version:
+        raise ValueError(f"generator of version {gen.version} asked for a version-{version} frame")
     rng = np.random.default_rng([seed, SPLIT_CODES[split], index])
     K, shape = YCB_INTRINSICS, IMAGE_SHAPE
+    v1 = version == 1
     while True:
         if uniform_rotation:
-            scene = sample_floating_scene(rng, gen.models, K, shape)
+            rotations = _random_rotations if v1 else uniform_rotations
+            scene = sample_floating_scene(rng, gen.models, K, shape, rotations)
         else:
-            scene = sample_table_scene(rng, gen.models, gen.resting, K, shape)
+            stack = 0.0 if v1 else STACK_SHARE
+            scene = sample_table_scene(rng, gen.models, gen.resting, K, shape, stack)
         for _ in range(8):
             r = gen.renderer.render(K, shape, scene.cls_ids, scene.poses())
-            keep = r.visible_pixels >= MIN_VISIBLE_PIXELS
+            keep = scene.supported(r.visible_pixels >= MIN_VISIBLE_PIXELS)
             if keep.all() or keep.sum() < N_OBJECTS[0]:
                 break
             scene = scene.subset(keep)
@@ -111,7 +147,12 @@ def generate_frame(
     bg = background_depth(K, shape, scene.world_to_camera, scene.background)
     obj = r.label > 0
     clean = np.where(obj, r.depth.astype(np.float64), bg)
-    depth = add_sensor_noise(clean, rng) if noise else clean
+    if not noise:
+        depth = clean
+    elif v1:
+        depth = add_sensor_noise(clean, rng)
+    else:
+        depth = add_sensor_noise_v2(clean, r.label, K, rng)
     return SynthFrame(
         frame_id(split, index),
         depth,

@@ -6,12 +6,14 @@ are and where the camera is, with no rendering.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import ConvexHull
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 
@@ -36,6 +38,17 @@ GAP_MEAN = 0.002
 """Mean gap (metres, exponential) between a new object and the cluster it joins."""
 FAR_SHARE, FAR_GAP = 0.05, (0.03, 0.15)
 """Share of objects placed with a wide gap (uniform in FAR_GAP metres): the unoccluded ones."""
+
+STACK_SHARE = 0.35
+"""Version-2 scenes: share of objects (after the first) that try to rest on the top of an
+object standing on the table instead of on the table (real YCB-Video scenes stack a can on a
+box); an object that finds no stable place there goes on the table. About one object in ten
+ends up stacked."""
+STACK_MARGIN = 0.005
+"""Metres the centre of mass of a stacked object must lie inside its support polygon (the
+contact region of its resting face with the top of the object below)."""
+STACK_CONTACT = 0.003
+"""Metres: the points of the lower object within this of its top form its top surface."""
 
 _GRID = 0.005  # footprint raster cell, metres
 _GRID_HALF = 160  # cells each side of the table origin (1.6 m square)
@@ -179,6 +192,8 @@ class Scene:
         world_to_camera: (3, 4) camera extrinsics.
         look_at: (3,) the point the optical axis passes through (the scene centre), world.
         background: planes rendered in depth behind the objects.
+        support: (N,) index of the object each one rests on, -1 = the table or nothing; None
+            = all -1.
     """
 
     cls_ids: np.ndarray
@@ -186,6 +201,7 @@ class Scene:
     world_to_camera: np.ndarray
     look_at: np.ndarray
     background: list[Plane]
+    support: np.ndarray | None = None
 
     def poses(self) -> np.ndarray:
         """(N, 3, 4) object->camera poses."""
@@ -195,14 +211,43 @@ class Scene:
         return np.concatenate([R, t[:, :, None]], axis=2)
 
     def subset(self, keep: np.ndarray) -> Scene:
-        """The scene with only the objects where ``keep`` (bool (N,) or indices)."""
+        """The scene with only the objects where ``keep`` (bool (N,) or indices).
+
+        An object whose support is left out goes too (it would float): use
+        :meth:`supported` first to know which objects remain.
+        """
+        if self.support is None:
+            return Scene(
+                self.cls_ids[keep],
+                self.model_to_world[keep],
+                self.world_to_camera,
+                self.look_at,
+                self.background,
+            )
+        mask = self.supported(keep)
+        new_index = np.cumsum(mask) - 1
+        support = np.where(self.support >= 0, new_index[np.maximum(self.support, 0)], -1)
         return Scene(
-            self.cls_ids[keep],
-            self.model_to_world[keep],
+            self.cls_ids[mask],
+            self.model_to_world[mask],
             self.world_to_camera,
             self.look_at,
             self.background,
+            support[mask],
         )
+
+    def supported(self, keep: np.ndarray) -> np.ndarray:
+        """(N,) bool: ``keep`` (bool (N,) or indices) less the objects whose support (or its
+        support, ...) is not kept."""
+        mask = np.zeros(len(self.cls_ids), dtype=bool)
+        mask[keep] = True
+        if self.support is None:
+            return mask
+        while True:
+            lost = mask & (self.support >= 0) & ~mask[np.maximum(self.support, 0)]
+            if not lost.any():
+                return mask
+            mask &= ~lost
 
 
 def _yaw(theta: float) -> np.ndarray:
@@ -252,19 +297,98 @@ def _in_image_fraction(points_cam: np.ndarray, K: np.ndarray, shape: tuple[int, 
     return float(inside.mean())
 
 
+def _raster_cells(points_xy: np.ndarray, fill: bool) -> np.ndarray:
+    """(C, 2) grid cells (absolute, ``floor(xy / _GRID)``) covered by points, closed; holes
+    filled when ``fill`` (a footprint), kept otherwise (a top surface may be a ring)."""
+    ij = np.floor(points_xy / _GRID).astype(np.int64)
+    lo = ij.min(axis=0) - 2
+    img = np.zeros(ij.max(axis=0) - lo + 3, dtype=bool)
+    img[ij[:, 0] - lo[0], ij[:, 1] - lo[1]] = True
+    img = ndimage.binary_closing(img, iterations=2)
+    if fill:
+        img = ndimage.binary_fill_holes(img)
+    return np.argwhere(img) + lo
+
+
+class _Support(NamedTuple):
+    """An object on the table that another may rest on: index, top height, top cells."""
+
+    index: int
+    top_z: float
+    top_cells: np.ndarray
+
+
+def _try_stack(
+    rng: np.random.Generator,
+    local: np.ndarray,
+    height: float,
+    supports: list[_Support],
+    height_map: np.ndarray,
+    tries: int = 8,
+) -> tuple[int, np.ndarray, np.ndarray] | None:
+    """Find a stable place for a posed object on the top of one of ``supports``.
+
+    The object's resting face (its points within :data:`STACK_CONTACT` of its lowest point)
+    and the support's top surface overlap in a contact region; the object's centre of mass
+    must lie inside that region's convex hull by :data:`STACK_MARGIN`, and no other object
+    under its footprint may reach above the support's top (``height_map``).
+
+    Args:
+        rng: random generator.
+        local: (P, 3) the object's points rotated into its resting pose, relative to its origin.
+        height: lift of the origin above the surface it rests on, metres.
+        supports: candidate objects below.
+        height_map: (G, G) highest point of the placed objects per grid cell, metres.
+
+    Returns:
+        (index into ``supports``, (3,) world position of the origin, (C, 2) footprint grid
+        indices), or None.
+    """
+    bottom = local[local[:, 2] <= local[:, 2].min() + STACK_CONTACT, :2]
+    com = local.mean(axis=0)[:2]
+    for _ in range(tries):
+        k = int(rng.integers(len(supports)))
+        sup = supports[k]
+        cell = sup.top_cells[rng.integers(len(sup.top_cells))]
+        xy_com = (cell + rng.random(2)) * _GRID
+        origin = xy_com - com
+        contact = _raster_cells(bottom + origin, fill=False)
+        top = {tuple(c) for c in sup.top_cells.tolist()}
+        contact = np.array([c for c in contact.tolist() if tuple(c) in top], dtype=np.float64)
+        if len(contact) < 3:
+            continue
+        try:
+            eq = ConvexHull((contact + 0.5) * _GRID).equations
+        except QhullError:  # collinear contact cells: a line, no support area
+            continue
+        if -(eq[:, :2] @ xy_com + eq[:, 2]).max() < STACK_MARGIN:
+            continue
+        foot = _raster_cells(local[:, :2] + origin, fill=True) + _GRID_HALF
+        if (foot < 0).any() or (foot >= 2 * _GRID_HALF).any():
+            continue
+        if (height_map[foot[:, 0], foot[:, 1]] > sup.top_z + 1e-6).any():
+            continue
+        return k, np.array([*origin, sup.top_z + height]), foot
+    return None
+
+
 def sample_table_scene(
     rng: np.random.Generator,
     models: dict[int, np.ndarray],
     resting: dict[int, RestingPoses],
     K: np.ndarray = YCB_INTRINSICS,
     shape: tuple[int, int] = IMAGE_SHAPE,
+    stack_share: float = 0.0,
 ) -> Scene:
     """Sample objects resting on a table, clustered, and a camera looking down at them.
 
     Objects are placed one by one: a random already-placed anchor and direction, then the new
     object slides out from the anchor until its footprint is free, plus a small random gap (so
-    objects stand close and hide each other from many viewpoints). Objects mostly outside the
-    image are taken out of the scene; if fewer than 3 remain, the camera is drawn again.
+    objects stand close and hide each other from many viewpoints). With ``stack_share`` > 0, an
+    object first tries, with that probability, to rest on the top of an object standing on the
+    table (:func:`_try_stack`; one object per support). Objects mostly outside the image are
+    taken out of the scene (with what rests on them); if fewer than 3 remain, the camera is
+    drawn again.
 
     Args:
         rng: random generator (the only source of randomness).
@@ -272,6 +396,8 @@ def sample_table_scene(
         resting: {class id: :class:`RestingPoses`}.
         K: (3, 3) intrinsics.
         shape: (H, W) image size.
+        stack_share: probability that an object tries to rest on another (0: never, and no
+            random number is drawn for it).
 
     Returns:
         The :class:`Scene` (world = table frame, z up, table top at z = 0).
@@ -281,8 +407,11 @@ def sample_table_scene(
         n = int(rng.integers(N_OBJECTS[0], N_OBJECTS[1] + 1))
         cls_ids = rng.choice(ids, size=n, replace=False)
         occupied = np.zeros((2 * _GRID_HALF, 2 * _GRID_HALF), dtype=bool)
+        height_map = np.zeros(occupied.shape)
         placed_xy: list[np.ndarray] = []
         poses = []
+        supports: list[_Support] = []
+        resting_on: list[int] = []
         for c in cls_ids:
             rp = resting[int(c)]
             if rng.random() < UPRIGHT_SHARE:
@@ -292,6 +421,19 @@ def sample_table_scene(
             R = _yaw(rng.uniform(0.0, 2.0 * np.pi)) @ rp.rotations[s]
             local = models[int(c)] @ R.T
             cells = _footprint_cells(local[:, :2])
+            if stack_share > 0 and supports and rng.random() < stack_share:
+                found = _try_stack(rng, local, rp.heights[s], supports, height_map)
+                if found is not None:
+                    k, origin, foot = found
+                    occupied[foot[:, 0], foot[:, 1]] = True
+                    top = origin[2] - rp.heights[s] + rp.heights_up[s]
+                    height_map[foot[:, 0], foot[:, 1]] = np.maximum(
+                        height_map[foot[:, 0], foot[:, 1]], top
+                    )
+                    resting_on.append(supports.pop(k).index)
+                    placed_xy.append(origin[:2])
+                    poses.append((int(c), np.concatenate([R, origin[:, None]], axis=1)))
+                    continue
             direction = rng.uniform(0.0, 2.0 * np.pi)
             gap = rng.exponential(GAP_MEAN) if rng.random() > FAR_SHARE else rng.uniform(*FAR_GAP)
             anchor = np.mean(placed_xy, axis=0) if placed_xy else np.zeros(2)
@@ -317,10 +459,21 @@ def sample_table_scene(
             placed_xy.append(xy)
             pose = np.concatenate([R, np.array([*xy, rp.heights[s]])[:, None]], axis=1)
             poses.append((int(c), pose))
+            if stack_share > 0:
+                height_map[ij[:, 0], ij[:, 1]] = np.maximum(
+                    height_map[ij[:, 0], ij[:, 1]], rp.heights_up[s]
+                )
+                world = local + pose[:, 3]
+                top = world[world[:, 2] >= world[:, 2].max() - STACK_CONTACT, :2]
+                supports.append(
+                    _Support(len(poses) - 1, float(world[:, 2].max()), _raster_cells(top, False))
+                )
+                resting_on.append(-1)
         if len(poses) < N_OBJECTS[0]:
             continue
         cls_ids = np.array([c for c, _ in poses], dtype=np.int64)
         model_to_world = np.stack([p for _, p in poses])
+        support = np.array(resting_on, dtype=np.int64) if stack_share > 0 else None
         centre_xy = np.asarray(placed_xy).mean(axis=0)
         lo = np.asarray(placed_xy).min(axis=0) - 0.15
         hi = np.asarray(placed_xy).max(axis=0) + 0.15
@@ -334,7 +487,7 @@ def sample_table_scene(
             )
             world_to_camera = look_at_camera(eye, target, roll=np.deg2rad(rng.normal(0.0, 5.0)))
             Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
-            keep = np.array(
+            in_image = np.array(
                 [
                     _in_image_fraction(
                         (models[int(c)] @ P[:, :3].T + P[:, 3]) @ Rc.T + tc, K, shape
@@ -343,6 +496,10 @@ def sample_table_scene(
                     for c, P in zip(cls_ids, model_to_world, strict=True)
                 ]
             )
+            keep = in_image
+            if support is not None:  # what rests on an object out of the image goes too
+                keep = Scene(cls_ids, model_to_world, world_to_camera, target, [], support)
+                keep = keep.supported(in_image)
             if keep.sum() >= N_OBJECTS[0]:
                 break
         else:
@@ -359,12 +516,21 @@ def sample_table_scene(
             half,
         )
         floor = Plane(np.array([0.0, 0.0, -rng.uniform(0.7, 0.8)]), np.array([0.0, 0.0, 1.0]))
-        scene = Scene(cls_ids, model_to_world, world_to_camera, target, [table, floor])
+        scene = Scene(cls_ids, model_to_world, world_to_camera, target, [table, floor], support)
         return scene.subset(keep)
 
 
+def uniform_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3, 3) rotations uniform on SO(3) (scipy's ``Rotation.random``)."""
+    return Rotation.random(n, rng=rng).as_matrix()
+
+
 def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
-    """(n, 3, 3) rotations uniform on SO(3) (normalised Gaussian quaternions)."""
+    """(n, 3, 3) rotations uniform on SO(3) (normalised Gaussian quaternions, WXYZ).
+
+    The generator-version-1 sampler, kept only so that version-1 frames stay byte-identical
+    (its draws fix their scenes); everything else uses :func:`uniform_rotations`.
+    """
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w, x, y, z = q.T
@@ -383,6 +549,7 @@ def sample_floating_scene(
     models: dict[int, np.ndarray],
     K: np.ndarray = YCB_INTRINSICS,
     shape: tuple[int, int] = IMAGE_SHAPE,
+    rotations: Callable[[np.random.Generator, int], np.ndarray] = uniform_rotations,
 ) -> Scene:
     """Sample objects floating in front of the camera in uniformly random rotations.
 
@@ -395,6 +562,7 @@ def sample_floating_scene(
         models: {class id: (P, 3) model points, metres}.
         K: (3, 3) intrinsics.
         shape: (H, W) image size.
+        rotations: sampler of (n, 3, 3) uniform rotations from ``rng``.
 
     Returns:
         The :class:`Scene`.
@@ -407,9 +575,9 @@ def sample_floating_scene(
         z0 = rng.uniform(0.6, 1.2)
         pix = np.array([rng.uniform(0.3, 0.7) * shape[1], rng.uniform(0.3, 0.7) * shape[0], 1.0])
         centre = Kinv @ pix * z0
-        rotations = _random_rotations(rng, n)
+        object_rotations = rotations(rng, n)
         placed, radii, poses = [], [], []
-        for c, R in zip(cls_ids, rotations, strict=True):
+        for c, R in zip(cls_ids, object_rotations, strict=True):
             pts = models[int(c)]
             radius = float(np.linalg.norm(pts, axis=1).max())
             for _ in range(50):
@@ -429,14 +597,14 @@ def sample_floating_scene(
         if len(poses) < N_OBJECTS[0]:
             continue
         far = max(p[2] + r for p, r in zip(placed, radii, strict=True))
-        tilt = _random_rotations(rng, 1)[0]
+        tilt = rotations(rng, 1)[0]
         normal = np.array([0.0, 0.0, -1.0])
         # a wall facing the camera, tilted at most ~35 degrees, 0.2-1 m behind the objects
         for _ in range(100):
             normal = tilt @ np.array([0.0, 0.0, -1.0])
             if normal[2] < -np.cos(np.deg2rad(35.0)):
                 break
-            tilt = _random_rotations(rng, 1)[0]
+            tilt = rotations(rng, 1)[0]
         wall = Plane(np.array([0.0, 0.0, far + rng.uniform(0.2, 1.0)]), normal)
         cam = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
         return Scene(

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-import scipy.io
 
 from cloudpose.conventions import YCB_INTRINSICS, resource_path
 from cloudpose.data.synth.frames import (
@@ -18,6 +17,7 @@ from cloudpose.data.synth.frames import (
     SynthFrame,
     _Generator,
     _generator,
+    check_version,
     frame_id,
     generate_frame,
 )
@@ -41,8 +41,9 @@ def _write(root: Path, f: SynthFrame) -> None:
 
     stage = root / ".staging" / f"{os.getpid()}"
     alone = {"alone_pixels": f.alone_pixels.astype(np.float64).reshape(-1, 1)}
-    write_frame(stage, f.frame_id, f.depth, f.label, YCB_INTRINSICS, f.cls_ids, f.poses,
-                extra_meta=alone)
+    write_frame(
+        stage, f.frame_id, f.depth, f.label, YCB_INTRINSICS, f.cls_ids, f.poses, extra_meta=alone
+    )
     seq, name = f.frame_id.split("/")
     src, dst = stage / "data" / seq, root / "data" / seq
     dst.mkdir(parents=True, exist_ok=True)
@@ -50,15 +51,15 @@ def _write(root: Path, f: SynthFrame) -> None:
         os.replace(src / f"{name}-{suffix}", dst / f"{name}-{suffix}")
 
 
-def _init_worker() -> None:
+def _init_worker(version: int) -> None:
     global _worker_gen
-    _worker_gen = _generator()
+    _worker_gen = _generator(version)
 
 
-def _work(args: tuple[str, str, int, int, bool, bool]) -> str:
-    root, split, index, seed, noise, uniform = args
+def _work(args: tuple[str, str, int, int, bool, bool, int]) -> str:
+    root, split, index, seed, noise, uniform, version = args
     assert _worker_gen is not None
-    f = generate_frame(split, index, seed, noise, uniform, _worker_gen)
+    f = generate_frame(split, index, seed, noise, uniform, _worker_gen, version)
     _write(Path(root), f)
     return f.frame_id
 
@@ -97,15 +98,15 @@ def _clean_staging(root: Path) -> None:
         pass  # another run is staging
 
 
-def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) -> None:
+def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, version: int) -> None:
     from cloudpose.data.render import surface_settings
 
     # Frames depend on the generator and on the rendered surfaces: both versions are recorded,
-    # so frames made by an older renderer are never mixed with new ones on resume.
+    # so frames made by another generator or renderer are never mixed on resume.
     settings = {
         "generator": "cloudpose.data.synth",
-        "version": GENERATOR_VERSION,
-        "surfaces": surface_settings(),
+        "version": version,
+        "surfaces": surface_settings(version),
         "seed": seed,
         "noise": noise,
         "uniform_rotation": uniform_rotation,
@@ -114,6 +115,13 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool) ->
     if info.is_file():
         old = json.loads(info.read_text())
         old = {k: old.get(k) for k in settings}
+        if old["version"] != version:
+            raise ValueError(
+                f"{info}: this folder holds frames of synthetic generator version "
+                f"{old['version']}, not {version} (data.synth_version); frames of two versions "
+                f"never share a folder: render into another root, or ask for version "
+                f"{old['version']} (data.synth_version = {old['version']})"
+            )
         if old != settings:
             raise ValueError(
                 f"{info}: this folder holds synthetic frames made with {old}, not {settings} "
@@ -142,6 +150,7 @@ def synthesize(
     uniform_rotation: bool = False,
     workers: int | None = None,
     progress: bool = True,
+    version: int = GENERATOR_VERSION,
 ) -> SynthSummary:
     """Write (or complete) a synthetic dataset in the YCB-Video layout under ``root``.
 
@@ -158,34 +167,38 @@ def synthesize(
         uniform_rotation: floating objects in uniform SO(3) rotations instead of table scenes.
         workers: processes (default: all cores); 1 renders in this process.
         progress: show a tqdm progress bar.
+        version: generator version (:data:`~cloudpose.data.synth.frames.GENERATOR_VERSIONS`).
 
     Returns:
         :class:`SynthSummary`.
 
     Raises:
-        ValueError: negative counts, or ``root`` holds frames made with other settings.
+        ValueError: negative counts, an unknown version, or ``root`` holds frames made with
+            another version or other settings.
     """
     if train_frames < 0 or test_frames < 0:
         raise ValueError(f"frame counts must be >= 0, got {train_frames=}, {test_frames=}")
+    check_version(version)
     t0 = time.perf_counter()
     root = Path(root)
-    _prepare_root(root, seed, noise, uniform_rotation)
+    _prepare_root(root, seed, noise, uniform_rotation, version)
     wanted = [("train", i) for i in range(train_frames)] + [("test", i) for i in range(test_frames)]
     todo = [(s, i) for s, i in wanted if not _frame_done(root, frame_id(s, i))]
-    jobs = [(str(root), s, i, seed, noise, uniform_rotation) for s, i in todo]
+    jobs = [(str(root), s, i, seed, noise, uniform_rotation, version) for s, i in todo]
     workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
     from tqdm import tqdm
 
     bar = tqdm(total=len(jobs), desc="synth", unit="frame", disable=not progress or not jobs)
     if workers <= 1:
-        gen = _generator() if jobs else None
+        gen = _generator(version) if jobs else None
         for root_s, s, i, *_ in jobs:
-            _write(Path(root_s), generate_frame(s, i, seed, noise, uniform_rotation, gen))
+            _write(Path(root_s), generate_frame(s, i, seed, noise, uniform_rotation, gen, version))
             bar.update()
     else:
         import multiprocessing as mp
 
-        with mp.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(version,)) as pool:
             for _ in pool.imap_unordered(_work, jobs):
                 bar.update()
     bar.close()
