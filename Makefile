@@ -18,7 +18,7 @@ help: ## list the targets
 
 setup: install demo ## fresh machine: system libraries, virtualenv, package; then the main job on the smoke preset
 
-install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package in editable mode with dev tools
+install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package in editable mode with dev tools and Ray
 	@need=""; for lib in libusb-1.0.so.0 libtcmalloc_minimal.so.4; do \
 	  ldconfig -p | grep -q "$$lib" || need="$$need $$lib"; done; \
 	if [ -n "$$need" ]; then \
@@ -29,7 +29,7 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install "$(TORCH_SPEC)"
-	$(PY) -m pip install -c constraints.txt -e '.[dev]'
+	$(PY) -m pip install -c constraints.txt -e '.[dev,cluster]'
 
 demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
@@ -53,21 +53,23 @@ variants: ## print the variant registry with parameter counts
 MLFLOW_URI ?= $(or $(MLFLOW_TRACKING_URI),sqlite:///$(CURDIR)/mlflow.db)
 MLFLOW_PORT ?= 5000
 GROUP ?=
-.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report tables mlflow-ui
+EXECUTOR ?= local
+MLFLOW_HOST ?= 127.0.0.1
+.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report tables mlflow-ui mlflow-server
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
-	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS)
+	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
 
 ablation-rotation: ## rotation-representation group (axis-angle, quaternion, 6D) x SEEDS on PRESET, then its reports
-	$(CLI) ablate --group rotation --preset $(PRESET) --seeds $(SEEDS)
+	$(CLI) ablate --group rotation --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
 
 ablation-loss: ## rotation-loss group (geodesic, L2) x SEEDS on PRESET, then its reports
-	$(CLI) ablate --group loss --preset $(PRESET) --seeds $(SEEDS)
+	$(CLI) ablate --group loss --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
 
 ablation-symmetry: ## rotation loss modulo symmetry vs the plain geodesic x SEEDS on PRESET, then its reports
-	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS)
+	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
 
-ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups
+ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups (EXECUTOR=ray: a Ray task per run, cluster RAY_ADDRESS)
 
 ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
 	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS)
@@ -85,6 +87,9 @@ tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs
 .PHONY: renderer-vs-real
 renderer-vs-real: ## synthetic frames (generator versions 1 and 2) against the real frames in tests/data -> reports/renderer_vs_real.md
 	$(CLI) synth --compare-real tests/data/ycb_real --compare-real tests/data/demo_no_gt --compare-frames 20 --report reports/renderer_vs_real.md
+
+mlflow-server: ## MLflow tracking server for several machines on MLFLOW_HOST:MLFLOW_PORT (127.0.0.1:5000): SQLite ./mlflow-server/ or MLFLOW_BACKEND, artifacts served
+	$(CLI) mlflow-server --host $(MLFLOW_HOST) --port $(MLFLOW_PORT) $(if $(MLFLOW_BACKEND),--backend $(MLFLOW_BACKEND))
 
 mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db)
 	$(VENV)/bin/mlflow ui --backend-store-uri $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT) --workers 1

@@ -4,7 +4,9 @@ For each member variant and seed, a run that already finished *and* was evaluate
 the same variant, preset, seed, data fingerprint and config is skipped; anything else is trained
 (:func:`cloudpose.train.train` resumes an interrupted run from its checkpoint) and evaluated
 (:func:`cloudpose.evaluate.evaluate`). So an interrupted suite, rerun, continues where it stopped.
-One line per run goes to ``runs/ablate-{group}-{preset}.log``.
+One line per run goes to ``runs/ablate-{group}-{preset}.log``. Executors: ``local`` trains the
+runs here, one after another; ``ray`` submits each as a Ray task to a cluster and collects them as
+they finish (:mod:`cloudpose.cluster`).
 
 The mask ablation (:func:`mask_ablation`) keeps the network fixed instead: shared-0, trained on
 ground-truth masks, is tested under each test-time mask source, and evaluations already logged
@@ -20,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cloudpose import tracking
+from cloudpose.cluster import EXECUTORS, RayOptions, import_ray
 from cloudpose.config import Config, get_group, resolve
 from cloudpose.runs import TEST_KEY, finished_run, run_name
 
@@ -93,6 +96,8 @@ def ensure_runs(
     keep_going: bool = False,
     overrides: dict | None = None,
     echo: Callable[[str], None] | None = None,
+    executor: str = "local",
+    ray: RayOptions | None = None,
 ) -> list[RunStatus]:
     """Train and evaluate every (variant, seed) that has no finished, evaluated run yet.
 
@@ -106,6 +111,8 @@ def ensure_runs(
         keep_going: after a failed run, log it and go on with the next (default: raise).
         overrides: config overrides (``{"train": {"epochs": 1}}``), as in ``resolve``.
         echo: where the per-run progress lines go (default: print).
+        executor: "local" (here, one run after another) or "ray" (a Ray task per run).
+        ray: the cluster and each task's resources, for the ray executor.
 
     Returns:
         One status per (variant, seed), in order.
@@ -113,6 +120,10 @@ def ensure_runs(
     from cloudpose import pipeline
     from cloudpose.data import dataset
 
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor {executor!r}: expected one of {', '.join(EXECUTORS)}")
+    if executor == "ray":
+        import_ray()  # before any data is made: without Ray, say how to install it
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))
     seeds = seed_list(seeds)
@@ -134,63 +145,87 @@ def ensure_runs(
     pending = [cfg for cfg in todo if finished_run(client, cfg, fingerprint(cfg)) is None]
     prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
     durations: list[float] = []
-    out: list[RunStatus] = []
+    out: dict[int, RunStatus] = {}
     echo(
         f"ablation {group}/{preset}: {len(todo)} runs ({len(variants)} variants x "
-        f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run; "
-        f"log {log_path}"
+        f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run "
+        f"({executor}); log {log_path}"
     )
-    for k, cfg in enumerate(todo, 1):
+
+    def failed(k: int, cfg: Config, exc: BaseException, seconds: float) -> None:
         name = run_name(cfg.variant, cfg.preset, cfg.seed)
-        data = fingerprint(cfg)
-        done = finished_run(client, cfg, data)
-        if done is not None:
-            st = RunStatus(cfg.variant, cfg.seed, "skipped", done.info.run_id, 0.0)
-            out.append(st)
-            _log(log_path, k, len(todo), name, st, done.data.metrics.get(TEST_KEY))
-            echo(f"[{k}/{len(todo)}] {name}: finished before, skipped")
-            continue
-        left = len(pending) - pending.index(cfg) if cfg in pending else 1
-        per_run = sum(durations) / len(durations) if durations else prior
-        echo(
-            f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
-            f"estimated {_fmt_s(per_run * left if per_run else None)} to go"
+        st = RunStatus(
+            cfg.variant, cfg.seed, "failed", None, seconds, f"{type(exc).__name__}: {exc}"
         )
-        t0 = time.monotonic()
-        try:
-            result = pipeline.train_and_evaluate(
-                cfg, project_dir=project_dir, group=group, progress=progress, data=data_of(cfg)
-            )
-            outcome, ev = result.train, result.evaluation
-        except KeyboardInterrupt:
-            st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
-            _log(log_path, k, len(todo), name, st, None)
-            raise
-        except Exception as exc:
-            st = RunStatus(
-                cfg.variant,
-                cfg.seed,
-                "failed",
-                None,
-                time.monotonic() - t0,
-                f"{type(exc).__name__}: {exc}",
-            )
-            out.append(st)
-            _log(log_path, k, len(todo), name, st, None)
-            echo(f"[{k}/{len(todo)}] {name}: FAILED ({st.error})")
-            if not keep_going:
-                raise
-            continue
-        seconds = time.monotonic() - t0
+        out[k] = st
+        _log(log_path, k, len(todo), name, st, None)
+        echo(f"[{k}/{len(todo)}] {name}: FAILED ({st.error})")
+
+    def trained(k: int, cfg: Config, run_id: str, auc: float | None, seconds: float) -> None:
+        name = run_name(cfg.variant, cfg.preset, cfg.seed)
         durations.append(seconds)
-        st = RunStatus(cfg.variant, cfg.seed, "trained", outcome.run_id, seconds)
-        out.append(st)
-        _log(log_path, k, len(todo), name, st, ev.metrics.get(TEST_KEY))
+        st = RunStatus(cfg.variant, cfg.seed, "trained", run_id, seconds)
+        out[k] = st
+        _log(log_path, k, len(todo), name, st, auc)
         echo(
             f"[{k}/{len(todo)}] {name}: done in {_fmt_s(seconds)}; test ADS AUC "
-            f"{100 * ev.metrics.get(TEST_KEY, math.nan):.1f}"
+            f"{100 * (math.nan if auc is None else auc):.1f}"
         )
-    return out
+
+    sweep = None
+    if executor == "ray" and pending:
+        from cloudpose.cluster import RaySweep
+
+        tracking.experiment_id(client, group, project_dir)  # made here, not by racing tasks
+        sweep = RaySweep(ray or RayOptions(), project_dir, group)
+    try:
+        for k, cfg in enumerate(todo, 1):
+            name = run_name(cfg.variant, cfg.preset, cfg.seed)
+            data = fingerprint(cfg)
+            done = finished_run(client, cfg, data)
+            if done is not None:
+                st = RunStatus(cfg.variant, cfg.seed, "skipped", done.info.run_id, 0.0)
+                out[k] = st
+                _log(log_path, k, len(todo), name, st, done.data.metrics.get(TEST_KEY))
+                echo(f"[{k}/{len(todo)}] {name}: finished before, skipped")
+                continue
+            if sweep is not None:
+                sweep.submit(k, cfg)
+                echo(f"[{k}/{len(todo)}] {name}: submitted to Ray")
+                continue
+            left = len(pending) - pending.index(cfg) if cfg in pending else 1
+            per_run = sum(durations) / len(durations) if durations else prior
+            echo(
+                f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
+                f"estimated {_fmt_s(per_run * left if per_run else None)} to go"
+            )
+            t0 = time.monotonic()
+            try:
+                result = pipeline.train_and_evaluate(
+                    cfg, project_dir=project_dir, group=group, progress=progress, data=data_of(cfg)
+                )
+            except KeyboardInterrupt:
+                st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
+                _log(log_path, k, len(todo), name, st, None)
+                raise
+            except Exception as exc:
+                failed(k, cfg, exc, time.monotonic() - t0)
+                if not keep_going:
+                    raise
+                continue
+            auc = result.evaluation.metrics.get(TEST_KEY)
+            trained(k, cfg, result.train.run_id, auc, time.monotonic() - t0)
+        for k, cfg, res, exc in sweep.results() if sweep is not None else ():
+            if exc is not None:
+                failed(k, cfg, exc, math.nan)
+                if not keep_going:
+                    raise exc
+                continue
+            trained(k, cfg, res["run_id"], res["test_ads_auc"], res["seconds"])
+    finally:
+        if sweep is not None:
+            sweep.close()
+    return [out[k] for k in sorted(out)]
 
 
 def _log(path: Path, k: int, n: int, name: str, st: RunStatus, ads_auc: float | None) -> None:
@@ -218,6 +253,8 @@ def run_group(
     command: str | None = None,
     overrides: dict | None = None,
     echo: Callable[[str], None] | None = None,
+    executor: str = "local",
+    ray: RayOptions | None = None,
 ) -> SuiteResult:
     """Train and evaluate every member of ``group`` over ``seeds``, then render its reports.
 
@@ -232,6 +269,7 @@ def run_group(
         command: the command line the reports name (default: this process's).
         overrides: config overrides for every run.
         echo: where progress lines go (default: print).
+        executor, ray: where the runs train (:func:`ensure_runs`).
     """
     g = get_group(group)
     project_dir = (project_dir or Path.cwd()).resolve()
@@ -245,6 +283,8 @@ def run_group(
         keep_going=keep_going,
         overrides=overrides,
         echo=echo,
+        executor=executor,
+        ray=ray,
     )
     result = SuiteResult(
         group, preset, statuses, log=project_dir / "runs" / f"ablate-{group}-{preset}.log"

@@ -371,6 +371,7 @@ def prepare(
 
 @app.command()
 def train(
+    ctx: typer.Context,
     variant: VariantOpt = "shared-0",
     preset: PresetOpt = "cpu",
     seed: SeedOpt = 1,
@@ -381,17 +382,38 @@ def train(
     group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
     progress: ProgressOpt = True,
     set_: SetOpt = None,
+    nproc: Annotated[
+        int,
+        typer.Option(
+            help="Processes on this machine training the run together (torchrun; the batch is "
+            "split between them). Under torchrun, leave it at 1.",
+        ),
+    ] = 1,
 ) -> None:
     """Train one variant (resumes an interrupted run of the same settings)."""
+    from cloudpose import distributed
     from cloudpose.pipeline import train_run
 
     cfg = _config(
         variant, preset, seed, data, set_, epochs=epochs, precision=precision, device=device
     )
-    out = train_run(cfg, group=group, progress=progress)
-    typer.echo(f"run {out.run_id}  {out.run_dir}")
-    for k, v in sorted(out.metrics.items()):
-        typer.echo(f"  {k:<28} {v:.4f}")
+    if nproc > 1:
+        import shlex
+        import subprocess
+        import sys
+
+        args = shlex.split(recorded_command(ctx))[1:]
+        i = args.index("--nproc")
+        del args[i : i + 2]
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+        cmd += ["--nproc_per_node", str(nproc), "-m", "cloudpose.cli", *args]
+        raise typer.Exit(subprocess.run(cmd, check=False).returncode)
+    with distributed.from_env() as world:
+        out = train_run(cfg, group=group, progress=progress, world=world)
+    if world.is_main:
+        typer.echo(f"run {out.run_id}  {out.run_dir}")
+        for k, v in sorted(out.metrics.items()):
+            typer.echo(f"  {k:<28} {v:.4f}")
 
 
 @app.command()
@@ -619,9 +641,19 @@ def ablate(
     ] = False,
     progress: ProgressOpt = True,
     set_: SetOpt = None,
+    executor: Annotated[
+        str, typer.Option(help="local (here, one run after another) or ray (a task per run).")
+    ] = "local",
+    address: Annotated[
+        str | None,
+        typer.Option(help="Ray cluster address; default $RAY_ADDRESS, else Ray on this machine."),
+    ] = None,
+    cpus_per_run: Annotated[float, typer.Option(help="Ray: CPUs (and threads) per run.")] = 1.0,
+    gpus_per_run: Annotated[float, typer.Option(help="Ray: GPUs per run.")] = 0.0,
 ) -> None:
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
     from cloudpose.ablate import run_group
+    from cloudpose.cluster import RayOptions
 
     res = run_group(
         group,
@@ -631,6 +663,8 @@ def ablate(
         progress,
         keep_going=keep_going,
         overrides=parse_sets(set_) or None,
+        executor=executor,
+        ray=RayOptions(address, cpus_per_run, gpus_per_run),
     )
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
     typer.echo(
@@ -663,6 +697,38 @@ def ablate_masks(
         f"{done} evaluations made, {len(res.evaluations) - done} logged before; "
         f"reports in {res.report.out_dir}; log {res.log}"
     )
+
+
+@app.command("mlflow-server")
+def mlflow_server(
+    backend: Annotated[
+        str | None,
+        typer.Option(
+            help="SQL store of runs (any SQLAlchemy URI); default SQLite ./mlflow-server/mlflow.db."
+        ),
+    ] = None,
+    artifacts: Annotated[
+        str | None, typer.Option(help="Artifact root; default ./mlflow-server/artifacts.")
+    ] = None,
+    host: Annotated[str, typer.Option(help="Interface to bind (0.0.0.0 for a cluster).")] = (
+        "127.0.0.1"
+    ),
+    port: Annotated[int, typer.Option(help="TCP port.")] = 5000,
+) -> None:
+    """An MLflow tracking server (SQL backend, artifacts served through it) for several
+    machines; clients set MLFLOW_TRACKING_URI=http://HOST:PORT."""
+    import os
+    import subprocess
+
+    from cloudpose.tracking import server_command
+
+    root = Path.cwd() / "mlflow-server"
+    if backend is None:
+        root.mkdir(exist_ok=True)
+        backend = f"sqlite:///{root / 'mlflow.db'}"
+    cmd, env = server_command(backend, artifacts or root / "artifacts", host, port)
+    typer.echo(f"MLflow server on http://{host}:{port} (store {backend})")
+    raise typer.Exit(subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode)
 
 
 @app.command()

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cloudpose.data.dataset import Prepared, prepare_data
+from cloudpose.distributed import SINGLE, World
 
 if TYPE_CHECKING:
     from cloudpose.config import Config
@@ -38,14 +39,27 @@ def train_run(
     group: str | None = None,
     progress: bool = True,
     data: Prepared | None = None,
+    world: World = SINGLE,
     **train_kwargs,
 ) -> TrainOutcome:
-    """Prepare ``cfg``'s data (unless given) and train ``cfg`` on it (resumable)."""
+    """Prepare ``cfg``'s data (unless given) and train ``cfg`` on it (resumable); with several
+    processes (``world``), rank 0 makes the data before the others read it."""
     from cloudpose.train import train
 
     project_dir = (project_dir or Path.cwd()).resolve()
-    data = data or prepare_data(cfg.data, project_dir, progress=progress)
-    return train(cfg, data, project_dir=project_dir, group=group, progress=progress, **train_kwargs)
+    if data is None:
+        data = world.main_first(
+            lambda: prepare_data(cfg.data, project_dir, progress=progress and world.is_main)
+        )
+    return train(
+        cfg,
+        data,
+        project_dir=project_dir,
+        group=group,
+        progress=progress,
+        world=world,
+        **train_kwargs,
+    )
 
 
 def train_and_evaluate(

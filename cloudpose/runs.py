@@ -16,12 +16,21 @@ A user names a run by its folder, its MLflow run id, or ``variant/preset/seedS``
 the one finished run of the preset's own config (:func:`resolve_run_id`), and an error lists
 the candidates when there are none or several. The ablation runner takes a run as done when a
 finished run of exactly the config on exactly the data has test metrics (:func:`finished_run`).
+
+Run folders live under ``CLOUDPOSE_RUNS_DIR`` when it is set (a worker node's own disk), else
+under the project folder's ``runs/``. A machine that lacks a run's folder rebuilds it from the
+MLflow run's artifacts (:func:`restore_run_folder`): ``model.pt`` of a finished run, the last
+checkpoint ``checkpoint/last.pt`` of an unfinished one (logged while training against a
+tracking server).
 """
 
 from __future__ import annotations
 
 import datetime
 import json
+import os
+import tempfile
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,11 +44,13 @@ __all__ = [
     "TEST_KEY",
     "describe_run",
     "display_name",
+    "drop_checkpoint_artifact",
     "finished_run",
     "is_preset_config",
     "read_info",
     "resolve_run",
     "resolve_run_id",
+    "restore_run_folder",
     "run_dir",
     "run_has_config",
     "run_name",
@@ -50,6 +61,12 @@ TEST_KEY = "test/ads_auc"
 """The metric a run has once its own test set is evaluated."""
 
 INFO = "run.json"
+
+CHECKPOINT_ARTIFACT_DIR = "checkpoint"
+"""Artifact folder of an unfinished run's last checkpoint (``checkpoint/last.pt``)."""
+
+RUNS_DIR_ENV = "CLOUDPOSE_RUNS_DIR"
+"""Environment variable: where run folders live instead of ``{project}/runs``."""
 
 
 def run_name(variant: str, preset: str, seed: int) -> str:
@@ -80,9 +97,11 @@ def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | 
 
 
 def run_dir(cfg: Config, data_key: str, project_dir: Path) -> Path:
-    """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{config[:8]}`` under the project folder."""
+    """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{config[:8]}`` under the project folder
+    (under ``$CLOUDPOSE_RUNS_DIR`` instead of ``runs/`` when that is set)."""
     name = f"seed{cfg.seed}-{data_key[:10]}-{cfg.fingerprint()[:8]}"
-    return project_dir / "runs" / cfg.variant / cfg.preset / name
+    root = Path(os.environ.get(RUNS_DIR_ENV) or project_dir / "runs")
+    return root / cfg.variant / cfg.preset / name
 
 
 def read_info(folder: Path) -> dict[str, Any]:
@@ -153,6 +172,82 @@ def finished_run(client, cfg: Config, data: str):
         if TEST_KEY in r.data.metrics and run_has_config(r, cfg):
             return r
     return None
+
+
+def restore_run_folder(client, cfg: Config, data: str, folder: Path) -> dict[str, Any]:
+    """Rebuild the run folder of ``cfg`` on ``data`` from MLflow, on a machine without it.
+
+    The newest run of exactly this config and data is taken: a finished one with its
+    ``model.pt``, else an unfinished one (a worker that died), with its last checkpoint
+    ``checkpoint/last.pt`` when it logged one; training then continues into that MLflow run,
+    from the checkpoint or from the start (a run dies before its first checkpoint only in its
+    first epoch, before it logged any metric).
+
+    Args:
+        client: MLflow client of the store.
+        cfg: the run's config; data: its data fingerprint.
+        folder: the run folder to fill (:func:`run_dir`).
+
+    Returns:
+        The folder's new ``run.json`` content, or {} when MLflow has no run to continue.
+    """
+    candidates = tracking.find_runs(
+        client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed, data=data, status=None
+    )
+    for run in candidates:
+        if not run_has_config(run, cfg):
+            continue
+        run_id = run.info.run_id
+        info: dict[str, Any] = {
+            "run_id": run_id,
+            "group": run.data.tags.get("group"),
+            "config": cfg.to_dict(),
+        }
+        if run.info.status == "FINISHED":
+            if not _fetch_artifact(client, run_id, "model.pt", folder / "model.pt"):
+                continue
+            metrics = {k: v for k, v in run.data.metrics.items() if k.split("/")[0] in _TRAINED}
+            info.update({"finished": True, "metrics": metrics})
+        else:
+            _fetch_artifact(
+                client, run_id, f"{CHECKPOINT_ARTIFACT_DIR}/last.pt", folder / "last.pt"
+            )
+        write_info(folder, info)
+        return info
+    return {}
+
+
+_TRAINED = ("train", "val", "fit")
+"""Metric prefixes training logs (a finished run's ``run.json`` metrics)."""
+
+
+def _fetch_artifact(client, run_id: str, path: str, dest: Path) -> bool:
+    """Download the run's artifact ``path`` to ``dest``; False when the run has none."""
+    parent, _, name = path.rpartition("/")
+    if name not in {Path(f.path).name for f in client.list_artifacts(run_id, parent or None)}:
+        return False
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=dest.parent) as tmp:
+        got = client.download_artifacts(run_id, path, tmp)
+        os.replace(got, dest)
+    return True
+
+
+def drop_checkpoint_artifact(client, run_id: str) -> None:
+    """Delete a finished run's ``checkpoint/`` artifacts (its ``model.pt`` stays); warns when
+    the artifact store refuses."""
+    from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
+    try:
+        uri = client.get_run(run_id).info.artifact_uri
+        repo = get_artifact_repository(uri, tracking_uri=client.tracking_uri)
+        repo.delete_artifacts(CHECKPOINT_ARTIFACT_DIR)
+    except Exception as exc:  # any store's refusal: the checkpoint only costs space
+        warnings.warn(
+            f"run {run_id}: could not delete its {CHECKPOINT_ARTIFACT_DIR}/ artifacts "
+            f"({type(exc).__name__}: {exc})",
+            stacklevel=2,
+        )
 
 
 def resolve_run_id(client, run: str) -> str:

@@ -164,7 +164,8 @@ def configure_threads(num_threads: int | None = None) -> int:
     """Use every core this process may run on for intra-op work, one inter-op thread.
 
     Args:
-        num_threads: intra-op threads; None = the CPUs in this process's affinity mask.
+        num_threads: intra-op threads; None = the CPUs in this process's affinity mask, shared
+            out among the processes torchrun starts on this node (``LOCAL_WORLD_SIZE``).
 
     Returns:
         The intra-op thread count now in effect.
@@ -176,6 +177,7 @@ def configure_threads(num_threads: int | None = None) -> int:
             num_threads = len(os.sched_getaffinity(0))
         except (AttributeError, OSError):
             num_threads = os.cpu_count() or 1
+        num_threads //= max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     torch.set_num_threads(max(1, num_threads))
     try:
         torch.set_num_interop_threads(1)

@@ -2,7 +2,8 @@
 
 - Store: an embedded SQLite database ``mlflow.db`` in the project folder (the current directory),
   artifacts under ``mlartifacts/``; ``MLFLOW_TRACKING_URI`` points it anywhere else, e.g. a shared
-  tracking server.
+  tracking server (:func:`server_command`, ``make mlflow-server``), through which the artifacts
+  then go too.
 - One experiment per ablation group (``cloudpose-shared``, ``cloudpose-rotation``, ...). A run
   lives in the experiment of the group it was trained for; a variant listed in several groups
   (``shared-0``) is trained once and found by tags from every group's report.
@@ -34,6 +35,57 @@ def tracking_uri(project_dir: Path | None = None) -> str:
         return env
     root = (project_dir or Path.cwd()).resolve()
     return f"sqlite:///{root / 'mlflow.db'}"
+
+
+def server_command(
+    backend: str, artifacts: str | Path, host: str = "127.0.0.1", port: int = 5000, workers: int = 2
+) -> tuple[list[str], dict[str, str]]:
+    """The ``mlflow server`` command line of a tracking server for several machines.
+
+    Args:
+        backend: where runs, params and metrics are kept: any SQLAlchemy URI
+            (``sqlite:///abs/path.db``, ``postgresql://user:pw@host/db``).
+        artifacts: where artifacts are kept (a folder, or an object-store URI such as
+            ``s3://bucket/prefix``); the server serves them (``--serve-artifacts``), so clients
+            need no access to it.
+        host: interface to bind (127.0.0.1: this machine only; 0.0.0.0: every interface).
+        port: TCP port.
+        workers: server processes.
+
+    Returns:
+        argv (this interpreter's MLflow) and the environment variables to add to the server's:
+        MLflow's GenAI job runner off (it starts 8 processes that tracking never uses).
+        Clients then set ``MLFLOW_TRACKING_URI=http://HOST:PORT``.
+    """
+    if "://" not in backend:
+        raise ValueError(
+            f"--backend {backend!r}: expected an SQLAlchemy URI such as sqlite:///abs/path.db "
+            "or postgresql://user:password@host/db"
+        )
+    argv = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "server",
+        "--backend-store-uri",
+        backend,
+        "--artifacts-destination",
+        str(artifacts),
+        "--serve-artifacts",
+        "--host",
+        host,
+        "--port",
+        str(port),
+        "--workers",
+        str(workers),
+    ]
+    return argv, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+
+
+def is_remote(uri: str) -> bool:
+    """Whether ``uri`` is a tracking server (``http://``, ``https://``, ``databricks``), whose
+    runs and artifacts other machines reach without this machine's disk."""
+    return uri.split(":", 1)[0] in ("http", "https", "databricks")
 
 
 def setup(project_dir: Path | None = None):
@@ -87,7 +139,13 @@ def _sqlite_path(uri: str) -> Path | None:
 
 
 def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
-    """Id of the group's experiment, created (with a local artifact folder) if missing."""
+    """Id of the group's experiment, created (with a local artifact folder) if missing.
+
+    Several processes may ask at once (the tasks of a sweep): when another one created it
+    first, that experiment is the answer.
+    """
+    from mlflow.exceptions import MlflowException
+
     name = EXPERIMENT_PREFIX + group
     exp = client.get_experiment_by_name(name)
     if exp is not None:
@@ -95,7 +153,13 @@ def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
     location = None
     if not os.environ.get("MLFLOW_TRACKING_URI"):
         location = ((project_dir or Path.cwd()).resolve() / "mlartifacts" / group).as_uri()
-    return client.create_experiment(name, artifact_location=location, tags={"group": group})
+    try:
+        return client.create_experiment(name, artifact_location=location, tags={"group": group})
+    except MlflowException:
+        exp = client.get_experiment_by_name(name)
+        if exp is None:
+            raise
+        return exp.experiment_id
 
 
 def metric_key(*parts: str) -> str:

@@ -7,7 +7,15 @@ of every epoch and every ``checkpoint_every_s`` seconds within one, and ``run.js
 run id. Rerunning the same command after any interruption (``kill -9`` included) continues from
 ``last.pt`` into the same MLflow run. The batch order of epoch ``e`` depends only on ``(seed, e)``
 and the model's initial weights only on ``seed``, so a resumed run ends with the same numbers as
-an uninterrupted one (on CPU, with the same thread count).
+an uninterrupted one (on CPU, with the same thread count). Against a tracking server
+(:func:`cloudpose.tracking.is_remote`) every checkpoint is also logged to the run as the artifact
+``checkpoint/last.pt`` (removed once the run finishes), and a machine without the run folder
+(a retried Ray task on another node) rebuilds it from MLflow (:func:`cloudpose.runs.restore_run_folder`):
+the run continues into the same MLflow run from the last logged checkpoint.
+
+Several processes (``torchrun``; :mod:`cloudpose.distributed`) train one run: each takes an equal
+share of every global batch, DDP averages the gradients, BatchNorm uses the global batch's
+statistics; rank 0 alone writes the run folder and talks to MLflow.
 
 Validation: a fixed share of the training *frames* (not instances: instances of one frame share a
 scene) is held out, chosen from the frame ids alone so every seed and variant sees the same split.
@@ -30,6 +38,7 @@ from tqdm.auto import tqdm
 from cloudpose import runs, runtime, tracking
 from cloudpose.config import Config, groups_of
 from cloudpose.data.dataset import Prepared
+from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import (
     SymmetryTensors,
@@ -292,6 +301,8 @@ def train(
     progress: bool = True,
     checkpoint_every_s: float = 60.0,
     max_steps: int | None = None,
+    world: World = SINGLE,
+    checkpoint_artifacts: bool | None = None,
 ) -> TrainOutcome:
     """Train ``cfg`` on prepared data (resuming if its run folder has a checkpoint) and log it
     to MLflow. Making the data is the caller's step (:func:`cloudpose.pipeline.train_run`).
@@ -307,6 +318,10 @@ def train(
         checkpoint_every_s: seconds between mid-epoch checkpoints.
         max_steps: stop (without finishing the run) after this many optimiser steps in this
             call; for tests that simulate an interruption.
+        world: the processes training this run together (:func:`cloudpose.distributed.from_env`);
+            default one.
+        checkpoint_artifacts: also log every checkpoint to the MLflow run, and rebuild a
+            missing run folder from MLflow; default: when the store is a tracking server.
 
     Returns:
         The run's id, folder, final checkpoint and final metrics. A finished run is returned
@@ -315,13 +330,22 @@ def train(
     from cloudpose.data.layout import open_dataset
 
     project_dir = (project_dir or Path.cwd()).resolve()
-    device = runtime.pick_device(cfg.train.device)
+    device = world.device(runtime.pick_device(cfg.train.device))
+    shard = world.shard(cfg.train.batch_size)
     train_set, data_key = data.train, data.key
     rdir = runs.run_dir(cfg, data_key, project_dir)
-    rdir.mkdir(parents=True, exist_ok=True)
     last, final = rdir / "last.pt", rdir / "model.pt"
-    info = runs.read_info(rdir)
-    if info.get("finished") and final.exists():
+    client, info = None, {}
+    if world.is_main:
+        rdir.mkdir(parents=True, exist_ok=True)
+        info = runs.read_info(rdir)
+        client = tracking.setup(project_dir)
+        if checkpoint_artifacts is None:
+            checkpoint_artifacts = tracking.is_remote(client.tracking_uri)
+        if not info and checkpoint_artifacts:
+            info = runs.restore_run_folder(client, cfg, data_key, rdir)
+    info = world.broadcast(info)
+    if info.get("finished") and world.broadcast(final.exists()):
         return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
 
     held = split_frames(train_set.frame_id, cfg.train.val_fraction)
@@ -350,18 +374,21 @@ def train(
         fuse_model(model, bf16=use_bf16)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     epoch, batch, sums = 0, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
-    if last.exists():
-        state = torch.load(last, map_location=device, weights_only=True)
+    state = None
+    if world.is_main and last.exists():
+        where = "cpu" if world.distributed else device  # sent to the other processes first
+        state = torch.load(last, map_location=where, weights_only=True)
+    state = world.broadcast(state)  # rank 0's checkpoint, on every process
+    if state is not None:
         if state["config"] != cfg.to_dict():
             raise ValueError(f"{last} was written by another config; delete {rdir} to restart")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         epoch, batch, sums = state["epoch"], state["batch"], state["sums"]
 
-    client = tracking.setup(project_dir)
     group = group or (groups_of(cfg.variant) or ["misc"])[0]
     run_id = info.get("run_id")
-    if run_id is None:
+    if world.is_main and run_id is None:
         exp = tracking.experiment_id(client, group, project_dir)
         tags = {
             "variant": cfg.variant,
@@ -390,8 +417,21 @@ def train(
         client.log_text(run_id, json.dumps(cfg.to_dict(), indent=2), "config.json")
         info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
         runs.write_info(rdir, info)
-    else:
+    elif world.is_main:
         client.update_run(run_id, status="RUNNING")
+    run_id = world.broadcast(run_id)
+
+    def checkpoint() -> None:
+        _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+        if checkpoint_artifacts:
+            client.log_artifact(run_id, str(last), artifact_path=runs.CHECKPOINT_ARTIFACT_DIR)
+
+    net = model
+    if world.distributed:
+        sync_batch_stats(model, world.stats_group)
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
 
     bs = cfg.train.batch_size
     n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
@@ -400,7 +440,7 @@ def train(
     bar = tqdm(
         total=cfg.train.epochs * n_batches,
         initial=epoch * n_batches + batch,
-        disable=not progress,
+        disable=not progress or not world.is_main,
         desc=runs.run_name(cfg.variant, cfg.preset, cfg.seed),
         unit="step",
         dynamic_ncols=True,
@@ -421,8 +461,10 @@ def train(
                 pts, R_gt, t_gt = roll_about_optical_axis(
                     pts, R_gt, t_gt, cfg.train.augment_roll_deg, g
                 )
+            if world.distributed:  # this process's share of the global batch
+                pts, cls_id, R_gt, t_gt = pts[shard], cls_id[shard], R_gt[shard], t_gt[shard]
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                out = model(pts, cls_id)
+                out = net(pts, cls_id)
             terms = pose_loss(
                 out.R.float(),
                 out.t.float(),
@@ -438,6 +480,8 @@ def train(
             terms.total.backward()
             opt.step()
             loss, l_rot, l_trans = (float(x.detach()) for x in terms)
+            if world.distributed:  # the global batch's: the mean of the equal shares' means
+                loss, l_rot, l_trans = world.mean([loss, l_rot, l_trans])
             if not math.isfinite(loss):
                 raise FloatingPointError(f"loss became {loss} at epoch {epoch + 1}")
             sums["loss"] += loss
@@ -448,11 +492,12 @@ def train(
             steps_here += 1
             bar.update(1)
             bar.set_postfix(epoch=epoch + 1, loss=f"{sums['loss'] / sums['n']:.3f}")
-            if time.monotonic() - t_ckpt > checkpoint_every_s:
-                _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+            if world.is_main and time.monotonic() - t_ckpt > checkpoint_every_s:
+                checkpoint()
                 t_ckpt = time.monotonic()
             if max_steps is not None and steps_here >= max_steps:
-                _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+                if world.is_main:
+                    checkpoint()
                 bar.close()
                 raise TrainingInterrupted(rdir)
         n = max(sums["n"], 1)
@@ -463,38 +508,48 @@ def train(
             "time/epoch_s": time.monotonic() - t_epoch,
             "train/lr": opt.param_groups[0]["lr"],
         }
-        metrics["fit/rot_err_median_deg_batchstats"] = batch_stats_rotation_error(
-            model, probe, bs, device
-        )
-        if cfg.train.bn_recalibrate:
-            recalibrate_bn(model, fit, cfg.train.bn_recalibrate, bs, cfg.seed + epoch, device)
-        for data_, prefix in ((val, "val"), (probe, "fit")):
-            metrics.update(
-                validate(
-                    model,
-                    data_,
-                    models_by_class,
-                    cfg,
-                    device,
-                    class_names=class_names,
-                    symmetry=symmetry,
-                    prefix=prefix,
+        # Rank 0 alone, on whole batches of its own; the other processes wait for it at their
+        # next step, where DDP hands them its re-estimated BatchNorm buffers.
+        if world.is_main:
+            with local_batch_stats(model):
+                metrics["fit/rot_err_median_deg_batchstats"] = batch_stats_rotation_error(
+                    model, probe, bs, device
                 )
-            )
-        client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
+                if cfg.train.bn_recalibrate:
+                    recalibrate_bn(
+                        model, fit, cfg.train.bn_recalibrate, bs, cfg.seed + epoch, device
+                    )
+                for data_, prefix in ((val, "val"), (probe, "fit")):
+                    metrics.update(
+                        validate(
+                            model,
+                            data_,
+                            models_by_class,
+                            cfg,
+                            device,
+                            class_names=class_names,
+                            symmetry=symmetry,
+                            prefix=prefix,
+                        )
+                    )
+            client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
         epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
-        _checkpoint(last, model, opt, cfg, epoch, batch, sums)
+        if world.is_main:
+            checkpoint()
         t_ckpt = time.monotonic()
     bar.close()
 
-    state = {"model": model.state_dict(), "config": cfg.to_dict()}
-    atomic_write(final, lambda tmp: torch.save(state, tmp))
-    client.log_artifact(run_id, str(final))
     final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
-    info.update({"finished": True, "metrics": final_metrics})
-    runs.write_info(rdir, info)
-    client.set_terminated(run_id, "FINISHED")
-    return TrainOutcome(run_id, rdir, final, final_metrics)
+    if world.is_main:
+        state = {"model": model.state_dict(), "config": cfg.to_dict()}
+        atomic_write(final, lambda tmp: torch.save(state, tmp))
+        client.log_artifact(run_id, str(final))
+        info.update({"finished": True, "metrics": final_metrics})
+        runs.write_info(rdir, info)
+        if checkpoint_artifacts:
+            runs.drop_checkpoint_artifact(client, run_id)
+        client.set_terminated(run_id, "FINISHED")
+    return TrainOutcome(run_id, rdir, final, world.broadcast(final_metrics))
 
 
 def warn_if_slow_bf16(device: torch.device) -> None:

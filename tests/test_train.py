@@ -239,3 +239,36 @@ def test_roll_keeps_segments_on_their_posed_models():
     torch.testing.assert_close(p2, model @ R2.mT + t2[:, None])
     torch.testing.assert_close(p2[..., 2], pts[..., 2])  # depth unchanged: a roll about z
     assert not torch.allclose(p2, pts)
+
+
+@pytest.mark.slow
+def test_run_continues_from_its_logged_checkpoint_on_a_machine_without_its_folder(
+    tmp_path, smoke_data, monkeypatch
+):
+    """With checkpoints logged to MLflow (as against a tracking server), a run whose folder is
+    gone (another machine) continues from the logged checkpoint into the same MLflow run and
+    ends as an uninterrupted run; the finished run keeps model.pt, not the checkpoint."""
+    import shutil
+
+    from cloudpose import runs, tracking
+
+    cfg = resolve("shared-0", "smoke", seed=4)
+    ref = train_run(
+        cfg, project_dir=_project(tmp_path / "ref", smoke_data, monkeypatch), progress=False
+    )
+    proj = _project(tmp_path / "cut", smoke_data, monkeypatch)
+    with pytest.raises(TrainingInterrupted) as cut:
+        train_run(cfg, project_dir=proj, progress=False, max_steps=4, checkpoint_artifacts=True)
+    run_id = runs.read_info(cut.value.args[0])["run_id"]
+    shutil.rmtree(proj / "runs")  # the next attempt runs where the folder is not
+    resumed = train_run(cfg, project_dir=proj, progress=False, checkpoint_artifacts=True)
+    assert resumed.run_id == run_id and resumed.metrics == ref.metrics
+    assert len(_curve(run_id, proj, "train/loss")) == cfg.train.epochs
+    client = tracking.setup(proj)
+    assert {f.path for f in client.list_artifacts(run_id)} >= {"model.pt"}
+    assert not client.list_artifacts(run_id, "checkpoint")
+    # a finished run is rebuilt from its model.pt, not trained again
+    shutil.rmtree(proj / "runs")
+    again = train_run(cfg, project_dir=proj, progress=False, checkpoint_artifacts=True)
+    assert again.run_id == run_id and again.metrics == ref.metrics
+    assert (again.run_dir / "model.pt").exists()

@@ -36,6 +36,11 @@ two of 2*N*C*C (covariance, ``x_c @ M``), i.e. 1.25 / 3 of the plain count.
 
 Eval mode (running statistics) folds BN into the Linear and takes ``amax`` of ``x W'^T + b'``.
 
+Across processes (one batch split over the processes of a distributed run,
+:mod:`cloudpose.distributed`): the mean of x, then its centred scatter, are all-reduced, so BN
+normalises with the whole batch's statistics; the backward all-reduces ``dbeta`` and ``dgamma``
+(the two (D,) sums the statistics' gradient needs), as a synchronised BatchNorm does.
+
 Ties: the plain module's ``amax`` shares the gradient equally among tied points; this module
 sends it to the one index ``torch.max`` returns. Tied points have identical features (e.g. the
 repeated points that pad a small segment), and every parameter gradient is a sum over points of
@@ -146,25 +151,36 @@ def _amax_chunked(
 
 
 def _batch_stats(
-    xf: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    xf: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, group: Any = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int]:
     """BN batch statistics of ``y = xf W^T + b`` from the covariance of ``xf``.
 
     Args:
         xf: (N, C) inputs, N = B*n points.
         weight: (D, C), bias: (D,).
+        group: a process group whose processes' points together make the batch (the mean,
+            then the centred scatter, all-reduced: :mod:`cloudpose.distributed`); None = this
+            process's points alone.
 
     Returns:
-        mean_y (D,), biased var_y (D,), centred inputs x_c (N, C), mean_x (C,), W Cov_x (D, C).
+        mean_y (D,), biased var_y (D,), centred inputs x_c (N, C), mean_x (C,), W Cov_x (D, C),
+        and the number of points the statistics are over.
     """
-    N = xf.shape[0]
-    mean_x = xf.mean(dim=0)  # (C,)
-    xc = xf - mean_x  # (N, C)
-    cov = (xc.T @ xc).div_(N)  # (C, C), biased
+    if group is None:
+        N = xf.shape[0]
+        mean_x = xf.mean(dim=0)  # (C,)
+        xc = xf - mean_x  # (N, C)
+        cov = (xc.T @ xc).div_(N)  # (C, C), biased
+    else:
+        from cloudpose.distributed import all_reduce_sum, global_mean
+
+        mean_x, N = global_mean(xf, group)  # (C,), points of every process
+        xc = xf - mean_x  # (N_r, C)
+        cov = all_reduce_sum(xc.T @ xc, group).div_(N)  # (C, C), biased
     w_cov = weight @ cov  # (D, C)
     var_y = (w_cov * weight).sum(dim=1).clamp_(min=0)  # (D,) = diag(W Cov W^T)
     mean_y = torch.addmv(bias, weight, mean_x)  # (D,)
-    return mean_y, var_y, xc, mean_x, w_cov
+    return mean_y, var_y, xc, mean_x, w_cov, N
 
 
 class _FusedPointMaxPoolFn(torch.autograd.Function):
@@ -184,6 +200,7 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
         eps: float,
         bf16: bool,
         chunk_rows: int,
+        group: Any = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns out (B, D), and the (non-differentiable) batch mean_y and biased var_y (D,)."""
         B, n, C = x.shape
@@ -191,12 +208,12 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
         with torch.autocast(device_type=x.device.type, enabled=False):
             xf = x.reshape(N, C)
             if use_batch_stats:
-                mean_y, var_y, xin, _, w_cov = _batch_stats(xf, weight, bias)
+                mean_y, var_y, xin, _, w_cov, n_all = _batch_stats(xf, weight, bias, group)
                 offset = torch.zeros_like(bias)  # y - mean_y = x_c W^T
             else:
                 assert running_mean is not None and running_var is not None
                 mean_y, var_y = running_mean.clone(), running_var.clone()
-                xin, w_cov = xf, None
+                xin, w_cov, n_all = xf, None, N
                 offset = bias - running_mean  # y - mean_y = x W^T + offset
             inv_std = torch.rsqrt(var_y + eps)  # (D,)
             a = gamma * inv_std  # (D,) BN scale
@@ -210,6 +227,8 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
 
         ctx.use_batch_stats = use_batch_stats
         ctx.shape = (B, n, C)
+        ctx.group = group if use_batch_stats else None
+        ctx.n_all = n_all
         ctx.save_for_backward(xin, weight, a, inv_std, yhat, zmax, idx, w_cov)
         ctx.mark_non_differentiable(mean_y, var_y)
         return out, mean_y, var_y
@@ -226,6 +245,12 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
         ``S = a * G``, ``k1 = a * dbeta / N``, ``k2 = a * dgamma * inv_std / N``. Multiplying by
         W and by x gives the formulas of the module docstring (``S^T 1 = N k1`` cancels the
         mean_x terms of dL/dW). In eval mode the statistics are constants: ``k1 = k2 = 0``.
+
+        Across processes (``group``): dbeta and dgamma of every process's points are
+        all-reduced into k1 and k2 (over the global count), so dL/dx is the gradient of the
+        whole batch's loss; each process's dL/dW takes its own points' ``S^T x_c`` and its
+        share N_r of the covariance term, and these sum to the whole batch's dL/dW (DDP sums
+        the processes' parameter gradients). dL/dgamma and dL/dbeta are this process's sums.
         """
         xin, weight, a, inv_std, yhat, zmax, idx, w_cov = ctx.saved_tensors
         B, n, C = ctx.shape
@@ -241,8 +266,17 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
             flat = idx + offsets  # (D, B) row of each entry in the (N, C) input
             dx = dw = db = None
             if ctx.use_batch_stats:
-                k1 = a * dbeta / N  # (D,)
-                k2 = a * dgamma * inv_std / N  # (D,)
+                if ctx.group is None:
+                    k1 = a * dbeta / N  # (D,)
+                    k2 = a * dgamma * inv_std / N  # (D,)
+                else:
+                    from cloudpose.distributed import all_reduce_sum
+
+                    sums = torch.stack([dbeta, dgamma])  # (2, D) this process's points
+                    n_all = ctx.n_all
+                    sums = all_reduce_sum(sums, ctx.group)  # every process's points
+                    k1 = a * sums[0] / n_all  # (D,)
+                    k2 = a * sums[1] * inv_std / n_all  # (D,)
                 if need_x:
                     m = weight.T @ (k2[:, None] * weight)  # (C, C)
                     dx = torch.addmm((k1 @ weight).neg_().expand(N, C), xin, m, alpha=-1)
@@ -279,6 +313,7 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -295,6 +330,7 @@ def fused_point_max_pool(
     eps: float = 1e-5,
     bf16: bool = False,
     chunk_rows: int = DEFAULT_CHUNK_ROWS,
+    group: Any = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``max_points relu(BN(x W^T + b))`` without forming the (B*n, D) activation.
 
@@ -312,6 +348,8 @@ def fused_point_max_pool(
         eps: BN epsilon.
         bf16: the main GEMM in bfloat16 (statistics and backward stay in x's dtype).
         chunk_rows: points per chunk of the main GEMM.
+        group: with batch statistics, the process group whose processes' points together
+            make the batch (:mod:`cloudpose.distributed`); None = this call's points alone.
 
     Returns:
         out (B, D); mean_y (D,) and biased var_y (D,), the statistics BN normalised with.
@@ -340,6 +378,7 @@ def fused_point_max_pool(
         eps,
         bf16,
         chunk_rows,
+        group,
     )
 
 
@@ -356,7 +395,14 @@ class FusedPointLayerMaxPool(nn.Module):
         bn_momentum: BatchNorm momentum.
         bf16: run the main GEMM in bfloat16 (an approximation; never on by default).
         chunk_rows: points per chunk of the main GEMM (memory ~ 4 * D * chunk_rows bytes).
+
+    Attributes:
+        process_group: None, or in training the process group whose processes each hold an
+            equal share of the batch: BatchNorm then uses the whole batch's statistics
+            (:func:`cloudpose.distributed.sync_batch_stats` sets it).
     """
+
+    process_group: Any = None
 
     def __init__(
         self,
@@ -415,6 +461,7 @@ class FusedPointLayerMaxPool(nn.Module):
         B, n, _ = x.shape
         use_batch_stats = self.training or bn.running_mean is None
         update = self.training and bn.track_running_stats
+        group = self.process_group if self.training else None
         if use_batch_stats and B * n < 2:
             raise ValueError(
                 f"Expected more than 1 value per channel when training, got input {tuple(x.shape)}"
@@ -436,11 +483,12 @@ class FusedPointLayerMaxPool(nn.Module):
                 eps=bn.eps,
                 bf16=self.bf16,
                 chunk_rows=self.chunk_rows,
+                group=group,
             )
         else:
             with torch.no_grad(), torch.autocast(device_type=x.device.type, enabled=False):
                 if use_batch_stats:
-                    mean_y, var_y, *_ = _batch_stats(x.reshape(B * n, -1), lin.weight, bias)
+                    mean_y, var_y, *_ = _batch_stats(x.reshape(B * n, -1), lin.weight, bias, group)
                 else:
                     mean_y, var_y = bn.running_mean, bn.running_var
                 a = gamma * torch.rsqrt(var_y + bn.eps)  # (D,)
@@ -448,7 +496,10 @@ class FusedPointLayerMaxPool(nn.Module):
                 bf = a * (bias - mean_y) + beta  # (D,)
                 out = _amax_chunked(x, wf, bf, self.chunk_rows, self.bf16)
         if update:
-            self._update_running_stats(mean_y.detach(), var_y.detach(), B * n)
+            count = B * n
+            if group is not None:  # equal shares: the trainer splits every batch evenly
+                count *= torch.distributed.get_world_size(group)
+            self._update_running_stats(mean_y.detach(), var_y.detach(), count)
         return out
 
     @torch.no_grad()
