@@ -99,4 +99,6 @@ def test_baselines_bench_times_both_methods_beside_the_network():
         assert fig["value"] > 0 and fig["reference"]["value"] > 0
         assert fig["ratio"] == pytest.approx(fig["value"] / fig["reference"]["value"])
         assert len(fig["detail"]["ms_all"]) == fig["detail"]["segments"] == 2
-    assert res["baseline_fpfh_ms_per_object"]["detail"]["rotation_error_median_deg"] < 10
+    # RANSAC runs on several threads, so its draws are not reproducible: a half-visible
+    # asymmetric object at 1 mm noise is recovered anyway (8 deg in test_baselines)
+    assert max(res["baseline_fpfh_ms_per_object"]["detail"]["rotation_error_deg_all"]) < 10
