@@ -16,11 +16,17 @@ load). Figures (JSON keys):
   ``cpu`` run; training and evaluation log into the same run), else null with a note;
   ``--cpu-variant`` runs ``cloudpose run --preset cpu`` for real (into a temporary MLflow
   store) and times it.
+- ``ray_executor_wall_s``: a smoke sweep on a loopback Ray cluster against the local executor
+  (``benchmarks.bench_cluster``).
+
+``--merge`` puts the figures run now into the report already in ``--out`` and leaves every
+other figure, and the header of the run that made them, as they are; a merged figure carries
+its own command, commit and time (JSON ``measured``, and its line under "What each figure is").
 
 The process sets itself up as the CLI does (``cloudpose.runtime``: tcmalloc re-exec, threads).
 
 Usage: ``python -m benchmarks.run_all [--quick] [--only NAME[,NAME]] [--cpu-variant]
-[--out reports]``; ``make bench``.
+[--out reports] [--merge]``; ``make bench``.
 """
 
 from __future__ import annotations
@@ -56,6 +62,7 @@ FIGURES = (
     "synth_frames_per_s",
     "prepare_frames_per_s",
     "cpu_variant_wall_s",
+    "ray_executor_wall_s",
 )
 """Every figure's JSON key, in report order."""
 
@@ -67,6 +74,7 @@ GROUPS = {
     "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),
     "cpu_variant": ("cpu_variant_wall_s",),
+    "cluster": ("ray_executor_wall_s",),
 }
 """Which benchmark module measures which figures."""
 
@@ -150,6 +158,12 @@ def _cpu_variant(quick: bool, args: argparse.Namespace) -> dict[str, Any]:
     return {"cpu_variant_wall_s": cpu_variant_from_store()}
 
 
+def _cluster(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_cluster
+
+    return bench_cluster.run(quick=quick)
+
+
 RUNNERS: dict[str, Callable[[bool, argparse.Namespace], dict[str, Any]]] = {
     "train": _train,
     "infer": _infer,
@@ -158,6 +172,7 @@ RUNNERS: dict[str, Callable[[bool, argparse.Namespace], dict[str, Any]]] = {
     "baselines": _baselines,
     "data": _data,
     "cpu_variant": _cpu_variant,
+    "cluster": _cluster,
 }
 
 
@@ -305,6 +320,64 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+DESCRIPTIONS = "## What each figure is"
+
+
+def _row(key: str, f: dict[str, Any]) -> str:
+    """A figure's table row."""
+    ref = f.get("reference") or {}
+    ref_s = f"{_fmt(ref.get('value'))} ({ref.get('name', '')})" if ref else "-"
+    return (
+        f"| `{key}` | {_fmt(f.get('value'))} | {f.get('unit', '')} | {ref_s} | "
+        f"{_fmt(f.get('ratio'))} | {f.get('target') or '-'} | {_fmt(f.get('met'))} |"
+    )
+
+
+def _description(key: str, f: dict[str, Any]) -> str:
+    """A figure's line under "What each figure is"."""
+    note = f" Note: {f['note']}" if f.get("note") else ""
+    m = f.get("measured")
+    when = (
+        f" Measured apart: `{m['command']}`, {m['started']}, commit `{m['commit']}`." if m else ""
+    )
+    return f"- `{key}`: {f.get('what', '')}.{note}{when}"
+
+
+def merge_report(out: Path, report: dict[str, Any]) -> dict[str, Any]:
+    """Put ``report``'s figures into the report in ``out`` (its ``benchmarks.json`` and
+    ``benchmarks.md``), keeping every other figure and line as it is.
+
+    Each merged figure gets ``measured`` (``report``'s command, commit, start and quick flag);
+    its table row and description line are replaced, or inserted in report order.
+
+    Returns:
+        The merged report (as written to ``benchmarks.json``).
+    """
+    old = json.loads((out / "benchmarks.json").read_text())
+    measured = {k: report[k] for k in ("command", "commit", "started", "quick")}
+    new = {k: {**f, "measured": measured} for k, f in report["figures"].items()}
+    figures = {**old["figures"], **new}
+    old["figures"] = {k: figures[k] for k in FIGURES if k in figures}
+    old.setdefault("errors", {}).update(report["errors"])
+    lines = (out / "benchmarks.md").read_text().split("\n")
+    for key, f in new.items():
+        for text, after in ((_row(key, f), "|---"), (_description(key, f), DESCRIPTIONS)):
+            prefix = text[: text.index("`", 3) + 1]  # "| `key`" or "- `key`"
+            at = next((i for i, line in enumerate(lines) if line.startswith(prefix)), None)
+            if at is not None:
+                lines[at] = text
+                continue
+            # after the last line of a figure listed before it, else at the section's top
+            earlier = {prefix[:3] + k + "`" for k in FIGURES[: FIGURES.index(key)]}
+            spot = [i for i, line in enumerate(lines) if line[: line.find("`", 3) + 1] in earlier]
+            start = next(i for i, line in enumerate(lines) if line.startswith(after))
+            pos = max([i for i in spot if i > start], default=start + (after == DESCRIPTIONS))
+            lines.insert(pos + 1, text)
+    (out / "benchmarks.json").write_text(json.dumps(old, indent=2, default=_json_default))
+    (out / "benchmarks.md").write_text("\n".join(lines))
+    return old
+
+
 def render_markdown(report: dict[str, Any]) -> str:
     """The human-readable report: command, machine, commit, and one row per figure."""
     m = report["machine"]
@@ -327,23 +400,10 @@ def render_markdown(report: dict[str, Any]) -> str:
         "| figure | value | unit | reference | ratio | target | met |",
         "|---|---|---|---|---|---|---|",
     ]
-    for key in FIGURES:
-        f = report["figures"].get(key)
-        if f is None:
-            continue
-        ref = f.get("reference") or {}
-        ref_s = f"{_fmt(ref.get('value'))} ({ref.get('name', '')})" if ref else "-"
-        lines.append(
-            f"| `{key}` | {_fmt(f.get('value'))} | {f.get('unit', '')} | {ref_s} | "
-            f"{_fmt(f.get('ratio'))} | {f.get('target') or '-'} | {_fmt(f.get('met'))} |"
-        )
-    lines += ["", "## What each figure is", ""]
-    for key in FIGURES:
-        f = report["figures"].get(key)
-        if f is None:
-            continue
-        note = f" Note: {f['note']}" if f.get("note") else ""
-        lines.append(f"- `{key}`: {f.get('what', '')}.{note}")
+    shown = [k for k in FIGURES if report["figures"].get(k) is not None]
+    lines += [_row(k, report["figures"][k]) for k in shown]
+    lines += ["", DESCRIPTIONS, ""]
+    lines += [_description(k, report["figures"][k]) for k in shown]
     if report.get("errors"):
         lines += ["", "## Errors", ""]
         lines += [f"- `{k}`: {v}" for k, v in report["errors"].items()]
@@ -356,6 +416,7 @@ def run(
     quick: bool = False,
     out_dir: Path | None = None,
     args: argparse.Namespace | None = None,
+    merge: bool = False,
 ) -> dict[str, Any]:
     """Run the selected benchmark groups and write ``benchmarks.json`` / ``benchmarks.md``.
 
@@ -364,9 +425,11 @@ def run(
         quick: small sizes and few repeats (the test's smoke run).
         out_dir: where the reports go (default ``reports/`` of the repository).
         args: the parsed command line (``--cpu-variant``, ``--variant``, ``--seed``).
+        merge: merge the figures into the report in ``out_dir`` (:func:`merge_report`)
+            instead of writing a report of these figures alone.
 
     Returns:
-        The report dict (also written as JSON).
+        The report dict of this run (what is written, unless merged).
     """
     from benchmarks.common import describe_machine
 
@@ -409,6 +472,9 @@ def run(
     report["figures"] = {k: report["figures"][k] for k in FIGURES if k in report["figures"]}
     out = Path(out_dir) if out_dir is not None else ROOT / "reports"
     out.mkdir(parents=True, exist_ok=True)
+    if merge and (out / "benchmarks.json").exists():
+        merge_report(out, report)
+        return report
     (out / "benchmarks.json").write_text(json.dumps(report, indent=2, default=_json_default))
     (out / "benchmarks.md").write_text(render_markdown(report))
     return report
@@ -459,13 +525,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--variant", default="shared-0", help="variant for --cpu-variant")
     ap.add_argument("--seed", type=int, default=1, help="seed for --cpu-variant")
     ap.add_argument("--out", type=Path, default=None, help="report folder (default reports/)")
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="put these figures into the report in --out, keeping the others as they are",
+    )
     args = ap.parse_args(argv)
     names = [n.strip() for n in args.only.split(",") if n.strip()] or None
     try:
         select_groups(names)
     except ValueError as exc:
         ap.error(str(exc))
-    report = run(names, quick=args.quick, out_dir=args.out, args=args)
+    report = run(names, quick=args.quick, out_dir=args.out, args=args, merge=args.merge)
     out = args.out or ROOT / "reports"
     print((out / "benchmarks.md").read_text())
     if report["errors"]:

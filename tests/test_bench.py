@@ -102,3 +102,36 @@ def test_baselines_bench_times_both_methods_beside_the_network():
     # RANSAC runs on several threads, so its draws are not reproducible: a half-visible
     # asymmetric object at 1 mm noise is recovered anyway (8 deg in test_baselines)
     assert max(res["baseline_fpfh_ms_per_object"]["detail"]["rotation_error_deg_all"]) < 10
+
+
+def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
+    """--merge: the figures run now go into the existing report in report order; every other
+    line of it, header included, stays as it was."""
+
+    def fig(value: float) -> dict:
+        return {"value": value, "unit": "s", "what": f"w{value}", "reference": None}
+
+    monkeypatch.setattr(run_all, "RUNNERS", {"fps": lambda *_: {"fps_ms_20k": fig(2.0)}})
+    first = run_all.run(["fps"], quick=True, out_dir=tmp_path)
+    first["figures"] = {"infer_ms_per_object": fig(1.0), "cpu_variant_wall_s": fig(3.0)}
+    (tmp_path / "benchmarks.json").write_text(json.dumps(first))
+    md = run_all.render_markdown(first).replace("# Benchmarks", "# Benchmarks (hand-edited)")
+    (tmp_path / "benchmarks.md").write_text(md)
+
+    run_all.run(["fps"], quick=True, out_dir=tmp_path, merge=True)
+    saved = json.loads((tmp_path / "benchmarks.json").read_text())
+    assert list(saved["figures"]) == ["infer_ms_per_object", "fps_ms_20k", "cpu_variant_wall_s"]
+    assert saved["figures"]["fps_ms_20k"]["measured"]["quick"] is True
+    assert saved["started"] == first["started"]
+    merged = (tmp_path / "benchmarks.md").read_text().splitlines()
+    rows = [line.split("`")[1] for line in merged if line.startswith("| `")]
+    described = [line.split("`")[1] for line in merged if line.startswith("- `")]
+    assert rows == described == ["infer_ms_per_object", "fps_ms_20k", "cpu_variant_wall_s"]
+    assert [line for line in merged if "fps_ms_20k" not in line] == md.splitlines()
+    # merging again replaces its lines in place
+    run_all.run(["fps"], quick=True, out_dir=tmp_path, merge=True)
+    again = (tmp_path / "benchmarks.md").read_text().splitlines()
+    assert len(again) == len(merged)
+    assert [i for i, line in enumerate(again) if "fps_ms_20k" in line] == [
+        i for i, line in enumerate(merged) if "fps_ms_20k" in line
+    ]

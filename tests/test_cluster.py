@@ -3,8 +3,9 @@
 A Ray head node that runs no task, a worker node with its own run folders
 (``CLOUDPOSE_RUNS_DIR``: no disk shared for checkpoints), an MLflow server with a SQLite store
 and served artifacts. A smoke sweep of the rotation group (3 variants x 2 seeds) runs on it;
-mid-sweep the worker node is killed by its process group and a fresh node joins: Ray retries the
-lost tasks there and they continue from the checkpoints logged to MLflow, into the same runs.
+mid-sweep the worker node (its raylet, agents and workers) is killed and a fresh node joins:
+Ray retries the lost tasks there and they continue from the checkpoints logged to MLflow, into
+the same runs.
 """
 
 from __future__ import annotations
