@@ -177,3 +177,11 @@ def test_occlusion_histogram(tmp_path):
     counts = occlusion_histogram(s, png, "test")
     assert counts.tolist() == [1, 1, 0, 0, 0, 0, 0, 0, 0, 1]
     assert png.stat().st_size > 1000
+
+
+def test_real_frames_are_keyed_by_the_surfaces_that_render_their_occlusion(monkeypatch):
+    """A real frame's alone-pixel counts are rendered (synthetic and BOP frames carry theirs),
+    so the surface version that renders them is part of its key."""
+    key = cache.cache_key(REAL, "all", CFG)
+    monkeypatch.setattr(cache, "ALONE_SURFACE_VERSION", 1)
+    assert cache.cache_key(REAL, "all", CFG) != key

@@ -587,6 +587,7 @@ def export_bop(
     """
     from tqdm import tqdm
 
+    from cloudpose.data.cache import ALONE_SURFACE_VERSION
     from cloudpose.data.render import Renderer
     from cloudpose.data.ycb import YCBVideo
 
@@ -601,7 +602,10 @@ def export_bop(
         for fid in ids:
             bop_ids(fid)
     models = src.models()
-    renderer = Renderer({c: p.copy() for c, p in models.items()})
+    # the surfaces that render a real frame's occlusion counts, so both layouts give one factor
+    renderer = Renderer(
+        {c: p.copy() for c, p in models.items()}, surface_version=ALONE_SURFACE_VERSION
+    )
     (out / "models").mkdir(parents=True, exist_ok=True)
     for c, pts in models.items():
         tri = np.asarray(renderer.mesh(c).triangles)

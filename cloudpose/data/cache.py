@@ -39,6 +39,12 @@ PIPELINE_VERSION = 1
 FPS_SEED = 0
 """Seed of the FPS start points; segment s of frame f draws from (FPS_SEED, crc32(f))."""
 
+ALONE_SURFACE_VERSION = 2
+"""Surfaces (:class:`cloudpose.data.render.Renderer`) that render the object-alone pixel counts
+of the occlusion factor for frames that do not carry them (real YCB-Video): version 2 keeps the
+holes of handles, which version 1 fills (a mug's or pitcher's occlusion came out too low). Part
+of the cache key of such data only: synthetic and BOP frames carry their own counts."""
+
 
 @dataclass
 class SegmentSet:
@@ -180,7 +186,7 @@ def cache_key(
     size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
     so a large dataset is read once, not on every command.
     """
-    from cloudpose.data.layout import open_dataset
+    from cloudpose.data.layout import detect_layout, open_dataset
 
     root = Path(root)
     ds = open_dataset(root)
@@ -200,6 +206,9 @@ def cache_key(
     h.update(json.dumps(_settings(cfg), sort_keys=True).encode())
     h.update(json.dumps(frames).encode())
     h.update("".join(digests[: len(files)]).encode())
+    if detect_layout(root) == "ycb" and not (root / "synth.json").is_file():
+        # real YCB-Video frames carry no alone-pixel counts: they are rendered, by these surfaces
+        h.update(f"alone-surfaces:{ALONE_SURFACE_VERSION};".encode())
     # the models feed the rendered alone-pixel counts
     model_digest = iter(digests[len(files) :])
     for name, p in zip(ds.classes, models, strict=True):
@@ -283,7 +292,10 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
                     from cloudpose.data.render import Renderer
 
                     # copies: the reader's arrays are read-only, Open3D wants writeable ones
-                    _worker["renderer"] = Renderer({c: p.copy() for c, p in ds.models().items()})
+                    _worker["renderer"] = Renderer(
+                        {c: p.copy() for c, p in ds.models().items()},
+                        surface_version=ALONE_SURFACE_VERSION,
+                    )
                 renderer = _worker["renderer"]
         rng = np.random.default_rng([settings["fps_seed"], zlib.crc32(fid.encode())])
         segs = extract_segments(
