@@ -57,13 +57,13 @@ from PIL import Image
 from cloudpose.conventions import resource_path
 from cloudpose.data.ycb import (
     Frame,
+    ModelPointSets,
     _check_cls_ids,
     _check_K,
     _check_poses,
     _open_png,
     _warn_no_depth,
     load_classes,
-    load_model_points,
     read_color_png,
     read_depth_png,
 )
@@ -264,7 +264,7 @@ def _numbers(entry: dict, key: str, n: int, where: str) -> np.ndarray:
     return v
 
 
-class BOPYcbv:
+class BOPYcbv(ModelPointSets):
     """A dataset root in the BOP ``ycbv`` layout (module doc), read into YCB-Video frames.
 
     The same interface as :class:`~cloudpose.data.ycb.YCBVideo` (``classes``, ``models_root``,
@@ -290,24 +290,6 @@ class BOPYcbv:
         self.degenerate_counts: Counter[str] = Counter()
 
     # ---------------------------------------------------------------- models
-
-    def _check_cls(self, cls_id: int) -> int:
-        if not 1 <= int(cls_id) <= len(self.classes):
-            raise ValueError(f"class id {cls_id} out of range, expected 1..{len(self.classes)}")
-        return int(cls_id)
-
-    def model_points(self, cls_id: int) -> np.ndarray:
-        """(P, 3) float64 toolbox model points of class ``cls_id`` (metres, toolbox frame)."""
-        c = self._check_cls(cls_id)
-        if c not in self._points:
-            pts = load_model_points(self.models_root / self.classes[c - 1] / "points.xyz")
-            pts.setflags(write=False)
-            self._points[c] = pts
-        return self._points[c]
-
-    def models(self) -> dict[int, np.ndarray]:
-        """Model points of every class: {class id: (P, 3) float64 metres}."""
-        return {c: self.model_points(c) for c in range(1, len(self.classes) + 1)}
 
     def model_files(self) -> list[Path]:
         """Every class's model point file (for content keys)."""

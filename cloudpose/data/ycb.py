@@ -497,7 +497,37 @@ def write_frame(
 # --------------------------------------------------------------------------- dataset
 
 
-class YCBVideo:
+class ModelPointSets:
+    """The toolbox model point sets of a dataset's classes, read once each: what a dataset
+    reader (:class:`YCBVideo`, :class:`cloudpose.data.bop.BOPYcbv`) shares. Needs ``classes``
+    (names, class id = index + 1), ``models_root`` (``NAME/points.xyz`` below it) and an empty
+    dict ``_points``."""
+
+    classes: list[str]
+    models_root: Path
+    _points: dict[int, np.ndarray]
+
+    def _check_cls(self, cls_id: int) -> int:
+        if not 1 <= int(cls_id) <= len(self.classes):
+            raise ValueError(f"class id {cls_id} out of range, expected 1..{len(self.classes)}")
+        return int(cls_id)
+
+    def model_points(self, cls_id: int) -> np.ndarray:
+        """(P, 3) float64 model points (metres, the toolbox's model frame) of class ``cls_id``
+        (cached, read-only)."""
+        c = self._check_cls(cls_id)
+        if c not in self._points:
+            pts = load_model_points(self.models_root / self.classes[c - 1] / "points.xyz")
+            pts.setflags(write=False)
+            self._points[c] = pts
+        return self._points[c]
+
+    def models(self) -> dict[int, np.ndarray]:
+        """Model points of every class: {class id: (P, 3) float64 metres}."""
+        return {c: self.model_points(c) for c in range(1, len(self.classes) + 1)}
+
+
+class YCBVideo(ModelPointSets):
     """A dataset root in the YCB-Video layout (real or synthetic).
 
     Args:
@@ -529,24 +559,6 @@ class YCBVideo:
             self.models_root = resource_path("models")
         self._points: dict[int, np.ndarray] = {}
         self.degenerate_counts: Counter[str] = Counter()
-
-    def _check_cls(self, cls_id: int) -> int:
-        if not 1 <= int(cls_id) <= len(self.classes):
-            raise ValueError(f"class id {cls_id} out of range, expected 1..{len(self.classes)}")
-        return int(cls_id)
-
-    def model_points(self, cls_id: int) -> np.ndarray:
-        """(P, 3) float64 model points (metres, model frame) of class ``cls_id`` (cached)."""
-        c = self._check_cls(cls_id)
-        if c not in self._points:
-            pts = load_model_points(self.models_root / self.classes[c - 1] / "points.xyz")
-            pts.setflags(write=False)
-            self._points[c] = pts
-        return self._points[c]
-
-    def models(self) -> dict[int, np.ndarray]:
-        """Model points of every class: {class id: (P, 3) float64 metres}."""
-        return {c: self.model_points(c) for c in range(1, len(self.classes) + 1)}
 
     def image_set(self, name: str) -> list[str]:
         """Frame ids "SEQ/FRAME" of a split: ``image_sets/NAME.txt``, ``keyframe.txt`` for
