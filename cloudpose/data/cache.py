@@ -186,7 +186,8 @@ def cache_key(
     size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
     so a large dataset is read once, not on every command.
     """
-    from cloudpose.data.layout import detect_layout, open_dataset
+    from cloudpose.data.layout import open_dataset
+    from cloudpose.data.ycb import YCBVideo
 
     root = Path(root)
     ds = open_dataset(root)
@@ -206,7 +207,7 @@ def cache_key(
     h.update(json.dumps(_settings(cfg), sort_keys=True).encode())
     h.update(json.dumps(frames).encode())
     h.update("".join(digests[: len(files)]).encode())
-    if detect_layout(root) == "ycb" and not (root / "synth.json").is_file():
+    if isinstance(ds, YCBVideo) and not (root / "synth.json").is_file():
         # real YCB-Video frames carry no alone-pixel counts: they are rendered, by these surfaces
         h.update(f"alone-surfaces:{ALONE_SURFACE_VERSION};".encode())
     # the models feed the rendered alone-pixel counts
