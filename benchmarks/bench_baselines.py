@@ -34,7 +34,7 @@ from benchmarks.common import quick_main
 from cloudpose.baselines import METHODS, NotRegistered, make
 from cloudpose.conventions import resource_path
 from cloudpose.data.models import ModelIndex
-from cloudpose.data.render import load_packaged_models
+from cloudpose.data.surfaces import load_packaged_models
 from cloudpose.data.ycb import load_classes
 from cloudpose.metrics import rotation_error_deg
 from cloudpose.models.inference import fold_for_inference

@@ -25,7 +25,7 @@ from cloudpose.data.bop import (
 )
 from cloudpose.data.cache import segments_for
 from cloudpose.data.layout import describe_split, detect_layout, open_dataset
-from cloudpose.data.render import load_packaged_models
+from cloudpose.data.surfaces import load_packaged_models
 from cloudpose.data.ycb import YCBVideo
 
 REAL = Path(__file__).parent / "data" / "ycb_real"

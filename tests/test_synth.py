@@ -253,12 +253,12 @@ def test_frames_of_another_renderer_raise(small_root, tmp_path, monkeypatch):
     import json
     import shutil
 
-    from cloudpose.data import render
+    from cloudpose.data import surfaces
 
     root = tmp_path / "copy"
     shutil.copytree(small_root, root)
-    assert json.loads((root / "synth.json").read_text())["surfaces"] == render.surface_settings(2)
-    monkeypatch.setattr(render, "SURFACE_VERSION", render.SURFACE_VERSION + 1)
+    assert json.loads((root / "synth.json").read_text())["surfaces"] == surfaces.surface_settings(2)
+    monkeypatch.setattr(surfaces, "SURFACE_VERSION", surfaces.SURFACE_VERSION + 1)
     with pytest.raises(ValueError, match=r"synth\.json.*surfaces"):
         synth.synthesize(root, 2, 1, seed=3, workers=1, progress=False)
     # a synth.json from before the key existed is refused too, and says why
@@ -329,14 +329,14 @@ def frame_digest(f) -> str:
 
 
 def test_version1_frames_are_byte_identical():
-    from cloudpose.data import render
+    from cloudpose.data import surfaces
 
     gen = synth.frames._generator(1)
     for (split, i, seed, uniform), digest in V1_FRAME_DIGESTS.items():
         f = synth.generate_frame(split, i, seed, uniform_rotation=uniform, generator=gen, version=1)
         assert frame_digest(f) == digest, (split, i, seed, uniform)
     # what synth.json records for version 1 (a root made before versions existed resumes)
-    assert render.surface_settings(1) == "(1, (1.0, 2.0, 4.0, 8.0), 8.0, 30.0, 0.001)"
+    assert surfaces.surface_settings(1) == "(1, (1.0, 2.0, 4.0, 8.0), 8.0, 30.0, 0.001)"
 
 
 def test_versions_never_share_a_root(small_root, tmp_path):

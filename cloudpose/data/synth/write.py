@@ -99,7 +99,7 @@ def _clean_staging(root: Path) -> None:
 
 
 def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, version: int) -> None:
-    from cloudpose.data.render import surface_settings
+    from cloudpose.data.surfaces import surface_settings
 
     # Frames depend on the generator and on the rendered surfaces: both versions are recorded,
     # so frames made by another generator or renderer are never mixed on resume.
