@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -107,3 +108,37 @@ def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
         load_settings("fpfh").with_overrides({"voxl": 1})
     with pytest.raises(ValueError, match="expected test or val"):
         run_baseline("fpfh", "smoke", split="train", project_dir=proj)
+
+
+def test_a_stopped_run_resumes_where_it_stopped_with_the_same_poses(smoke_project, monkeypatch):
+    """Stopped after 3 segments (the saved estimates are kept), the next call estimates only
+    the rest and gives the same table as a run that went through; the file goes once logged."""
+    from cloudpose.baselines import fpfh, run
+
+    proj, _ = smoke_project
+    monkeypatch.setattr(run, "SAVE_EVERY_S", 0.0)
+    straight = run.run_baseline(
+        "fpfh", "smoke", 2, project_dir=proj, limit=6, icp=False, progress=False, log=False
+    )
+    real = fpfh.FPFHEstimator.estimate
+    calls = []
+
+    def stop_after_three(self, points, cls_id):
+        calls.append(cls_id)
+        if len(calls) > 3:
+            raise KeyboardInterrupt
+        return real(self, points, cls_id)
+
+    monkeypatch.setattr(fpfh.FPFHEstimator, "estimate", stop_after_three)
+    with pytest.raises(KeyboardInterrupt):
+        run.run_baseline("fpfh", "smoke", 2, project_dir=proj, limit=6, icp=False, progress=False)
+    saved = list((proj / "runs" / "baseline-fpfh" / "smoke").glob("*/progress.npz"))
+    assert len(saved) == 1 and np.load(saved[0])["done"].sum() == 3
+    calls.clear()
+    resumed = run.run_baseline(
+        "fpfh", "smoke", 2, project_dir=proj, limit=6, icp=False, progress=False
+    )
+    assert len(calls) == 3  # only the segments left
+    cols = ["net_ads", "net_rot_err_deg", "net_trans_err", "miss"]
+    pd.testing.assert_frame_equal(resumed.table[cols], straight.table[cols])
+    assert not saved[0].exists() and resumed.run_id

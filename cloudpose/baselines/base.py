@@ -82,7 +82,14 @@ class PoseEstimate:
 
 
 class Estimator(Protocol):
-    """A pose estimator for the models it was built with."""
+    """A pose estimator for the models it was built with.
+
+    ``calls`` counts the estimates that drew random numbers so far; each draw is seeded from
+    the estimator's seed and this count, so a run that is stopped and resumed with the count
+    restored gives the same poses as one that ran through.
+    """
+
+    calls: int
 
     def estimate(self, points: np.ndarray, cls_id: int) -> PoseEstimate:
         """Pose of class ``cls_id`` from its observed segment (N, 3), camera frame, metres."""

@@ -36,7 +36,7 @@ class FPFHEstimator:
     ) -> None:
         self.settings = settings
         self.seed = int(seed)
-        self._calls = 0
+        self.calls = 0  # RANSAC runs so far: the seed of the next is derived from it
         self._models = {int(c): np.asarray(m, dtype=np.float64) for c, m in models_by_class.items()}
         self._prepared: dict[int, tuple] = {}
 
@@ -78,8 +78,8 @@ class FPFHEstimator:
                 f"segment of class {cls_id}: {len(seg.points)} points after "
                 f"the {s['voxel']} m voxel grid, need 3"
             )
-        self._calls += 1
-        o3d.utility.random.seed(self.seed * 1_000_003 + self._calls)
+        self.calls += 1
+        o3d.utility.random.seed(self.seed * 1_000_003 + self.calls)
         d = s["ransac_distance"]
         res = reg.registration_ransac_based_on_feature_matching(
             model,

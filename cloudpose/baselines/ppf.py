@@ -61,6 +61,7 @@ class PPFEstimator:
     ) -> None:
         self.settings = settings
         self.seed = int(seed)
+        self.calls = 0  # draws no random numbers: kept for the common interface
         self._models = {int(c): np.asarray(m, dtype=np.float64) for c, m in models_by_class.items()}
         self._detectors: dict[int, object] = {}
 

@@ -7,6 +7,12 @@ seed{S}`` and tagged like a training run (``variant`` = ``baseline-{method}``, `
 ``seed``, ``data``, ``config`` = a hash of the settings), so the reports find it beside the
 networks and leave out runs of other settings. Every call computes and logs a new run; the
 reports take the newest per seed.
+
+A long run (point-pair features take about a second per segment) loses nothing when it is
+stopped: the estimates so far are saved every :data:`SAVE_EVERY_S` seconds to
+``runs/baseline-{method}/{preset}/seed{S}-{data}-{settings}[-{split}-{limit}]/progress.npz``,
+and the next call with the same data, settings, split and subsample continues from them. The
+file is removed once the run is logged, so a later call computes afresh.
 """
 
 from __future__ import annotations
@@ -22,8 +28,10 @@ from tqdm.auto import tqdm
 from cloudpose import tracking
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import NotRegistered, settings_fingerprint
+from cloudpose.files import atomic_write
 
 GROUP = "baselines"
+SAVE_EVERY_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -43,6 +51,61 @@ def subsample(n: int, limit: int | None) -> np.ndarray:
     if limit < 1:
         raise ValueError(f"--limit {limit}: expected a positive number of instances")
     return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
+
+
+def progress_path(
+    project_dir: Path,
+    method: str,
+    preset: str,
+    seed: int,
+    data_key: str,
+    settings_fp: str,
+    split: str = "test",
+    limit: int | None = None,
+) -> Path:
+    """Where a run of these data, settings, split and subsample keeps its partial estimates."""
+    name = f"seed{seed}-{data_key}-{settings_fp[:8]}"
+    if split != "test" or limit is not None:
+        name += f"-{split}-{limit or 'all'}"
+    return project_dir / "runs" / f"baseline-{method}" / preset / name / "progress.npz"
+
+
+class _Progress:
+    """Per-instance estimates of one baseline run, saved atomically now and then.
+
+    ``done[i]`` says instance ``i`` was attempted; ``ok[i]`` that it was registered (then
+    ``R[i]``, ``t[i]`` hold its pose); ``calls`` is the estimator's random-draw count, restored
+    on resuming. A saved file of another instance count is ignored.
+    """
+
+    def __init__(self, path: Path, n: int) -> None:
+        self.path = path
+        self.R = np.tile(np.eye(3), (n, 1, 1))
+        self.t = np.zeros((n, 3))
+        self.done = np.zeros(n, dtype=bool)
+        self.ok = np.zeros(n, dtype=bool)
+        self.seconds = 0.0
+        self.calls = 0
+        self._saved_at = time.monotonic()
+        if path.is_file():
+            with np.load(path) as f:
+                if len(f["done"]) == n:
+                    self.R, self.t = f["R"].copy(), f["t"].copy()
+                    self.done, self.ok = f["done"].copy(), f["ok"].copy()
+                    self.seconds = float(f["seconds"])
+                    self.calls = int(f["calls"])
+
+    def save(self, force: bool = False) -> None:
+        if not force and time.monotonic() - self._saved_at < SAVE_EVERY_S:
+            return
+        arrays = dict(
+            R=self.R, t=self.t, done=self.done, ok=self.ok, seconds=self.seconds, calls=self.calls
+        )
+        atomic_write(self.path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
+        self._saved_at = time.monotonic()
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def run_baseline(
@@ -87,21 +150,49 @@ def run_baseline(
         pool = data.train.subset(split_frames(data.train.frame_id, cfg.train.val_fraction))
     segs = pool.subset(subsample(len(pool), limit))
     estimator = make(method, models, settings, seed=seed)
-    R = np.tile(np.eye(3), (len(segs), 1, 1))
-    t = np.zeros((len(segs), 3))
-    ok = np.asarray(segs.valid, dtype=bool).copy()
-    seconds = 0.0
-    for i in tqdm(np.flatnonzero(ok), disable=not progress, desc=method, unit="obj"):
+    state = _Progress(
+        progress_path(
+            project_dir,
+            method,
+            preset,
+            seed,
+            data.key,
+            settings_fingerprint(settings),
+            split,
+            limit,
+        ),
+        len(segs),
+    )
+    estimator.calls = state.calls
+    todo = np.flatnonzero(np.asarray(segs.valid, dtype=bool))
+    left = todo[~state.done[todo]]
+    if len(left) < len(todo):
+        print(f"{method}: resuming from {state.path} ({len(todo) - len(left)} of {len(todo)} done)")
+    bar = tqdm(
+        left,
+        initial=len(todo) - len(left),
+        total=len(todo),
+        disable=not progress,
+        desc=method,
+        unit="obj",
+    )
+    for i in bar:
         k = int(min(segs.count[i], segs.points.shape[1]))
         t0 = time.perf_counter()
         try:
             pose = estimator.estimate(segs.points[i, :k], int(segs.cls_id[i]))
+            state.R[i], state.t[i] = pose.R, pose.t
+            state.ok[i] = True
         except NotRegistered:
-            ok[i] = False
-            continue
+            pass
         finally:
-            seconds += time.perf_counter() - t0
-        R[i], t[i] = pose.R, pose.t
+            state.seconds += time.perf_counter() - t0
+        state.done[i] = True
+        state.calls = estimator.calls
+        state.save()
+    state.save(force=True)
+    R, t, seconds = state.R, state.t, state.seconds
+    ok = np.asarray(segs.valid, dtype=bool) & state.ok
     n_valid = int(np.sum(segs.valid))
     failures = n_valid - int(ok.sum())
     segs.valid = ok  # a segment the method could not register is a miss
@@ -135,6 +226,7 @@ def run_baseline(
         if log
         else None
     )
+    state.remove()
     return BaselineOutcome(table, metrics, run_id, failures)
 
 
