@@ -62,6 +62,7 @@ from cloudpose.data.synth.frames import (
     frame_id,
     generate_frame,
 )
+from cloudpose.data.synth.resting import RestingPoses, resting_poses
 from cloudpose.data.synth.scenes import (
     CAMERA_DISTANCE,
     CAMERA_ELEVATION_DEG,
@@ -71,10 +72,8 @@ from cloudpose.data.synth.scenes import (
     N_OBJECTS,
     STACK_SHARE,
     Plane,
-    RestingPoses,
     Scene,
     look_at_camera,
-    resting_poses,
     sample_floating_scene,
     sample_table_scene,
     uniform_rotations,

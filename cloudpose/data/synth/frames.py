@@ -8,13 +8,13 @@ from typing import NamedTuple
 import numpy as np
 
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
+from cloudpose.data.synth.resting import resting_poses
 from cloudpose.data.synth.scenes import (
     MIN_VISIBLE_PIXELS,
     N_OBJECTS,
     STACK_SHARE,
     Scene,
     _random_rotations,
-    resting_poses,
     sample_floating_scene,
     sample_table_scene,
     uniform_rotations,
