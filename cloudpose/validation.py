@@ -1,10 +1,10 @@
 """Validation during training: pose accuracy without ICP, and BatchNorm statistics.
 
 :func:`validate` measures a network in eval mode on held-out (or training) segments: the loss,
-ADD-S AUC, median errors and hit rates. Eval mode normalises with BatchNorm's running statistics,
-so :func:`recalibrate_bn` re-estimates them on training batches before every validation, and
+ADS AUC, median errors and hit rates. Eval mode normalises with BatchNorm's running statistics:
+:func:`recalibrate_bn` re-estimates them on training batches (``train.bn_recalibrate``), and
 :func:`batch_stats_rotation_error` measures the same network with batch statistics for
-comparison. :func:`cloudpose.train.train` calls all three at the end of every epoch.
+comparison. :func:`cloudpose.train.train` calls them at the end of every epoch.
 """
 
 from __future__ import annotations
