@@ -2,6 +2,7 @@
 
 - :mod:`cloudpose.report.runs`: which runs a report is made of.
 - :mod:`cloudpose.report.stats`: mean ± std over seeds, differences with a 95% t-interval.
+- :mod:`cloudpose.report.formats`: a table as Markdown, LaTeX and CSV; the provenance line.
 - :mod:`cloudpose.report.tables`: Tables I-IV (Markdown, LaTeX, CSV), the paper's beside ours.
 - :mod:`cloudpose.report.claims`: every difference the paper claims, with a verdict.
 - :mod:`cloudpose.report.plots`: occlusion, accuracy-threshold, training and rotation figures.

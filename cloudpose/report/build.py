@@ -26,9 +26,9 @@ from cloudpose import tracking
 from cloudpose.config import get_group, groups
 from cloudpose.report import plots, segmentation
 from cloudpose.report.claims import ClaimResult, claims_frame, claims_markdown, evaluate_claims
+from cloudpose.report.formats import Provenance
 from cloudpose.report.runs import RunSet, load_runs
 from cloudpose.report.tables import (
-    Provenance,
     table1_overall,
     table2_per_class,
     table3_shared_layers,

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 import pandas as pd
 
 from cloudpose.config import get_group
+from cloudpose.report.formats import Provenance
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import MIN_SEEDS, UNRESOLVED, Difference, difference
-from cloudpose.report.tables import METRIC_LABELS, Provenance, paper_table
+from cloudpose.report.tables import METRIC_LABELS, paper_table
 
 
 @dataclass(frozen=True)

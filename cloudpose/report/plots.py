@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.ticker import MaxNLocator
 
-from cloudpose.report.tables import Provenance
+from cloudpose.report.formats import Provenance
 
 OCCLUSION_EDGES = np.linspace(0.0, 1.0, 11)
 """Edges of the 10%-wide occlusion bins, as fractions."""

@@ -26,9 +26,10 @@ import pandas as pd
 from cloudpose.data.masks import DEGRADATIONS
 from cloudpose.metrics import fraction_below, voc_ap_auc
 from cloudpose.report import plots
+from cloudpose.report.formats import Provenance, Table
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import format_mean_std, mean_std
-from cloudpose.report.tables import METRIC_LABELS, Provenance, Table, paper_table
+from cloudpose.report.tables import METRIC_LABELS, paper_table
 
 __all__ = [
     "GROUP",
