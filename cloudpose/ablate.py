@@ -1,5 +1,8 @@
 """The ablation runner: train and evaluate every variant of a group over seeds, then report.
 
+The runner (:func:`ensure_runs`) and the suites built on it stay in one file over ~450 lines on
+purpose: each suite is the runner plus its reports, with the runner's skip rule and log lines.
+
 For each member variant and seed, a run that already finished *and* was evaluated in MLflow for
 the same variant, preset, seed, data fingerprint and config is skipped; anything else is trained
 (:func:`cloudpose.train.train` resumes an interrupted run from its checkpoint) and evaluated
