@@ -25,10 +25,10 @@ GENERATOR_VERSIONS = (1, 2)
 """The generators frames can be made with (``DataConfig.synth_version``; stored in
 ``synth.json``). A version's frames never change; a change that alters frames is a new version.
 
-1. Surfaces that close through-holes (render surface version 1), the Kinect noise model with
+1. Surfaces that close through-holes (surface version 1), the Kinect noise model with
    edge and random dropout (:func:`~cloudpose.data.synth.sensor.add_sensor_noise`), objects
    only on the table.
-2. Surfaces that keep through-holes (render surface version 2); on object pixels missing depth
+2. Surfaces that keep through-holes (surface version 2); on object pixels missing depth
    fitted to real frames (:func:`~cloudpose.data.synth.sensor.add_sensor_noise_v2`); a share
    of objects resting on another (:data:`~cloudpose.data.synth.scenes.STACK_SHARE`); floating
    rotations from scipy's sampler.
