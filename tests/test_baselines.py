@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from cloudpose.baselines import METHODS, NotRegistered, load_settings, make
 from cloudpose.conventions import resource_path
-from cloudpose.data.render import load_packaged_models
+from cloudpose.data.surfaces import load_packaged_models
 from cloudpose.data.ycb import load_classes
 from cloudpose.metrics import rotation_error_deg
 
