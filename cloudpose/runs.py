@@ -52,6 +52,7 @@ __all__ = [
     "resolve_run_id",
     "restore_run_folder",
     "run_dir",
+    "run_folder",
     "run_has_config",
     "run_name",
     "write_info",
@@ -96,12 +97,20 @@ def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | 
     return own.fingerprint() == fingerprint
 
 
-def run_dir(cfg: Config, data_key: str, project_dir: Path) -> Path:
-    """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{config[:8]}`` under the project folder
-    (under ``$CLOUDPOSE_RUNS_DIR`` instead of ``runs/`` when that is set)."""
-    name = f"seed{cfg.seed}-{data_key[:10]}-{cfg.fingerprint()[:8]}"
+def run_folder(
+    variant: str, preset: str, seed: int, data_key: str, settings_key: str, project_dir: Path
+) -> Path:
+    """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{settings[:8]}`` under the project folder
+    (under ``$CLOUDPOSE_RUNS_DIR`` instead of ``runs/`` when that is set): the folder of a
+    training run (:func:`run_dir`) or of a baseline run (its settings' hash as the key)."""
+    name = f"seed{seed}-{data_key[:10]}-{settings_key[:8]}"
     root = Path(os.environ.get(RUNS_DIR_ENV) or project_dir / "runs")
-    return root / cfg.variant / cfg.preset / name
+    return root / variant / preset / name
+
+
+def run_dir(cfg: Config, data_key: str, project_dir: Path) -> Path:
+    """The run folder of ``cfg`` trained on data ``data_key`` (:func:`run_folder`)."""
+    return run_folder(cfg.variant, cfg.preset, cfg.seed, data_key, cfg.fingerprint(), project_dir)
 
 
 def read_info(folder: Path) -> dict[str, Any]:

@@ -157,7 +157,7 @@ def test_a_stopped_run_resumes_where_it_stopped_with_the_same_poses(smoke_projec
     monkeypatch.setattr(fpfh.FPFHEstimator, "estimate", stop_after_three)
     with pytest.raises(KeyboardInterrupt):
         run.run_baseline("fpfh", "smoke", 2, project_dir=proj, limit=6, icp=False, progress=False)
-    saved = list((proj / "runs" / "baseline-fpfh" / "smoke").glob("*/progress.npz"))
+    saved = list((proj / "runs" / "baseline-fpfh" / "smoke").rglob("progress.npz"))
     assert len(saved) == 1 and np.load(saved[0])["done"].sum() == 3
     calls.clear()
     resumed = run.run_baseline(

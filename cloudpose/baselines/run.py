@@ -10,7 +10,7 @@ reports take the newest per seed.
 
 A long run (point-pair features take about a second per segment) loses nothing when it is
 stopped: the estimates so far are saved every :data:`SAVE_EVERY_S` seconds to
-``runs/baseline-{method}/{preset}/seed{S}-{data}-{settings}[-{split}-{limit}]/progress.npz``,
+``runs/baseline-{method}/{preset}/seed{S}-{data}-{settings}[/{split}-{limit}]/progress.npz``,
 and the next call with the same data, settings, split and subsample continues from them. The
 file is removed once the run is logged, so a later call computes afresh.
 """
@@ -63,11 +63,15 @@ def progress_path(
     split: str = "test",
     limit: int | None = None,
 ) -> Path:
-    """Where a run of these data, settings, split and subsample keeps its partial estimates."""
-    name = f"seed{seed}-{data_key}-{settings_fp[:8]}"
+    """Where a run of these data, settings, split and subsample keeps its partial estimates:
+    ``progress.npz`` in the run folder of variant ``baseline-{method}``
+    (:func:`cloudpose.runs.run_folder`), one subfolder per other split or subsample."""
+    from cloudpose.runs import run_folder
+
+    folder = run_folder(f"baseline-{method}", preset, seed, data_key, settings_fp, project_dir)
     if split != "test" or limit is not None:
-        name += f"-{split}-{limit or 'all'}"
-    return project_dir / "runs" / f"baseline-{method}" / preset / name / "progress.npz"
+        folder = folder / f"{split}-{limit or 'all'}"
+    return folder / "progress.npz"
 
 
 class _Progress:
