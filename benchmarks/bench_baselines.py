@@ -77,11 +77,7 @@ def run(quick: bool = False, per_class: int | None = None) -> dict[str, Any]:
     for method in METHODS:
         t0 = time.perf_counter()
         estimators[method] = make(method, models, seed=1)
-        for cls_id in models:  # the per-model preparation happens on first use
-            try:
-                estimators[method].estimate(segs[0][0], cls_id)
-            except NotRegistered:
-                pass
+        estimators[method].prepare(models)
         train_s[method] = (time.perf_counter() - t0) / len(models)
 
     folded = fold_for_inference(_trained_like("shared-0"))

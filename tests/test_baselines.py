@@ -44,6 +44,20 @@ def test_recovers_a_known_pose_of_an_asymmetric_object(method, deg, mm):
         np.testing.assert_allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-6)
 
 
+def test_preparing_the_models_first_changes_no_pose():
+    """``prepare`` builds the per-model state a run times apart from the segments; it draws
+    no random numbers, so a prepared estimator gives the same poses as one that prepares on
+    first use."""
+    model = load_packaged_models()[DRILL]
+    obs, _, _ = _half_visible(model, 3)
+    lazy, eager = make("fpfh", {DRILL: model}, seed=4), make("fpfh", {DRILL: model}, seed=4)
+    eager.prepare([DRILL])
+    assert eager.calls == 0
+    a, b = lazy.estimate(obs, DRILL), eager.estimate(obs, DRILL)
+    np.testing.assert_array_equal(a.R, b.R)
+    np.testing.assert_array_equal(a.t, b.t)
+
+
 def test_ppf_clustering_keeps_apart_poses_of_other_rotations_at_the_same_place():
     """Point-pair voting gives one pose per reference point; the wrong ones often sit where
     the object is (right translation) with other rotations, each with more votes than any
@@ -106,6 +120,7 @@ def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project):
     assert run.info.status == "FINISHED" and run.info.run_name == "baseline-fpfh/smoke/seed1"
     assert run.data.tags["variant"] == "baseline-fpfh" and run.data.tags["subsample"] == "8"
     assert "test/ads_auc" in run.data.metrics and "test/net_ms_per_object" in run.data.metrics
+    assert run.data.metrics["test/prepare_s"] > 0  # the models' features, outside the per-object time
     assert subsample(10, 4).tolist() == [0, 3, 6, 9] and len(subsample(5, None)) == 5
 
 

@@ -91,6 +91,11 @@ class Estimator(Protocol):
 
     calls: int
 
+    def prepare(self, cls_ids) -> None:
+        """Build the per-model state of these classes now (features, hash tables), so that
+        :meth:`estimate` times only the per-segment work; otherwise it is built on first use."""
+        ...
+
     def estimate(self, points: np.ndarray, cls_id: int) -> PoseEstimate:
         """Pose of class ``cls_id`` from its observed segment (N, 3), camera frame, metres."""
         ...

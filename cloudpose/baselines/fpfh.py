@@ -65,6 +65,11 @@ class FPFHEstimator:
             self._prepared[cls_id] = self._features(self._models[cls_id], towards_camera=False)
         return self._prepared[cls_id]
 
+    def prepare(self, cls_ids) -> None:
+        """Features of these classes' models now (else on first use)."""
+        for c in cls_ids:
+            self._model(int(c))
+
     def estimate(self, points: np.ndarray, cls_id: int) -> PoseEstimate:
         """Pose model -> camera of class ``cls_id`` from its segment (N, 3), metres."""
         o3d = _o3d()
