@@ -114,8 +114,8 @@ def table1_overall(runs: RunSet) -> Table:
         f"Our rows: mean ± sample std over seeds on {runs.data_label()}; percent; "
         "AUC of the accuracy-threshold curve up to 10 cm (YCB-Video toolbox), misses included.",
         "ms/object: the estimate's wall time per object on the machine that ran it (network: "
-        "one batched forward; baselines: one registration per segment), plus ICP in the + ICP "
-        "rows. Baseline rows (`cloudpose baseline`) use the same test set and the same ICP; a "
+        "one batched forward; baselines: one registration per segment, after the one-off "
+        "per-model preparation, logged as prepare_s), plus ICP in the + ICP rows. Baseline rows (`cloudpose baseline`) use the same test set and the same ICP; a "
         "segment a baseline cannot register counts as a miss.",
     ]
     return Table(
