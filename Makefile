@@ -74,8 +74,8 @@ ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## 
 ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
 	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS)
 
-baselines: ## classical baselines (FPFH + RANSAC, point-pair features) on PRESET's test set, with and without ICP
-	$(CLI) baseline --method fpfh --preset $(PRESET)
+baselines: ## classical baselines on PRESET's test set, with and without ICP: FPFH + RANSAC (SEEDS seeds), point-pair features (deterministic: seed 1); logged runs are skipped
+	for s in $$(seq 1 $(SEEDS)); do $(CLI) baseline --method fpfh --preset $(PRESET) --seed $$s || exit 1; done
 	$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT))
 
 occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing runs; GROUP=... adds a group's variants)

@@ -603,9 +603,15 @@ def baseline(
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
     ] = None,
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
+    rerun: Annotated[
+        bool, typer.Option(help="Compute and log a new run even if this one is logged.")
+    ] = False,
     progress: ProgressOpt = True,
 ) -> None:
-    """A classical baseline on a preset's test set, with and without ICP; logs to MLflow."""
+    """A classical baseline on a preset's test set, with and without ICP; logs to MLflow.
+
+    A finished run of the same method, preset, seed, data, settings, split and subsample is
+    shown, not computed again (``--rerun`` computes a new one)."""
     from cloudpose.baselines.run import run_baseline
 
     overrides = {
@@ -622,7 +628,12 @@ def baseline(
         overrides=overrides,
         icp=icp,
         progress=progress,
+        rerun=rerun,
     )
+    if out.reused:
+        typer.echo(
+            f"baseline {method} on {preset} (seed {seed}): already logged; --rerun runs it again"
+        )
     typer.echo(
         f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
         f"{out.failures} not registered (misses); MLflow run {out.run_id}"

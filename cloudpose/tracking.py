@@ -231,6 +231,31 @@ def find_runs(
     )
 
 
+def local_artifact(uri: str, rel: str) -> Path | None:
+    """The file ``rel`` of a local (``file:`` or plain path) artifact store; None if remote."""
+    from urllib.parse import unquote, urlparse
+
+    if uri.startswith("file:"):
+        return Path(unquote(urlparse(uri).path)) / rel
+    if uri and "://" not in uri:
+        return Path(uri) / rel
+    return None
+
+
+def read_csv_artifact(client, run, rel: str):
+    """The run's CSV artifact ``rel`` as a DataFrame: read in place from a local store,
+    downloaded from a remote one."""
+    import tempfile
+
+    import pandas as pd
+
+    local = local_artifact(run.info.artifact_uri, rel)
+    if local is not None:
+        return pd.read_csv(local)
+    with tempfile.TemporaryDirectory() as tmp:
+        return pd.read_csv(client.download_artifacts(run.info.run_id, rel, tmp))
+
+
 def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:
     """MLflow ``Metric`` entities of ``metrics`` at ``step``, stamped now (for ``log_batch``);
     ``finite_only`` leaves out NaN and infinite values."""

@@ -120,8 +120,21 @@ def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project):
     assert run.info.status == "FINISHED" and run.info.run_name == "baseline-fpfh/smoke/seed1"
     assert run.data.tags["variant"] == "baseline-fpfh" and run.data.tags["subsample"] == "8"
     assert "test/ads_auc" in run.data.metrics and "test/net_ms_per_object" in run.data.metrics
-    assert run.data.metrics["test/prepare_s"] > 0  # the models' features, outside the per-object time
+    assert (
+        run.data.metrics["test/prepare_s"] > 0
+    )  # the models' features, outside the per-object time
     assert subsample(10, 4).tolist() == [0, 3, 6, 9] and len(subsample(5, None)) == 5
+
+    again = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=8, progress=False)
+    assert again.reused and again.run_id == out.run_id  # logged already: not computed again
+    pd.testing.assert_frame_equal(again.table, out.table, check_dtype=False)
+    assert again.metrics["test/ads_auc"] == pytest.approx(out.metrics["test/ads_auc"])
+    other = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=6, progress=False, icp=False)
+    assert not other.reused  # another subsample is another run
+    fresh = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=6, progress=False)
+    assert not fresh.reused  # the run of that subsample had no ICP evaluation
+    new = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=8, progress=False, rerun=True)
+    assert not new.reused and new.run_id != out.run_id
 
 
 def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):

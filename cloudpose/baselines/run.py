@@ -5,8 +5,10 @@ A segment the method cannot register (too few points, no pose found) counts as a
 errors are infinite, as for a network's miss. The run is named ``baseline-{method}/{preset}/
 seed{S}`` and tagged like a training run (``variant`` = ``baseline-{method}``, ``preset``,
 ``seed``, ``data``, ``config`` = a hash of the settings), so the reports find it beside the
-networks and leave out runs of other settings. Every call computes and logs a new run; the
-reports take the newest per seed.
+networks and leave out runs of other settings. A call whose run is already logged (same
+method, preset, seed, data, settings, split and subsample, FINISHED) returns that run instead of
+computing it again, as ``cloudpose ablate`` skips finished variants; ``rerun=True`` computes and
+logs a new one, and the reports take the newest per seed.
 
 A long run (point-pair features take about a second per segment) loses nothing when it is
 stopped: the estimates so far are saved every :data:`SAVE_EVERY_S` seconds to
@@ -42,6 +44,7 @@ class BaselineOutcome:
     metrics: dict[str, float]
     run_id: str | None
     failures: int
+    reused: bool = False  # an earlier finished run of the same call, not computed again
 
 
 def subsample(n: int, limit: int | None) -> np.ndarray:
@@ -124,6 +127,7 @@ def run_baseline(
     icp: bool = True,
     progress: bool = True,
     log: bool = True,
+    rerun: bool = False,
 ) -> BaselineOutcome:
     """Evaluate baseline ``method`` on ``preset``'s test set (or an evenly spaced ``limit`` of
     its instances) with and without ICP; log to MLflow when ``log``.
@@ -131,6 +135,9 @@ def run_baseline(
     ``split="val"`` evaluates on the validation frames held out of the training set (the same
     frames every network validates on), with metrics under ``val/``: where settings are
     chosen (``overrides`` replaces some of ``baselines.toml``'s values), never on the test set.
+
+    With ``log``, a FINISHED run of the same call is returned as it is (``reused``) unless
+    ``rerun``.
     """
     if split not in ("test", "val"):
         raise ValueError(f"--split {split!r}: expected test or val")
@@ -153,6 +160,20 @@ def run_baseline(
 
         pool = data.train.subset(split_frames(data.train.frame_id, cfg.train.val_fraction))
     segs = pool.subset(subsample(len(pool), limit))
+    if log and not rerun:
+        done = finished_baseline(
+            project_dir,
+            method,
+            preset,
+            seed,
+            data.key,
+            settings_fingerprint(settings),
+            split,
+            limit,
+            icp,
+        )
+        if done is not None:
+            return done
     estimator = make(method, models, settings, seed=seed)
     state = _Progress(
         progress_path(
@@ -238,6 +259,42 @@ def run_baseline(
     )
     state.remove()
     return BaselineOutcome(table, metrics, run_id, failures)
+
+
+def finished_baseline(
+    project_dir: Path,
+    method: str,
+    preset: str,
+    seed: int,
+    data_key: str,
+    settings_fp: str,
+    split: str = "test",
+    limit: int | None = None,
+    icp: bool = True,
+) -> BaselineOutcome | None:
+    """The newest FINISHED run of this baseline call (with its ICP evaluation when ``icp``),
+    with its instance table, or None."""
+    client = tracking.setup(project_dir)
+    extra = (
+        f"tags.config = '{settings_fp}' and tags.split = '{split}' "
+        f"and tags.subsample = '{limit or 'all'}' and tags.kind = 'baseline'"
+    )
+    runs = tracking.find_runs(
+        client,
+        variant=f"baseline-{method}",
+        preset=preset,
+        seed=seed,
+        data=data_key,
+        extra_filter=extra,
+    )
+    runs = [r for r in runs if not icp or f"{split}_icp/ads_auc" in r.data.metrics]
+    if not runs:
+        return None
+    run = runs[0]
+    table = tracking.read_csv_artifact(client, run, f"eval/{split}/instances.csv")
+    metrics = dict(run.data.metrics)
+    failures = int(metrics.get(f"{split}/failures", 0))
+    return BaselineOutcome(table, metrics, run.info.run_id, failures, reused=True)
 
 
 def _log(

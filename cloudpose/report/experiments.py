@@ -107,9 +107,7 @@ def collect(
 
 
 def _config_path(client, run) -> str:
-    from cloudpose.report.runs import _local_artifact
-
-    local = _local_artifact(run.info.artifact_uri, "config.json")
+    local = tracking.local_artifact(run.info.artifact_uri, "config.json")
     if local is not None:
         return str(local)
     import mlflow

@@ -14,7 +14,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from urllib.parse import unquote, urlparse
 
 import numpy as np
 import pandas as pd
@@ -58,7 +57,7 @@ class RunRecord:
         key = ("instances", name)
         if key not in self._cache:
             rel = f"eval/{name}/instances.csv"
-            local = _local_artifact(self.artifact_uri, rel)
+            local = tracking.local_artifact(self.artifact_uri, rel)
             if local is not None:
                 self._cache[key] = pd.read_csv(local) if local.exists() else None
             else:
@@ -81,15 +80,6 @@ def metric_history(client, run_id: str, key: str) -> pd.Series:
     hist = client.get_metric_history(run_id, key)
     s = pd.Series({m.step: m.value for m in sorted(hist, key=lambda m: m.timestamp)})
     return s.sort_index().astype(float)
-
-
-def _local_artifact(uri: str, rel: str) -> Path | None:
-    """The file ``rel`` of a local (``file:`` or plain path) artifact store; None if remote."""
-    if uri.startswith("file:"):
-        return Path(unquote(urlparse(uri).path)) / rel
-    if uri and "://" not in uri:
-        return Path(uri) / rel
-    return None
 
 
 @dataclass
