@@ -56,25 +56,63 @@ def subsample(n: int, limit: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
 
 
-def progress_path(
-    project_dir: Path,
-    method: str,
-    preset: str,
-    seed: int,
-    data_key: str,
-    settings_fp: str,
-    split: str = "test",
-    limit: int | None = None,
-) -> Path:
-    """Where a run of these data, settings, split and subsample keeps its partial estimates:
-    ``progress.npz`` in the run folder of variant ``baseline-{method}``
-    (:func:`cloudpose.runs.run_folder`), one subfolder per other split or subsample."""
-    from cloudpose.runs import run_folder
+@dataclass(frozen=True)
+class BaselineCall:
+    """What makes two calls of :func:`run_baseline` the same run: the method and its settings
+    (fingerprint), the preset, seed and data, the split and subsample, in one project."""
 
-    folder = run_folder(f"baseline-{method}", preset, seed, data_key, settings_fp, project_dir)
-    if split != "test" or limit is not None:
-        folder = folder / f"{split}-{limit or 'all'}"
-    return folder / "progress.npz"
+    project_dir: Path
+    method: str
+    preset: str
+    seed: int
+    data_key: str
+    settings_fp: str
+    split: str = "test"
+    limit: int | None = None
+
+    def progress_path(self) -> Path:
+        """Where this run keeps its partial estimates: ``progress.npz`` in the run folder of
+        variant ``baseline-{method}`` (:func:`cloudpose.runs.run_folder`), one subfolder per
+        other split or subsample."""
+        from cloudpose.runs import run_folder
+
+        folder = run_folder(
+            f"baseline-{self.method}",
+            self.preset,
+            self.seed,
+            self.data_key,
+            self.settings_fp,
+            self.project_dir,
+        )
+        if self.split != "test" or self.limit is not None:
+            folder = folder / f"{self.split}-{self.limit or 'all'}"
+        return folder / "progress.npz"
+
+    def finished(self, icp: bool = True) -> BaselineOutcome | None:
+        """The newest FINISHED run of this call (with its ICP evaluation when ``icp``), with
+        its instance table, or None."""
+        client = tracking.setup(self.project_dir)
+        extra = (
+            f"tags.config = '{self.settings_fp}' and tags.split = '{self.split}' "
+            f"and tags.subsample = '{self.limit or 'all'}' and tags.kind = 'baseline'"
+        )
+        runs = tracking.find_runs(
+            client,
+            variant=f"baseline-{self.method}",
+            preset=self.preset,
+            seed=self.seed,
+            data=self.data_key,
+            extra_filter=extra,
+        )
+        key = f"{self.split}_icp/ads_auc"
+        runs = [r for r in runs if not icp or key in r.data.metrics]
+        if not runs:
+            return None
+        run = runs[0]
+        table = tracking.read_csv_artifact(client, run, f"eval/{self.split}/instances.csv")
+        metrics = dict(run.data.metrics)
+        failures = int(metrics.get(f"{self.split}/failures", 0))
+        return BaselineOutcome(table, metrics, run.info.run_id, failures, reused=True)
 
 
 class _Progress:
@@ -160,34 +198,15 @@ def run_baseline(
 
         pool = data.train.subset(split_frames(data.train.frame_id, cfg.train.val_fraction))
     segs = pool.subset(subsample(len(pool), limit))
+    call = BaselineCall(
+        project_dir, method, preset, seed, data.key, settings_fingerprint(settings), split, limit
+    )
     if log and not rerun:
-        done = finished_baseline(
-            project_dir,
-            method,
-            preset,
-            seed,
-            data.key,
-            settings_fingerprint(settings),
-            split,
-            limit,
-            icp,
-        )
+        done = call.finished(icp)
         if done is not None:
             return done
     estimator = make(method, models, settings, seed=seed)
-    state = _Progress(
-        progress_path(
-            project_dir,
-            method,
-            preset,
-            seed,
-            data.key,
-            settings_fingerprint(settings),
-            split,
-            limit,
-        ),
-        len(segs),
-    )
+    state = _Progress(call.progress_path(), len(segs))
     estimator.calls = state.calls
     todo = np.flatnonzero(np.asarray(segs.valid, dtype=bool))
     left = todo[~state.done[todo]]
@@ -259,42 +278,6 @@ def run_baseline(
     )
     state.remove()
     return BaselineOutcome(table, metrics, run_id, failures)
-
-
-def finished_baseline(
-    project_dir: Path,
-    method: str,
-    preset: str,
-    seed: int,
-    data_key: str,
-    settings_fp: str,
-    split: str = "test",
-    limit: int | None = None,
-    icp: bool = True,
-) -> BaselineOutcome | None:
-    """The newest FINISHED run of this baseline call (with its ICP evaluation when ``icp``),
-    with its instance table, or None."""
-    client = tracking.setup(project_dir)
-    extra = (
-        f"tags.config = '{settings_fp}' and tags.split = '{split}' "
-        f"and tags.subsample = '{limit or 'all'}' and tags.kind = 'baseline'"
-    )
-    runs = tracking.find_runs(
-        client,
-        variant=f"baseline-{method}",
-        preset=preset,
-        seed=seed,
-        data=data_key,
-        extra_filter=extra,
-    )
-    runs = [r for r in runs if not icp or f"{split}_icp/ads_auc" in r.data.metrics]
-    if not runs:
-        return None
-    run = runs[0]
-    table = tracking.read_csv_artifact(client, run, f"eval/{split}/instances.csv")
-    metrics = dict(run.data.metrics)
-    failures = int(metrics.get(f"{split}/failures", 0))
-    return BaselineOutcome(table, metrics, run.info.run_id, failures, reused=True)
 
 
 def _log(
