@@ -58,10 +58,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--run", help="MLflow run name of the network (default shared-0/PRESET/seedS)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     client = tracking.setup(Path.cwd())
-    run = _newest(client, f"shared-0/{args.preset}/seed{args.seed}")
+    run = _newest(client, args.run or f"shared-0/{args.preset}/seed{args.seed}")
     ckpt = tracking.local_artifact(run.info.artifact_uri, "model.pt")
     if ckpt is None or not ckpt.is_file():
         raise SystemExit(f"run {run.info.run_id} has no local model.pt (see this script's doc)")
@@ -106,11 +107,13 @@ def main() -> None:
         rows.append(row)
     df = pd.DataFrame(rows)
     print(
-        f"# Rotation errors of shared-0 ({args.preset}, seed {args.seed}, run {run.info.run_id}) "
+        f"# Rotation errors of {run.info.run_name} (run {run.info.run_id}) "
         "against the baselines, test set, without ICP\n"
     )
     print(
-        f"_made by `python reports/diagnostics/near_symmetry.py --seed {args.seed}`; data "
+        f"_made by `python reports/diagnostics/near_symmetry.py --seed {args.seed}"
+        + (f" --run {args.run}" if args.run else "")
+        + f"`; data "
         f"{data.key[:10]}; error over {BIG_DEG:.0f} deg 'about the long axis' when its axis is "
         f"within {AXIS_DEG:.0f} deg of the model's principal axis; the baselines' columns count "
         "rotation errors modulo symmetry_\n"
