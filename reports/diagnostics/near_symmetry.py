@@ -43,12 +43,7 @@ BIG_DEG, AXIS_DEG = 20.0, 25.0
 
 
 def _newest(client, name: str):
-    exps = [e.experiment_id for e in client.search_experiments()]
-    runs = client.search_runs(
-        exps,
-        f"attributes.run_name = '{name}' and attributes.status = 'FINISHED'",
-        order_by=["attributes.start_time DESC"],
-    )
+    runs = tracking.find_runs(client, extra_filter=f"attributes.run_name = '{name}'")
     if not runs:
         raise SystemExit(f"no finished run named {name} in {tracking.tracking_uri(Path.cwd())}")
     return runs[0]
