@@ -120,9 +120,8 @@ def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project):
     assert run.info.status == "FINISHED" and run.info.run_name == "baseline-fpfh/smoke/seed1"
     assert run.data.tags["variant"] == "baseline-fpfh" and run.data.tags["subsample"] == "8"
     assert "test/ads_auc" in run.data.metrics and "test/net_ms_per_object" in run.data.metrics
-    assert (
-        run.data.metrics["test/prepare_s"] > 0
-    )  # the models' features, outside the per-object time
+    # the models' features are built once, outside the per-object time
+    assert run.data.metrics["test/prepare_s"] > 0
     assert subsample(10, 4).tolist() == [0, 3, 6, 9] and len(subsample(5, None)) == 5
 
     again = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=8, progress=False)
