@@ -25,6 +25,7 @@ PRECISIONS = ("fp32", "bf16")
 ROTATION_INPUTS = ("raw", "centred")
 SAMPLERS = ("shuffle", "class_balanced")
 LR_SCHEDULES = ("constant", "cosine")
+TRAIN_SOURCES = ("frames", "online")
 KERNELS = ("fused", "plain")
 
 
@@ -184,6 +185,18 @@ class DataConfig:
         segmentation: where segment masks come from; "gt" = ground-truth labels.
         classes: train and test on these class names only (empty = every class). Instances
             of other classes are left out of training, validation and test sets alike.
+        train_source: where training segments come from. "frames": the segment cache of the
+            rendered training frames (``train_frames``), held-out frames validate. "online":
+            synthesized fresh for every step (:mod:`cloudpose.data.synth.online`: the scenes,
+            surfaces and sensor of ``synth_version``), none seen twice; the rendered training
+            frames are then the validation set only.
+        online_epoch_segments: with "online", segments per epoch (an epoch is then only the
+            interval between validations and checkpoints).
+        online_reuse: with "online", steps each synthesized segment is used in (a divisor of
+            ``train.batch_size``): synthesis per step is ``batch_size / online_reuse``
+            segments. Use it with ``train.augment_roll_deg`` so the uses differ.
+        online_workers: with "online", synthesis processes beside training (0 = in the training
+            process); changes speed only, never the numbers.
     """
 
     root: str = ""
@@ -197,9 +210,23 @@ class DataConfig:
     outlier_radius: float = 0.2
     segmentation: str = "gt"
     classes: tuple[str, ...] = ()
+    train_source: str = "frames"
+    online_epoch_segments: int = 4096
+    online_reuse: int = 4
+    online_workers: int = 1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "classes", tuple(self.classes))
+        if self.train_source not in TRAIN_SOURCES:
+            raise ValueError(
+                f"data.train_source={self.train_source!r}: expected one of {TRAIN_SOURCES}"
+            )
+        if self.online_epoch_segments < 1 or self.online_reuse < 1 or self.online_workers < 0:
+            raise ValueError(
+                "data.online_epoch_segments and data.online_reuse must be >= 1 and "
+                f"data.online_workers >= 0; got {self.online_epoch_segments}, "
+                f"{self.online_reuse}, {self.online_workers}"
+            )
         from cloudpose.data.synth.frames import check_version
 
         check_version(self.synth_version)
@@ -264,9 +291,18 @@ class Config:
 
 _SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
 
-IMPLIED_FIELDS: dict[str, dict[str, Any]] = {"data": {"synth_version": 1}}
+IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
+    "data": {
+        "synth_version": 1,
+        "train_source": "frames",
+        "online_epoch_segments": 4096,
+        "online_reuse": 4,
+        "online_workers": 1,
+    }
+}
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
-synthetic frames of every run stored before ``data.synth_version`` existed are version 1.
+synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
+every run stored before the on-line source existed trained on frames.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 

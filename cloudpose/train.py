@@ -104,6 +104,37 @@ class Batchable:
         return Batchable(self.points[index], self.cls_id[index], self.R[index], self.t[index])
 
 
+def online_synth_kwargs(cfg: Config, train_set) -> dict:
+    """:class:`~cloudpose.data.synth.online.OnlineSynth` arguments of an on-line run: the
+    generator version, noise and segment settings of ``cfg.data``, and its classes (the class
+    ids present in the rendered training set when ``data.classes`` is set)."""
+    d = cfg.data
+    if d.root:
+        raise ValueError(
+            f"data.train_source='online' synthesizes YCB-Video scenes from the packaged models; "
+            f"it cannot be combined with data.root={d.root!r} (train on its frames instead)"
+        )
+    classes = None
+    if d.classes:
+        classes = tuple(sorted({int(c) for c in train_set.cls_id}))
+    return {
+        "version": d.synth_version,
+        "noise": d.noise,
+        "n_points": cfg.train.n_points,
+        "outlier_radius": d.outlier_radius,
+        "class_ids": classes,
+    }
+
+
+def online_probe(synth_kwargs: dict, seed: int, n: int) -> Batchable:
+    """``n`` segments drawn as the run's first step draws them (its first chunk is trained on):
+    the ``fit/`` probe of an on-line run."""
+    from cloudpose.data.synth.online import OnlineSynth
+
+    b = OnlineSynth(**synth_kwargs).batch(seed, 0, n)
+    return Batchable(*b.tensors())
+
+
 def epoch_order(fit: Batchable, sampler: str, seed: int, epoch: int, n: int) -> torch.Tensor:
     """(n,) training indices of one epoch, a function of ``(seed, epoch)`` only.
 
@@ -211,9 +242,15 @@ def train(
     if info.get("finished") and world.broadcast(final.exists()):
         return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
 
-    held = split_frames(train_set.frame_id, cfg.train.val_fraction)
-    fit = Batchable.from_segments(train_set.subset(~held), cfg.train.n_points)
-    val = Batchable.from_segments(train_set.subset(held), cfg.train.n_points)
+    online = cfg.data.train_source == "online"
+    if online:  # the rendered training frames validate; fitting draws fresh segments
+        synth_kwargs = online_synth_kwargs(cfg, train_set)
+        val = Batchable.from_segments(train_set, cfg.train.n_points)
+        fit = online_probe(synth_kwargs, cfg.seed, 256)
+    else:
+        held = split_frames(train_set.frame_id, cfg.train.val_fraction)
+        fit = Batchable.from_segments(train_set.subset(~held), cfg.train.n_points)
+        val = Batchable.from_segments(train_set.subset(held), cfg.train.n_points)
     if len(fit) < cfg.train.batch_size:
         raise ValueError(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
@@ -243,7 +280,7 @@ def train(
         state = torch.load(last, map_location=where, weights_only=True)
     state = world.broadcast(state)  # rank 0's checkpoint, on every process
     if state is not None:
-        if state["config"] != cfg.to_dict():
+        if Config.from_dict(state["config"]).to_dict() != cfg.to_dict():
             raise ValueError(f"{last} was written by another config; delete {rdir} to restart")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -270,7 +307,7 @@ def train(
             {
                 "model.parameters": str(count_parameters(model)),
                 "data.fingerprint": data_key,
-                "data.train_segments": str(len(fit)),
+                "data.train_segments": "online" if online else str(len(fit)),
                 "data.val_segments": str(len(val)),
                 "device": str(device),
             }
@@ -297,7 +334,10 @@ def train(
         )
 
     bs = cfg.train.batch_size
-    n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
+    if online:
+        n_batches = max(cfg.data.online_epoch_segments // bs, 1)
+    else:
+        n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
     steps_here, t_ckpt = 0, time.monotonic()
     model.train()
     bar = tqdm(
@@ -310,15 +350,32 @@ def train(
     )
     metrics: dict[str, float] = {}
     total_steps = cfg.train.epochs * n_batches
+    stream = None
+    if online and epoch < cfg.train.epochs:
+        from cloudpose.data.synth.online import OnlineStream
+
+        stream = OnlineStream(
+            synth_kwargs,
+            cfg.seed,
+            bs,
+            cfg.data.online_reuse,
+            total_steps,
+            start=epoch * n_batches + batch,
+            workers=cfg.data.online_workers,
+        )
     while epoch < cfg.train.epochs:
         t_epoch = time.monotonic()
-        perm = epoch_order(fit, cfg.train.sampler, cfg.seed, epoch, n_batches * bs)
+        if stream is None:
+            perm = epoch_order(fit, cfg.train.sampler, cfg.seed, epoch, n_batches * bs)
         while batch < n_batches:
             for group_ in opt.param_groups:
                 group_["lr"] = lr_at(cfg, epoch * n_batches + batch, total_steps)
-            idx = perm[batch * bs : (batch + 1) * bs]
-            pts, cls_id = fit.points[idx].to(device), fit.cls_id[idx].to(device)
-            R_gt, t_gt = fit.R[idx].to(device), fit.t[idx].to(device)
+            if stream is not None:
+                pts, cls_id, R_gt, t_gt = (x.to(device) for x in stream.next())
+            else:
+                idx = perm[batch * bs : (batch + 1) * bs]
+                pts, cls_id = fit.points[idx].to(device), fit.cls_id[idx].to(device)
+                R_gt, t_gt = fit.R[idx].to(device), fit.t[idx].to(device)
             if cfg.train.augment_roll_deg > 0:
                 g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 100_003 + batch)
                 pts, R_gt, t_gt = roll_about_optical_axis(
@@ -362,6 +419,8 @@ def train(
                 if world.is_main:
                     checkpoint()
                 bar.close()
+                if stream is not None:
+                    stream.close()
                 raise TrainingInterrupted(rdir)
         n = max(sums["n"], 1)
         metrics = {
@@ -401,6 +460,8 @@ def train(
             checkpoint()
         t_ckpt = time.monotonic()
     bar.close()
+    if stream is not None:
+        stream.close()
 
     final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
     if world.is_main:

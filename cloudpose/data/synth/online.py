@@ -1,0 +1,331 @@
+"""Training segments synthesized on line: every batch drawn fresh, none seen twice.
+
+The frame generator (:func:`~cloudpose.data.synth.frames.generate_frame`) renders whole
+640 x 480 frames, the alone-pixel counts of every object and the noise over the whole image;
+~30 segments/s here. Training needs none of the frame: only the objects' segments. This module
+draws a table scene with the same sampler (:func:`~cloudpose.data.synth.scenes.sample_table_scene`:
+resting poses, clustering, stacking, the camera ranges), casts rays only through the window
+that holds the objects' projections (the rays of the full frame, sliced: the same depth and
+labels pixel for pixel), adds the version's sensor model on that window (background planes
+included, so depth edges at object borders are where the frame has them), and cuts segments by
+the frame path itself (:func:`~cloudpose.data.segments.extract_segments` on a window frame:
+mask, back-projection, outlier filter, farthest point sampling of the first ``n_points``).
+
+Agreement with rendered frames: for one scene, a segment from here and one from the rendered
+frame of that scene are the same points (to float rounding of the shifted intrinsics) without
+noise and with the same FPS start; with noise they are draws from the same sensor model (the
+noise fields are drawn over the window instead of the whole image). What differs from the frame
+generator by design: an object with fewer than :data:`~cloudpose.data.synth.scenes.MIN_VISIBLE_PIXELS`
+visible pixels is dropped without re-rendering the scene (it still hides what is behind it),
+and no alone-pixel count is rendered (training does not use occlusion factors).
+
+Determinism: batch ``step`` of a run is a pure function of ``(seed, step)``: its scenes use
+``np.random.default_rng([seed, ONLINE_STREAM, step, k])`` for k = 0, 1, ... until the batch is
+full, so a resumed run continues with the batches an uninterrupted one would have drawn, in any
+process (:class:`OnlineStream` has worker processes make them ahead of the training loop).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
+from cloudpose.data.segments import SegmentWarning, extract_segments
+from cloudpose.data.synth.frames import _generator, check_version
+from cloudpose.data.synth.scenes import MIN_VISIBLE_PIXELS, STACK_SHARE, Scene, sample_table_scene
+from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, background_depth
+
+ONLINE_STREAM = 2
+"""Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
+scenes never repeat a rendered frame's scene."""
+
+WINDOW_PAD = 8
+"""Pixels added around the objects' window: the edge, grazing and blob terms of the sensor
+model see the background just outside an object as in a whole frame."""
+
+
+@dataclass(frozen=True)
+class SegmentBatch:
+    """Network inputs and targets of on-line segments (B of them).
+
+    Attributes:
+        points: (B, n, 3) float32 camera-frame points, metres, FPS order.
+        cls_id: (B,) int64 1-based class ids.
+        R: (B, 3, 3) float32 rotations model->camera.
+        t: (B, 3) float32 translations, metres.
+        count: (B,) int64 points of each segment after the outlier filter.
+        scenes: scenes drawn to fill the batch.
+    """
+
+    points: np.ndarray
+    cls_id: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    count: np.ndarray
+    scenes: int
+
+    def tensors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(points, cls_id, R, t)`` as torch tensors (shared memory, no copy)."""
+        return (
+            torch.from_numpy(self.points),
+            torch.from_numpy(self.cls_id),
+            torch.from_numpy(self.R),
+            torch.from_numpy(self.t),
+        )
+
+
+class OnlineSynth:
+    """Draws table scenes and cuts them into training segments (see the module doc).
+
+    Args:
+        version: generator version (:data:`~cloudpose.data.synth.frames.GENERATOR_VERSIONS`):
+            its surfaces, stacking share and sensor model.
+        noise: apply the version's sensor model.
+        n_points: points per segment (FPS prefix; the network's n).
+        outlier_radius: the segment path's outlier filter, metres.
+        class_ids: keep segments of these 1-based classes only (None: all); the other objects
+            stay in the scene as occluders.
+        K, shape: camera intrinsics and image size (YCB-Video's by default).
+    """
+
+    def __init__(
+        self,
+        version: int = 2,
+        *,
+        noise: bool = True,
+        n_points: int = 256,
+        outlier_radius: float = 0.2,
+        class_ids: tuple[int, ...] | None = None,
+        K: np.ndarray = YCB_INTRINSICS,
+        shape: tuple[int, int] = IMAGE_SHAPE,
+    ) -> None:
+        self.version = check_version(version)
+        if n_points < 1:
+            raise ValueError(f"n_points must be >= 1, got {n_points}")
+        self.noise = noise
+        self.n_points = int(n_points)
+        self.outlier_radius = float(outlier_radius)
+        self.K = np.asarray(K, dtype=np.float64)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self._gen = _generator(self.version)
+        known = set(self._gen.models)
+        if class_ids is not None:
+            unknown = sorted(set(class_ids) - known)
+            if unknown or not class_ids:
+                raise ValueError(
+                    f"on-line classes {sorted(class_ids)}: expected a non-empty subset of the "
+                    f"model ids {sorted(known)}"
+                )
+        self.class_ids = None if class_ids is None else frozenset(int(c) for c in class_ids)
+
+    # ------------------------------------------------------------------ one scene
+
+    def sample_scene(self, rng: np.random.Generator) -> Scene:
+        """A table scene as the version's frames draw them."""
+        stack = 0.0 if self.version == 1 else STACK_SHARE
+        gen = self._gen
+        return sample_table_scene(rng, gen.models, gen.resting, self.K, self.shape, stack)
+
+    def window(self, scene: Scene) -> tuple[int, int, int, int] | None:
+        """(v0, v1, u0, u1) holding every object's projection plus :data:`WINDOW_PAD`; None
+        when nothing projects into the image."""
+        poses = scene.poses()
+        H, W = self.shape
+        wins = []
+        for c, P in zip(scene.cls_ids, poses, strict=True):
+            w = self._gen.renderer._window(self.K, self.shape, c, P)
+            if w is None:
+                return (0, H, 0, W)
+            if w[0] < w[1] and w[2] < w[3]:
+                wins.append(w)
+        if not wins:
+            return None
+        w = np.array(wins)
+        return (
+            max(int(w[:, 0].min()) - WINDOW_PAD, 0),
+            min(int(w[:, 1].max()) + WINDOW_PAD, H),
+            max(int(w[:, 2].min()) - WINDOW_PAD, 0),
+            min(int(w[:, 3].max()) + WINDOW_PAD, W),
+        )
+
+    def render_window(self, scene: Scene, rng: np.random.Generator | None):
+        """The scene's window as a :class:`~cloudpose.data.ycb.Frame` (intrinsics shifted to
+        the window) and each object's visible pixel count; noise drawn from ``rng`` when the
+        source has noise. None when no object is in the image."""
+        from cloudpose.data.ycb import Frame
+
+        win = self.window(scene)
+        if win is None:
+            return None
+        v0, v1, u0, u1 = win
+        poses = scene.poses()
+        depth, index = self._gen.renderer._cast(self.K, self.shape, scene.cls_ids, poses, win)
+        Kw = self.K.copy()
+        Kw[0, 2] -= u0
+        Kw[1, 2] -= v0
+        lut = np.concatenate([scene.cls_ids, [0]]).astype(np.uint8)
+        label = lut[index]
+        visible = np.bincount(index[index >= 0], minlength=len(scene.cls_ids))
+        bg = background_depth(Kw, (v1 - v0, u1 - u0), scene.world_to_camera, scene.background)
+        clean = np.where(label > 0, depth.astype(np.float64), bg)
+        if not self.noise:
+            out = clean
+        elif self.version == 1:
+            out = add_sensor_noise(clean, rng)
+        else:
+            out = add_sensor_noise_v2(clean, label, Kw, rng)
+        frame = Frame("online", out.astype(np.float32), label, Kw, scene.cls_ids, poses, None)
+        return frame, visible
+
+    def scene_segments(self, scene: Scene, rng: np.random.Generator) -> list:
+        """Valid segments (:class:`~cloudpose.data.segments.Segment`) of the scene's objects
+        with at least :data:`MIN_VISIBLE_PIXELS` pixels, of the kept classes, in scene order."""
+        rendered = self.render_window(scene, rng)
+        if rendered is None:
+            return []
+        frame, visible = rendered
+        with warnings.catch_warnings():  # an object without a usable point is dropped below
+            warnings.simplefilter("ignore", SegmentWarning)
+            segs = extract_segments(
+                frame, n_fps=self.n_points, outlier_radius=self.outlier_radius, rng=rng
+            )
+        keep = []
+        for s, v in zip(segs, visible, strict=True):
+            if not s.valid or v < MIN_VISIBLE_PIXELS:
+                continue
+            if self.class_ids is not None and s.cls_id not in self.class_ids:
+                continue
+            keep.append(s)
+        return keep
+
+    # ------------------------------------------------------------------ batches
+
+    def batch(self, seed: int, step: int, batch_size: int) -> SegmentBatch:
+        """Batch ``step`` of a run with seed ``seed``: a pure function of its arguments."""
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        segs: list = []
+        k = 0
+        while len(segs) < batch_size:
+            rng = np.random.default_rng([int(seed), ONLINE_STREAM, int(step), k])
+            segs.extend(self.scene_segments(self.sample_scene(rng), rng))
+            k += 1
+            if k > 50 * batch_size:  # only an impossible class filter gets here
+                raise RuntimeError(
+                    f"{k} on-line scenes gave {len(segs)} segments of classes "
+                    f"{sorted(self.class_ids or [])}; expected at least {batch_size}"
+                )
+        segs = segs[:batch_size]
+        return SegmentBatch(
+            points=np.stack([s.points for s in segs]).astype(np.float32),
+            cls_id=np.array([s.cls_id for s in segs], dtype=np.int64),
+            R=np.stack([s.R for s in segs]).astype(np.float32),
+            t=np.stack([s.t for s in segs]).astype(np.float32),
+            count=np.array([s.count for s in segs], dtype=np.int64),
+            scenes=k,
+        )
+
+
+class OnlineChunks(torch.utils.data.Dataset):
+    """Chunks ``j = 0, 1, ...`` of on-line segments as a map-style dataset: chunk j is
+    ``OnlineSynth.batch(seed, j, chunk_size)``, a pure function of ``(seed, j)``, so worker
+    processes can make chunks in any order and a DataLoader hands them back in order.
+
+    Args:
+        synth_kwargs: :class:`OnlineSynth` arguments (the source is built in each process on
+            first use: an Open3D scene cannot be pickled).
+        seed: the run's seed.
+        chunk_size: segments per chunk.
+        n_chunks: chunks in the run.
+    """
+
+    def __init__(self, synth_kwargs: dict, seed: int, chunk_size: int, n_chunks: int) -> None:
+        self.synth_kwargs = dict(synth_kwargs)
+        self.seed = int(seed)
+        self.chunk_size = int(chunk_size)
+        self.n_chunks = int(n_chunks)
+        self._synth: OnlineSynth | None = None
+
+    def __len__(self) -> int:
+        return self.n_chunks
+
+    def __getitem__(self, j: int) -> tuple[torch.Tensor, ...]:
+        if self._synth is None:
+            self._synth = OnlineSynth(**self.synth_kwargs)
+        return self._synth.batch(self.seed, int(j), self.chunk_size).tensors()
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_synth": None}
+
+
+def _worker_init(_: int) -> None:
+    torch.set_num_threads(1)
+
+
+class OnlineStream:
+    """The training batches of an on-line run, step after step.
+
+    Step ``s`` is the concatenation of chunks ``s, s + 1, ..., s + reuse - 1`` (each of
+    ``batch_size / reuse`` segments): every segment is trained on in ``reuse`` consecutive steps
+    (fewer for the first chunks), each time beside other segments, and the synthesis needed per
+    step is one chunk. ``reuse`` = 1: every segment once. A turn about the optical axis per use
+    (``train.augment_roll_deg``) makes the uses different views. Batch ``s`` depends on
+    ``(seed, s)`` only: a stream started at step ``s`` (a resumed run) yields what an
+    uninterrupted one yields from there.
+
+    Args:
+        synth_kwargs: :class:`OnlineSynth` arguments.
+        seed: the run's seed.
+        batch_size: segments per step; a multiple of ``reuse``.
+        reuse: steps each segment is used in.
+        total_steps: steps of the run.
+        start: first step to yield.
+        workers: synthesis processes (0: in the training process).
+    """
+
+    def __init__(
+        self,
+        synth_kwargs: dict,
+        seed: int,
+        batch_size: int,
+        reuse: int,
+        total_steps: int,
+        start: int = 0,
+        workers: int = 1,
+    ) -> None:
+        if reuse < 1 or batch_size % reuse:
+            raise ValueError(
+                f"data.online_reuse={reuse} must be >= 1 and divide train.batch_size={batch_size}"
+            )
+        self.reuse = int(reuse)
+        self.step = int(start)
+        chunks = OnlineChunks(synth_kwargs, seed, batch_size // reuse, total_steps + reuse - 1)
+        self._loader = torch.utils.data.DataLoader(
+            chunks,
+            batch_size=None,
+            sampler=range(self.step, len(chunks)),
+            num_workers=int(workers),
+            prefetch_factor=2 * self.reuse if workers > 0 else None,
+            worker_init_fn=_worker_init if workers > 0 else None,
+            multiprocessing_context="fork" if workers > 0 else None,
+        )
+        self._it = iter(self._loader)
+        self._window: list[tuple[torch.Tensor, ...]] = []
+
+    def next(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(points, cls_id, R, t)`` of the next step."""
+        while len(self._window) < self.reuse:
+            self._window.append(next(self._it))
+        out = tuple(torch.cat(parts) for parts in zip(*self._window, strict=True))
+        self._window.pop(0)
+        self.step += 1
+        return out
+
+    def close(self) -> None:
+        """Stop the synthesis processes."""
+        self._it = None
+        self._loader = None
