@@ -11,6 +11,7 @@ load). Figures (JSON keys):
 - ``fps_ms_20k`` (``benchmarks.bench_fps``)
 - ``baseline_fpfh_ms_per_object``, ``baseline_ppf_ms_per_object`` (``benchmarks.bench_baselines``)
 - ``synth_frames_per_s``, ``prepare_frames_per_s`` (``benchmarks.bench_data``)
+- ``online_supply_ratio``: on-line synthesis against training consumption (``benchmarks.bench_online``)
 - ``cpu_variant_wall_s``: wall time of one ``cpu``-preset variant, train + evaluate. Not run by
   default (it takes minutes): read from the MLflow store (start to end of the newest finished
   ``cpu`` run; training and evaluation log into the same run), else null with a note;
@@ -61,6 +62,7 @@ FIGURES = (
     "baseline_ppf_ms_per_object",
     "synth_frames_per_s",
     "prepare_frames_per_s",
+    "online_supply_ratio",
     "cpu_variant_wall_s",
     "ray_executor_wall_s",
 )
@@ -73,6 +75,7 @@ GROUPS = {
     "fps": ("fps_ms_20k",),
     "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),
+    "online": ("online_supply_ratio",),
     "cpu_variant": ("cpu_variant_wall_s",),
     "cluster": ("ray_executor_wall_s",),
 }
@@ -152,6 +155,12 @@ def _data(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
     return bench_data.run(quick=quick)
 
 
+def _online(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_online
+
+    return bench_online.run(quick=quick)
+
+
 def _cpu_variant(quick: bool, args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, "cpu_variant", False):
         return {"cpu_variant_wall_s": cpu_variant_run(args.variant, args.seed)}
@@ -171,6 +180,7 @@ RUNNERS: dict[str, Callable[[bool, argparse.Namespace], dict[str, Any]]] = {
     "fps": _fps,
     "baselines": _baselines,
     "data": _data,
+    "online": _online,
     "cpu_variant": _cpu_variant,
     "cluster": _cluster,
 }

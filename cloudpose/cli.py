@@ -583,7 +583,11 @@ def run(
     out, ev = result.train, result.evaluation
     typer.echo(f"\nrun {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
     typer.echo(f"test set: {ev.source}; without and with ICP refinement:")
-    _print_summary(ev.metrics)
+    metrics = dict(ev.metrics)
+    if result.real is not None:
+        typer.echo(f"real development frames: {result.real.split} (4 videos, 4 scenes)")
+        metrics.update({k: v for k, v in result.real.metrics.items() if "/video/" not in k})
+    _print_summary(metrics)
     _next_steps(preset)
 
 
@@ -596,7 +600,11 @@ def baseline(
         int | None, typer.Option(help="An evenly spaced subsample of this many test instances.")
     ] = None,
     split: Annotated[
-        str, typer.Option(help="test, or val (held-out training frames: where to tune).")
+        str,
+        typer.Option(
+            help="test, val (held-out training frames: where to tune), or real (the packaged "
+            "real development frames, per video)."
+        ),
     ] = "test",
     set_: Annotated[
         list[str] | None,

@@ -86,22 +86,61 @@ def _number_lists(rows: np.ndarray, miss: np.ndarray) -> list[str]:
     return ["" if m else " ".join(f"{v:.17g}" for v in r) for r, m in zip(rows, miss, strict=True)]
 
 
-def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
-    """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
-    out: dict[str, float] = {}
+def _by_method(df: pd.DataFrame, name: str):
+    """``(metric prefix, table with the method's error columns unprefixed)`` per method."""
     for method in METHODS:
         if f"{method}_ads" not in df:
             continue
         prefix = name if method == "net" else f"{name}_icp"
-        sub = df.rename(
-            columns={
-                f"{method}_{k}": k
-                for k in ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
-            }
-        )
+        cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
+        yield prefix, df.rename(columns={f"{method}_{k}": k for k in cols})
+
+
+def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
+    """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
+    out: dict[str, float] = {}
+    for prefix, sub in _by_method(df, name):
         for key, value in flatten_summary(summarize(sub)).items():
             out[tracking.metric_key(prefix, key)] = float(value)
     return out
+
+
+def video_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
+    """Pooled metrics of each video (the ``SEQ`` of ``SEQ/FRAME``), per method, as
+    ``{name}/video/{SEQ}/{key}``: consecutive frames of a video show one scene, so a set of a
+    few videos is a few scenes and is read per video as well as pooled."""
+    out: dict[str, float] = {}
+    video = df["frame_id"].astype(str).str.split("/").str[0]
+    for prefix, sub in _by_method(df, name):
+        for seq, part in sub.groupby(video.to_numpy()):
+            for key, value in summarize(part, by_class=False)["pooled"].items():
+                out[tracking.metric_key(prefix, f"video/{seq}/{key}")] = float(value)
+    return out
+
+
+REAL_DEV = "real"
+"""Metric prefix of a run's evaluation on the packaged real development frames
+(:func:`real_dev_root`): ``real/...``, ``real_icp/...``, per video ``real/video/0000/...``."""
+
+
+def real_dev_root() -> Path:
+    """The 61 real YCB-Video frames with ground truth that ship in the package (frames
+    000001-000020 of training videos 0000-0002 and 0003/000138; 14 classes, 4 scenes), in the
+    YCB-Video layout: the sim-to-real check of every run. Test videos are not among them."""
+    from cloudpose.conventions import resource_path
+
+    return resource_path("real_dev")
+
+
+def evaluate_real(run: str, **kwargs) -> EvalOutcome:
+    """:func:`evaluate` on the real development frames (:func:`real_dev_root`, all 61), logged
+    as :data:`REAL_DEV` with per-video metrics beside the pooled ones."""
+    out = evaluate(run, data=str(real_dev_root()), frames="all", name=REAL_DEV, **kwargs)
+    per_video = video_metrics(out.table, out.name)
+    if kwargs.get("log", True) and out.run_id is not None:
+        client = tracking.setup(kwargs.get("project_dir") or Path.cwd())
+        client.log_batch(out.run_id, metrics=tracking.metric_batch(per_video, finite_only=True))
+    return dataclasses.replace(out, metrics={**out.metrics, **per_video})
 
 
 @dataclass(frozen=True)
@@ -213,8 +252,11 @@ def evaluate(
             )
         dataset = open_dataset(data)
         data_key = cache_key(data, frames, seg_cfg, memo_dir=project_dir / "data" / "cache")
+        cache_dir = project_dir / "data" / "cache"
         segs = only_classes(
-            segments_for(dataset, frames, seg_cfg, progress=progress), data, cfg.data.classes
+            segments_for(dataset, frames, seg_cfg, cache_dir=cache_dir, progress=progress),
+            data,
+            cfg.data.classes,
         )
         label = f"-{mask_source_label(masks)}" if masks else ""
         name = name or tracking.metric_key(evaluation_name(data, frames, data_key) + label)

@@ -30,6 +30,8 @@ class RunOutcome:
     train: TrainOutcome
     evaluation: EvalOutcome
     data: Prepared
+    real: EvalOutcome | None = None
+    """The evaluation on the packaged real development frames (:func:`cloudpose.evaluate.evaluate_real`)."""
 
 
 def train_run(
@@ -69,13 +71,16 @@ def train_and_evaluate(
     group: str | None = None,
     progress: bool = True,
     data: Prepared | None = None,
+    real: bool = True,
 ) -> RunOutcome:
-    """The main job for one config: data, training, evaluation on its own test set (with and
-    without ICP), all logged to the run."""
-    from cloudpose.evaluate import evaluate
+    """The main job for one config: data, training, evaluation on its own test set and (with
+    ``real``) on the real development frames, with and without ICP, all logged to the run."""
+    from cloudpose.evaluate import evaluate, evaluate_real
 
     project_dir = (project_dir or Path.cwd()).resolve()
     data = data or prepare_data(cfg.data, project_dir, progress=progress)
     out = train_run(cfg, project_dir=project_dir, group=group, progress=progress, data=data)
-    ev = evaluate(str(out.run_dir), project_dir=project_dir, progress=progress, own_data=data)
-    return RunOutcome(out, ev, data)
+    run = str(out.run_dir)
+    ev = evaluate(run, project_dir=project_dir, progress=progress, own_data=data)
+    on_real = evaluate_real(run, project_dir=project_dir, progress=progress) if real else None
+    return RunOutcome(out, ev, data, on_real)

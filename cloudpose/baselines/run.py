@@ -34,6 +34,10 @@ from cloudpose.files import atomic_write
 
 GROUP = "baselines"
 SAVE_EVERY_S = 60.0
+SPLITS = ("test", "val", "real")
+"""Where a baseline is evaluated: the preset's test set, its validation frames (where settings
+are tuned), or the packaged real development frames (:func:`cloudpose.evaluate.real_dev_root`,
+with per-video metrics)."""
 
 
 @dataclass(frozen=True)
@@ -173,16 +177,18 @@ def run_baseline(
     ``split="val"`` evaluates on the validation frames held out of the training set (the same
     frames every network validates on), with metrics under ``val/``: where settings are
     chosen (``overrides`` replaces some of ``baselines.toml``'s values), never on the test set.
+    ``split="real"`` evaluates on the real development frames, metrics under ``real/`` (and
+    per video ``real/video/SEQ/...``), as every network run's evaluation does.
 
     With ``log``, a FINISHED run of the same call is returned as it is (``reused``) unless
     ``rerun``.
     """
-    if split not in ("test", "val"):
-        raise ValueError(f"--split {split!r}: expected test or val")
+    if split not in SPLITS:
+        raise ValueError(f"--split {split!r}: expected one of {', '.join(SPLITS)}")
     from cloudpose.config import resolve
     from cloudpose.data.dataset import prepare_data
     from cloudpose.data.layout import open_dataset
-    from cloudpose.evaluate import instance_table, summary_metrics
+    from cloudpose.evaluate import instance_table, summary_metrics, video_metrics
     from cloudpose.infer import Estimates, refine_poses
 
     project_dir = (project_dir or Path.cwd()).resolve()
@@ -193,6 +199,14 @@ def run_baseline(
     models = dataset.models()
     if split == "test":
         pool = data.test
+    elif split == "real":
+        from cloudpose.data.cache import segments_for
+        from cloudpose.evaluate import real_dev_root
+
+        real = real_dev_root()
+        cache_dir = project_dir / "data" / "cache"
+        pool = segments_for(real, "all", cfg.data, cache_dir=cache_dir, progress=progress)
+        dataset = open_dataset(real)
     else:
         from cloudpose.train import split_frames
 
@@ -253,6 +267,8 @@ def run_baseline(
         t_icp = time.perf_counter() - t0
     table = instance_table(segs, est, models, dataset.classes)
     metrics = summary_metrics(table, split)
+    if split == "real":
+        metrics.update(video_metrics(table, split))
     metrics[f"{split}/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
     metrics[f"{split}/prepare_s"] = prepare_s
     if icp:

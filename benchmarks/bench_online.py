@@ -1,0 +1,131 @@
+"""On-line synthesis against the rate training consumes segments (``online_supply_ratio``).
+
+Measured in one run, on the same cores, at the ``online`` preset's settings (version 2, batch
+32, n = 256, ``online_reuse`` 4):
+
+- training: segments/s of shared-0 fused training steps at batch 32 on ready tensors
+  (all threads);
+- on-line synthesis, one process: segments/s of ``OnlineSynth.batch`` (scene, window ray cast,
+  version-2 sensor, segment path);
+- the frame path it replaces: segments/s of ``generate_frame`` + ``extract_segments`` (the
+  rendered-frame route to the same segments, one process);
+- the on-line training loop end to end: steps/s of ``OnlineStream`` with one synthesis worker
+  feeding the same training step, i.e. what a run of the preset gets here.
+
+The figure is the supply ratio ``synthesis x reuse / consumption``: >= 2 means synthesis never
+stalls training. ``reuse`` = 1 is reported beside it (every segment used once).
+
+Usage: ``python -m benchmarks.bench_online [--quick]``
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.bench_train import make_step
+from benchmarks.common import quick_main
+
+BATCH, N_POINTS, REUSE = 32, 256, 4
+
+
+def _synthesis_rate(batches: int) -> dict:
+    from cloudpose.data.synth.online import OnlineSynth
+
+    synth = OnlineSynth(2, n_points=N_POINTS)
+    synth.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels
+    t0, scenes = time.perf_counter(), 0
+    for step in range(batches):
+        scenes += synth.batch(0, step, BATCH).scenes
+    dt = time.perf_counter() - t0
+    return {"segments_per_s": batches * BATCH / dt, "ms_per_scene": 1000 * dt / scenes}
+
+
+def _frame_rate(frames: int) -> dict:
+    from cloudpose.conventions import YCB_INTRINSICS
+    from cloudpose.data.segments import extract_segments
+    from cloudpose.data.synth.frames import generate_frame
+    from cloudpose.data.ycb import Frame
+
+    generate_frame("train", 10_000, version=2)  # warm-up
+    t0, n = time.perf_counter(), 0
+    for i in range(frames):
+        f = generate_frame("train", i, version=2)
+        fr = Frame(
+            "x", f.depth.astype(np.float32), f.label, YCB_INTRINSICS, f.cls_ids, f.poses, None
+        )
+        n += len(extract_segments(fr, alone_pixels=f.alone_pixels, n_fps=N_POINTS))
+    return {"segments_per_s": n / (time.perf_counter() - t0)}
+
+
+def _train_rate(steps: int) -> dict:
+    step = make_step("shared-0", "fused", BATCH, N_POINTS)
+    for _ in range(3):
+        step()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    return {"segments_per_s": steps * BATCH / (time.perf_counter() - t0)}
+
+
+def _stream_rate(steps: int) -> dict:
+    """Steps/s of the on-line loop: one worker synthesizes, this process trains."""
+    from cloudpose.data.synth.online import OnlineStream
+
+    step = make_step("shared-0", "fused", BATCH, N_POINTS)
+    stream = OnlineStream({"version": 2, "n_points": N_POINTS}, 0, BATCH, REUSE, steps + 8)
+    for _ in range(4):
+        stream.next()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        stream.next()
+        step()  # the step's own tensors: the same work as on the streamed ones
+    dt = time.perf_counter() - t0
+    stream.close()
+    return {"steps_per_s": steps / dt, "segments_per_s": steps * BATCH / dt}
+
+
+def run(quick: bool = False) -> dict:
+    """The figure ``online_supply_ratio`` and its parts (see the module doc)."""
+    n = 2 if quick else 12
+    train = _train_rate(5 if quick else 60)
+    synth = _synthesis_rate(n)
+    frames = _frame_rate(2 if quick else 8)
+    stream = _stream_rate(4 if quick else 60)
+    threads = torch.get_num_threads()
+    ratio = synth["segments_per_s"] * REUSE / train["segments_per_s"]
+    return {
+        "online_supply_ratio": {
+            "value": ratio,
+            "unit": "x the training consumption",
+            "what": f"on-line synthesis (1 process) x reuse {REUSE} / shared-0 training "
+            f"segments/s (batch {BATCH}, n = {N_POINTS}, {threads} threads)",
+            "reference": {
+                "name": "reuse 1 (every segment once)",
+                "value": synth["segments_per_s"] / train["segments_per_s"],
+            },
+            "ratio": float(REUSE),
+            "target": ">= 2 (synthesis never stalls training)",
+            "met": bool(ratio >= 2.0),
+            "detail": {
+                "train_segments_per_s": train["segments_per_s"],
+                "online_segments_per_s": synth["segments_per_s"],
+                "online_ms_per_scene": synth["ms_per_scene"],
+                "frame_path_segments_per_s": frames["segments_per_s"],
+                "online_vs_frame_path": synth["segments_per_s"] / frames["segments_per_s"],
+                "stream_steps_per_s": stream["steps_per_s"],
+                "stream_vs_training_alone": stream["segments_per_s"] / train["segments_per_s"],
+            },
+        }
+    }
+
+
+if __name__ == "__main__":
+    quick_main(run, __doc__)

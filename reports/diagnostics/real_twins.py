@@ -1,0 +1,293 @@
+"""Real frames against their synthetic twins: is the real-data gap the poses we train on, or the
+sensor and the masks?
+
+For every frame of a real YCB-Video-layout folder (default: the 61 annotated frames of
+``cloudpose/resources/real_dev``, videos 0000-0003) the scene is rendered with our renderer
+(:class:`cloudpose.data.render.Renderer`, the surfaces of the network's generator version) at
+the ground-truth poses and intrinsics. The same network then sees each instance under these
+conditions:
+
+- ``real``: the real depth and the real label mask (what ``cloudpose evaluate --data`` sees);
+- ``twin-clean``: the rendered label; on its object pixels the rendered depth, elsewhere the
+  real frame's depth as background (so depth edges exist), no sensor noise;
+- ``twin-v1`` / ``twin-v2``: that depth through the version-1 / version-2 sensor model
+  (:func:`~cloudpose.data.synth.sensor.add_sensor_noise`, ``add_sensor_noise_v2``; the
+  noise also falls on the real background, which only matters at edges: flying pixels);
+- ``real-depth+twin-mask``: the real depth cut by the rendered label (only the mask synthetic);
+- ``twin-depth+real-mask``: the ``twin-v1`` depth cut by the real label (only the depth
+  synthetic; where the real mask reaches past the rendering the real depth remains).
+
+Segments, network, ICP and errors are the package's own (:func:`extract_segments`,
+:func:`estimate_poses`, :func:`refine_poses`, :func:`instance_table`); each segment's FPS start
+is drawn as the segment cache draws it, so ``real`` is what an evaluation on the folder gives.
+A scene table checks the twins against their frames (label IoU, depth agreement, segment
+residual to the model at the ground-truth pose), and ICP started at the ground truth shows
+the ceiling of each condition.
+
+Produced by (in the project folder that trained the run)::
+
+    python reports/diagnostics/real_twins.py --run runs/shared-0/cpu/seed1-... \\
+        > reports/diagnostics/real_twins.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import warnings
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.spatial import cKDTree
+
+from cloudpose.conventions import resource_path
+from cloudpose.data.cache import FPS_SEED, SegmentSet
+from cloudpose.data.dataset import only_classes
+from cloudpose.data.layout import open_dataset
+from cloudpose.data.render import Renderer
+from cloudpose.data.segments import extract_segments
+from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2
+from cloudpose.evaluate import instance_table
+from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
+from cloudpose.metrics.summaries import voc_ap_auc
+
+CONDITIONS = (
+    "real",
+    "twin-clean",
+    "twin-v1",
+    "twin-v2",
+    "real-depth+twin-mask",
+    "twin-depth+real-mask",
+)
+
+
+def _checkpoint(run: str) -> Path:
+    path = Path(run)
+    if path.is_dir():
+        path = path / "model.pt"
+    if not path.is_file():
+        raise SystemExit(
+            f"--run {run}: no model.pt there (expected a finished run folder "
+            "runs/VARIANT/PRESET/seedS-... or a model.pt file)"
+        )
+    return path
+
+
+def _conditions(frame, renderer: Renderer, rng: np.random.Generator) -> dict[str, tuple]:
+    """(depth (H, W) metres, label (H, W) uint8) of every condition of one real frame."""
+    r = renderer.render(frame.K, frame.depth.shape, frame.cls_ids, frame.poses)
+    obj = r.label > 0
+    clean = np.where(obj, r.depth.astype(np.float64), frame.depth.astype(np.float64))
+    v1 = add_sensor_noise(clean, rng)
+    return {
+        "real": (frame.depth, frame.label),
+        "twin-clean": (clean, r.label),
+        "twin-v1": (v1, r.label),
+        "twin-v2": (add_sensor_noise_v2(clean, r.label, frame.K, rng), r.label),
+        "real-depth+twin-mask": (frame.depth, r.label),
+        "twin-depth+real-mask": (v1, frame.label),
+    }
+
+
+def _scene_checks(frame, label_twin, depth_twin, models) -> list[dict]:
+    """Per instance: label IoU real/twin, median |real - rendered| depth (mm) where both label
+    it and both have depth, and the object's distance (GT z, m)."""
+    rows = []
+    for i, c in enumerate(frame.cls_ids):
+        a, b = frame.label == c, label_twin == c
+        both = a & b & (frame.depth > 0) & (depth_twin > 0)
+        union = (a | b).sum()
+        rows.append(
+            {
+                "frame_id": frame.frame_id,
+                "instance": i,
+                "iou": (a & b).sum() / union if union else np.nan,
+                "depth_diff_mm": 1000 * float(np.median(np.abs(frame.depth - depth_twin)[both]))
+                if both.any()
+                else np.nan,
+                "z": float(frame.poses[i, 2, 3]),
+            }
+        )
+    return rows
+
+
+def _residual_mm(segs: SegmentSet, models: dict[int, np.ndarray]) -> np.ndarray:
+    """(M,) median distance of each segment's points to the model posed at the ground truth,
+    mm (NaN for a miss): how well the observed cloud sits on the annotated pose."""
+    out = np.full(len(segs), np.nan)
+    trees = {}
+    for i in np.flatnonzero(segs.valid):
+        c = int(segs.cls_id[i])
+        trees.setdefault(c, cKDTree(models[c]))
+        k = int(min(segs.count[i], segs.points.shape[1]))
+        p = (segs.points[i, :k] - segs.t[i]) @ segs.R[i]  # camera -> model frame
+        out[i] = 1000 * float(np.median(trees[c].query(p)[0]))
+    return out
+
+
+def _summary(df: pd.DataFrame, icp: bool) -> dict:
+    return {
+        "instances": len(df),
+        "misses": int(df["miss"].sum()),
+        "ADS AUC": 100 * voc_ap_auc(df["net_ads"].to_numpy()),
+        "ADS AUC +ICP": 100 * voc_ap_auc(df["icp_ads"].to_numpy()) if icp else np.nan,
+        "rot < 10 deg (sym) %": 100 * float(np.mean(df["net_rot_sym_err_deg"] < 10)),
+        "median rot (sym) deg": float(np.median(df["net_rot_sym_err_deg"])),
+        "trans < 1 cm %": 100 * float(np.mean(df["net_trans_err"] < 0.01)),
+        "median trans mm": 1000 * float(np.median(df["net_trans_err"])),
+        "points (median)": float(np.median(df["points"])),
+    }
+
+
+def _markdown(df: pd.DataFrame, digits: dict[str, int] | None = None) -> str:
+    digits = digits or {}
+    lines = ["| " + " | ".join(df.columns) + " |", "|---|---|" + "---:|" * (len(df.columns) - 2)]
+    for row in df.itertuples(index=False):
+        cells = []
+        for col, v in zip(df.columns, row, strict=True):
+            if isinstance(v, float):
+                cells.append("-" if np.isnan(v) else f"{v:.{digits.get(col, 1)}f}")
+            else:
+                cells.append(str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", required=True, help="run folder holding model.pt, or a model.pt")
+    ap.add_argument("--data", default=str(resource_path("real_dev")), help="real dataset root")
+    ap.add_argument("--frames", default="all", help="frame list: all, keyframe or an image set")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    ap.add_argument(
+        "--surface-version", type=int, help="twin surfaces (default: the run's generator version)"
+    )
+    ap.add_argument("--icp", action=argparse.BooleanOptionalAction, default=True)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    ckpt = _checkpoint(args.run)
+    model, cfg = load_checkpoint(ckpt)
+    dataset = open_dataset(args.data)
+    frames = dataset.image_set(args.frames)
+    models = dataset.models()
+    surface = args.surface_version or cfg.data.synth_version
+    renderer = Renderer({c: p.copy() for c, p in models.items()}, surface_version=surface)
+
+    segments: dict[str, list] = {c: [] for c in CONDITIONS}
+    checks = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for fid in frames:
+            frame = dataset.frame(fid)
+            if frame.poses is None:
+                raise SystemExit(f"{args.data}: frame {fid} has no ground-truth poses")
+            rng = np.random.default_rng([args.seed, zlib.crc32(fid.encode())])
+            conds = _conditions(frame, renderer, rng)
+            checks += _scene_checks(frame, conds["twin-clean"][1], conds["twin-clean"][0], models)
+            for name, (depth, label) in conds.items():
+                twin = dataclasses.replace(frame, depth=depth.astype(np.float32), label=label)
+                segments[name] += extract_segments(
+                    twin,
+                    n_fps=cfg.data.n_fps,
+                    outlier_radius=cfg.data.outlier_radius,
+                    # the segment cache's FPS starts (cloudpose.data.cache._extract)
+                    rng=np.random.default_rng([FPS_SEED, zlib.crc32(fid.encode())]),
+                )
+    n_warn = sum(1 for w in caught if "no usable point" in str(w.message))
+    checks = pd.DataFrame(checks)
+
+    tables, ceiling = {}, {}
+    for name in CONDITIONS:
+        segs = only_classes(
+            SegmentSet.from_segments(segments[name], cfg.data.n_fps), args.data, cfg.data.classes
+        )
+        est = {"net": estimate_poses(model, segs, cfg.train.n_points)}
+        if args.icp:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                est["icp"], _ = refine_poses(segs, est["net"], models, progress=False)
+                gt = Estimates(segs.R.astype(np.float64), segs.t.astype(np.float64))
+                at_gt, _ = refine_poses(segs, gt, models, progress=False)
+            ceiling[name] = instance_table(segs, {"net": at_gt}, models, dataset.classes)
+        t = instance_table(segs, est, models, dataset.classes)
+        t["video"] = [f.split("/")[0] for f in t["frame_id"]]
+        t["residual_mm"] = _residual_mm(segs, models)
+        t["z"] = segs.t[:, 2]
+        tables[name] = t
+        # the floor check: ground truth fed as the estimate scores zero error
+        gt_err = instance_table(
+            segs,
+            {"net": Estimates(segs.R.astype(np.float64), segs.t.astype(np.float64))},
+            models,
+            dataset.classes,
+        )
+        ok = ~gt_err["miss"]
+        if not (np.max(gt_err.loc[ok, "net_ads"].to_numpy(), initial=0.0) < 1e-6):
+            raise AssertionError(f"{name}: ground truth as the estimate gives nonzero ADS")
+
+    videos = sorted(tables["real"]["video"].unique())
+    rows = []
+    for group in ["pooled", *videos]:
+        for name in CONDITIONS:
+            t = tables[name]
+            sub = t if group == "pooled" else t[t["video"] == group]
+            rows.append({"video": group, "condition": name, **_summary(sub, args.icp)})
+    table = pd.DataFrame(rows)
+
+    scene = []
+    real, twin = tables["real"], tables["twin-clean"]
+    checks["video"] = [f.split("/")[0] for f in checks["frame_id"]]
+    for group in ["pooled", *videos]:
+        sel = np.ones(len(real), bool) if group == "pooled" else (real["video"] == group).to_numpy()
+        chk = checks if group == "pooled" else checks[checks["video"] == group]
+        row = {
+            "video": group,
+            "frames": int(real.loc[sel, "frame_id"].nunique()),
+            "instances": int(sel.sum()),
+            "median object z (m)": float(np.median(real.loc[sel, "z"])),
+            "points real": float(np.median(real.loc[sel, "points"])),
+            "points twin": float(np.median(twin.loc[sel, "points"])),
+            "label IoU real/twin": float(np.nanmedian(chk["iou"])),
+            "abs depth diff (mm)": float(np.nanmedian(chk["depth_diff_mm"])),
+            "residual at GT, real (mm)": float(np.nanmedian(real.loc[sel, "residual_mm"])),
+            "residual at GT, twin (mm)": float(np.nanmedian(twin.loc[sel, "residual_mm"])),
+        }
+        if args.icp:
+            for name in ("real", "twin-clean", "twin-v2"):
+                row[f"ICP from GT, {name}: ADS AUC"] = 100 * voc_ap_auc(
+                    ceiling[name].loc[sel, "net_ads"].to_numpy()
+                )
+        scene.append(row)
+    scene = pd.DataFrame(scene)
+
+    cmd = "python reports/diagnostics/real_twins.py " + " ".join(sys.argv[1:])
+    print("# Real frames against their synthetic twins\n")
+    print(
+        f"_made by `{cmd}`; checkpoint {ckpt} ({cfg.variant}/{cfg.preset}/seed{cfg.seed}, "
+        f"generator version {cfg.data.synth_version}); data {Path(args.data).resolve()} "
+        f"({args.frames}: {len(frames)} frames); twins rendered with surface version {surface}, "
+        f"noise seed {args.seed}; {cfg.train.n_points} points per segment into the network; "
+        f"{n_warn} segments without a usable point (misses, all conditions together)._\n"
+    )
+    print("## Scenes: how far the objects are, and how well the twins match their frames\n")
+    print(
+        "Medians over instances. Label IoU: real label vs rendered label of the same instance. "
+        "Depth diff: |real - rendered| depth where both label the instance. Residual at GT: "
+        "median distance of the segment's points to the model posed at the ground truth. "
+        "ICP from GT: ICP started at the ground-truth pose (the ceiling of each condition).\n"
+    )
+    print(_markdown(scene, {"median object z (m)": 2, "label IoU real/twin": 2}))
+    print("\n## The network on each condition\n")
+    print(
+        "Rotation errors modulo each class's symmetry; translation and points per segment "
+        "without ICP; misses count as failures (infinite error).\n"
+    )
+    print(_markdown(table))
+
+
+if __name__ == "__main__":
+    main()
