@@ -125,8 +125,10 @@ class Renderer:
             self._rays[key] = camera_rays(K, shape)
         return self._rays[key]
 
-    def _cast(self, K, shape, cls_ids, poses, window=None):
-        """Cast one ray per pixel (of ``window`` = (v0, v1, u0, u1) if given).
+    def _cast(self, K, shape, cls_ids, poses, window=None, mask=None, nthreads=0):
+        """Cast one ray per pixel (of ``window`` = (v0, v1, u0, u1) if given; of the pixels
+        where ``mask``, an (h, w) bool over the window, if given: the others get no hit), with
+        ``nthreads`` threads (0: Open3D's default, every core).
 
         Returns:
             depth (h, w) float32 metres (0 = no hit) and index (h, w) int64 of the instance
@@ -143,10 +145,19 @@ class Renderer:
         if window is not None:
             v0, v1, u0, u1 = window
             d = d[v0:v1, u0:u1]
-        rays = np.concatenate([np.zeros_like(d), d], axis=-1)  # (h, w, 6) origin, direction
-        t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
-        t_hit = t["t_hit"].numpy()
-        gids = t["geometry_ids"].numpy().astype(np.int64)
+        if mask is not None:
+            dm = d[mask]
+            rays = np.concatenate([np.zeros_like(dm), dm], axis=-1)  # (m, 6)
+            t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)), nthreads=nthreads)
+            t_hit = np.full(mask.shape, np.inf, dtype=np.float32)
+            gids = np.zeros(mask.shape, dtype=np.int64)
+            t_hit[mask] = t["t_hit"].numpy()
+            gids[mask] = t["geometry_ids"].numpy()
+        else:
+            rays = np.concatenate([np.zeros_like(d), d], axis=-1)  # (h, w, 6) origin, direction
+            t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+            t_hit = t["t_hit"].numpy()
+            gids = t["geometry_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t_hit)
         depth = np.where(hit, t_hit * d[..., 2], 0.0).astype(np.float32)
         lut = np.full(max(gid_to_inst, default=0) + 1, -1, dtype=np.int64)

@@ -90,6 +90,7 @@ class OnlineSynth:
         class_ids: keep segments of these 1-based classes only (None: all); the other objects
             stay in the scene as occluders.
         K, shape: camera intrinsics and image size (YCB-Video's by default).
+        nthreads: ray-casting threads (0: every core; a synthesis worker uses 1).
     """
 
     def __init__(
@@ -102,8 +103,10 @@ class OnlineSynth:
         class_ids: tuple[int, ...] | None = None,
         K: np.ndarray = YCB_INTRINSICS,
         shape: tuple[int, int] = IMAGE_SHAPE,
+        nthreads: int = 0,
     ) -> None:
         self.version = check_version(version)
+        self.nthreads = int(nthreads)
         if n_points < 1:
             raise ValueError(f"n_points must be >= 1, got {n_points}")
         self.noise = noise
@@ -130,27 +133,30 @@ class OnlineSynth:
         gen = self._gen
         return sample_table_scene(rng, gen.models, gen.resting, self.K, self.shape, stack)
 
-    def window(self, scene: Scene) -> tuple[int, int, int, int] | None:
-        """(v0, v1, u0, u1) holding every object's projection plus :data:`WINDOW_PAD`; None
-        when nothing projects into the image."""
+    def window(self, scene: Scene) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+        """(v0, v1, u0, u1) holding every object's projection plus :data:`WINDOW_PAD`, and the
+        (h, w) bool mask of its pixels inside some object's own bounding box (the only pixels
+        a ray can hit an object through); None when nothing projects into the image."""
         poses = scene.poses()
         H, W = self.shape
         wins = []
         for c, P in zip(scene.cls_ids, poses, strict=True):
             w = self._gen.renderer._window(self.K, self.shape, c, P)
             if w is None:
-                return (0, H, 0, W)
+                w = (0, H, 0, W)
             if w[0] < w[1] and w[2] < w[3]:
                 wins.append(w)
         if not wins:
             return None
         w = np.array(wins)
-        return (
-            max(int(w[:, 0].min()) - WINDOW_PAD, 0),
-            min(int(w[:, 1].max()) + WINDOW_PAD, H),
-            max(int(w[:, 2].min()) - WINDOW_PAD, 0),
-            min(int(w[:, 3].max()) + WINDOW_PAD, W),
-        )
+        v0 = max(int(w[:, 0].min()) - WINDOW_PAD, 0)
+        v1 = min(int(w[:, 1].max()) + WINDOW_PAD, H)
+        u0 = max(int(w[:, 2].min()) - WINDOW_PAD, 0)
+        u1 = min(int(w[:, 3].max()) + WINDOW_PAD, W)
+        mask = np.zeros((v1 - v0, u1 - u0), dtype=bool)
+        for a, b, c, d in wins:
+            mask[a - v0 : b - v0, c - u0 : d - u0] = True
+        return (v0, v1, u0, u1), mask
 
     def render_window(self, scene: Scene, rng: np.random.Generator | None):
         """The scene's window as a :class:`~cloudpose.data.ycb.Frame` (intrinsics shifted to
@@ -158,12 +164,15 @@ class OnlineSynth:
         source has noise. None when no object is in the image."""
         from cloudpose.data.ycb import Frame
 
-        win = self.window(scene)
-        if win is None:
+        found = self.window(scene)
+        if found is None:
             return None
+        win, mask = found
         v0, v1, u0, u1 = win
         poses = scene.poses()
-        depth, index = self._gen.renderer._cast(self.K, self.shape, scene.cls_ids, poses, win)
+        depth, index = self._gen.renderer._cast(
+            self.K, self.shape, scene.cls_ids, poses, win, mask, self.nthreads
+        )
         Kw = self.K.copy()
         Kw[0, 2] -= u0
         Kw[1, 2] -= v0
@@ -255,7 +264,9 @@ class OnlineChunks(torch.utils.data.Dataset):
 
     def __getitem__(self, j: int) -> tuple[torch.Tensor, ...]:
         if self._synth is None:
-            self._synth = OnlineSynth(**self.synth_kwargs)
+            info = torch.utils.data.get_worker_info()
+            threads = {"nthreads": 1} if info is not None else {}
+            self._synth = OnlineSynth(**{**self.synth_kwargs, **threads})
         return self._synth.batch(self.seed, int(j), self.chunk_size).tensors()
 
     def __getstate__(self) -> dict:
@@ -263,7 +274,10 @@ class OnlineChunks(torch.utils.data.Dataset):
 
 
 def _worker_init(_: int) -> None:
+    from threadpoolctl import threadpool_limits
+
     torch.set_num_threads(1)
+    threadpool_limits(1)
 
 
 class OnlineStream:
@@ -284,7 +298,8 @@ class OnlineStream:
         reuse: steps each segment is used in.
         total_steps: steps of the run.
         start: first step to yield.
-        workers: synthesis processes (0: in the training process).
+        workers: synthesis processes (0: in the training process); while the stream is open,
+            this process trains with ``torch.get_num_threads() - workers`` threads (at least 1).
     """
 
     def __init__(
@@ -315,6 +330,11 @@ class OnlineStream:
         )
         self._it = iter(self._loader)
         self._window: list[tuple[torch.Tensor, ...]] = []
+        # the workers take cores of their own: training keeps the rest (two threads on one
+        # core's share cost more than they give; measured in benchmarks/bench_online.py)
+        self._threads = torch.get_num_threads()
+        if workers > 0:
+            torch.set_num_threads(max(1, self._threads - int(workers)))
 
     def next(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(points, cls_id, R, t)`` of the next step."""
@@ -326,6 +346,7 @@ class OnlineStream:
         return out
 
     def close(self) -> None:
-        """Stop the synthesis processes."""
+        """Stop the synthesis processes and give training its threads back."""
         self._it = None
         self._loader = None
+        torch.set_num_threads(self._threads)
