@@ -63,13 +63,16 @@ def test_online_and_frame_segments_of_one_scene_agree():
 
 def test_stream_steps_reuse_each_chunk_and_restart_anywhere():
     kw = {"version": 2, "n_points": 32}
-    full = OnlineStream(kw, seed=1, batch_size=8, reuse=2, total_steps=4, workers=0)
-    steps = [full.next() for _ in range(4)]
-    # a segment is used in two consecutive steps: the second half of step s is the first of s+1
+    args = {"seed": 1, "batch_size": 8, "reuse": 2, "total_steps": 5, "spacing": 2}
+    full = OnlineStream(kw, workers=0, **args)
+    steps = [full.next() for _ in range(5)]
+    # a segment is used in two steps two apart: the second half of step s is the first of s+2,
+    # and consecutive steps share nothing
     for s in range(3):
-        assert torch.equal(steps[s][0][4:], steps[s + 1][0][:4])
-    late = OnlineStream(kw, seed=1, batch_size=8, reuse=2, total_steps=4, start=2, workers=1)
-    for s in (2, 3):
+        assert torch.equal(steps[s][0][4:], steps[s + 2][0][:4])
+        assert not torch.equal(steps[s][0][4:], steps[s + 1][0][:4])
+    late = OnlineStream(kw, start=3, workers=1, **args)
+    for s in (3, 4):
         for x, y in zip(late.next(), steps[s], strict=True):
             assert torch.equal(x, y)
     late.close()
