@@ -104,6 +104,7 @@ def fakes(tmp_path, monkeypatch, empty_store):
     monkeypatch.setattr(cloudpose.data.dataset, "prepare_data", f.prepare_data)
     monkeypatch.setattr(cloudpose.train, "train", f.train)
     monkeypatch.setattr(cloudpose.evaluate, "evaluate", f.evaluate)
+    monkeypatch.setattr(cloudpose.evaluate, "evaluate_real", lambda run, **kw: None)
     return f
 
 

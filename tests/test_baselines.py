@@ -158,8 +158,22 @@ def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
     assert run.info.run_name.startswith("baseline-fpfh/smoke/seed1+val-")
     with pytest.raises(ValueError, match=r"unknown settings \['voxl'\]"):
         load_settings("fpfh").with_overrides({"voxl": 1})
-    with pytest.raises(ValueError, match="expected test or val"):
+    with pytest.raises(ValueError, match="expected one of test, val, real"):
         run_baseline("fpfh", "smoke", split="train", project_dir=proj)
+
+
+def test_a_baseline_on_the_real_development_frames_reports_each_video(smoke_project):
+    from cloudpose.baselines.run import run_baseline
+
+    proj, _ = smoke_project
+    out = run_baseline(
+        "fpfh", "smoke", 1, project_dir=proj, limit=8, split="real", icp=False, progress=False
+    )
+    every_video = {"0000", "0001", "0002", "0003"}
+    assert len(out.table) == 8 and set(out.table["frame_id"].str[:4]) == every_video
+    assert 0.0 <= out.metrics["real/ads_auc"] <= 1.0
+    videos = {k.split("/")[2] for k in out.metrics if k.startswith("real/video/")}
+    assert videos == every_video
 
 
 def test_a_stopped_run_resumes_where_it_stopped_with_the_same_poses(smoke_project, monkeypatch):
