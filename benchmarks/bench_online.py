@@ -1,12 +1,12 @@
 """On-line synthesis against the rate training consumes segments (``online_supply_ratio``).
 
-Measured in one run, on the same cores, at the ``online`` preset's settings (version 2, batch
-32, n = 256, ``online_reuse`` 4):
+Measured in one run, on the same cores, at the ``online`` preset's settings (generator
+version, batch size, n and ``online_reuse`` read from the preset):
 
 - training: segments/s of shared-0 fused training steps at batch 32 on ready tensors
   (all threads);
 - on-line synthesis, one process: segments/s of ``OnlineSynth.batch`` (scene, window ray cast,
-  version-2 sensor, segment path);
+  the version's sensor, segment path);
 - the frame path it replaces: segments/s of ``generate_frame`` + ``extract_segments`` (the
   rendered-frame route to the same segments, one process);
 - the on-line training loop end to end: steps/s of ``OnlineStream`` with one synthesis worker
@@ -32,14 +32,17 @@ if __package__ in (None, ""):
 
 from benchmarks.bench_train import make_step
 from benchmarks.common import quick_main
+from cloudpose.config import resolve
 
-BATCH, N_POINTS, REUSE = 32, 256, 4
+_ONLINE = resolve("shared-0", "online")
+BATCH, N_POINTS = _ONLINE.train.batch_size, _ONLINE.train.n_points
+REUSE, VERSION = _ONLINE.data.online_reuse, _ONLINE.data.synth_version
 
 
 def _synthesis_rate(batches: int) -> dict:
     from cloudpose.data.synth.online import OnlineSynth
 
-    synth = OnlineSynth(2, n_points=N_POINTS)
+    synth = OnlineSynth(VERSION, n_points=N_POINTS)
     synth.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels
     t0, scenes = time.perf_counter(), 0
     for step in range(batches):
@@ -54,10 +57,10 @@ def _frame_rate(frames: int) -> dict:
     from cloudpose.data.synth.frames import generate_frame
     from cloudpose.data.ycb import Frame
 
-    generate_frame("train", 10_000, version=2)  # warm-up
+    generate_frame("train", 10_000, version=VERSION)  # warm-up
     t0, n = time.perf_counter(), 0
     for i in range(frames):
-        f = generate_frame("train", i, version=2)
+        f = generate_frame("train", i, version=VERSION)
         fr = Frame(
             "x", f.depth.astype(np.float32), f.label, YCB_INTRINSICS, f.cls_ids, f.poses, None
         )
@@ -80,7 +83,8 @@ def _stream_rate(steps: int) -> dict:
     from cloudpose.data.synth.online import OnlineStream
 
     step = make_step("shared-0", "fused", BATCH, N_POINTS)
-    stream = OnlineStream({"version": 2, "n_points": N_POINTS}, 0, BATCH, REUSE, steps + 8)
+    synth_kwargs = {"version": VERSION, "n_points": N_POINTS}
+    stream = OnlineStream(synth_kwargs, 0, BATCH, REUSE, steps + 8)
     for _ in range(4):
         stream.next()
     t0 = time.perf_counter()

@@ -167,7 +167,9 @@ class Renderer:
         index[hit] = lut[gids[hit]]
         return depth, index
 
-    def render(self, K, shape: tuple[int, int], cls_ids, poses) -> Rendering:
+    def render(
+        self, K, shape: tuple[int, int], cls_ids, poses, window=None, mask=None, nthreads=0
+    ) -> Rendering:
         """Render depth and labels of objects at their poses.
 
         Args:
@@ -175,15 +177,19 @@ class Renderer:
             shape: (H, W) image size.
             cls_ids: (N,) class ids (keys of ``models``).
             poses: (N, 3, 4) object->camera ``[R | t]``, metres.
+            window: (v0, v1, u0, u1): render only these pixels of the (H, W) image (the same
+                rays, so the same values as there); None = the whole image.
+            mask: (h, w) bool over the window: cast rays only where True (elsewhere no hit).
+            nthreads: ray-casting threads (0: Open3D's default, every core).
 
         Returns:
             :class:`Rendering`: depth (metres of the nearest surface), label (its class id) and
-            per-instance visible pixel counts.
+            per-instance visible pixel counts, over the window.
         """
         K, shape, cls_ids, poses = _check_inputs(K, shape, cls_ids, poses)
         if cls_ids.size and (cls_ids.min() < 0 or cls_ids.max() > 255):
             raise ValueError(f"cls_ids {cls_ids.tolist()} do not fit a uint8 label image")
-        depth, index = self._cast(K, shape, cls_ids, poses)
+        depth, index = self._cast(K, shape, cls_ids, poses, window, mask, nthreads)
         lut = np.concatenate([cls_ids, [0]]).astype(np.uint8)
         label = lut[index]  # index -1 picks the appended background 0
         visible = np.bincount(index[index >= 0], minlength=len(cls_ids)).astype(np.int64)

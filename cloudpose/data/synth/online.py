@@ -173,17 +173,15 @@ class OnlineSynth:
         win, mask = found
         v0, v1, u0, u1 = win
         poses = scene.poses()
-        depth, index = self._gen.renderer._cast(
+        r = self._gen.renderer.render(
             self.K, self.shape, scene.cls_ids, poses, win, mask, self.nthreads
         )
+        label = r.label
         Kw = self.K.copy()
         Kw[0, 2] -= u0
         Kw[1, 2] -= v0
-        lut = np.concatenate([scene.cls_ids, [0]]).astype(np.uint8)
-        label = lut[index]
-        visible = np.bincount(index[index >= 0], minlength=len(scene.cls_ids))
         bg = background_depth(Kw, (v1 - v0, u1 - u0), scene.world_to_camera, scene.background)
-        clean = np.where(label > 0, depth.astype(np.float64), bg)
+        clean = np.where(label > 0, r.depth.astype(np.float64), bg)
         if not self.noise:
             out = clean
         elif self.version == 1:
@@ -191,7 +189,7 @@ class OnlineSynth:
         else:
             out = add_sensor_noise_v2(clean, label, Kw, rng)
         frame = Frame("online", out.astype(np.float32), label, Kw, scene.cls_ids, poses, None)
-        return frame, visible
+        return frame, r.visible_pixels
 
     def scene_segments(self, scene: Scene, rng: np.random.Generator) -> list:
         """Valid segments (:class:`~cloudpose.data.segments.Segment`) of the scene's objects
