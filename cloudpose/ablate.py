@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cloudpose import tracking
-from cloudpose.cluster import EXECUTORS, RayOptions, import_ray
+from cloudpose.cluster import EXECUTORS, RayOptions, check_cluster, import_ray
 from cloudpose.config import Config, get_group, resolve
 from cloudpose.runs import TEST_KEY, finished_run, run_name
 
@@ -126,7 +126,10 @@ def ensure_runs(
     if executor not in EXECUTORS:
         raise ValueError(f"executor {executor!r}: expected one of {', '.join(EXECUTORS)}")
     if executor == "ray":
-        import_ray()  # before any data is made: without Ray, say how to install it
+        # before any data is made: without Ray, say how to install it; a cluster that does not
+        # answer is said before a long data preparation, not after
+        import_ray()
+        check_cluster(ray or RayOptions())
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))
     seeds = seed_list(seeds)

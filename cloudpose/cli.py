@@ -669,6 +669,9 @@ def ablate(
     ] = None,
     cpus_per_run: Annotated[float, typer.Option(help="Ray: CPUs (and threads) per run.")] = 1.0,
     gpus_per_run: Annotated[float, typer.Option(help="Ray: GPUs per run.")] = 0.0,
+    connect_timeout: Annotated[
+        float, typer.Option(help="Ray: seconds to wait for --address to answer.")
+    ] = 30.0,
 ) -> None:
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
     from cloudpose.ablate import run_group
@@ -683,7 +686,7 @@ def ablate(
         keep_going=keep_going,
         overrides=parse_sets(set_) or None,
         executor=executor,
-        ray=RayOptions(address, cpus_per_run, gpus_per_run),
+        ray=RayOptions(address, cpus_per_run, gpus_per_run, connect_timeout_s=connect_timeout),
     )
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
     typer.echo(
@@ -739,15 +742,25 @@ def mlflow_server(
     import os
     import subprocess
 
+    from cloudpose.cluster import check_port_free
     from cloudpose.tracking import server_command
 
+    check_port_free(host, port)
     root = Path.cwd() / "mlflow-server"
     if backend is None:
         root.mkdir(exist_ok=True)
         backend = f"sqlite:///{root / 'mlflow.db'}"
     cmd, env = server_command(backend, artifacts or root / "artifacts", host, port)
     typer.echo(f"MLflow server on http://{host}:{port} (store {backend})")
-    raise typer.Exit(subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode)
+    code = subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode
+    # it serves until interrupted (which ends this command too): any return is a failure
+    typer.secho(
+        f"error: the MLflow server on {host}:{port} stopped (exit code {code}); "
+        "its output above says why",
+        fg=typer.colors.RED,
+        err=True,
+    )
+    raise typer.Exit(code if code > 0 else 1)
 
 
 @app.command()

@@ -15,11 +15,17 @@
   task that fails by itself (a bad config, a NaN loss) is not retried.
 
 Ray is an optional dependency (``pip install -e '.[cluster]'``). ``address`` None connects to
-the cluster named by ``RAY_ADDRESS``, else starts Ray on this machine for the sweep.
+the cluster named by ``RAY_ADDRESS``, else starts Ray on this machine for the sweep. A cluster
+address is checked before any data is made (:func:`check_cluster`): nothing answering there
+within ``connect_timeout_s``, or a cluster refusing this machine's authentication token, is one
+line naming the address and what to do.
 """
 
 from __future__ import annotations
 
+import errno
+import os
+import socket
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -32,12 +38,28 @@ from cloudpose.runs import TEST_KEY
 if TYPE_CHECKING:
     from cloudpose.config import Config
 
-__all__ = ["EXECUTORS", "RayOptions", "RaySweep", "import_ray"]
+__all__ = [
+    "EXECUTORS",
+    "RayOptions",
+    "RaySweep",
+    "check_cluster",
+    "cluster_address",
+    "import_ray",
+]
 
 EXECUTORS = ("local", "ray")
 """Where the ablation runner trains: in this process, one run after another, or on Ray."""
 
 INSTALL_HINT = "pip install -e '.[cluster]' (or pip install ray)"
+
+CONNECT_TIMEOUT_S = 30.0
+"""How long the driver waits for a cluster's address to accept a connection."""
+
+TOKEN_HINT = (
+    "a cluster started with token authentication needs RAY_AUTH_MODE=token on every machine "
+    "and its token (`ray get-auth-token` on the head prints it) in RAY_AUTH_TOKEN, "
+    "RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token; else start the cluster with RAY_AUTH_MODE=disabled"
+)
 
 
 def import_ray():
@@ -61,12 +83,14 @@ class RayOptions:
         cpus_per_run: ``num_cpus`` of each task; also its intra-op thread count.
         gpus_per_run: ``num_gpus`` of each task (0 = CPU; the task's device is then CPU).
         max_retries: how often Ray reruns a task whose worker died.
+        connect_timeout_s: how long the cluster's address may take to accept a connection.
     """
 
     address: str | None = None
     cpus_per_run: float = 1.0
     gpus_per_run: float = 0.0
     max_retries: int = 3
+    connect_timeout_s: float = CONNECT_TIMEOUT_S
 
     def __post_init__(self) -> None:
         if self.cpus_per_run <= 0 or self.gpus_per_run < 0 or self.max_retries < 0:
@@ -74,6 +98,114 @@ class RayOptions:
                 f"Ray resources: cpus_per_run must be > 0, gpus_per_run and max_retries >= 0; "
                 f"got {self.cpus_per_run}, {self.gpus_per_run}, {self.max_retries}"
             )
+        if not self.connect_timeout_s > 0:
+            raise ValueError(f"Ray connect timeout must be > 0 s; got {self.connect_timeout_s}")
+
+
+def cluster_address(address: str | None) -> str | None:
+    """The cluster a sweep connects to: ``address``, else ``RAY_ADDRESS``; None = a Ray
+    started on this machine."""
+    return address or os.environ.get("RAY_ADDRESS") or None
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of a cluster address (``HOST:PORT``, ``ray://HOST:PORT``, ``[v6]:PORT``);
+    None for ``auto`` and ``local``, which Ray resolves on this machine."""
+    if address in ("auto", "local"):
+        return None
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    host = host.strip("[]")
+    if not (sep and host and port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(
+            f"Ray address {address!r}: expected HOST:PORT (`ray start --head` prints it, "
+            "e.g. 10.0.0.1:6379), ray://HOST:PORT or auto"
+        )
+    return host, int(port)
+
+
+def check_cluster(options: RayOptions) -> None:
+    """Raise ValueError naming the address unless the cluster's address accepts a TCP connection
+    within ``options.connect_timeout_s`` (tried each second: a head may still be starting).
+
+    Ray's own connect retries for many minutes without a word when nothing listens; this check
+    bounds that. No address (a Ray started here), ``auto`` and ``local``: nothing to check.
+    """
+    address = cluster_address(options.address)
+    target = _host_port(address) if address else None
+    if target is None:
+        return
+    timeout = options.connect_timeout_s
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(target, timeout=max(0.1, min(5.0, timeout))).close()
+            return
+        except socket.gaierror:
+            raise ValueError(
+                f"Ray address {address}: unknown host {target[0]!r}; check --address / RAY_ADDRESS"
+            ) from None
+        except OSError as exc:
+            if time.monotonic() + 1.0 > deadline:
+                reason = exc.strerror or type(exc).__name__
+                raise ValueError(
+                    f"no Ray cluster answers at {address} ({reason}; waited {timeout:g} s): "
+                    f"start one there with `ray start --head --port {target[1]}`, or check "
+                    "--address / RAY_ADDRESS (--connect-timeout waits longer)"
+                ) from None
+            time.sleep(1.0)
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise ValueError unless a server can listen on ``host:port`` (the tracking server's port,
+    checked before it is announced: the MLflow server itself ends quietly when it is taken).
+
+    The test binds as the server does (``SO_REUSEADDR``: a port left in TIME_WAIT is free).
+    """
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+    except socket.gaierror:
+        raise ValueError(f"--host {host!r}: not an address or a known host name") from None
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+            s.listen()
+        except OSError as exc:
+            why = (
+                "it is in use (an MLflow server started before?): stop that server or"
+                if exc.errno == errno.EADDRINUSE
+                else f"{exc.strerror or exc}:"
+            )
+            raise ValueError(
+                f"cannot listen on {host}:{port}; {why} choose another port "
+                "(--port, or MLFLOW_PORT=... with make)"
+            ) from None
+
+
+def _connect_error(ray, address: str | None, exc: BaseException) -> str:
+    """One line on why ``ray.init`` failed: a refused authentication token, else its cause."""
+    chain: list[BaseException] = []
+    e: BaseException | None = exc
+    while e is not None and len(chain) < 8:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    if any(
+        isinstance(e, ray.exceptions.AuthenticationError)
+        or "InvalidAuthToken" in str(e)
+        or "AuthenticationError" in str(e)
+        for e in chain
+    ):
+        mode = os.environ.get("RAY_AUTH_MODE", "disabled")
+        return (
+            f"the Ray cluster at {address} refused this machine's authentication "
+            f"(RAY_AUTH_MODE here: {mode}): {TOKEN_HINT}"
+        )
+    first = next((line for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+    if address is None:
+        return f"Ray did not start on this machine: {first}"
+    return f"could not connect to the Ray cluster at {address}: {first}"
 
 
 def _train_and_evaluate(cfg: Config, project_dir: str, group: str, threads: int) -> dict:
@@ -109,12 +241,16 @@ class RaySweep:
         self.project_dir = Path(project_dir).resolve()
         self.group = group
         env = {"MLFLOW_TRACKING_URI": tracking.tracking_uri(self.project_dir)}
-        ray.init(
-            address=options.address,
-            runtime_env={"env_vars": env},
-            logging_level="WARNING",
-            configure_logging=True,
-        )
+        check_cluster(options)
+        try:
+            ray.init(
+                address=options.address,
+                runtime_env={"env_vars": env},
+                logging_level="WARNING",
+                configure_logging=True,
+            )
+        except (ConnectionError, RuntimeError, ray.exceptions.RayError) as exc:
+            raise ValueError(_connect_error(ray, cluster_address(options.address), exc)) from None
         self._task = ray.remote(_train_and_evaluate).options(
             num_cpus=options.cpus_per_run,
             num_gpus=options.gpus_per_run,

@@ -7,13 +7,18 @@ database). Every test starts in an empty temporary folder, and ``MLFLOW_TRACKING
 unset, so a command that writes into the current folder (``mlflow.db``, ``data/``, ``runs/``)
 writes there. After the session the controller compares ``git status`` with the one it found at the
 start and fails the run, naming the files, if the suite left anything behind.
+
+Nor does the suite read the user's state: HOME is a temporary folder of the session's own and
+Ray's, MLflow's and torch's settings from outside are dropped (:func:`_hermetic_env`).
 """
 
 from __future__ import annotations
 
+import atexit
 import os
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -23,6 +28,34 @@ REPO = Path(__file__).resolve().parents[1]
 
 _CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cloudpose-tests"
 os.environ.setdefault("NUMBA_CACHE_DIR", str(_CACHE / "numba"))  # before numba is imported
+
+
+def _hermetic_env() -> None:
+    """HOME a temporary folder, no ``RAY_*`` / ``MLFLOW_*`` / ``TORCH_HOME`` from outside.
+
+    Ray reads its authentication token from ``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or
+    ``$HOME/.ray/auth_token``; with a token there, ``ray start --head`` turns on token
+    authentication, which a node started without ``RAY_AUTH_MODE=token`` cannot join, and a
+    local ``ray.init()`` writes one. ``RAY_AUTH_MODE=disabled`` keeps the suite's clusters
+    open and writes none; MLflow reads ``MLFLOW_*`` and files in HOME, torch ``TORCH_HOME``
+    (else ``~/.cache/torch``), matplotlib its config folder. Set here, before those libraries
+    are imported, so the clusters and servers the tests start inherit it.
+    """
+    for key in list(os.environ):
+        if key.startswith(("RAY_", "MLFLOW_")) or key in ("TORCH_HOME", "MATPLOTLIBRC"):
+            del os.environ[key]
+    home = tempfile.mkdtemp(prefix="cloudpose-tests-home-")
+    atexit.register(shutil.rmtree, home, ignore_errors=True)
+    os.environ.update(
+        HOME=home,
+        TORCH_HOME=str(Path(home) / "torch"),
+        MPLCONFIGDIR=str(_CACHE / "matplotlib"),  # the font cache, kept between runs
+        RAY_AUTH_MODE="disabled",
+        RAY_USAGE_STATS_ENABLED="0",
+    )
+
+
+_hermetic_env()
 
 
 def _hypothesis_profile() -> None:

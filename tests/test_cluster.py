@@ -11,6 +11,8 @@ the same runs.
 from __future__ import annotations
 
 import os
+import pwd
+import socket
 import subprocess
 import sys
 import time
@@ -19,9 +21,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.loopback import VENV_BIN, Loopback
+from benchmarks.loopback import VENV_BIN, Loopback, free_ports
 from cloudpose import runs, tracking
-from cloudpose.cluster import RayOptions, import_ray
+from cloudpose.cluster import TOKEN_HINT, RayOptions, RaySweep, check_cluster, import_ray
 from tests.conftest import make_project
 
 
@@ -40,10 +42,129 @@ def test_ray_executor_without_ray_says_how_to_install_it(monkeypatch):
     cmd = ["ablate", "--group", "rotation", "--preset", "smoke", "--seeds", "1", "--executor"]
     res = CliRunner().invoke(app, [*cmd, "ray"])
     assert res.exit_code == 2
-    assert "pip install -e '.[cluster]'" in res.output and len(res.output.splitlines()) == 1
+    assert "pip install -e '.[cluster]'" in res.stderr and len(res.stderr.splitlines()) == 1
     res = CliRunner().invoke(app, [*cmd, "slurm"])
     assert res.exit_code == 2 and "expected one of local, ray" in res.output
     assert not Path("data").exists()  # refused before any data was made
+
+
+def _listening() -> socket.socket:
+    """A socket listening on a free port of 127.0.0.1 (close it when done)."""
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen()
+    return s
+
+
+def test_the_suite_reads_no_users_ray_mlflow_or_torch_state():
+    home = Path.home()
+    assert home != Path(pwd.getpwuid(os.getuid()).pw_dir)
+    assert not (home / ".ray").exists() and not (home / ".mlflow").exists()
+    assert not {"RAY_ADDRESS", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH"} & set(os.environ)
+    assert not [k for k in os.environ if k.startswith("MLFLOW_")]
+    assert os.environ["RAY_AUTH_MODE"] == "disabled"
+    assert Path(os.environ["TORCH_HOME"]).is_relative_to(home)
+
+
+def test_ray_executor_says_when_nothing_answers_at_the_address():
+    from typer.testing import CliRunner
+
+    from cloudpose.cli import app
+
+    (port,) = free_ports(1)
+    cmd = ["ablate", "--group", "rotation", "--preset", "smoke", "--seeds", "1"]
+    cmd += ["--executor", "ray", "--address", f"127.0.0.1:{port}", "--connect-timeout", "1"]
+    t0 = time.monotonic()
+    res = CliRunner().invoke(app, cmd)
+    assert res.exit_code == 2, res.output
+    assert res.stderr.splitlines() == [
+        f"error: no Ray cluster answers at 127.0.0.1:{port} (Connection refused; waited 1 s): "
+        f"start one there with `ray start --head --port {port}`, or check --address / "
+        "RAY_ADDRESS (--connect-timeout waits longer)"
+    ]
+    assert time.monotonic() - t0 < 15
+    assert not Path("data").exists()  # refused before any data was made
+
+
+@pytest.mark.parametrize(
+    ("address", "message"),
+    [
+        ("10.0.0.1", "expected HOST:PORT"),
+        ("10.0.0.1:http", "expected HOST:PORT"),
+        ("nohost.invalid:6379", "unknown host 'nohost.invalid'"),
+    ],
+)
+def test_ray_address_that_cannot_be_a_cluster_is_refused(address, message):
+    with pytest.raises(ValueError, match=message):
+        check_cluster(RayOptions(address))
+
+
+def test_ray_address_from_the_environment_is_checked(monkeypatch):
+    (port,) = free_ports(1)
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+    with pytest.raises(ValueError, match=f"no Ray cluster answers at 127.0.0.1:{port}"):
+        check_cluster(RayOptions(connect_timeout_s=0.5))
+    with _listening() as s:  # something listens: the check passes at once
+        check_cluster(RayOptions(f"127.0.0.1:{s.getsockname()[1]}"))
+    with pytest.raises(ValueError, match="connect timeout must be > 0"):
+        RayOptions(connect_timeout_s=0)
+
+
+def test_ray_executor_explains_a_refused_authentication_token(monkeypatch, tmp_path):
+    ray = import_ray()
+
+    def refused(**kwargs):  # what ray.init raises when the cluster wants another token
+        cause = RuntimeError(
+            "Failed to connect to GCS. Last connection error: Traceback ...\n"
+            "ray.exceptions.AuthenticationError: RPC error: InvalidAuthToken: Authentication "
+            "token is missing or incorrect."
+        )
+        raise ConnectionError(f"Failed to connect to Ray cluster at {kwargs['address']}") from cause
+
+    monkeypatch.setattr(ray, "init", refused)
+    with _listening() as s:
+        address = f"127.0.0.1:{s.getsockname()[1]}"
+        with pytest.raises(ValueError) as err:
+            RaySweep(RayOptions(address), tmp_path, "rotation")
+    message = str(err.value)
+    assert message.startswith(f"the Ray cluster at {address} refused this machine's authentication")
+    assert "RAY_AUTH_MODE here: disabled" in message and "RAY_AUTH_MODE=token" in message
+    assert "\n" not in message
+
+
+def test_ray_executor_says_why_ray_did_not_start(monkeypatch, tmp_path):
+    ray = import_ray()
+
+    def broken(**kwargs):
+        raise RuntimeError(
+            "Failed to start the GCS server.\nTraceback (most recent call last): ..."
+        )
+
+    monkeypatch.setattr(ray, "init", broken)
+    with pytest.raises(
+        ValueError, match=r"^Ray did not start on this machine: Failed to start the GCS server\.$"
+    ):
+        RaySweep(RayOptions(), tmp_path, "rotation")
+
+
+@pytest.mark.slow
+def test_ray_executor_explains_a_cluster_with_token_authentication(loopback, monkeypatch, tmp_path):
+    import_ray()
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")  # the head (and only it) runs with a token
+    monkeypatch.setenv("RAY_AUTH_TOKEN", "0123456789abcdef0123456789abcdef")
+    _, gcs = loopback.ray_node()
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    monkeypatch.delenv("RAY_AUTH_TOKEN")
+    sweep = f"RaySweep(RayOptions('127.0.0.1:{gcs}'), sys.argv[1], 'rotation')"
+    code = f"import sys; from cloudpose.cluster import RaySweep, RayOptions; {sweep}"
+    res = subprocess.run(  # a driver of its own: a failed ray.init leaves Ray's state behind
+        [sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=300
+    )
+    error = res.stderr.strip().splitlines()[-1]
+    assert error.startswith(
+        f"ValueError: the Ray cluster at 127.0.0.1:{gcs} refused this machine's authentication"
+    ), res.stderr[-3000:]
+    assert error.endswith(TOKEN_HINT)
 
 
 def _kill_node_b_at_first_checkpoint(lb, driver, node_b, gcs, proj, url, monkeypatch):
@@ -139,3 +260,41 @@ def test_sweep_on_ray_survives_a_killed_node(loopback, smoke_data, tmp_path, mon
         torch.set_num_threads(threads)
     (ref,) = tracking.find_runs(tracking.setup(ref_proj))
     assert _final_metrics(resumed) == _final_metrics(ref)
+
+
+def test_mlflow_server_refuses_a_port_in_use_before_announcing_it(monkeypatch):
+    from typer.testing import CliRunner
+
+    from cloudpose.cli import app
+
+    def never(*args, **kwargs):
+        raise AssertionError("the server was started")
+
+    monkeypatch.setattr(subprocess, "run", never)
+    with _listening() as s:
+        port = s.getsockname()[1]
+        res = CliRunner().invoke(app, ["mlflow-server", "--port", str(port)])
+    assert res.exit_code == 2, res.output
+    assert res.stdout == ""  # no URL announced
+    assert res.stderr.splitlines() == [
+        f"error: cannot listen on 127.0.0.1:{port}; it is in use (an MLflow server started "
+        "before?): stop that server or choose another port (--port, or MLFLOW_PORT=... with make)"
+    ]
+    assert not Path("mlflow-server").exists()
+
+
+def test_mlflow_server_that_stops_by_itself_is_a_failure(monkeypatch):
+    from typer.testing import CliRunner
+
+    from cloudpose.cli import app
+
+    # MLflow's server exits 0 when it cannot bind (a port taken after the check)
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 0))
+    (port,) = free_ports(1)
+    res = CliRunner().invoke(app, ["mlflow-server", "--port", str(port)])
+    assert res.exit_code == 1
+    assert res.stdout.startswith(f"MLflow server on http://127.0.0.1:{port}")
+    assert res.stderr.splitlines() == [
+        f"error: the MLflow server on 127.0.0.1:{port} stopped (exit code 0); its output above "
+        "says why"
+    ]
