@@ -55,7 +55,7 @@ MLFLOW_PORT ?= 5000
 GROUP ?=
 EXECUTOR ?= local
 MLFLOW_HOST ?= 127.0.0.1
-.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report tables mlflow-ui mlflow-server
+.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report real-report tables mlflow-ui mlflow-server
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
 	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
@@ -80,6 +80,9 @@ baselines: ## classical baselines on PRESET's test set, with and without ICP: FP
 
 occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing runs; GROUP=... adds a group's variants)
 	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))
+
+real-report: ## the 61 real development frames per video and pooled: shared-0 (every seed found) and both baselines, without/with ICP -> reports/PRESET/real_frames.md (reads runs only)
+	$(CLI) real-report --preset $(PRESET) --seeds $(SEEDS)
 
 tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs (no training)
 	$(CLI) report --all --preset $(PRESET)

@@ -606,6 +606,19 @@ def baseline(
             "real development frames, per video)."
         ),
     ] = "test",
+    data: Annotated[
+        str | None,
+        typer.Option(
+            help="Dataset root to test on instead, YCB-Video or BOP ycbv layout (the preset "
+            "gives the segment settings); logged under the data's identity, as evaluate --data."
+        ),
+    ] = None,
+    frames: Annotated[
+        str,
+        typer.Option(
+            help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."
+        ),
+    ] = "keyframe",
     set_: Annotated[
         list[str] | None,
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
@@ -616,7 +629,8 @@ def baseline(
     ] = False,
     progress: ProgressOpt = True,
 ) -> None:
-    """A classical baseline on a preset's test set, with and without ICP; logs to MLflow.
+    """A classical baseline on a preset's test set (or --data), with and without ICP; logs to
+    MLflow.
 
     A finished run of the same method, preset, seed, data, settings, split and subsample is
     shown, not computed again (``--rerun`` computes a new one)."""
@@ -633,21 +647,26 @@ def baseline(
         seed,
         limit=limit,
         split=split,
+        data=data,
+        frames=frames,
         overrides=overrides,
         icp=icp,
         progress=progress,
         rerun=rerun,
     )
+    on = f"{out.split} in {data}, {preset} settings" if data is not None else preset
     if out.reused:
         typer.echo(
-            f"baseline {method} on {preset} (seed {seed}): already logged; --rerun runs it again"
+            f"baseline {method} on {on} (seed {seed}): already logged; --rerun runs it again"
         )
     typer.echo(
-        f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
-        f"{out.failures} not registered (misses); MLflow run {out.run_id}"
+        f"baseline {method} on {on} (seed {seed}): {len(out.table)} instances, "
+        f"{out.failures} not registered (misses); logged as {out.name}/...; "
+        f"MLflow run {out.run_id}"
     )
     _print_summary(out.metrics)
-    typer.echo(f"{out.metrics[f'{split}/net_ms_per_object']:.0f} ms per object ({method} alone)")
+    ms = out.metrics[f"{out.name}/net_ms_per_object"]
+    typer.echo(f"{ms:.0f} ms per object ({method} alone)")
 
 
 @app.command()
