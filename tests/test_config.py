@@ -12,7 +12,6 @@ import cloudpose.config as config
 from cloudpose.config import (
     Config,
     DataConfig,
-    ICPConfig,
     LossConfig,
     ModelConfig,
     TrainConfig,
@@ -25,13 +24,7 @@ from cloudpose.config import (
     variants,
 )
 
-SECTIONS = {
-    "model": ModelConfig,
-    "loss": LossConfig,
-    "train": TrainConfig,
-    "data": DataConfig,
-    "icp": ICPConfig,
-}
+SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
 
 
 @pytest.fixture

@@ -1,6 +1,7 @@
 """Render every report of a preset from the runs in MLflow, and log it back to MLflow.
 
-Output folder ``reports/{preset}/``:
+Output folder ``reports/{preset}/`` (:func:`default_out_dir`; ``runs/reports/{preset}/`` for a
+preset whose reports a checkout does not commit):
 
 - ``table1_overall``, ``table2_per_class`` (shared-0, without and with ICP), ``table3_shared_layers``
   (group shared), ``table4_rotation`` (groups rotation and loss): each ``.md``, ``.tex``, ``.csv``;
@@ -18,6 +19,7 @@ Each group's files (and the overall ones) are also logged as artifacts of one ru
 from __future__ import annotations
 
 import shutil
+import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote, urlparse
@@ -96,7 +98,7 @@ def render_reports(
         preset: training preset whose runs to report.
         group_names: ablation groups, and ``masks`` (:mod:`cloudpose.report.segmentation`);
             None = all of them.
-        out_dir: output folder; default ``{project_dir}/reports/{preset}``.
+        out_dir: output folder; default :func:`default_out_dir`.
         project_dir: folder of the default MLflow store (cwd).
         command: the command named in every file; default this process's command line.
         data: data fingerprint to report; default the one most runs were trained on.
@@ -109,7 +111,7 @@ def render_reports(
     for g in names:
         if g != segmentation.GROUP:
             get_group(g)  # unknown names raise with the valid list
-    out_dir = out_dir or project_dir / "reports" / preset
+    out_dir = out_dir or default_out_dir(project_dir, preset)
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or tracking.command_line()
     renderer = tracking.git_commit()
@@ -151,6 +153,37 @@ def render_reports(
                 )
     files = sorted({p for ps in written.values() for p in ps})
     return ReportResult(out_dir, files, runs, results, mlflow_runs)
+
+
+def default_out_dir(project_dir: Path, preset: str) -> Path:
+    """Where the reports of ``preset`` go unless a folder is named: ``reports/{preset}``.
+
+    In a git checkout whose ``reports/`` holds committed results, a preset without committed
+    reports of its own (``smoke``, a new preset) renders into the ignored
+    ``runs/reports/{preset}`` instead, so trying a command leaves the committed results as
+    they are; the presets whose reports are committed (``cpu``, ...) render over them.
+    """
+    reports = Path(project_dir) / "reports"
+    if _tracked(reports) and not _tracked(reports / preset):
+        return Path(project_dir) / "runs" / "reports" / preset
+    return reports / preset
+
+
+def _tracked(path: Path) -> bool:
+    """Whether git tracks a file under ``path`` (False outside a checkout or without git)."""
+    if not path.parent.is_dir():
+        return False
+    try:
+        out = subprocess.run(
+            ["git", "ls-files", "--", path.name],
+            cwd=path.parent,
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return out.returncode == 0 and bool(out.stdout.strip())
 
 
 def _series(runs: RunSet, variant: str, label: str, method: str = "net"):
