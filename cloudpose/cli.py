@@ -36,39 +36,6 @@ class _Commands(TyperGroup):
             typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
             raise typer.Exit(2) from None
 
-    def get_command(self, ctx: click.Context, cmd_name: str):
-        cmd = super().get_command(ctx, cmd_name)
-        if cmd is not None:
-            _help_layout(cmd, ctx)
-        return cmd
-
-    def format_help(self, ctx: click.Context, formatter) -> None:
-        _help_layout(self, ctx)
-        return super().format_help(ctx, formatter)
-
-
-PIPED_HELP_WIDTH = 120
-"""Columns of ``--help`` when the output is not a terminal and COLUMNS is unset (rich's
-default there, 80, leaves the help column so narrow that it cuts words with an ellipsis)."""
-
-
-def _help_layout(cmd, ctx: click.Context) -> None:
-    """Help as it reads in a terminal, also when piped; flags shown without a value type.
-
-    Typer shows every option's type, flags too (``--debug <bool>``), as if a flag took a
-    value; a flag gets an empty metavar here, so its help shows none.
-    """
-    import os
-    import sys
-
-    from typer import rich_utils
-
-    if rich_utils.MAX_WIDTH is None and "COLUMNS" not in os.environ and not sys.stdout.isatty():
-        rich_utils.MAX_WIDTH = PIPED_HELP_WIDTH
-    for p in cmd.get_params(ctx):
-        if getattr(p, "is_flag", False) and p.metavar is None:
-            p.metavar = ""
-
 
 app = typer.Typer(
     cls=_Commands,
@@ -94,16 +61,6 @@ DeviceOpt = Annotated[
     str, typer.Option(help="auto (CUDA when available, as in training), cpu or cuda.")
 ]
 ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
-DryRunOpt = Annotated[
-    bool, typer.Option("--dry-run", help="Print the plan (frames, runs, time) and stop.")
-]
-OutOpt = Annotated[
-    Path | None,
-    typer.Option(
-        help="Reports folder; default reports/PRESET, or runs/reports/PRESET in a checkout that "
-        "commits no reports of PRESET."
-    ),
-]
 SetOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -113,14 +70,6 @@ SetOpt = Annotated[
         "config: its own run folder and MLflow run.",
     ),
 ]
-
-
-def _group_names() -> str:
-    """The registered ablation groups, for help texts: ``shared, rotation, loss or symmetry``."""
-    from cloudpose.config import groups
-
-    names = list(groups())
-    return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else "".join(names)
 
 
 def parse_sets(items: list[str] | None) -> dict[str, dict]:
@@ -211,14 +160,12 @@ def variants() -> None:
     from cloudpose.models import variant_table
 
     rows = variant_table()
-    wn = max(len("variant"), *(len(r["name"]) for r in rows))
-    wg = max(len("groups"), *(len(",".join(r["groups"])) for r in rows))
-    header = f"{'variant':<{wn}} {'groups':<{wg}} {'parameters':>11}  changes"
+    header = f"{'variant':<18} {'groups':<22} {'parameters':>11}  changes"
     typer.echo(header)
     typer.echo("-" * len(header))
     for r in rows:
         groups = ",".join(r["groups"])
-        typer.echo(f"{r['name']:<{wn}} {groups:<{wg}} {r['parameters']:>11,}  {r['changes']}")
+        typer.echo(f"{r['name']:<18} {groups:<22} {r['parameters']:>11,}  {r['changes']}")
 
 
 @app.command()
@@ -548,10 +495,6 @@ SUMMARY_COLUMNS = {
 }
 """The summary's columns, in percent: AUCs as the YCB-Video toolbox computes them, the shares
 of instances under a threshold (* = rotation error modulo the object's symmetries)."""
-SUMMARY_FOOTNOTE = (
-    "* rot<10deg*: rotation error < 10 deg modulo the object's symmetries (a can turned about "
-    "its axis is not an error); rot<10deg: the plain angle, as the paper reports it."
-)
 
 
 def _print_summary(metrics: dict[str, float]) -> None:
@@ -568,7 +511,6 @@ def _print_summary(metrics: dict[str, float]) -> None:
             f"{label:<{w}}"
             + "".join(f"{100 * v:>12.1f}" if v is not None else f"{'':>12}" for v in vals)
         )
-    typer.echo(SUMMARY_FOOTNOTE)
 
 
 def _next_steps(preset: str) -> None:
@@ -578,18 +520,11 @@ def _next_steps(preset: str) -> None:
     meaning = {
         "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing.",
     }.get(preset, f"preset {preset!r}: {presets().get(preset, '')}")
-    from cloudpose.ablate import estimate_run_s
-    from cloudpose.config import get_group, resolve
-
     typer.echo(f"\nWhat this is: {meaning}")
-    runs = len(get_group("shared").members) * 3
-    per_run, _ = estimate_run_s(resolve("shared-0", "cpu"))
     typer.echo(
         "Next: `make mlflow-ui` and open http://127.0.0.1:5000 to browse the run; "
-        "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation, "
-        f"{runs} runs (every variant x 3 seeds) x ~{per_run / 60:.0f} min = "
-        f"~{runs * per_run / 3600:.1f} h on a 2-core CPU, and renders its tables into "
-        "reports/cpu/; `--dry-run` prints that plan without training."
+        "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation "
+        "(~10 min a run here) and renders its tables into reports/cpu/."
     )
 
 
@@ -639,26 +574,11 @@ def run(
     progress: ProgressOpt = True,
     set_: SetOpt = None,
     group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
-    dry_run: DryRunOpt = False,
 ) -> None:
-    """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP.
-
-    Prints its plan first: frames to render, whether the run is trained already, time."""
-    from cloudpose.ablate import plan_configs
+    """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP."""
     from cloudpose.pipeline import train_and_evaluate
 
     cfg = _config(variant, preset, seed, data, set_)
-    plan = plan_configs(
-        [cfg],
-        title=f"main job {tracking_name(cfg)}",
-        project_dir=Path.cwd(),
-        finished="finished before (training skipped, evaluated again)",
-    )
-    typer.echo(plan.text())
-    if dry_run:
-        return
-    if preset in EXPECTED_WARNINGS:
-        _mark_expected(*EXPECTED_WARNINGS[preset])
     result = train_and_evaluate(cfg, group=group, progress=progress)
     out, ev = result.train, result.evaluation
     typer.echo(f"\nrun {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
@@ -669,33 +589,6 @@ def run(
         metrics.update({k: v for k, v in result.real.metrics.items() if "/video/" not in k})
     _print_summary(metrics)
     _next_steps(preset)
-
-
-EXPECTED_WARNINGS = {
-    "smoke": (
-        "ICP ",
-        "expected on the smoke preset: a network trained for seconds on 12 frames starts ICP "
-        "far from the objects",
-    )
-}
-"""preset -> (start of a warning, why it is expected there): said once, beside the warning."""
-
-
-def _mark_expected(prefix: str, why: str) -> None:
-    """Say once, beside the first warning that starts with ``prefix``, why it is expected."""
-    import warnings
-
-    base = warnings.formatwarning
-    said = []
-
-    def formatwarning(message, *args, **kwargs) -> str:
-        text = base(message, *args, **kwargs)
-        if str(message).startswith(prefix) and not said:
-            said.append(True)
-            return text.rstrip("\n") + f" ({why})\n"
-        return text
-
-    warnings.formatwarning = formatwarning
 
 
 @app.command()
@@ -713,6 +606,19 @@ def baseline(
             "real development frames, per video)."
         ),
     ] = "test",
+    data: Annotated[
+        str | None,
+        typer.Option(
+            help="Dataset root to test on instead, YCB-Video or BOP ycbv layout (the preset "
+            "gives the segment settings); logged under the data's identity, as evaluate --data."
+        ),
+    ] = None,
+    frames: Annotated[
+        str,
+        typer.Option(
+            help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."
+        ),
+    ] = "keyframe",
     set_: Annotated[
         list[str] | None,
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
@@ -723,7 +629,8 @@ def baseline(
     ] = False,
     progress: ProgressOpt = True,
 ) -> None:
-    """A classical baseline on a preset's test set, with and without ICP; logs to MLflow.
+    """A classical baseline on a preset's test set (or --data), with and without ICP; logs to
+    MLflow.
 
     A finished run of the same method, preset, seed, data, settings, split and subsample is
     shown, not computed again (``--rerun`` computes a new one)."""
@@ -740,26 +647,31 @@ def baseline(
         seed,
         limit=limit,
         split=split,
+        data=data,
+        frames=frames,
         overrides=overrides,
         icp=icp,
         progress=progress,
         rerun=rerun,
     )
+    on = f"{out.split} in {data}, {preset} settings" if data is not None else preset
     if out.reused:
         typer.echo(
-            f"baseline {method} on {preset} (seed {seed}): already logged; --rerun runs it again"
+            f"baseline {method} on {on} (seed {seed}): already logged; --rerun runs it again"
         )
     typer.echo(
-        f"baseline {method} on {preset} (seed {seed}): {len(out.table)} instances, "
-        f"{out.failures} not registered (misses); MLflow run {out.run_id}"
+        f"baseline {method} on {on} (seed {seed}): {len(out.table)} instances, "
+        f"{out.failures} not registered (misses); logged as {out.name}/...; "
+        f"MLflow run {out.run_id}"
     )
     _print_summary(out.metrics)
-    typer.echo(f"{out.metrics[f'{split}/net_ms_per_object']:.0f} ms per object ({method} alone)")
+    ms = out.metrics[f"{out.name}/net_ms_per_object"]
+    typer.echo(f"{ms:.0f} ms per object ({method} alone)")
 
 
 @app.command()
 def ablate(
-    group: Annotated[str, typer.Option(help=f"Ablation group: {_group_names()}.")],
+    group: Annotated[str, typer.Option(help="Ablation group: shared, rotation or loss.")],
     preset: PresetOpt = "cpu",
     seeds: Annotated[int, typer.Option(help="Seeds 1..S per variant.")] = 3,
     keep_going: Annotated[
@@ -779,20 +691,11 @@ def ablate(
     connect_timeout: Annotated[
         float, typer.Option(help="Ray: seconds to wait for --address to answer.")
     ] = 30.0,
-    dry_run: DryRunOpt = False,
-    out: OutOpt = None,
 ) -> None:
-    """Train + evaluate every variant of a group over seeds (finished runs skipped), then report.
-
-    Prints its plan first: frames to render, runs to train and those finished before, time."""
-    from cloudpose.ablate import plan_group, run_group
+    """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
+    from cloudpose.ablate import run_group
     from cloudpose.cluster import RayOptions
 
-    overrides = parse_sets(set_) or None
-    plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
-    typer.echo(plan.text())
-    if dry_run:
-        return
     res = run_group(
         group,
         preset,
@@ -800,10 +703,9 @@ def ablate(
         Path.cwd(),
         progress,
         keep_going=keep_going,
-        overrides=overrides,
+        overrides=parse_sets(set_) or None,
         executor=executor,
         ray=RayOptions(address, cpus_per_run, gpus_per_run, connect_timeout_s=connect_timeout),
-        out_dir=out,
     )
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
     typer.echo(
@@ -819,23 +721,16 @@ def ablate_masks(
     preset: PresetOpt = "cpu",
     seeds: Annotated[int, typer.Option(help="Seeds 1..S of shared-0.")] = 3,
     progress: ProgressOpt = True,
-    dry_run: DryRunOpt = False,
-    out: OutOpt = None,
 ) -> None:
     """Segmentation quality: shared-0 (trained on ground truth) under each test mask source.
 
     Sources gt and degraded-mild|medium|strong, with and without ICP. Missing shared-0 seeds
     are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
-    in reports/PRESET/ and the MLflow run report/masks/PRESET. Prints its plan first.
+    in reports/PRESET/ and the MLflow run report/masks/PRESET.
     """
-    from cloudpose.ablate import mask_ablation, plan_masks
+    from cloudpose.ablate import mask_ablation
 
-    typer.echo(plan_masks(preset, seeds, Path.cwd(), out_dir=out).text())
-    if dry_run:
-        return
-    res = mask_ablation(
-        preset, seeds, Path.cwd(), progress, command=recorded_command(ctx), out_dir=out
-    )
+    res = mask_ablation(preset, seeds, Path.cwd(), progress, command=recorded_command(ctx))
     trained = sum(r.status == "trained" for r in res.runs)
     done = sum(e.status == "evaluated" for e in res.evaluations)
     typer.echo(
@@ -905,7 +800,6 @@ def report(
     mlflow: Annotated[
         bool, typer.Option("--mlflow/--no-mlflow", help="Also log the reports to MLflow.")
     ] = True,
-    out: OutOpt = None,
 ) -> None:
     """Render the tables, claims and figures of a preset from existing MLflow runs only."""
     from cloudpose.report import render_reports
@@ -918,7 +812,6 @@ def report(
         data=data,
         log_mlflow=mlflow,
         command=recorded_command(ctx),
-        out_dir=out,
     )
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 
@@ -964,67 +857,20 @@ def curves(
 
 @app.command("occlusion-report")
 def occlusion_report(
-    ctx: typer.Context,
     preset: PresetOpt = "cpu",
     seeds: Annotated[int, typer.Option(help="Seeds 1..S.")] = 3,
     group: Annotated[
         str | None, typer.Option(help="Also plot this group's variants (shared-0 alone if unset).")
     ] = None,
-    train_missing: Annotated[
-        bool,
-        typer.Option(
-            "--train-missing",
-            help="Train and evaluate the runs it needs that the store lacks first (hours on "
-            "the cpu preset; prints the plan first). Without it, a missing run is an error.",
-        ),
-    ] = False,
-    dry_run: DryRunOpt = False,
-    out: OutOpt = None,
+    train: Annotated[
+        bool, typer.Option("--train/--no-train", help="Train and evaluate missing runs first.")
+    ] = True,
     progress: ProgressOpt = True,
 ) -> None:
-    """ADS < 1 cm accuracy per occlusion bin: shared-0 without and with ICP (+ a group).
-
-    Renders from the runs in MLflow only: with a run missing it names the runs and the command
-    that trains them, and exits 1."""
-    from cloudpose.ablate import estimate_run_s, missing_report_runs, plan_runs
+    """ADS < 1 cm accuracy per occlusion bin: shared-0 without and with ICP (+ a group)."""
     from cloudpose.ablate import occlusion_report as occlusion_fn
-    from cloudpose.config import get_group, resolve
 
-    variants = list(get_group(group).members) if group else ["shared-0"]
-    if train_missing:
-        title = f"occlusion report {preset}, seeds 1-{seeds}"
-        title += f", group {group}" if group else ""
-        typer.echo(plan_runs(variants, preset, seeds, title=title, project_dir=Path.cwd()).text())
-    else:
-        missing = missing_report_runs(variants, preset, seeds, Path.cwd())
-        if missing:
-            per_run, _ = estimate_run_s(resolve(variants[0], preset))
-            again = f"cloudpose occlusion-report --preset {preset} --seeds {seeds}"
-            again += f" --group {group}" if group else ""
-            typer.echo(
-                f"occlusion-report renders from existing runs only, and {len(missing)} of the "
-                f"{len(variants) * seeds} runs it needs are not in the MLflow store: "
-                f"{', '.join(missing)}.\nTo train them (~{per_run / 60:.0f} min a run on a "
-                f"2-core CPU; the plan is printed first): {again} --train-missing\n"
-                f"  (make occlusion-runs PRESET={preset} SEEDS={seeds}"
-                + (f" GROUP={group}" if group else "")
-                + ")",
-                err=True,
-            )
-            raise typer.Exit(1)
-        typer.echo(f"plan: occlusion report {preset} from {len(variants) * seeds} existing runs")
-    if dry_run:
-        return
-    res = occlusion_fn(
-        preset,
-        seeds,
-        Path.cwd(),
-        progress,
-        group=group,
-        train_missing=train_missing,
-        command=recorded_command(ctx),
-        out_dir=out,
-    )
+    res = occlusion_fn(preset, seeds, Path.cwd(), progress, group=group, train=train)
     for p in res.files:
         if p.stem.startswith("occlusion"):
             typer.echo(str(p))

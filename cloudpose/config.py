@@ -233,6 +233,28 @@ class DataConfig:
 
 
 @dataclass(frozen=True)
+class ICPConfig:
+    """The guard on ICP refinement after the network (DESIGN.md "Refinement" is the schedule,
+    :class:`cloudpose.refine.ICPSettings`).
+
+    Attributes:
+        fallback: keep the network's pose when ICP's fitness (share of observed points within
+            the last correspondence radius) is below ``fallback_min_fitness``. Off = the paper.
+        fallback_min_fitness: the guard's threshold, 0..1
+            (reports/diagnostics/icp_fallback.md measures it).
+    """
+
+    fallback: bool = False
+    fallback_min_fitness: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.fallback_min_fitness <= 1:
+            raise ValueError(
+                f"icp.fallback_min_fitness must be in [0, 1], got {self.fallback_min_fitness!r}"
+            )
+
+
+@dataclass(frozen=True)
 class Config:
     """Everything that determines a run. Stored whole with every checkpoint and MLflow run."""
 
@@ -243,6 +265,7 @@ class Config:
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     data: DataConfig = field(default_factory=DataConfig)
+    icp: ICPConfig = field(default_factory=ICPConfig)
 
     def to_dict(self) -> dict[str, Any]:
         """Nested plain dict (JSON/TOML-safe)."""
@@ -261,6 +284,8 @@ class Config:
             for name, value in fields.items():
                 if d[section].get(name) == value:
                     del d[section][name]
+            if not d[section]:  # a section that is all implied (icp) was never stored
+                del d[section]
         text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -289,7 +314,13 @@ class Config:
         return cls(**kwargs)
 
 
-_SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
+_SECTIONS = {
+    "model": ModelConfig,
+    "loss": LossConfig,
+    "train": TrainConfig,
+    "data": DataConfig,
+    "icp": ICPConfig,
+}
 
 IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
     "data": {
@@ -298,11 +329,13 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_epoch_segments": 4096,
         "online_reuse": 4,
         "online_workers": 1,
-    }
+    },
+    "icp": {"fallback": False, "fallback_min_fitness": 0.1},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
 synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
-every run stored before the on-line source existed trained on frames.
+every run stored before the on-line source existed trained on frames; every run stored before
+the ``icp`` section existed was refined without the guard.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 

@@ -205,6 +205,9 @@ def evaluate(
         name: metric prefix; default :data:`OWN_TEST` for the run's own test set, else
             :func:`evaluation_name` (a name of the user's must not be ``test``/``test_icp``).
         icp: also evaluate after ICP refinement.
+        icp_settings: the ICP schedule and guard; default the run's (``cfg.icp``). Other
+            settings name the evaluation ``{name}-fallback`` (guard on) or
+            ``{name}-nofallback`` (off), so they never replace the run's own ICP results.
         log: log the table and metrics to the run in MLflow.
         device: where the network runs ("auto": CUDA when available, as in training).
         own_data: the run's own data, prepared (the pipeline passes what it trained on);
@@ -262,6 +265,10 @@ def evaluate(
         name = name or tracking.metric_key(evaluation_name(data, frames, data_key) + label)
         split = describe_split(data, frames)
         data_label = f"{split} in {Path(data).resolve()}"
+    if icp_settings is None:
+        icp_settings = ICPSettings.from_config(cfg.icp)
+    elif icp and icp_settings != ICPSettings.from_config(cfg.icp):
+        name = tracking.metric_key(f"{name}-{'' if icp_settings.fallback else 'no'}fallback")
     if len(segs) == 0:
         raise ValueError(
             f"no instance to evaluate in {data_label} (no annotated object in its frames"
@@ -280,13 +287,15 @@ def evaluate(
     t_net = time.monotonic() - t0
     if icp:
         t0 = time.monotonic()
-        est["icp"], fitness = refine_poses(
+        est["icp"], stats = refine_poses(
             segs, est["net"], models_by_class, icp_settings, progress
         )
         t_icp = time.monotonic() - t0
     table = instance_table(segs, est, models_by_class, dataset.classes)
     if icp:
-        table["icp_fitness"] = fitness
+        table["icp_fitness"] = stats.fitness
+        table["icp_inlier_rmse"] = stats.inlier_rmse
+        table["icp_fallback"] = stats.fallback
     metrics = summary_metrics(table, name)
     n_valid = max(int(np.sum(segs.valid)), 1)
     metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid

@@ -22,7 +22,7 @@ from cloudpose.config import Config
 from cloudpose.data.models import ModelIndex
 from cloudpose.models import build_model
 from cloudpose.models.inference import fold_for_inference
-from cloudpose.refine import ICPSettings, icp_refine
+from cloudpose.refine import ICPSettings, ICPStats, icp_refine
 from cloudpose.runtime import pick_device
 
 __all__ = [
@@ -90,8 +90,10 @@ def refine_poses(
     models_by_class: dict[int, np.ndarray],
     settings: ICPSettings | None = None,
     progress: bool = False,
-) -> tuple[Estimates, np.ndarray]:
-    """ICP-refine every valid row; returns the refined poses and Open3D's fitness per row.
+) -> tuple[Estimates, ICPStats]:
+    """ICP-refine every valid row; returns the refined poses and, per row, Open3D's fitness and
+    inlier RMSE and whether the guard kept the estimate (``settings.fallback``; NaN / False
+    for rows that are misses).
 
     The observed cloud is the segment's cached FPS points without the fill-by-repeat copies
     (``points[:count]``).
@@ -99,6 +101,8 @@ def refine_poses(
     settings = settings or ICPSettings()
     R, t = est.R.copy(), est.t.copy()
     fitness = np.full(len(segs), np.nan)
+    rmse = np.full(len(segs), np.nan)
+    kept = np.zeros(len(segs), dtype=bool)
     index = {c: ModelIndex.of(m) for c, m in models_by_class.items()}  # shared with ADS
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -111,7 +115,7 @@ def refine_poses(
                 est.t[i],
                 settings,
             )
-            R[i], t[i], fitness[i] = sol.R, sol.t, sol.fitness
+            R[i], t[i], fitness[i], rmse[i], kept[i] = sol
     if caught:
         # One line instead of one per object: far-off estimates leave ICP nothing to match.
         warnings.warn(
@@ -119,7 +123,7 @@ def refine_poses(
             f"objects (e.g. {caught[0].message})",
             stacklevel=2,
         )
-    return Estimates(R, t), fitness
+    return Estimates(R, t), ICPStats(fitness, rmse, kept)
 
 
 def load_checkpoint(

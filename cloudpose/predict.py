@@ -131,7 +131,10 @@ def predict(
     est = estimate_poses(model, segs, cfg.train.n_points, device=next(model.buffers()).device)
     fitness = np.full(len(segs), np.nan)
     if icp:
-        est, fitness = refine_poses(segs, est, models_by_class)
+        from cloudpose.refine import ICPSettings
+
+        est, stats = refine_poses(segs, est, models_by_class, ICPSettings.from_config(cfg.icp))
+        fitness = stats.fitness
     poses = []
     for i in np.flatnonzero(segs.valid):
         c = int(segs.cls_id[i])

@@ -34,6 +34,13 @@ the point has not moved far enough to leave that point's Voronoi cell. Each corr
 the exact nearest model point, so the poses are those of the pykdtree loop, which stays as the
 fallback.
 
+The guard (``ICPSettings.fallback``, off in the paper's schedule): ICP has no notion of having
+failed, and a start far from the object converges to whatever surface lies within the radius.
+With the guard on, a refinement whose final fitness is below ``min_fitness`` returns the initial
+pose instead (``ICPSolution.fallback``). The inlier RMSE cannot serve: it is measured within the
+last radius (3.9 mm in the paper's schedule), so it stays near 2.5 mm whether ICP converged or
+not (reports/diagnostics/icp_fallback.md).
+
 Threads: the fast path runs BLAS and pykdtree on one thread while it works (``threadpoolctl``);
 a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fork/join made it
 10-30x slower whenever another process held a core.
@@ -62,13 +69,21 @@ class ICPSettings:
         iterations: number of ICP iterations (one Open3D call each in the reference).
         max_distance: maximum correspondence distance of the first iteration, metres.
         shrink: factor applied to the distance after each iteration (0.9 = shrink by 10%).
+        fallback: keep the initial pose when the refinement's fitness is below
+            ``min_fitness`` (the paper has no such guard).
+        min_fitness: with ``fallback``, the least share of observed points within the last
+            radius for the refined pose to be kept (0..1).
     """
 
     iterations: int = 10
     max_distance: float = 0.01
     shrink: float = 0.9
+    fallback: bool = False
+    min_fitness: float = 0.1
 
     def __post_init__(self) -> None:
+        if not 0 <= self.min_fitness <= 1:
+            raise ValueError(f"ICPSettings.min_fitness: expected in [0, 1], got {self.min_fitness}")
         if self.iterations < 1:
             raise ValueError(f"ICPSettings.iterations: expected >= 1, got {self.iterations}")
         if not self.max_distance > 0:
@@ -77,6 +92,12 @@ class ICPSettings:
             )
         if not 0 < self.shrink <= 1:
             raise ValueError(f"ICPSettings.shrink: expected in (0, 1], got {self.shrink}")
+
+    @classmethod
+    def from_config(cls, icp) -> ICPSettings:
+        """The schedule with the guard of a run's ``icp`` config section
+        (:class:`cloudpose.config.ICPConfig`)."""
+        return cls(fallback=icp.fallback, min_fitness=icp.fallback_min_fitness)
 
     def radii(self) -> list[float]:
         """Maximum correspondence distance of each iteration, metres (repeated multiplication,
@@ -96,12 +117,38 @@ class ICPSolution(NamedTuple):
         t: (3,) refined translation, metres.
         fitness: share of observed points with a model point within the last radius (0..1).
         inlier_rmse: RMS distance of those pairs, metres (0 when there are none).
+        fallback: the guard kept the initial pose (``R``, ``t`` are the start; ``fitness`` and
+            ``inlier_rmse`` still describe the refinement it rejected).
     """
 
     R: np.ndarray
     t: np.ndarray
     fitness: float
     inlier_rmse: float
+    fallback: bool = False
+
+
+class ICPStats(NamedTuple):
+    """The quality figures of many refinements (rows of a segment set).
+
+    Attributes:
+        fitness: (M,) :attr:`ICPSolution.fitness` (NaN for a row not refined).
+        inlier_rmse: (M,) :attr:`ICPSolution.inlier_rmse`, metres (NaN for a row not refined).
+        fallback: (M,) bool, :attr:`ICPSolution.fallback`.
+    """
+
+    fitness: np.ndarray
+    inlier_rmse: np.ndarray
+    fallback: np.ndarray
+
+
+def _guard(
+    sol: ICPSolution, R_init: np.ndarray, t_init: np.ndarray, settings: ICPSettings
+) -> ICPSolution:
+    """``sol``, or the initial pose when the guard is on and the fitness is too low."""
+    if settings.fallback and sol.fitness < settings.min_fitness:
+        return ICPSolution(R_init.copy(), t_init.copy(), sol.fitness, sol.inlier_rmse, True)
+    return sol
 
 
 # ---------------------------------------------------------------------------------------------
@@ -183,9 +230,10 @@ def icp_refine(
         settings: the schedule.
 
     Returns:
-        The refined pose with Open3D's fitness and inlier RMSE for the last iteration. With
-        fewer than 3 observed points, or no model point within the first radius, the initial
-        pose with fitness 0 (and a warning).
+        The refined pose with Open3D's fitness and inlier RMSE for the last iteration; the
+        initial pose (``fallback`` True) when ``settings.fallback`` and the fitness is below
+        ``settings.min_fitness``. With fewer than 3 observed points, or no model point within
+        the first radius, the initial pose with fitness 0 (and a warning).
     """
     observed = _check_points("observed", observed)
     R_init, t_init = _check_pose(R_init, t_init)
@@ -193,9 +241,11 @@ def icp_refine(
         return _degenerate(R_init, t_init, f"{len(observed)} observed points, need >= 3")
     index = _index_of(model_points)
     if index.compiled is not None:  # compiled: no BLAS or OpenMP threads to hold back
-        return _icp_model_frame(observed, index, R_init, t_init, settings.radii())
-    with _single_threaded():
-        return _icp_model_frame(observed, index, R_init, t_init, settings.radii())
+        sol = _icp_model_frame(observed, index, R_init, t_init, settings.radii())
+    else:
+        with _single_threaded():
+            sol = _icp_model_frame(observed, index, R_init, t_init, settings.radii())
+    return _guard(sol, R_init, t_init, settings)
 
 
 def _icp_model_frame(
@@ -280,7 +330,8 @@ def icp_refine_batch(
                 )
                 continue
             index = _index_of(model_points[i])
-            out.append(_icp_model_frame(obs, index, R_init[i], t_init[i], radii))
+            sol = _icp_model_frame(obs, index, R_init[i], t_init[i], radii)
+            out.append(_guard(sol, R_init[i], t_init[i], settings))
     return out
 
 
@@ -330,4 +381,5 @@ def icp_refine_open3d(
     R_T, t_T = T[:3, :3], T[:3, 3]
     R = R_T.T @ R_init
     t = R_T.T @ (t_init - t_T)
-    return ICPSolution(R, t, float(result.fitness), float(result.inlier_rmse))
+    sol = ICPSolution(R, t, float(result.fitness), float(result.inlier_rmse))
+    return _guard(sol, R_init, t_init, settings)

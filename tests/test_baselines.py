@@ -208,3 +208,52 @@ def test_a_stopped_run_resumes_where_it_stopped_with_the_same_poses(smoke_projec
     cols = ["net_ads", "net_rot_err_deg", "net_trans_err", "miss"]
     pd.testing.assert_frame_equal(resumed.table[cols], straight.table[cols])
     assert not saved[0].exists() and resumed.run_id
+
+
+@pytest.mark.parametrize("layout", ["ycb", "bop"])
+def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, tmp_path):
+    """`cloudpose baseline --data ROOT --frames all --limit N` on either layout: the preset
+    gives only the segment settings (no synthetic data is made), the run is named and tagged
+    by the data's content key as `cloudpose evaluate --data` names its evaluation, and the same
+    call again is shown, not computed."""
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from cloudpose import tracking
+    from cloudpose.baselines.base import settings_fingerprint
+    from cloudpose.cli import app
+    from cloudpose.config import resolve
+    from cloudpose.data.bop import export_bop
+    from cloudpose.data.cache import cache_key
+    from cloudpose.data.layout import describe_split
+    from cloudpose.evaluate import evaluation_name, real_dev_root
+
+    if layout == "ycb":
+        root, limit = real_dev_root(), 4  # the 61 packaged real frames, 4 videos
+    else:
+        root, limit = tmp_path / "ycbv", 2
+        export_bop(Path(__file__).parent / "data" / "ycb_real", root, "all", progress=False)
+    args = ["baseline", "--method", "fpfh", "--preset", "smoke", "--data", str(root)]
+    args += ["--frames", "all", "--limit", str(limit), "--no-icp", "--no-progress"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    key = cache_key(root, "all", resolve("shared-0", "smoke").data, Path.cwd() / "data" / "cache")
+    name = evaluation_name(root, "all", key)
+    assert f"logged as {name}/" in res.output and describe_split(root, "all") in res.output
+    assert not (Path.cwd() / "data" / "synth-seed0").exists()  # no synthetic set was made
+    client = tracking.setup(Path.cwd())
+    (run,) = tracking.find_runs(client, variant="baseline-fpfh", preset="smoke", seed=1)
+    fp = settings_fingerprint(load_settings("fpfh"))
+    assert run.info.run_name == f"baseline-fpfh/smoke/seed1+{name}-{fp[:8]}"
+    tags = run.data.tags
+    assert tags["data"] == key == tags[f"eval/{name}/data"] and tags["split"] == name
+    assert tags[f"eval/{name}/split"] == describe_split(root, "all")
+    assert tags["subsample"] == str(limit) and run.data.params["data.root"] == str(root.resolve())
+    assert 0.0 <= run.data.metrics[f"{name}/ads_auc"] <= 1.0
+    assert not any(k.startswith(("test/", "real/")) for k in run.data.metrics)
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0 and "already logged" in again.output, again.output
+    assert run.info.run_id in again.output
+    res = CliRunner().invoke(app, [*args, "--split", "val"])
+    assert res.exit_code == 2 and "--split val and --data" in res.output

@@ -335,3 +335,36 @@ def test_smoke_run_bop_csv_and_both_layouts_agree(smoke_project, bop_real, tmp_p
     np.testing.assert_allclose(bop.table[cols].to_numpy(), ycb.table[cols].to_numpy(), atol=1e-9)
     tags = tracking.setup(proj).get_run(out.run_id).data.tags
     assert tags[f"eval/{bop.name}/split"] == "BOP19 ycbv test targets (1 images)"
+
+
+def test_a_scene_without_ground_truth_is_named_not_left_out(bop_real, tmp_path):
+    """`--frames all` (and train_real/) refuses a scene folder without scene_gt.json, naming
+    it and the count, instead of evaluating the other scenes' instances without a word."""
+    root = tmp_path / "b"
+    shutil.copytree(bop_real, root)
+    bare = root / "test" / "000001"
+    shutil.copytree(root / "test" / "000000", bare)
+    (bare / "scene_gt.json").unlink()
+    with pytest.raises(FileNotFoundError) as info:
+        BOPYcbv(root).image_set("all")
+    message = str(info.value)
+    assert str(bare / "scene_gt.json") in message and "1 of 2 scenes" in message
+    res = CliRunner().invoke(
+        app,
+        [
+            "baseline",
+            "--method",
+            "fpfh",
+            "--preset",
+            "smoke",
+            "--data",
+            str(root),
+            "--frames",
+            "all",
+            "--no-progress",
+        ],
+    )
+    assert res.exit_code == 2 and "000001/scene_gt.json: ground truth not found" in res.output
+    assert BOPYcbv(root).image_set("keyframe") == [FID]  # the targets name scene 0 only
+    shutil.rmtree(bare)
+    assert BOPYcbv(root).image_set("all") == [FID]

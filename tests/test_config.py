@@ -12,6 +12,7 @@ import cloudpose.config as config
 from cloudpose.config import (
     Config,
     DataConfig,
+    ICPConfig,
     LossConfig,
     ModelConfig,
     TrainConfig,
@@ -24,7 +25,13 @@ from cloudpose.config import (
     variants,
 )
 
-SECTIONS = {"model": ModelConfig, "loss": LossConfig, "train": TrainConfig, "data": DataConfig}
+SECTIONS = {
+    "model": ModelConfig,
+    "loss": LossConfig,
+    "train": TrainConfig,
+    "data": DataConfig,
+    "icp": ICPConfig,
+}
 
 
 @pytest.fixture

@@ -262,3 +262,91 @@ def test_compiled_loop_equals_the_pykdtree_loop(name, graph, monkeypatch):
         obs, R0, t0, _, _ = visible_case(rng, model, n=700, deg=deg, mm=mm)
         obs[:40] += rng.normal(0, 0.03, (40, 3))  # outliers beyond every radius
         assert_same(icp_refine(obs, index, R0, t0), icp_refine(obs, plain, R0, t0), tol=1e-12)
+
+
+def diverging_case():
+    """A banana seen from the front, the start 3 cm to its side: ICP slides further off (3.0 ->
+    3.4 cm) with 27% of the observed points within the last radius."""
+    model = load_model("011_banana")
+    rng = np.random.default_rng(0)
+    R, t = np.eye(3), np.array([0.0, 0.0, 0.8])
+    cam = model @ R.T + t
+    c = cam.mean(axis=0)
+    visible = (cam - c) @ (-c / np.linalg.norm(c)) > -0.005
+    obs = cam[visible][rng.choice(int(visible.sum()), 500)] + rng.normal(0, 0.001, (500, 3))
+    return obs, model, R, t + np.array([0.03, 0.0, 0.0]), t
+
+
+@pytest.mark.parametrize("impl", [icp_refine, icp_refine_open3d])
+def test_fallback_keeps_the_start_when_icp_diverges(impl):
+    obs, model, R0, t0, t = diverging_case()
+    plain = impl(obs, model, R0, t0)
+    assert np.linalg.norm(plain.t - t) > np.linalg.norm(t0 - t) + 0.003  # ICP made it worse
+    assert plain.fitness < 0.3 and not plain.fallback
+    guarded = impl(obs, model, R0, t0, ICPSettings(fallback=True, min_fitness=0.3))
+    np.testing.assert_array_equal(guarded.R, R0)
+    np.testing.assert_array_equal(guarded.t, t0)
+    assert guarded.fallback
+    # the figures of the rejected refinement stay, for the per-object log
+    assert (guarded.fitness, guarded.inlier_rmse) == (plain.fitness, plain.inlier_rmse)
+    batch = icp_refine_batch(
+        [obs], [model], R0[None], t0[None], ICPSettings(fallback=True, min_fitness=0.3)
+    )
+    assert batch[0].fallback
+    np.testing.assert_array_equal(batch[0].t, t0)
+
+
+def test_fallback_leaves_a_converged_refinement_alone():
+    model = load_model("025_mug")
+    obs, R0, t0, _, _ = visible_case(np.random.default_rng(2), model)
+    on = ICPSettings(fallback=True, min_fitness=0.5)
+    assert_same(icp_refine(obs, model, R0, t0, on), icp_refine(obs, model, R0, t0), tol=0)
+    assert not icp_refine(obs, model, R0, t0, on).fallback
+
+
+def test_guard_threshold_is_checked():
+    with pytest.raises(ValueError, match="min_fitness"):
+        ICPSettings(min_fitness=1.5)
+    from cloudpose.config import ICPConfig
+
+    with pytest.raises(ValueError, match=r"icp\.fallback_min_fitness"):
+        ICPConfig(fallback_min_fitness=-0.1)
+
+
+def test_icp_config_section_keeps_stored_runs_identity():
+    """A config stored before the ``icp`` section existed reads back with the guard off and
+    the same fingerprint; turning the guard on is another config; the paper presets keep it
+    off."""
+    from cloudpose.config import Config, resolve
+
+    cfg = resolve("shared-0", "cpu", 1)
+    stored = cfg.to_dict()
+    del stored["icp"]
+    back = Config.from_dict(stored)
+    assert back == cfg and back.fingerprint() == cfg.fingerprint()
+    assert cfg.fingerprint() == "ef338e3a7c1144f5"  # the committed cpu sweep's shared-0 seed 1
+    on = resolve("shared-0", "cpu", 1, {"icp": {"fallback": True}})
+    assert on.fingerprint() != cfg.fingerprint()
+    assert ICPSettings.from_config(on.icp) == ICPSettings(fallback=True, min_fitness=0.1)
+    for preset in ("paper", "cpu-paper"):
+        assert not resolve("shared-0", preset, 1).icp.fallback
+
+
+def test_refine_poses_applies_the_guard_and_reports_each_object():
+    """The per-object figures that evaluate logs (fitness, inlier RMSE, fallback) and the pose
+    kept where the guard trips."""
+    from cloudpose.data.cache import SegmentSet
+    from cloudpose.infer import Estimates, refine_poses
+
+    obs, model, R0, t0, _ = diverging_case()
+    segs = SegmentSet.__new__(SegmentSet)
+    segs.points = np.stack([obs, obs]).astype(np.float32)
+    segs.count = np.array([500, 500])
+    segs.cls_id = np.array([11, 11])
+    segs.valid = np.array([True, False])
+    est = Estimates(np.stack([R0, R0]), np.stack([t0, t0]))
+    out, stats = refine_poses(segs, est, {11: model}, ICPSettings(fallback=True, min_fitness=0.3))
+    assert stats.fallback.tolist() == [True, False]
+    assert 0 < stats.fitness[0] < 0.3 and 0 < stats.inlier_rmse[0] < 0.004
+    assert np.isnan(stats.fitness[1]) and np.isnan(stats.inlier_rmse[1])
+    np.testing.assert_allclose(out.t[0], t0, atol=1e-6)

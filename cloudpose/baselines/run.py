@@ -15,6 +15,13 @@ stopped: the estimates so far are saved every :data:`SAVE_EVERY_S` seconds to
 ``runs/baseline-{method}/{preset}/seed{S}-{data}-{settings}[/{split}-{limit}]/progress.npz``,
 and the next call with the same data, settings, split and subsample continues from them. The
 file is removed once the run is logged, so a later call computes afresh.
+
+On a user's dataset (``data=ROOT``, either layout, ``frames`` as ``cloudpose evaluate
+--data`` takes them) the preset gives the segment settings only. The run is logged under the
+data's identity as an evaluation on that data is
+(:func:`cloudpose.evaluate.evaluation_name`): metrics ``{folder}-{frames}-{key}/...``, tags
+``data`` = the segments' content key, ``split`` = that name, ``eval/{name}/split`` = the frame
+list in words, run name ``baseline-{method}/{preset}/seed{S}+{name}-{settings}``.
 """
 
 from __future__ import annotations
@@ -49,6 +56,10 @@ class BaselineOutcome:
     run_id: str | None
     failures: int
     reused: bool = False  # an earlier finished run of the same call, not computed again
+    name: str = "test"
+    """The metric prefix: the split, or the data's identity with ``data``."""
+    split: str = ""
+    """The frame list evaluated, in words (:func:`cloudpose.data.layout.describe_split`)."""
 
 
 def subsample(n: int, limit: int | None) -> np.ndarray:
@@ -116,7 +127,10 @@ class BaselineCall:
         table = tracking.read_csv_artifact(client, run, f"eval/{self.split}/instances.csv")
         metrics = dict(run.data.metrics)
         failures = int(metrics.get(f"{self.split}/failures", 0))
-        return BaselineOutcome(table, metrics, run.info.run_id, failures, reused=True)
+        split = run.data.tags.get(f"eval/{self.split}/split", "")
+        return BaselineOutcome(
+            table, metrics, run.info.run_id, failures, reused=True, name=self.split, split=split
+        )
 
 
 class _Progress:
@@ -165,6 +179,8 @@ def run_baseline(
     project_dir: Path | None = None,
     limit: int | None = None,
     split: str = "test",
+    data: str | Path | None = None,
+    frames: str = "keyframe",
     overrides: dict | None = None,
     icp: bool = True,
     progress: bool = True,
@@ -179,12 +195,16 @@ def run_baseline(
     chosen (``overrides`` replaces some of ``baselines.toml``'s values), never on the test set.
     ``split="real"`` evaluates on the real development frames, metrics under ``real/`` (and
     per video ``real/video/SEQ/...``), as every network run's evaluation does.
+    ``data`` evaluates on ``frames`` of a dataset root of either layout instead (module doc);
+    the preset then gives the segment settings and classes.
 
     With ``log``, a FINISHED run of the same call is returned as it is (``reused``) unless
     ``rerun``.
     """
     if split not in SPLITS:
         raise ValueError(f"--split {split!r}: expected one of {', '.join(SPLITS)}")
+    if data is not None and split != "test":
+        raise ValueError(f"--split {split} and --data: give one (--data tests on that folder)")
     from cloudpose.config import resolve
     from cloudpose.data.dataset import prepare_data
     from cloudpose.data.layout import open_dataset
@@ -194,26 +214,33 @@ def run_baseline(
     project_dir = (project_dir or Path.cwd()).resolve()
     settings = load_settings(method).with_overrides(overrides)
     cfg = resolve("shared-0", preset, seed)
-    data = prepare_data(cfg.data, project_dir, progress=progress)
-    dataset = open_dataset(data.root)
-    models = dataset.models()
-    if split == "test":
-        pool = data.test
-    elif split == "real":
-        from cloudpose.data.cache import segments_for
-        from cloudpose.evaluate import real_dev_root
-
-        real = real_dev_root()
-        cache_dir = project_dir / "data" / "cache"
-        pool = segments_for(real, "all", cfg.data, cache_dir=cache_dir, progress=progress)
-        dataset = open_dataset(real)
+    described = ""
+    if data is not None:
+        pool, data_key, split, described = _user_data(data, frames, cfg.data, project_dir, progress)
+        dataset = open_dataset(data)
     else:
-        from cloudpose.train import split_frames
+        prepared = prepare_data(cfg.data, project_dir, progress=progress)
+        data_key = prepared.key
+        dataset = open_dataset(prepared.root)
+        if split == "test":
+            pool = prepared.test
+        elif split == "real":
+            from cloudpose.data.cache import segments_for
+            from cloudpose.evaluate import real_dev_root
 
-        pool = data.train.subset(split_frames(data.train.frame_id, cfg.train.val_fraction))
+            real = real_dev_root()
+            cache_dir = project_dir / "data" / "cache"
+            pool = segments_for(real, "all", cfg.data, cache_dir=cache_dir, progress=progress)
+            dataset = open_dataset(real)
+        else:
+            from cloudpose.train import split_frames
+
+            val = split_frames(prepared.train.frame_id, cfg.train.val_fraction)
+            pool = prepared.train.subset(val)
+    models = dataset.models()
     segs = pool.subset(subsample(len(pool), limit))
     call = BaselineCall(
-        project_dir, method, preset, seed, data.key, settings_fingerprint(settings), split, limit
+        project_dir, method, preset, seed, data_key, settings_fingerprint(settings), split, limit
     )
     if log and not rerun:
         done = call.finished(icp)
@@ -275,29 +302,59 @@ def run_baseline(
         metrics[f"{split}/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
     metrics[f"{split}/failures"] = float(failures)
     data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
+    if data is not None:
+        data_params["data.root"] = str(Path(data).resolve())
     run_id = (
         _log(
             method,
             preset,
             seed,
             settings,
-            data.key,
+            data_key,
             table,
             metrics,
             limit,
             data_params,
             split,
             project_dir,
+            described,
         )
         if log
         else None
     )
     state.remove()
-    return BaselineOutcome(table, metrics, run_id, failures)
+    return BaselineOutcome(table, metrics, run_id, failures, name=split, split=described)
+
+
+def _user_data(data, frames: str, cfg, project_dir: Path, progress: bool):
+    """(segments, content key, metric prefix, frame list in words) of ``frames`` of the
+    dataset root ``data``, named and cached as ``cloudpose evaluate --data`` does."""
+    from cloudpose.data.cache import cache_key, segments_for
+    from cloudpose.data.dataset import only_classes
+    from cloudpose.data.layout import describe_split
+    from cloudpose.evaluate import evaluation_name
+
+    cache_dir = project_dir / "data" / "cache"
+    key = cache_key(data, frames, cfg, memo_dir=cache_dir)
+    segs = only_classes(
+        segments_for(data, frames, cfg, cache_dir=cache_dir, progress=progress), data, cfg.classes
+    )
+    return segs, key, evaluation_name(data, frames, key), describe_split(data, frames)
 
 
 def _log(
-    method, preset, seed, settings, data_key, table, metrics, limit, data_params, split, project_dir
+    method,
+    preset,
+    seed,
+    settings,
+    data_key,
+    table,
+    metrics,
+    limit,
+    data_params,
+    split,
+    project_dir,
+    described="",
 ) -> str:
     from mlflow.entities import Param
 
@@ -325,5 +382,8 @@ def _log(
     params = {f"baseline.{k}": v for k, v in settings.values.items()} | data_params
     client.log_batch(run_id, params=[Param(k, v) for k, v in tracking.flat_params(params).items()])
     log_evaluation(client, run_id, split, table, metrics)
+    if described:  # a user's data, tagged as an evaluation of it is
+        client.set_tag(run_id, f"eval/{split}/data", data_key)
+        client.set_tag(run_id, f"eval/{split}/split", described)
     client.set_terminated(run_id, "FINISHED")
     return run_id

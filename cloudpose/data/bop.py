@@ -356,7 +356,12 @@ class BOPYcbv(ModelPointSets):
     def image_set(self, name: str) -> list[str]:
         """Frame ids ``SEQ/FRAME`` of a split: "keyframe" or "test" = the images of
         ``test_targets_bop19.json``; "all" = every image of ``test/``; "train" = every image
-        of ``train_real/``."""
+        of ``train_real/``.
+
+        Raises:
+            FileNotFoundError: a scene folder (``SSSSSS/``) of "all" or "train" without its
+                ``scene_gt.json``, naming it and how many scenes lack one.
+        """
         if name in ("keyframe", "test"):
             path = self.root / TARGETS_FILE
             targets = _load_json(path, "BOP19 test targets")
@@ -377,6 +382,21 @@ class BOPYcbv(ModelPointSets):
         scenes = sorted(folder.glob("*/scene_gt.json"))
         if not scenes:
             raise FileNotFoundError(f"{folder}: no scenes (SSSSSS/scene_gt.json) found")
+        # a scene folder without its ground truth cannot be read (scene_gt.json names the
+        # objects of each image): refused, never left out of "all" without a word
+        bare = [
+            d
+            for d in sorted(folder.iterdir())
+            if d.is_dir() and d.name.isdigit() and not (d / "scene_gt.json").is_file()
+        ]
+        if bare:
+            others = f" and {len(bare) - 1} more of its scenes" if len(bare) > 1 else ""
+            raise FileNotFoundError(
+                f"{bare[0] / 'scene_gt.json'}: ground truth not found, so scene "
+                f"{bare[0].name}{others} of {folder} cannot be read ({len(bare)} of "
+                f"{len(bare) + len(scenes)} scenes lack scene_gt.json); restore it, or move "
+                f"the scene folder out of {folder.name}/ to use the other scenes"
+            )
         frames = []
         for path in scenes:
             scene_id = int(path.parent.name)
@@ -406,6 +426,15 @@ class BOPYcbv(ModelPointSets):
                 raise FileNotFoundError(f"{p}: file of frame {frame_id} not found")
         names = ("scene_gt.json", "scene_camera.json", "scene_gt_info.json")
         return files + [scene["dir"] / n for n in names if (scene["dir"] / n).is_file()]
+
+    def depth_unit_setting(self, scene: str) -> tuple[str, str, str]:
+        """(where, setting, meaning) of the depth unit of scene ``scene`` (``SEQ`` of a frame
+        id), for the unit check's message (:func:`cloudpose.data.segments.check_depth_scale`)."""
+        return (
+            str(self._scene_dir(int(scene))),
+            "depth_scale in its scene_camera.json",
+            f"millimetres per depth unit; BOP ycbv {DEPTH_SCALE:g}, millimetres 1",
+        )
 
     def alone_pixels(self, frame_id: str) -> np.ndarray | None:
         """(N,) ``px_count_all`` of each annotation (its silhouette alone), or None without
@@ -537,6 +566,34 @@ def models_info(models: dict[int, np.ndarray], class_names: list[str]) -> dict:
     return info
 
 
+EXPORT_UNIT_FRAMES = 3
+"""Frames per scene (evenly spaced) whose segments the export's depth unit check measures."""
+
+
+def check_export_units(src, frame_ids: list[str], models: dict[int, np.ndarray]) -> None:
+    """The depth unit check (:func:`cloudpose.data.cache.check_units`) of the frames an export
+    is about to write, on :data:`EXPORT_UNIT_FRAMES` frames of each scene, before any file is
+    written: depth in another unit than the source says stops the export in one line."""
+    import warnings
+
+    from cloudpose.data.cache import SegmentSet, check_units, unit_stats
+    from cloudpose.data.segments import SegmentWarning, extract_segments
+
+    by_scene: dict[str, list[str]] = {}
+    for fid in frame_ids:
+        by_scene.setdefault(fid.split("/", 1)[0], []).append(fid)
+    segments = []
+    for fids in by_scene.values():
+        pick = np.unique(np.linspace(0, len(fids) - 1, EXPORT_UNIT_FRAMES).round().astype(int))
+        for i in pick:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", SegmentWarning)
+                segments += extract_segments(
+                    src.frame(fids[i]), n_fps=256, rng=np.random.default_rng(0), with_gt=False
+                )
+    check_units(src, unit_stats(SegmentSet.from_segments(segments, 256), models))
+
+
 def export_bop(
     source: str | Path,
     out: str | Path,
@@ -565,7 +622,8 @@ def export_bop(
 
     Raises:
         ValueError: ``out`` is not empty; a frame id that is not numbers (BOP names scenes
-            and images by numbers).
+            and images by numbers); depth that looks like another unit than the source's
+            ``factor_depth`` (:func:`check_export_units`).
     """
     from tqdm import tqdm
 
@@ -584,6 +642,7 @@ def export_bop(
         for fid in ids:
             bop_ids(fid)
     models = src.models()
+    check_export_units(src, [fid for _, ids in splits for fid in ids], models)
     # the surfaces that render a real frame's occlusion counts, so both layouts give one factor
     renderer = Renderer(
         {c: p.copy() for c, p in models.items()}, surface_version=ALONE_SURFACE_VERSION

@@ -7,6 +7,11 @@ the frame list, the content of each frame file and model file (and of the files 
 segmentation), and the segment settings (n_fps, outlier_radius, segmentation, FPS seed,
 pipeline version). A changed frame or setting gives a new key, so a stale cache is never read.
 
+Every use of a cache runs the depth unit check per scene (:func:`check_units`; the statistics
+it needs are stored in the file): a scene whose segments are a tenth or ten times their
+model's size stops the command that reads it (prepare, train, evaluate, baseline) with one
+line, unless ``CLOUDPOSE_NO_UNIT_CHECK=1``.
+
 Which dataset a config means, and its preparation for training, are in
 :mod:`cloudpose.data.dataset`.
 
@@ -27,7 +32,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cloudpose.data.segments import Segment, SegmentWarning, extract_segments, get_mask_source
+from cloudpose.data.segments import (
+    Segment,
+    SegmentWarning,
+    depth_scale_problem,
+    depth_scale_stats,
+    extract_segments,
+    get_mask_source,
+    report_depth_scale,
+)
 from cloudpose.files import atomic_text, atomic_write
 
 if TYPE_CHECKING:
@@ -114,9 +127,10 @@ class SegmentSet:
             raise ValueError("concatenate needs at least one SegmentSet")
         return cls(**{n: np.concatenate([getattr(s, n) for s in sets]) for n in cls._ARRAYS})
 
-    def save(self, path: str | Path) -> None:
-        """Write one uncompressed ``.npz`` (atomically: temporary name, then rename)."""
-        arrays = {n: getattr(self, n) for n in self._ARRAYS}
+    def save(self, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> None:
+        """Write one uncompressed ``.npz`` (atomically: temporary name, then rename), with the
+        arrays ``extra`` beside the segments' (:meth:`load` leaves them out)."""
+        arrays = {**(extra or {}), **{n: getattr(self, n) for n in self._ARRAYS}}
         arrays["frame_id"] = np.asarray(self.frame_id, dtype=str)
         atomic_write(path, lambda tmp: np.savez(tmp, key=np.array(self.key), **arrays), ".npz")
 
@@ -323,6 +337,64 @@ def _run(jobs: list, root: str, workers: int):
         yield from pool.imap(_extract, jobs, chunksize=4)
 
 
+# --------------------------------------------------------------------------- units
+
+UNIT_SAMPLE = 64
+"""Segments per scene that the depth unit check measures (evenly spaced over its valid ones)."""
+
+
+def unit_stats(segs: SegmentSet, models_by_class: dict[int, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per scene (the ``SEQ`` of ``SEQ/FRAME``), what the depth unit check looks at
+    (:func:`cloudpose.data.segments.depth_scale_stats`: median extent / model diameter, median
+    depth in metres), from up to :data:`UNIT_SAMPLE` of its valid segments.
+
+    Returns:
+        ``unit_scene`` (S,) str and ``unit_stats`` (S, 2) float64 (NaN: no usable segment), as
+        the segment cache stores them.
+    """
+    scene = np.array([str(f).split("/", 1)[0] for f in segs.frame_id], dtype=str)
+    names = np.unique(scene)
+    stats = np.full((len(names), 2), np.nan)
+    n_fps = segs.points.shape[1]
+    for k, name in enumerate(names):
+        idx = np.flatnonzero((scene == name) & np.asarray(segs.valid, dtype=bool))
+        if len(idx) > UNIT_SAMPLE:
+            idx = idx[np.linspace(0, len(idx) - 1, UNIT_SAMPLE).round().astype(np.int64)]
+        points = [segs.points[i, : min(int(segs.count[i]), n_fps)] for i in idx]
+        found = depth_scale_stats(points, [int(segs.cls_id[i]) for i in idx], models_by_class)
+        if found is not None:
+            stats[k] = found
+    return {"unit_scene": names, "unit_stats": stats}
+
+
+def check_units(dataset, unit: dict[str, np.ndarray]) -> None:
+    """The depth unit check of a dataset's segments (:func:`unit_stats`): the first scene that
+    looks like depth in another unit stops it with one line naming the scene folder and the
+    setting to fix (the count of other such scenes added), or warns where
+    :data:`cloudpose.data.segments.UNIT_CHECK_OFF` is set."""
+    bad = [
+        (str(scene), float(ratio), float(depth))
+        for scene, (ratio, depth) in zip(unit["unit_scene"], unit["unit_stats"], strict=True)
+        if not np.isnan(ratio) and depth_scale_problem(ratio, depth, "", "") is not None
+    ]
+    if not bad:
+        return
+    scene, ratio, depth = bad[0]
+    where, setting, meaning = dataset.depth_unit_setting(scene)
+    if len(bad) > 1:
+        where += f" (and {len(bad) - 1} more scenes alike)"
+    report_depth_scale(depth_scale_problem(ratio, depth, where, setting, meaning))
+
+
+def _stored_unit_stats(path: Path, models_by_class: dict[int, np.ndarray]) -> dict:
+    """The unit statistics a cache file stores; measured from its segments for a file written
+    before they were stored."""
+    with np.load(path, allow_pickle=False) as z:
+        if "unit_scene" in z.files and "unit_stats" in z.files:
+            return {"unit_scene": z["unit_scene"], "unit_stats": z["unit_stats"]}
+    return unit_stats(SegmentSet.load(path), models_by_class)
+
+
 def cache_path(root: str | Path, split: str, cfg: DataConfig, cache_dir: str | Path) -> Path:
     """Where the segments of ``split`` live: ``cache_dir/ROOTNAME-SPLIT-KEY.npz``."""
     root = Path(root)
@@ -351,11 +423,19 @@ def prepare(
 
     Returns:
         Path of the cache file.
+
+    Raises:
+        ValueError: a scene's segments look like depth in another unit (:func:`check_units`;
+            the cache is written all the same, and checked again on every use).
     """
+    from cloudpose.data.layout import open_dataset
+
     root = Path(root)
     settings = _settings(cfg)
     path = cache_path(root, split, cfg, cache_dir or root / "cache")
+    ds = open_dataset(root)
     if path.is_file():
+        check_units(ds, _stored_unit_stats(path, ds.models()))
         return path
     frames = _split_frames(root, split)
     jobs = [(fid, settings) for fid in frames]
@@ -378,7 +458,9 @@ def prepare(
         )
     out = SegmentSet.from_segments(segments, settings["n_fps"])
     out.key = path.stem.rsplit("-", 1)[-1]
-    out.save(path)
+    unit = unit_stats(out, ds.models())
+    out.save(path, extra=unit)
+    check_units(ds, unit)
     return path
 
 

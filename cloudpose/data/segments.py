@@ -15,6 +15,7 @@ always uses the ground-truth labels.
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -319,31 +320,38 @@ def extract_segments(
     return out
 
 
-def check_depth_scale(
-    points: list[np.ndarray],
-    cls_ids: list[int],
-    models_by_class: dict[int, np.ndarray],
-    source: str,
-    flag: str,
-) -> None:
-    """Raise when the segments look like depth read in the wrong unit.
+UNIT_CHECK_OFF = "CLOUDPOSE_NO_UNIT_CHECK"
+"""Environment variable that turns the depth unit check (:func:`check_depth_scale`) into a
+warning: ``CLOUDPOSE_NO_UNIT_CHECK=1`` lets every command go on with depth that looks like
+another unit (objects a tenth or ten times their model's size)."""
 
-    A segment's extent (twice the 95th percentile of its points' distance from their mean) is
-    at most the model's diameter and, unless the object is mostly hidden, a fair part of it;
-    and a depth sensor sees objects between ~0.2 and ~6 m. Depth in millimetres read as
-    tenths of a millimetre (YCB-Video's factor) shrinks both by 10: objects at 0.1 m, a tenth
-    of their size. The check takes the median over the segments, so one occluded object does
-    not trip it.
+YCB_DEPTH_UNIT = "depth units per metre; YCB-Video 10000, millimetres 1000"
+"""What a YCB-Video depth factor means, for the unit check's message."""
+
+
+class UnitWarning(UserWarning):
+    """Depth that looks like another unit, let through by :data:`UNIT_CHECK_OFF`."""
+
+
+def unit_check_enabled() -> bool:
+    """False when :data:`UNIT_CHECK_OFF` is set to anything but "" or "0"."""
+    return os.environ.get(UNIT_CHECK_OFF, "").strip() in ("", "0")
+
+
+def depth_scale_stats(
+    points: list[np.ndarray], cls_ids: list[int], models_by_class: dict[int, np.ndarray]
+) -> tuple[float, float] | None:
+    """What the unit check looks at: the median over the segments of (segment extent / model
+    diameter) and of the segment's median depth in metres; None without a usable segment.
+
+    A segment's extent is twice the 95th percentile of its points' distance from their mean.
 
     Args:
-        points: per segment, (N_i, 3) camera-frame points, metres (N_i >= 3).
-        cls_ids: per segment, its 1-based class id (a key of ``models_by_class``).
+        points: per segment, (N_i, 3) camera-frame points, metres (segments with N_i < 3 are
+            left out).
+        cls_ids: per segment, its 1-based class id (a key of ``models_by_class``; others are
+            left out).
         models_by_class: (P, 3) model points, metres.
-        source: what to name in the error (the depth file).
-        flag: the setting that fixes it (e.g. ``--depth-factor``).
-
-    Raises:
-        ValueError: naming ``source``, the factor the data looks off by, and ``flag``.
     """
     ratios, depths = [], []
     for p, c in zip(points, cls_ids, strict=True):
@@ -355,16 +363,68 @@ def check_depth_scale(
         ratios.append(extent / diameter)
         depths.append(float(np.median(p[:, 2])))
     if not ratios:
-        return
-    ratio, depth = float(np.median(ratios)), float(np.median(depths))
+        return None
+    return float(np.median(ratios)), float(np.median(depths))
+
+
+def depth_scale_problem(
+    ratio: float, depth: float, source: str, flag: str, unit: str = YCB_DEPTH_UNIT
+) -> str | None:
+    """The unit check's one-line message for :func:`depth_scale_stats` ``(ratio, depth)``, or
+    None when they look like metres (see :func:`check_depth_scale`)."""
     if 0.3 <= ratio <= 3.0 and 0.2 <= depth <= 6.0:
-        return
+        return None
     factor = 10.0 ** round(float(np.log10(ratio)))
     if factor == 1.0:
         factor = 10.0 ** round(float(np.log10(depth / 1.0)))
     looks = f"{1 / factor:g} times too small" if factor < 1 else f"{factor:g} times too large"
-    raise ValueError(
+    return (
         f"{source}: the objects look {looks} for their models (median segment extent "
         f"{ratio:.2f} x the model diameter, median depth {depth:.3f} m): is the depth in "
-        f"another unit? set {flag} (depth units per metre; YCB-Video 10000, millimetres 1000)"
+        f"another unit? set {flag} ({unit})"
     )
+
+
+def check_depth_scale(
+    points: list[np.ndarray],
+    cls_ids: list[int],
+    models_by_class: dict[int, np.ndarray],
+    source: str,
+    flag: str,
+    unit: str = YCB_DEPTH_UNIT,
+) -> None:
+    """Raise when the segments look like depth read in the wrong unit.
+
+    A segment's extent (twice the 95th percentile of its points' distance from their mean) is
+    at most the model's diameter and, unless the object is mostly hidden, a fair part of it;
+    and a depth sensor sees objects between ~0.2 and ~6 m. Depth in millimetres read as
+    tenths of a millimetre (YCB-Video's factor) shrinks both by 10: objects at 0.1 m, a tenth
+    of their size. The check takes the median over the segments, so one occluded object does
+    not trip it. Every path that reads depth runs it: :func:`cloudpose.predict.predict` per
+    frame, the segment cache (:func:`cloudpose.data.cache.prepare`) per scene, the BOP export
+    per scene. With :data:`UNIT_CHECK_OFF` set it warns (:class:`UnitWarning`) instead.
+
+    Args:
+        points: per segment, (N_i, 3) camera-frame points, metres (N_i >= 3).
+        cls_ids: per segment, its 1-based class id (a key of ``models_by_class``).
+        models_by_class: (P, 3) model points, metres.
+        source: what to name in the error (the depth file, the scene folder).
+        flag: the setting that fixes it (e.g. ``--depth-factor``).
+        unit: what that setting means, with common values.
+
+    Raises:
+        ValueError: naming ``source``, the factor the data looks off by, and ``flag``.
+    """
+    stats = depth_scale_stats(points, cls_ids, models_by_class)
+    if stats is not None:
+        report_depth_scale(depth_scale_problem(*stats, source, flag, unit))
+
+
+def report_depth_scale(problem: str | None) -> None:
+    """Raise ``ValueError(problem)`` (saying how to go on anyway); with :data:`UNIT_CHECK_OFF`
+    set, warn instead."""
+    if problem is None:
+        return
+    if unit_check_enabled():
+        raise ValueError(f"{problem}; {UNIT_CHECK_OFF}=1 goes on anyway")
+    warnings.warn(f"{problem}; going on ({UNIT_CHECK_OFF} is set)", UnitWarning, stacklevel=3)

@@ -604,6 +604,15 @@ class YCBVideo(ModelPointSets):
         """Every class's model point file, ``models_root/NAME/points.xyz`` (for content keys)."""
         return [self.models_root / n / "points.xyz" for n in self.classes]
 
+    def depth_unit_setting(self, scene: str) -> tuple[str, str, str]:
+        """(where, setting, meaning) of the depth unit of scene (video) ``scene``, for the unit
+        check's message (:func:`cloudpose.data.segments.check_depth_scale`)."""
+        return (
+            str(self.root / "data" / scene),
+            "factor_depth in its -meta.mat files",
+            "depth units per metre; YCB-Video 10000, millimetres 1000",
+        )
+
     def alone_pixels(self, frame_id: str) -> np.ndarray | None:
         """(N,) pixels of each instance rendered alone, as the synthetic meta stores them
         (``alone_pixels``); None when the meta has no such field (real frames)."""

@@ -1,0 +1,305 @@
+"""The real-frame report: the 61 packaged real development frames, per video and pooled.
+
+Rows: the network (shared-0 of a preset, every seed found), FPFH + RANSAC and point-pair
+features (``cloudpose baseline --split real``), each without and with ICP, and with ICP and its
+fallback guard where such an evaluation exists (``cloudpose evaluate --real --icp-fallback``).
+Columns: per video (0000-0003) and pooled, ADS AUC, rotation error < 10 degrees modulo the
+object's symmetries, translation error < 1 cm (percent of instances), and milliseconds per
+object (the method, plus ICP in the ICP rows). Over several seeds a cell is the mean over seeds
+(± the sample standard deviation).
+
+Only reads: every figure comes from an evaluation's logged instance table
+(``eval/real/instances.csv``) and its timing metrics; a missing evaluation is listed with the
+command that makes it, never computed here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cloudpose import tracking
+
+REAL = "real"
+"""The metric prefix of an evaluation on the real development frames
+(:data:`cloudpose.evaluate.REAL_DEV`); the network's guarded ICP is ``real-fallback``."""
+
+NETWORK = "shared-0"
+BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
+METRICS = {
+    "ads_auc": "ADS AUC",
+    "rot_sym_lt_10deg": "rotation < 10° mod sym",
+    "trans_lt_1cm": "translation < 1 cm",
+}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One logged evaluation on the real frames: its instance table and timings."""
+
+    method: str  # shared-0, fpfh, ppf
+    seed: int
+    name: str  # real or real-fallback
+    table: pd.DataFrame
+    net_ms: float
+    icp_ms: float
+    run_id: str
+
+
+@dataclass
+class RealReport:
+    """The report's rows (long form: one row per method, ICP setting, video, metric) and what
+    is missing."""
+
+    rows: pd.DataFrame
+    missing: list[str] = field(default_factory=list)
+    seeds: dict[str, list[int]] = field(default_factory=dict)
+
+
+def video_of(frame_id: pd.Series) -> pd.Series:
+    """``0001/000004`` -> ``0001``."""
+    return frame_id.astype(str).str.split("/").str[0]
+
+
+def table_metrics(table: pd.DataFrame) -> dict[tuple[str, str, str], float]:
+    """``(method column prefix, video or "pooled", metric) -> value`` (0..1) of an instance
+    table of :func:`cloudpose.evaluate.instance_table` (``net_*``, ``icp_*`` columns)."""
+    from cloudpose.evaluate import summary_metrics, video_metrics
+
+    out: dict[tuple[str, str, str], float] = {}
+    name = "x"
+    metrics = {**summary_metrics(table, name), **video_metrics(table, name)}
+    for method, prefix in (("net", name), ("icp", f"{name}_icp")):
+        for key in METRICS:
+            if f"{prefix}/{key}" not in metrics:
+                continue
+            out[(method, "pooled", key)] = metrics[f"{prefix}/{key}"]
+            for video in sorted(set(video_of(table["frame_id"]))):
+                out[(method, video, key)] = metrics[f"{prefix}/video/{video}/{key}"]
+    return out
+
+
+def _load(client, run, method: str, name: str) -> Evaluation | None:
+    rel = f"eval/{name}/instances.csv"
+    from mlflow.exceptions import MlflowException
+
+    try:
+        table = tracking.read_csv_artifact(client, run, rel)
+    except (FileNotFoundError, MlflowException):  # no such evaluation
+        return None
+    m = run.data.metrics
+    return Evaluation(
+        method,
+        int(run.data.tags.get("seed", 0)),
+        name,
+        table,
+        float(m.get(f"{name}/net_ms_per_object", math.nan)),
+        float(m.get(f"{name}/icp_ms_per_object", math.nan)),
+        run.info.run_id,
+    )
+
+
+def find_evaluations(
+    client, preset: str, seeds: int = 3
+) -> tuple[list[Evaluation], list[str], dict[str, list[int]]]:
+    """Every real-frame evaluation of ``preset``'s network and baselines in the store.
+
+    The network: the newest FINISHED ``shared-0`` run per seed trained with the preset's own
+    config (:func:`cloudpose.runs.is_preset_config`). Baselines: the newest FINISHED run per
+    seed of ``baseline-{method}`` on split ``real`` with the method's default settings.
+
+    Returns:
+        The evaluations; what is missing, each with the command that makes it (seeds
+        ``1..seeds`` of the network and seed 1 of each baseline are expected); the seeds found
+        per method.
+    """
+    from cloudpose.baselines import load_settings
+    from cloudpose.baselines.base import settings_fingerprint
+    from cloudpose.runs import is_preset_config
+
+    found: list[Evaluation] = []
+    missing: list[str] = []
+    seeds_found: dict[str, list[int]] = {}
+    newest: dict[int, object] = {}
+    for run in tracking.find_runs(client, variant=NETWORK, preset=preset):
+        seed = int(run.data.tags.get("seed", 0))
+        if seed not in newest and is_preset_config(run):
+            newest[seed] = run
+    for seed in sorted(set(range(1, seeds + 1)) | set(newest)):
+        run = newest.get(seed)
+        if run is None:
+            missing.append(
+                f"{NETWORK}/{preset}/seed{seed}: no run "
+                f"(`cloudpose run --variant {NETWORK} --preset {preset} --seed {seed}`)"
+            )
+            continue
+        ev = _load(client, run, NETWORK, REAL)
+        if ev is None:
+            missing.append(
+                f"{NETWORK}/{preset}/seed{seed}: not evaluated on the real frames "
+                f"(`cloudpose evaluate --run {NETWORK}/{preset}/seed{seed} --real`; needs the "
+                "run's checkpoint)"
+            )
+            continue
+        found.append(ev)
+        seeds_found.setdefault(NETWORK, []).append(seed)
+        guarded = _load(client, run, NETWORK, f"{REAL}-fallback")
+        if guarded is not None:
+            found.append(guarded)
+    for method in BASELINES:
+        fp = settings_fingerprint(load_settings(method))
+        extra = (
+            f"tags.kind = 'baseline' and tags.split = '{REAL}' and tags.subsample = 'all' "
+            f"and tags.config = '{fp}'"
+        )
+        runs = tracking.find_runs(
+            client, variant=f"baseline-{method}", preset=preset, extra_filter=extra
+        )
+        per_seed: dict[int, object] = {}
+        for run in runs:
+            per_seed.setdefault(int(run.data.tags.get("seed", 0)), run)
+        for seed, run in sorted(per_seed.items()):
+            ev = _load(client, run, method, REAL)
+            if ev is not None:
+                found.append(ev)
+                seeds_found.setdefault(method, []).append(seed)
+        if method not in seeds_found:
+            missing.append(
+                f"baseline-{method}/{preset}: not run on the real frames "
+                f"(`cloudpose baseline --method {method} --preset {preset} --split real`)"
+            )
+    return found, missing, seeds_found
+
+
+def _label(method: str, icp: str) -> str:
+    base = "network (shared-0)" if method == NETWORK else BASELINES[method]
+    return {"net": base, "icp": f"{base} + ICP", "icp_fallback": f"{base} + ICP + fallback"}[icp]
+
+
+def build(evaluations: list[Evaluation]) -> pd.DataFrame:
+    """Long-form rows: method, icp (net / icp / icp_fallback), label, video, metric, mean,
+    std (over seeds; NaN for one), seeds, instances, ms_per_object."""
+    cells: dict[tuple, list[float]] = {}
+    ms: dict[tuple, list[float]] = {}
+    counts: dict[tuple, int] = {}
+    for ev in evaluations:
+        fallback = ev.name.endswith("-fallback")
+        videos = video_of(ev.table["frame_id"])
+        for (col, video, key), value in table_metrics(ev.table).items():
+            if fallback and col == "net":
+                continue  # the same estimates as the run's own evaluation
+            icp = "icp_fallback" if fallback else col
+            cells.setdefault((ev.method, icp, video, key), []).append(value)
+            n = len(ev.table) if video == "pooled" else int((videos == video).sum())
+            counts[(ev.method, icp, video)] = n
+        for icp in ("icp_fallback",) if fallback else ("net", "icp"):
+            t = ev.net_ms + (ev.icp_ms if icp != "net" else 0.0)
+            ms.setdefault((ev.method, icp), []).append(t)
+    order = {NETWORK: 0, **{m: i + 1 for i, m in enumerate(BASELINES)}}
+    icp_order = {"net": 0, "icp": 1, "icp_fallback": 2}
+    rows = []
+    for (method, icp, video, key), values in cells.items():
+        v = np.asarray(values, dtype=float)
+        rows.append(
+            {
+                "method": method,
+                "icp": icp,
+                "label": _label(method, icp),
+                "video": video,
+                "metric": key,
+                "mean": float(v.mean()),
+                "std": float(v.std(ddof=1)) if len(v) > 1 else math.nan,
+                "seeds": len(v),
+                "instances": counts[(method, icp, video)],
+                "ms_per_object": float(np.nanmean(ms[(method, icp)])),
+            }
+        )
+    df = pd.DataFrame(rows)
+    if df.empty:
+        return df
+    df["_m"] = df["method"].map(order)
+    df["_i"] = df["icp"].map(icp_order)
+    df["_v"] = df["video"].map(lambda v: "~" if v == "pooled" else v)
+    df = df.sort_values(["_m", "_i", "metric", "_v"]).drop(columns=["_m", "_i", "_v"])
+    return df.reset_index(drop=True)
+
+
+def _cell(mean: float, std: float) -> str:
+    if math.isnan(std):
+        return f"{100 * mean:.1f}"
+    return f"{100 * mean:.1f} ± {100 * std:.1f}"
+
+
+def markdown(report: RealReport, preset: str, command: str) -> str:
+    """The report as Markdown: one table per metric (rows: methods; columns: videos, pooled),
+    the command and settings beside it, and what is missing."""
+    df = report.rows
+    lines = [
+        f"# Real development frames ({preset} preset)",
+        "",
+        f"Made by `{command}` from the logged evaluations (it never trains or evaluates). "
+        "Data: the 61 real YCB-Video frames with ground truth that ship in the package "
+        "(`cloudpose/resources/real_dev`: frames 000001-000020 of training videos 0000-0002 "
+        "and 0003/000138; 14 classes, 4 scenes). Network: shared-0 of the "
+        f"{preset} preset, trained on synthetic frames only, evaluated by `cloudpose evaluate "
+        "--real` (ICP + fallback: `--icp-fallback`, the guard of `icp.fallback`). Baselines: "
+        f"`cloudpose baseline --method fpfh|ppf --preset {preset} --split real` (default "
+        "settings of ablations/baselines.toml). ICP: the paper's schedule (10 iterations, "
+        "1 cm shrinking by 10%). Percent of instances (ADS AUC: area under the ADS accuracy "
+        "curve up to 10 cm); a miss counts as a failure. Several seeds: mean ± sample std over "
+        "seeds. ms per object: the method (+ ICP), on the machine that ran it.",
+        "",
+    ]
+    seeds = ", ".join(f"{m} seeds {s}" for m, s in report.seeds.items()) or "none"
+    lines += [f"Runs found: {seeds}.", ""]
+    if df.empty:
+        lines += ["No evaluation on the real frames was found.", ""]
+    else:
+        videos = [v for v in sorted(set(df["video"])) if v != "pooled"] + ["pooled"]
+        n = df[(df["method"] == df["method"].iloc[0]) & (df["icp"] == "net")]
+        n = n.drop_duplicates("video").set_index("video")["instances"]
+        header = [f"{v} ({n.get(v, '?')})" for v in videos]
+        for key, title in METRICS.items():
+            sub = df[df["metric"] == key]
+            lines += [f"## {title} (%)", ""]
+            lines += ["| method | " + " | ".join(header) + " | ms / object |"]
+            lines += ["|---|" + "---:|" * (len(videos) + 1)]
+            for label, g in sub.groupby("label", sort=False):
+                g = g.set_index("video")
+                cells = [
+                    _cell(g.loc[v, "mean"], g.loc[v, "std"]) if v in g.index else "" for v in videos
+                ]
+                ms = g["ms_per_object"].iloc[0]
+                lines += [f"| {label} | " + " | ".join(cells) + f" | {ms:.1f} |"]
+            lines += [""]
+        lines += ["Column headers: video (instances). Video 0003 holds one frame.", ""]
+    if report.missing:
+        lines += ["## Missing", ""]
+        lines += [f"- {m}" for m in report.missing]
+        lines += [""]
+    return "\n".join(lines)
+
+
+def render_real_report(
+    preset: str,
+    project_dir: Path,
+    out_dir: Path | None = None,
+    command: str = "",
+    seeds: int = 3,
+) -> tuple[RealReport, list[Path]]:
+    """Write ``real_frames.md`` and ``real_frames.csv`` into ``out_dir`` (default
+    ``{project_dir}/reports/{preset}``) from the evaluations in the project's store."""
+    client = tracking.setup(project_dir)
+    evaluations, missing, found = find_evaluations(client, preset, seeds)
+    report = RealReport(build(evaluations), missing, found)
+    out_dir = Path(out_dir or project_dir / "reports" / preset)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    command = command or f"cloudpose real-report --preset {preset}"
+    md, csv = out_dir / "real_frames.md", out_dir / "real_frames.csv"
+    md.write_text(markdown(report, preset, command), encoding="utf-8")
+    report.rows.to_csv(csv, index=False, float_format="%.6g")
+    return report, [md, csv]

@@ -1,0 +1,171 @@
+"""The real-frame report from a throwaway store: per video and pooled, network and baselines,
+without and with ICP; what is missing is named with its command; nothing is computed."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cloudpose.config import resolve
+
+PRESET = "smoke"
+DATA = "f00dfeed1234567890"
+VIDEOS = {"0000": 6, "0001": 4}
+
+
+def _instances(rng: np.random.Generator, fallback: bool = False) -> pd.DataFrame:
+    """Ten instances in two videos; rotation and translation errors on both sides of the
+    thresholds, ADS up to 10 cm."""
+    frame_id = [f"{v}/{i:06d}" for v, n in VIDEOS.items() for i in range(n)]
+    m = len(frame_id)
+    df = pd.DataFrame(
+        {
+            "frame_id": frame_id,
+            "instance": np.zeros(m, dtype=int),
+            "cls_id": np.full(m, 2),
+            "class": ["003_cracker_box"] * m,
+            "occlusion": np.zeros(m),
+            "points": np.full(m, 500),
+            "miss": np.zeros(m, dtype=bool),
+        }
+    )
+    for method in ("net", "icp"):
+        ads = rng.uniform(0.0, 0.05, m)
+        df[f"{method}_ad"] = ads * 1.5
+        df[f"{method}_ads"] = ads
+        df[f"{method}_rot_err_deg"] = rng.uniform(0, 30, m)
+        df[f"{method}_rot_sym_err_deg"] = rng.uniform(0, 20, m)
+        df[f"{method}_trans_err"] = rng.uniform(0, 0.02, m)
+    return df
+
+
+def _log(client, exp, tags, name, evaluations: dict[str, pd.DataFrame], ms=(2.0, 5.0)) -> None:
+    from cloudpose.evaluate import log_evaluation
+
+    run = client.create_run(exp, tags=tags, run_name=name)
+    for ev_name, table in evaluations.items():
+        metrics = {f"{ev_name}/net_ms_per_object": ms[0], f"{ev_name}/icp_ms_per_object": ms[1]}
+        log_evaluation(client, run.info.run_id, ev_name, table, metrics)
+    client.set_terminated(run.info.run_id, "FINISHED")
+
+
+def _store(root: Path, seeds=(1, 2), baselines=("fpfh",)) -> dict:
+    from cloudpose import tracking
+    from cloudpose.baselines import load_settings
+    from cloudpose.baselines.base import settings_fingerprint
+
+    client = tracking.setup(root)
+    rng = np.random.default_rng(5)
+    logged: dict = {}
+    exp = tracking.experiment_id(client, "shared", root)
+    for seed in seeds:
+        tags = {
+            "variant": "shared-0",
+            "group": "shared",
+            "preset": PRESET,
+            "seed": str(seed),
+            "data": DATA,
+            "config": resolve("shared-0", PRESET, seed).fingerprint(),
+        }
+        evs = {"real": _instances(rng)}
+        if seed == 1:
+            evs["real-fallback"] = _instances(rng)
+        logged[("shared-0", seed)] = evs
+        _log(client, exp, tags, f"shared-0/{PRESET}/seed{seed}", evs)
+    # a run of another config (an override) is not the preset's network
+    other = dict(tags, seed="1", config="0123456789abcdef")
+    _log(client, exp, other, f"shared-0/{PRESET}/seed1+x", {"real": _instances(rng)})
+    exp_b = tracking.experiment_id(client, "baselines", root)
+    for method in baselines:
+        tags = {
+            "variant": f"baseline-{method}",
+            "group": "baselines",
+            "preset": PRESET,
+            "seed": "1",
+            "data": DATA,
+            "config": settings_fingerprint(load_settings(method)),
+            "kind": "baseline",
+            "subsample": "all",
+            "split": "real",
+        }
+        evs = {"real": _instances(rng)}
+        logged[(method, 1)] = evs
+        _log(client, exp_b, tags, f"baseline-{method}/{PRESET}/seed1+real", evs, ms=(90.0, 5.0))
+    return logged
+
+
+def _share(table: pd.DataFrame, col: str, limit: float, video: str | None) -> float:
+    sel = table if video is None else table[table["frame_id"].str.startswith(video + "/")]
+    return float((sel[col] < limit).mean())
+
+
+@pytest.mark.slow  # a fresh MLflow store: ~40 s on 2 shared cores
+def test_real_report_per_video_and_pooled(tmp_path):
+    from cloudpose import tracking
+    from cloudpose.report.real import render_real_report
+
+    logged = _store(tmp_path)
+    client = tracking.setup(tmp_path)
+    tags = {
+        "variant": "shared-0",
+        "group": "shared",
+        "preset": PRESET,
+        "seed": "3",
+        "data": DATA,
+        "config": resolve("shared-0", PRESET, 3).fingerprint(),
+    }
+    exp = tracking.experiment_id(client, "shared", tmp_path)
+    _log(client, exp, tags, f"shared-0/{PRESET}/seed3", {})  # trained, never on real frames
+    report, files = render_real_report(PRESET, tmp_path, command="cloudpose real-report", seeds=4)
+    assert [f.name for f in files] == ["real_frames.md", "real_frames.csv"]
+    assert all(f.parent == tmp_path / "reports" / PRESET for f in files)
+    rows = pd.read_csv(files[1], dtype={"video": str})
+    assert report.seeds == {"shared-0": [1, 2], "fpfh": [1]}
+
+    def cell(method, icp, video, metric):
+        r = rows[
+            (rows.method == method)
+            & (rows.icp == icp)
+            & (rows.video == video)
+            & (rows.metric == metric)
+        ]
+        assert len(r) == 1, (method, icp, video, metric)
+        return r.iloc[0]
+
+    # network: mean (and sample std) over its two seeds, per video and pooled, both sides of ICP
+    for icp, prefix in (("net", "net"), ("icp", "icp")):
+        for video in ("0000", "0001", None):
+            per_seed = [
+                _share(logged[("shared-0", s)]["real"], f"{prefix}_trans_err", 0.01, video)
+                for s in (1, 2)
+            ]
+            r = cell("shared-0", icp, video or "pooled", "trans_lt_1cm")
+            assert r["mean"] == pytest.approx(np.mean(per_seed), abs=1e-6)
+            assert r["std"] == pytest.approx(np.std(per_seed, ddof=1), abs=1e-6)
+            assert r["seeds"] == 2
+    rot = _share(logged[("shared-0", 1)]["real-fallback"], "icp_rot_sym_err_deg", 10, "0001")
+    r = cell("shared-0", "icp_fallback", "0001", "rot_sym_lt_10deg")
+    assert r["mean"] == pytest.approx(rot, abs=1e-6) and r["seeds"] == 1 and math.isnan(r["std"])
+    # baseline: its own table; ms per object = method (+ ICP)
+    b = cell("fpfh", "icp", "pooled", "trans_lt_1cm")
+    assert b["mean"] == pytest.approx(
+        _share(logged[("fpfh", 1)]["real"], "icp_trans_err", 0.01, None)
+    )
+    assert b["ms_per_object"] == pytest.approx(95.0)
+    assert cell("fpfh", "net", "0000", "ads_auc")["ms_per_object"] == pytest.approx(90.0)
+    assert cell("shared-0", "net", "0000", "ads_auc")["instances"] == VIDEOS["0000"]
+    # the Markdown: every row label, the command, and what is missing with its command
+    md = files[0].read_text()
+    assert "made by `cloudpose real-report`" in md.lower()
+    for label in ("network (shared-0) + ICP + fallback", "FPFH + RANSAC + ICP", "0001 (4)"):
+        assert label in md
+    text = "\n".join(report.missing)
+    assert len(report.missing) == 3
+    assert f"`cloudpose evaluate --run shared-0/{PRESET}/seed3 --real`" in text
+    assert f"`cloudpose run --variant shared-0 --preset {PRESET} --seed 4`" in text
+    assert f"`cloudpose baseline --method ppf --preset {PRESET} --split real`" in text
+    assert "--method ppf" in md and "--method fpfh" not in text
