@@ -252,7 +252,7 @@ def test_run_group_loss_smoke_for_real(tmp_path, monkeypatch):
         "README.md",
     ):
         assert (out / name).exists(), name
-    assert "not resolved at this size" in (out / "claims.md").read_text()  # one seed
+    assert "1 seed(s) of 3 needed" in (out / "claims.md").read_text()  # one seed
     res = ablate.run_group(
         "loss", "smoke", 1, tmp_path, progress=False, report=False, echo=lines.append
     )
