@@ -706,3 +706,23 @@ def test_outlier_classes_flags_a_class_far_below_the_rest():
     assert outlier_classes(values) == {"002_master_chef_can": 55.8}
     assert outlier_classes({k: v for k, v in values.items() if k != "002_master_chef_can"}) == {}
     assert outlier_classes({"a": 1.0, "b": float("nan")}) == {}
+
+
+def test_seeds_wanted_grows_only_undecided_wide_claims():
+    from cloudpose.report.claims import Claim, ClaimResult, seeds_wanted
+
+    def result(other, metric, low, high, verdict, n=3):
+        claim = Claim("t", "s", ("shared-0", "test"), (other, "test"), metric, math.nan)
+        return ClaimResult(claim, stats.Difference(0.0, low, high, n, True, verdict))
+
+    results = [
+        # 8 pp wide against a 2 pp margin: 3 * (8 / 4)^2 = 12 seeds, capped at 10
+        result("l2", "rot_lt_10deg", -0.04, 0.04, stats.UNRESOLVED),
+        # 3 pp wide against a 1 pp margin: 3 * (3 / 2)^2 = 6.75 -> 7
+        result("quaternion", "ads_auc", -0.01, 0.02, stats.UNRESOLVED),
+        # decided or narrow: no more seeds
+        result("shared-1", "ads_auc", 0.01, 0.03, stats.SUPPORTED),
+        result("shared-2", "ads_auc", -0.009, 0.009, stats.UNRESOLVED),
+    ]
+    assert seeds_wanted(results, cap=10) == {"l2": 10, "quaternion": 7, "shared-0": 10}
+    assert seeds_wanted(results, cap=3) == {}  # every variant already has the cap

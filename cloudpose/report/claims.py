@@ -401,3 +401,33 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
             f"{_pp(c.paper / 100)} | {_pp(d.mean)} | {ci} | {floor} | {seeds} | {verdict} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def seeds_wanted(results: list[ClaimResult], cap: int = 10) -> dict[str, int]:
+    """Seeds each variant needs next so that the claims it takes part in can be decided.
+
+    A claim asks for more seeds while its verdict is "not resolved" and its interval is wider
+    than twice the metric's margin (an interval narrower than the margin either way decides
+    equivalence or a direction). The interval narrows as 1/sqrt(seeds), so the estimate is
+    ``ceil(n * (width / (2 margin))**2)``, at least n + 1 and at most ``cap``.
+
+    Returns:
+        variant -> seeds wanted (only variants that want more than they have, below ``cap``).
+    """
+    want: dict[str, int] = {}
+    have: dict[str, int] = {}
+    for r in results:
+        c, d = r.claim, r.diff
+        for v in {c.favoured[0], c.other[0]}:
+            have[v] = max(have.get(v, 0), d.n)
+        if d.verdict != UNRESOLVED or c.favoured[0].startswith("baseline-"):
+            continue
+        width, m = d.high - d.low, margin_for(c.metric)
+        if math.isfinite(width) and width <= 2 * m:
+            continue
+        n = max(d.n, 1)
+        scale = (width / (2 * m)) ** 2 if math.isfinite(width) else 2.0
+        need = min(cap, max(n + 1, math.ceil(n * scale)))
+        for v in {c.favoured[0], c.other[0]}:
+            want[v] = max(want.get(v, 0), need)
+    return {v: n for v, n in sorted(want.items()) if n > have.get(v, 0)}
