@@ -234,7 +234,7 @@ def _cell(mean: float, std: float) -> str:
     return f"{100 * mean:.1f} ± {100 * std:.1f}"
 
 
-def markdown(report: RealReport, preset: str, command: str) -> str:
+def markdown(report: RealReport, preset: str, command: str, store: str = "the store") -> str:
     """The report as Markdown: one table per metric (rows: methods; columns: videos, pooled),
     the command and settings beside it, and what is missing."""
     df = report.rows
@@ -254,8 +254,8 @@ def markdown(report: RealReport, preset: str, command: str) -> str:
         "seeds. ms per object: the method (+ ICP), on the machine that ran it.",
         "",
     ]
-    seeds = ", ".join(f"{m} seeds {s}" for m, s in report.seeds.items()) or "none"
-    lines += [f"Runs found: {seeds}.", ""]
+    seeds = "; ".join(f"{m} seed {', '.join(map(str, s))}" for m, s in report.seeds.items())
+    lines += [f"Runs found in {store}: {seeds or 'none'}.", ""]
     if df.empty:
         lines += ["No evaluation on the real frames was found.", ""]
     else:
@@ -300,6 +300,7 @@ def render_real_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or f"cloudpose real-report --preset {preset}"
     md, csv = out_dir / "real_frames.md", out_dir / "real_frames.csv"
-    md.write_text(markdown(report, preset, command), encoding="utf-8")
+    store = f"the MLflow store of {Path(project_dir).resolve()}"
+    md.write_text(markdown(report, preset, command, store), encoding="utf-8")
     report.rows.to_csv(csv, index=False, float_format="%.6g")
     return report, [md, csv]
