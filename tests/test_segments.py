@@ -288,3 +288,30 @@ def test_synthetic_training_segments_match_their_labels(smoke_data):
         assert fit(transform_points(models[c % 21 + 1], R, t)) > own
         checked += 1
     assert checked >= 20
+
+
+@pytest.mark.parametrize(
+    ("scale", "looks"), [(1.0, None), (0.1, "10 times too small"), (10.0, "10 times too large")]
+)
+def test_depth_unit_check_raises_or_with_the_override_warns(monkeypatch, scale, looks):
+    """Segments of a whole model at 0.8 m pass; scaled by 10 either way (depth read in another
+    unit) they stop with one line, or warn under CLOUDPOSE_NO_UNIT_CHECK=1."""
+    from cloudpose.data.surfaces import load_packaged_models
+
+    models = load_packaged_models()
+    points = [(models[c] + [0, 0, 0.8]) * scale for c in (1, 2, 3)]
+    args = (points, [1, 2, 3], models, "scene/0000", "--depth-factor")
+    monkeypatch.delenv(sg.UNIT_CHECK_OFF, raising=False)
+    if looks is None:
+        sg.check_depth_scale(*args)
+        return
+    with pytest.raises(ValueError, match=looks) as info:
+        sg.check_depth_scale(*args)
+    assert str(info.value).startswith("scene/0000: ") and "\n" not in str(info.value)
+    assert str(info.value).endswith(f"{sg.UNIT_CHECK_OFF}=1 goes on anyway")
+    monkeypatch.setenv(sg.UNIT_CHECK_OFF, "1")
+    with pytest.warns(sg.UnitWarning, match=looks):
+        sg.check_depth_scale(*args)
+    monkeypatch.setenv(sg.UNIT_CHECK_OFF, "0")  # "0" is not an override
+    with pytest.raises(ValueError, match=looks):
+        sg.check_depth_scale(*args)
