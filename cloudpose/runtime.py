@@ -10,21 +10,31 @@ it first thing. Where no replacement is installed (or it is refused), glibc is t
 network's), not those of the plain network's 128 MiB activations. Everything here falls back
 silently where unavailable.
 
+Open3D runs its parallel loops on oneTBB; :func:`open3d_threads` (1) confines them to the
+calling thread for code whose result would otherwise depend on thread scheduling (RANSAC draws
+its samples from one shared generator in whatever order its threads ask).
+
 Environment:
     CLOUDPOSE_NO_TCMALLOC: set (to anything) to keep the allocator the process started with.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
 import subprocess
 import sys
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 __all__ = [
     "ALLOCATOR_LIBS",
     "active_allocator",
     "configure_threads",
+    "open3d_parallelism",
+    "open3d_threads",
     "pick_device",
     "preferred_allocator",
     "reexec_with_allocator",
@@ -199,3 +209,72 @@ def pick_device(name: str = "auto"):
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {name!r}: CUDA is not available here; use auto or cpu")
     return device
+
+
+class _TBBGlobalControl(ctypes.Structure):
+    """oneTBB's ``tbb::global_control`` (libtbb.so.12 ABI: value, reserved, parameter)."""
+
+    _fields_ = [("value", ctypes.c_size_t), ("reserved", ctypes.c_ssize_t), ("param", ctypes.c_int)]
+
+
+_TBB_MAX_ALLOWED_PARALLELISM = 0  # tbb::global_control::max_allowed_parallelism
+_tbb_api: tuple | bool | None = False  # False: not looked up yet; None: unavailable
+
+
+def _open3d_tbb():
+    """(create, destroy, active_value) of the oneTBB library Open3D uses, or None."""
+    global _tbb_api
+    if _tbb_api is not False:
+        return _tbb_api
+    _tbb_api = None
+    try:
+        import open3d
+
+        here = Path(open3d.__file__).parent
+        names = [p for p in sorted(here.glob("libtbb*")) if ".so" in p.name or ".dylib" in p.name]
+        lib = ctypes.CDLL(str(names[0])) if names else ctypes.CDLL("libtbb.so.12")
+        create = lib._ZN3tbb6detail2r16createERNS0_2d114global_controlE
+        destroy = lib._ZN3tbb6detail2r17destroyERNS0_2d114global_controlE
+        active = lib._ZN3tbb6detail2r127global_control_active_valueEi
+    except (ImportError, OSError, AttributeError):
+        return None
+    create.argtypes = destroy.argtypes = [ctypes.POINTER(_TBBGlobalControl)]
+    create.restype = destroy.restype = None
+    active.argtypes, active.restype = [ctypes.c_int], ctypes.c_size_t
+    _tbb_api = (create, destroy, active)
+    return _tbb_api
+
+
+def open3d_parallelism() -> int | None:
+    """How many threads Open3D's parallel loops may use now (oneTBB's limit), None if unknown."""
+    api = _open3d_tbb()
+    return None if api is None else int(api[2](_TBB_MAX_ALLOWED_PARALLELISM))
+
+
+@contextlib.contextmanager
+def open3d_threads(n: int = 1) -> Iterator[None]:
+    """Let Open3D's parallel loops use at most ``n`` threads inside the ``with`` block.
+
+    oneTBB's ``global_control(max_allowed_parallelism, n)``: process-wide while it lives, and
+    the smallest of the limits alive wins. Where Open3D's oneTBB cannot be found (another build
+    of Open3D), warns and runs as is.
+    """
+    if n < 1:
+        raise ValueError(f"open3d_threads: n must be >= 1, got {n}")
+    api = _open3d_tbb()
+    if api is None:
+        warnings.warn(
+            "open3d: its oneTBB library was not found, so its thread count cannot be set; "
+            "Open3D's RANSAC then runs multi-threaded and its result can change from run to run",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        yield
+        return
+    create, destroy, _ = api
+    control = _TBBGlobalControl(int(n), 0, _TBB_MAX_ALLOWED_PARALLELISM)
+    create(ctypes.byref(control))
+    try:
+        yield
+    finally:
+        destroy(ctypes.byref(control))

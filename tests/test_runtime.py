@@ -84,3 +84,18 @@ def test_train_flops_match_a_hand_count() -> None:
     expected = 2 * per_net  # the rotation net's output is 3 wide too
     assert bench.train_flops_per_sample("shared-0", n) == pytest.approx(expected, rel=1e-12)
     assert expected == pytest.approx(464.0e6, rel=1e-4)
+
+
+def test_open3d_threads_limits_open3d_inside_the_block_only() -> None:
+    from cloudpose.runtime import open3d_parallelism, open3d_threads
+
+    before = open3d_parallelism()
+    assert before is not None and before >= 1  # the oneTBB that Open3D's wheel ships is found
+    with open3d_threads(1):
+        assert open3d_parallelism() == 1
+        with open3d_threads(3):
+            assert open3d_parallelism() == 1  # the smallest limit alive wins
+    assert open3d_parallelism() == before
+    with pytest.raises(ValueError, match="n must be >= 1"):
+        with open3d_threads(0):
+            pass

@@ -6,13 +6,17 @@ Per model, once: the model points voxel-downsampled, normals estimated and turne
 features. Per segment: the same, with normals turned towards the camera (the origin), then
 ``registration_ransac_based_on_feature_matching`` from model to segment, whose transformation
 is the pose model -> camera. RANSAC is seeded (``o3d.utility.random.seed``) per call from the
-estimator's seed and a call counter, so a run is repeatable and seeds differ.
+estimator's seed and a call counter, and runs on one thread: Open3D's RANSAC threads share one
+random generator, so with several threads which sample goes to which hypothesis depends on their
+scheduling (measured: 8 of 60 real segments got another pose in a second identical run on 2
+threads). A run is then repeatable on any machine and seeds differ.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from cloudpose import runtime
 from cloudpose.baselines.base import (
     BaselineSettings,
     NotRegistered,
@@ -86,20 +90,21 @@ class FPFHEstimator:
         self.calls += 1
         o3d.utility.random.seed(self.seed * 1_000_003 + self.calls)
         d = s["ransac_distance"]
-        res = reg.registration_ransac_based_on_feature_matching(
-            model,
-            seg,
-            model_feat,
-            seg_feat,
-            True,
-            d,
-            reg.TransformationEstimationPointToPoint(False),
-            3,
-            [
-                reg.CorrespondenceCheckerBasedOnEdgeLength(s["edge_length_ratio"]),
-                reg.CorrespondenceCheckerBasedOnDistance(d),
-            ],
-            reg.RANSACConvergenceCriteria(s["ransac_iterations"], s["ransac_confidence"]),
-        )
+        with runtime.open3d_threads(1):
+            res = reg.registration_ransac_based_on_feature_matching(
+                model,
+                seg,
+                model_feat,
+                seg_feat,
+                True,
+                d,
+                reg.TransformationEstimationPointToPoint(False),
+                3,
+                [
+                    reg.CorrespondenceCheckerBasedOnEdgeLength(s["edge_length_ratio"]),
+                    reg.CorrespondenceCheckerBasedOnDistance(d),
+                ],
+                reg.RANSACConvergenceCriteria(s["ransac_iterations"], s["ransac_confidence"]),
+            )
         T = np.asarray(res.transformation)
         return PoseEstimate(T[:3, :3].copy(), T[:3, 3].copy(), float(res.fitness))
