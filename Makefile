@@ -31,7 +31,7 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 	$(PY) -m pip install "$(TORCH_SPEC)"
 	$(PY) -m pip install -c constraints.txt -e '.[dev,cluster]'
 
-demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate
+demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate (prints its plan first)
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
 
 test: ## the test suite (what .ci/run runs)
@@ -55,7 +55,7 @@ MLFLOW_PORT ?= 5000
 GROUP ?=
 EXECUTOR ?= local
 MLFLOW_HOST ?= 127.0.0.1
-.PHONY: ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report real-report tables mlflow-ui mlflow-server
+.PHONY: ablations-resolve ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report occlusion-runs real-report tables mlflow-ui mlflow-server
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
 	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
@@ -71,15 +71,23 @@ ablation-symmetry: ## rotation loss modulo symmetry vs the plain geodesic x SEED
 
 ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups (EXECUTOR=ray: a Ray task per run, cluster RAY_ADDRESS)
 
+MAX_SEEDS ?= 10
+ablations-resolve: ## every group x SEEDS, then more seeds (up to MAX_SEEDS) for the variants of each undecided claim; then the reports
+	for g in shared rotation loss symmetry; do $(CLI) ablate --group $$g --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) --until-resolved --max-seeds $(MAX_SEEDS) || exit 1; done
+
 ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
 	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS)
 
 baselines: ## classical baselines on PRESET's test set, with and without ICP: FPFH + RANSAC (SEEDS seeds), point-pair features (deterministic: seed 1); logged runs are skipped
+	@echo "plan: baselines on the $(PRESET) test set, without and with ICP: FPFH + RANSAC seeds 1-$(SEEDS), point-pair features once; a run logged before is shown, not computed again"
 	for s in $$(seq 1 $(SEEDS)); do $(CLI) baseline --method fpfh --preset $(PRESET) --seed $$s || exit 1; done
 	$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT))
 
-occlusion-report: ## occlusion plot of shared-0 without/with ICP (trains missing runs; GROUP=... adds a group's variants)
+occlusion-report: ## occlusion plot of shared-0 without/with ICP from existing runs only (a missing run: names it and fails; GROUP=... adds a group's variants)
 	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))
+
+occlusion-runs: ## train + evaluate the runs occlusion-report needs that are missing (prints the plan first), then the plot
+	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP)) --train-missing
 
 real-report: ## the 61 real development frames per video and pooled: shared-0 (every seed found) and both baselines, without/with ICP -> reports/PRESET/real_frames.md (reads runs only)
 	$(CLI) real-report --preset $(PRESET) --seeds $(SEEDS)

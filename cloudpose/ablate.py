@@ -306,6 +306,112 @@ def run_group(
     return result
 
 
+MAX_SEEDS = 10
+"""Default cap on the seeds :func:`resolve_claims` adds to a variant."""
+
+
+@dataclass
+class ResolveRound:
+    """One round of :func:`resolve_claims`: the seeds it asked for and what the claims said."""
+
+    wanted: dict[str, int]
+    unresolved: int
+    claims: int
+    runs: list[RunStatus] = field(default_factory=list)
+
+
+def resolve_claims(
+    group: str,
+    preset: str,
+    project_dir: Path | None = None,
+    *,
+    max_seeds: int = MAX_SEEDS,
+    step: int = 2,
+    overrides: dict | None = None,
+    echo: Callable[[str], None] | None = None,
+    replicates: int = 500,
+    **ensure_kwargs,
+) -> list[ResolveRound]:
+    """Add seeds to the variants of ``group``'s claims until each is decided or at the cap.
+
+    Each round measures the paper's claims whose two sides are both members of ``group``
+    (:func:`cloudpose.report.claims.evaluate_claims` on the preset's runs), asks
+    :func:`cloudpose.report.claims.seeds_wanted` which variants need more seeds for a claim that
+    is "not resolved" with an interval wider than twice its margin, trains at most ``step`` more
+    seeds of each through :func:`ensure_runs` (finished runs skipped, the same executors), and
+    measures again. It stops when no claim wants seeds, or every variant that wants them has
+    ``max_seeds``.
+
+    Args:
+        group: ablation group whose claims to decide.
+        preset: training preset.
+        project_dir: the project folder (cwd).
+        max_seeds: the cap on seeds per variant.
+        step: most seeds added to a variant per round (the estimate of
+            :func:`~cloudpose.report.claims.seeds_wanted` can overshoot; a verdict reached
+            earlier saves the rest).
+        overrides: config overrides of every run.
+        echo: where progress lines go (default: print).
+        replicates: bootstrap replicates per claim in the rounds' measurements.
+        **ensure_kwargs: passed to :func:`ensure_runs` (progress, keep_going, executor, ray).
+
+    Returns:
+        One :class:`ResolveRound` per measurement, the last one with nothing wanted or capped.
+    """
+    from cloudpose.report.claims import evaluate_claims, paper_claims, seeds_wanted
+    from cloudpose.report.runs import load_runs
+    from cloudpose.report.stats import UNRESOLVED
+
+    if max_seeds < 1 or step < 1:
+        raise ValueError(f"max_seeds and step must be >= 1, got {max_seeds} and {step}")
+    members = set(get_group(group).members)
+    claims = [c for c in paper_claims() if {c.favoured[0], c.other[0]} <= members]
+    project_dir = (project_dir or Path.cwd()).resolve()
+    echo = echo or (lambda s: print(s, flush=True))
+    client = tracking.setup(project_dir)
+    rounds: list[ResolveRound] = []
+    while True:
+        runs = load_runs(preset, client=client)
+        results = evaluate_claims(runs, claims, replicates=replicates)
+        unresolved = sum(r.diff.verdict == UNRESOLVED for r in results)
+        have = {v: len(runs.of(v)) for v in members}
+        wanted = {
+            v: min(n, have.get(v, 0) + step)
+            for v, n in seeds_wanted(results, cap=max_seeds).items()
+            if v in members
+        }
+        rnd = ResolveRound(wanted, unresolved, len(results))
+        rounds.append(rnd)
+        echo(
+            f"claims of {group}/{preset}: {unresolved} of {len(results)} not resolved; "
+            + (
+                "more seeds for " + ", ".join(f"{v} -> {n}" for v, n in wanted.items())
+                if wanted
+                else f"no variant needs more seeds (cap {max_seeds})"
+            )
+        )
+        if not wanted:
+            return rounds
+        if len(rounds) > 1 and rounds[-2].wanted == wanted and not any(
+            st.status == "trained" for st in rounds[-2].runs
+        ):
+            raise RuntimeError(
+                f"claims of {group}/{preset}: the last round trained no run and the same seeds "
+                f"are still wanted ({wanted}); see the log in {project_dir / 'runs'}"
+            )
+        for variant, n in wanted.items():
+            rnd.runs += ensure_runs(
+                [variant],
+                preset,
+                n,
+                group=group,
+                project_dir=project_dir,
+                overrides=overrides,
+                echo=echo,
+                **ensure_kwargs,
+            )
+
+
 def occlusion_report(
     preset: str,
     seeds: int | list[int] = 3,

@@ -20,8 +20,9 @@ class _Commands(TyperGroup):
     """Every command with one error handler: bad input is one line on stderr, exit 2.
 
     The library raises ``ValueError`` / ``FileNotFoundError`` naming the file, field or name
-    and what was expected (and :class:`~cloudpose.tracking.StoreError` for a store that cannot
-    be opened); ``cloudpose --debug ...`` shows the traceback instead.
+    and what was expected (:class:`~cloudpose.tracking.StoreError` for a store that cannot be
+    opened, ``ConnectionError`` for a service such as Ray that cannot be reached);
+    ``cloudpose --debug ...`` shows the traceback instead.
     """
 
     def invoke(self, ctx: click.Context):
@@ -29,12 +30,45 @@ class _Commands(TyperGroup):
 
         try:
             return super().invoke(ctx)
-        except (ValueError, FileNotFoundError, StoreError) as exc:
+        except (ValueError, FileNotFoundError, ConnectionError, StoreError) as exc:
             if _DEBUG:
                 raise
             message = " ".join(str(exc).split()) or type(exc).__name__
             typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
             raise typer.Exit(2) from None
+
+    def get_command(self, ctx: click.Context, cmd_name: str):
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is not None:
+            _help_layout(cmd, ctx)
+        return cmd
+
+    def format_help(self, ctx: click.Context, formatter) -> None:
+        _help_layout(self, ctx)
+        return super().format_help(ctx, formatter)
+
+
+PIPED_HELP_WIDTH = 120
+"""Columns of ``--help`` when the output is not a terminal and COLUMNS is unset (rich's
+default there, 80, leaves the help column so narrow that it cuts words with an ellipsis)."""
+
+
+def _help_layout(cmd, ctx: click.Context) -> None:
+    """Help as it reads in a terminal, also when piped; flags shown without a value type.
+
+    Typer shows every option's type, flags too (``--debug <bool>``), as if a flag took a
+    value; a flag gets an empty metavar here, so its help shows none.
+    """
+    import os
+    import sys
+
+    from typer import rich_utils
+
+    if rich_utils.MAX_WIDTH is None and "COLUMNS" not in os.environ and not sys.stdout.isatty():
+        rich_utils.MAX_WIDTH = PIPED_HELP_WIDTH
+    for p in cmd.get_params(ctx):
+        if getattr(p, "is_flag", False) and p.metavar is None:
+            p.metavar = ""
 
 
 app = typer.Typer(
@@ -61,6 +95,16 @@ DeviceOpt = Annotated[
     str, typer.Option(help="auto (CUDA when available, as in training), cpu or cuda.")
 ]
 ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
+DryRunOpt = Annotated[
+    bool, typer.Option("--dry-run", help="Print the plan (frames, runs, time) and stop.")
+]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="Reports folder; default reports/PRESET, or runs/reports/PRESET in a checkout that "
+        "commits no reports of PRESET."
+    ),
+]
 SetOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -70,6 +114,14 @@ SetOpt = Annotated[
         "config: its own run folder and MLflow run.",
     ),
 ]
+
+
+def _group_names() -> str:
+    """The registered ablation groups, for help texts: ``shared, rotation, loss or symmetry``."""
+    from cloudpose.config import groups
+
+    names = list(groups())
+    return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else "".join(names)
 
 
 def parse_sets(items: list[str] | None) -> dict[str, dict]:
@@ -137,9 +189,10 @@ def recorded_command(ctx: typer.Context) -> str:
 
 
 def tracking_name(cfg) -> str:
-    from cloudpose.runs import run_name
+    """The MLflow run name of ``cfg`` (``+CONFIG`` with overrides), as ``--run`` takes it."""
+    from cloudpose.runs import display_name
 
-    return run_name(cfg.variant, cfg.preset, cfg.seed)
+    return display_name(cfg)
 
 
 def _config(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):
@@ -160,12 +213,14 @@ def variants() -> None:
     from cloudpose.models import variant_table
 
     rows = variant_table()
-    header = f"{'variant':<18} {'groups':<22} {'parameters':>11}  changes"
+    wn = max(len("variant"), *(len(r["name"]) for r in rows))
+    wg = max(len("groups"), *(len(",".join(r["groups"])) for r in rows))
+    header = f"{'variant':<{wn}} {'groups':<{wg}} {'parameters':>11}  changes"
     typer.echo(header)
     typer.echo("-" * len(header))
     for r in rows:
         groups = ",".join(r["groups"])
-        typer.echo(f"{r['name']:<18} {groups:<22} {r['parameters']:>11,}  {r['changes']}")
+        typer.echo(f"{r['name']:<{wn}} {groups:<{wg}} {r['parameters']:>11,}  {r['changes']}")
 
 
 @app.command()
@@ -332,6 +387,8 @@ def export(
     """Write a YCB-Video-layout dataset in the BOP ycbv layout (reads back to the same segments)."""
     if format_ != "bop":
         raise ValueError(f"--format {format_!r}: expected bop")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: is a file; expected a new (or empty) folder")
     from cloudpose.data.bop import export_bop
 
     s = export_bop(data, out, frames=frames, train=train, progress=progress)
@@ -411,7 +468,7 @@ def train(
     with distributed.from_env() as world:
         out = train_run(cfg, group=group, progress=progress, world=world)
     if world.is_main:
-        typer.echo(f"run {out.run_id}  {out.run_dir}")
+        typer.echo(f"run {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
         for k, v in sorted(out.metrics.items()):
             typer.echo(f"  {k:<28} {v:.4f}")
 
@@ -429,6 +486,21 @@ def evaluate(
         ),
     ] = "keyframe",
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
+    icp_fallback: Annotated[
+        bool | None,
+        typer.Option(
+            "--icp-fallback/--no-icp-fallback",
+            help="Keep the network's pose where ICP's fitness is below the default "
+            "icp.fallback_min_fitness (default: the run's icp settings). Other settings than "
+            "the run's are logged as {name}-fallback / {name}-nofallback.",
+        ),
+    ] = None,
+    real: Annotated[
+        bool,
+        typer.Option(
+            "--real", help="Test on the packaged real development frames (61, per video): real/..."
+        ),
+    ] = False,
     show_instances: Annotated[bool, typer.Option(help="Print every instance's errors.")] = False,
     name: Annotated[
         str | None,
@@ -452,21 +524,30 @@ def evaluate(
             "results CSV for bop_toolkit."
         ),
     ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="Overwrite an existing --bop-csv.")
+    ] = False,
     progress: ProgressOpt = True,
 ) -> None:
     """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
+    if bop_csv is not None and bop_csv.is_dir():
+        raise ValueError(f"--bop-csv {bop_csv}: is a folder; expected a CSV file to write")
+    if bop_csv is not None and bop_csv.exists() and not force:
+        raise ValueError(f"--bop-csv {bop_csv}: exists; pass --force to overwrite it")
     from cloudpose.evaluate import evaluate as evaluate_fn
+    from cloudpose.evaluate import evaluate_real
+    from cloudpose.refine import ICPSettings
 
-    out = evaluate_fn(
-        run,
-        data=data,
-        frames=frames,
-        name=name,
-        icp=icp,
-        progress=progress,
-        device=device,
-        segmentation=segmentation,
-    )
+    settings = None if icp_fallback is None else ICPSettings(fallback=icp_fallback)
+    if real and (data is not None or name is not None):
+        raise ValueError("--real names its own data and metric prefix; drop --data and --name")
+    kwargs = dict(icp=icp, icp_settings=settings, progress=progress, device=device)
+    if real:
+        out = evaluate_real(run, segmentation=segmentation, **kwargs)
+    else:
+        out = evaluate_fn(
+            run, data=data, frames=frames, name=name, segmentation=segmentation, **kwargs
+        )
     typer.echo(f"evaluated {out.source}; logged as {out.name}/... and {out.name}_icp/...")
     _print_summary(out.metrics)
     if show_instances:
@@ -495,6 +576,10 @@ SUMMARY_COLUMNS = {
 }
 """The summary's columns, in percent: AUCs as the YCB-Video toolbox computes them, the shares
 of instances under a threshold (* = rotation error modulo the object's symmetries)."""
+SUMMARY_FOOTNOTE = (
+    "* rot<10deg*: rotation error < 10 deg modulo the object's symmetries (a can turned about "
+    "its axis is not an error); rot<10deg: the plain angle, as the paper reports it."
+)
 
 
 def _print_summary(metrics: dict[str, float]) -> None:
@@ -511,6 +596,7 @@ def _print_summary(metrics: dict[str, float]) -> None:
             f"{label:<{w}}"
             + "".join(f"{100 * v:>12.1f}" if v is not None else f"{'':>12}" for v in vals)
         )
+    typer.echo(SUMMARY_FOOTNOTE)
 
 
 def _next_steps(preset: str) -> None:
@@ -520,11 +606,18 @@ def _next_steps(preset: str) -> None:
     meaning = {
         "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing.",
     }.get(preset, f"preset {preset!r}: {presets().get(preset, '')}")
+    from cloudpose.ablate import estimate_run_s
+    from cloudpose.config import get_group, resolve
+
     typer.echo(f"\nWhat this is: {meaning}")
+    runs = len(get_group("shared").members) * 3
+    per_run, _ = estimate_run_s(resolve("shared-0", "cpu"))
     typer.echo(
         "Next: `make mlflow-ui` and open http://127.0.0.1:5000 to browse the run; "
-        "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation "
-        "(~10 min a run here) and renders its tables into reports/cpu/."
+        "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation, "
+        f"{runs} runs (every variant x 3 seeds) x ~{per_run / 60:.0f} min = "
+        f"~{runs * per_run / 3600:.1f} h on a 2-core CPU, and renders its tables into "
+        "reports/cpu/; `--dry-run` prints that plan without training."
     )
 
 
@@ -574,11 +667,26 @@ def run(
     progress: ProgressOpt = True,
     set_: SetOpt = None,
     group: Annotated[str | None, typer.Option(help="Experiment group for a new run.")] = None,
+    dry_run: DryRunOpt = False,
 ) -> None:
-    """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP."""
+    """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP.
+
+    Prints its plan first: frames to render, whether the run is trained already, time."""
+    from cloudpose.ablate import plan_configs
     from cloudpose.pipeline import train_and_evaluate
 
     cfg = _config(variant, preset, seed, data, set_)
+    plan = plan_configs(
+        [cfg],
+        title=f"main job {tracking_name(cfg)}",
+        project_dir=Path.cwd(),
+        finished="finished before (training skipped, evaluated again)",
+    )
+    typer.echo(plan.text())
+    if dry_run:
+        return
+    if preset in EXPECTED_WARNINGS:
+        _mark_expected(*EXPECTED_WARNINGS[preset])
     result = train_and_evaluate(cfg, group=group, progress=progress)
     out, ev = result.train, result.evaluation
     typer.echo(f"\nrun {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
@@ -589,6 +697,33 @@ def run(
         metrics.update({k: v for k, v in result.real.metrics.items() if "/video/" not in k})
     _print_summary(metrics)
     _next_steps(preset)
+
+
+EXPECTED_WARNINGS = {
+    "smoke": (
+        "ICP ",
+        "expected on the smoke preset: a network trained for seconds on 12 frames starts ICP "
+        "far from the objects",
+    )
+}
+"""preset -> (start of a warning, why it is expected there): said once, beside the warning."""
+
+
+def _mark_expected(prefix: str, why: str) -> None:
+    """Say once, beside the first warning that starts with ``prefix``, why it is expected."""
+    import warnings
+
+    base = warnings.formatwarning
+    said = []
+
+    def formatwarning(message, *args, **kwargs) -> str:
+        text = base(message, *args, **kwargs)
+        if str(message).startswith(prefix) and not said:
+            said.append(True)
+            return text.rstrip("\n") + f" ({why})\n"
+        return text
+
+    warnings.formatwarning = formatwarning
 
 
 @app.command()
@@ -671,7 +806,7 @@ def baseline(
 
 @app.command()
 def ablate(
-    group: Annotated[str, typer.Option(help="Ablation group: shared, rotation or loss.")],
+    group: Annotated[str, typer.Option(help=f"Ablation group: {_group_names()}.")],
     preset: PresetOpt = "cpu",
     seeds: Annotated[int, typer.Option(help="Seeds 1..S per variant.")] = 3,
     keep_going: Annotated[
@@ -691,11 +826,34 @@ def ablate(
     connect_timeout: Annotated[
         float, typer.Option(help="Ray: seconds to wait for --address to answer.")
     ] = 30.0,
+    dry_run: DryRunOpt = False,
+    out: OutOpt = None,
+    until_resolved: Annotated[
+        bool,
+        typer.Option(
+            "--until-resolved",
+            help="Then add seeds to the variants of the group's undecided claims until each "
+            "is decided or at --max-seeds (claims.md names the rule).",
+        ),
+    ] = False,
+    max_seeds: Annotated[
+        int, typer.Option(help="With --until-resolved: the cap on seeds per variant.")
+    ] = 10,
 ) -> None:
-    """Train + evaluate every variant of a group over seeds (finished runs skipped), then report."""
-    from cloudpose.ablate import run_group
+    """Train + evaluate every variant of a group over seeds (finished runs skipped), then report.
+
+    Prints its plan first: frames to render, runs to train and those finished before, time."""
+    from cloudpose.ablate import plan_group, resolve_claims, run_group
     from cloudpose.cluster import RayOptions
 
+    overrides = parse_sets(set_) or None
+    plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
+    typer.echo(plan.text())
+    if dry_run:
+        return
+    ray = RayOptions(address, cpus_per_run, gpus_per_run, connect_timeout_s=connect_timeout)
+    if until_resolved and max_seeds < seeds:
+        raise typer.BadParameter(f"--max-seeds {max_seeds} is below --seeds {seeds}")
     res = run_group(
         group,
         preset,
@@ -703,10 +861,27 @@ def ablate(
         Path.cwd(),
         progress,
         keep_going=keep_going,
-        overrides=parse_sets(set_) or None,
+        overrides=overrides,
         executor=executor,
-        ray=RayOptions(address, cpus_per_run, gpus_per_run, connect_timeout_s=connect_timeout),
+        ray=ray,
+        out_dir=out,
+        report=not until_resolved,
     )
+    if until_resolved:
+        from cloudpose.report import render_reports
+
+        resolve_claims(
+            group,
+            preset,
+            Path.cwd(),
+            max_seeds=max_seeds,
+            overrides=overrides,
+            progress=progress,
+            keep_going=keep_going,
+            executor=executor,
+            ray=ray,
+        )
+        res.report = render_reports(preset, [group], project_dir=Path.cwd(), out_dir=out)
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
     typer.echo(
         f"{group}/{preset}: "
@@ -721,16 +896,23 @@ def ablate_masks(
     preset: PresetOpt = "cpu",
     seeds: Annotated[int, typer.Option(help="Seeds 1..S of shared-0.")] = 3,
     progress: ProgressOpt = True,
+    dry_run: DryRunOpt = False,
+    out: OutOpt = None,
 ) -> None:
     """Segmentation quality: shared-0 (trained on ground truth) under each test mask source.
 
     Sources gt and degraded-mild|medium|strong, with and without ICP. Missing shared-0 seeds
     are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
-    in reports/PRESET/ and the MLflow run report/masks/PRESET.
+    in reports/PRESET/ and the MLflow run report/masks/PRESET. Prints its plan first.
     """
-    from cloudpose.ablate import mask_ablation
+    from cloudpose.ablate import mask_ablation, plan_masks
 
-    res = mask_ablation(preset, seeds, Path.cwd(), progress, command=recorded_command(ctx))
+    typer.echo(plan_masks(preset, seeds, Path.cwd(), out_dir=out).text())
+    if dry_run:
+        return
+    res = mask_ablation(
+        preset, seeds, Path.cwd(), progress, command=recorded_command(ctx), out_dir=out
+    )
     trained = sum(r.status == "trained" for r in res.runs)
     done = sum(e.status == "evaluated" for e in res.evaluations)
     typer.echo(
@@ -800,6 +982,7 @@ def report(
     mlflow: Annotated[
         bool, typer.Option("--mlflow/--no-mlflow", help="Also log the reports to MLflow.")
     ] = True,
+    out: OutOpt = None,
 ) -> None:
     """Render the tables, claims and figures of a preset from existing MLflow runs only."""
     from cloudpose.report import render_reports
@@ -812,8 +995,32 @@ def report(
         data=data,
         log_mlflow=mlflow,
         command=recorded_command(ctx),
+        out_dir=out,
     )
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
+
+
+@app.command("real-report")
+def real_report(
+    ctx: typer.Context,
+    preset: PresetOpt = "cpu",
+    seeds: Annotated[
+        int, typer.Option(help="Network seeds 1..S expected (more found are shown too).")
+    ] = 3,
+    out: Annotated[
+        Path | None, typer.Option(help="Output folder (default reports/PRESET).")
+    ] = None,
+) -> None:
+    """The 61 real development frames per video and pooled: the network (shared-0) and both
+    classical baselines, without and with ICP, from existing runs only (lists what is missing)."""
+    from cloudpose.report.real import render_real_report
+
+    report, files = render_real_report(
+        preset, Path.cwd(), out_dir=out, command=recorded_command(ctx), seeds=seeds
+    )
+    for line in report.missing:
+        typer.echo(f"missing: {line}")
+    typer.echo(" ".join(str(f) for f in files))
 
 
 @app.command()
@@ -857,20 +1064,67 @@ def curves(
 
 @app.command("occlusion-report")
 def occlusion_report(
+    ctx: typer.Context,
     preset: PresetOpt = "cpu",
     seeds: Annotated[int, typer.Option(help="Seeds 1..S.")] = 3,
     group: Annotated[
         str | None, typer.Option(help="Also plot this group's variants (shared-0 alone if unset).")
     ] = None,
-    train: Annotated[
-        bool, typer.Option("--train/--no-train", help="Train and evaluate missing runs first.")
-    ] = True,
+    train_missing: Annotated[
+        bool,
+        typer.Option(
+            "--train-missing",
+            help="Train and evaluate the runs it needs that the store lacks first (hours on "
+            "the cpu preset; prints the plan first). Without it, a missing run is an error.",
+        ),
+    ] = False,
+    dry_run: DryRunOpt = False,
+    out: OutOpt = None,
     progress: ProgressOpt = True,
 ) -> None:
-    """ADS < 1 cm accuracy per occlusion bin: shared-0 without and with ICP (+ a group)."""
-    from cloudpose.ablate import occlusion_report as occlusion_fn
+    """ADS < 1 cm accuracy per occlusion bin: shared-0 without and with ICP (+ a group).
 
-    res = occlusion_fn(preset, seeds, Path.cwd(), progress, group=group, train=train)
+    Renders from the runs in MLflow only: with a run missing it names the runs and the command
+    that trains them, and exits 1."""
+    from cloudpose.ablate import estimate_run_s, missing_report_runs, plan_runs
+    from cloudpose.ablate import occlusion_report as occlusion_fn
+    from cloudpose.config import get_group, resolve
+
+    variants = list(get_group(group).members) if group else ["shared-0"]
+    if train_missing:
+        title = f"occlusion report {preset}, seeds 1-{seeds}"
+        title += f", group {group}" if group else ""
+        typer.echo(plan_runs(variants, preset, seeds, title=title, project_dir=Path.cwd()).text())
+    else:
+        missing = missing_report_runs(variants, preset, seeds, Path.cwd())
+        if missing:
+            per_run, _ = estimate_run_s(resolve(variants[0], preset))
+            again = f"cloudpose occlusion-report --preset {preset} --seeds {seeds}"
+            again += f" --group {group}" if group else ""
+            typer.echo(
+                f"occlusion-report renders from existing runs only, and {len(missing)} of the "
+                f"{len(variants) * seeds} runs it needs are not in the MLflow store: "
+                f"{', '.join(missing)}.\nTo train them (~{per_run / 60:.0f} min a run on a "
+                f"2-core CPU; the plan is printed first): {again} --train-missing\n"
+                f"  (make occlusion-runs PRESET={preset} SEEDS={seeds}"
+                + (f" GROUP={group}" if group else "")
+                + ")",
+                err=True,
+            )
+            raise typer.Exit(1)
+        typer.echo(f"plan: occlusion report {preset} from {len(variants) * seeds} existing runs")
+    if dry_run:
+        return
+    res = occlusion_fn(
+        preset,
+        seeds,
+        Path.cwd(),
+        progress,
+        group=group,
+        train_missing=train_missing,
+        command=recorded_command(ctx),
+        out_dir=out,
+    )
     for p in res.files:
         if p.stem.startswith("occlusion"):
             typer.echo(str(p))

@@ -257,3 +257,50 @@ def test_run_group_loss_smoke_for_real(tmp_path, monkeypatch):
         "loss", "smoke", 1, tmp_path, progress=False, report=False, echo=lines.append
     )
     assert [r.status for r in res.runs] == ["skipped", "skipped"]
+
+
+def _noisy_evaluate(fakes, gap: float, spread: float):
+    """An evaluate that logs rot_lt_10deg: shared-0 ``gap`` above l2, seed noise ``spread``."""
+    import numpy as np
+
+    def evaluate(run, *, project_dir=None, progress=True, **_):
+        run_id = (Path(run) / "run_id").read_text()
+        client = tracking.setup(project_dir)
+        r = client.get_run(run_id)
+        variant, seed = r.data.tags["variant"], int(r.data.tags["seed"])
+        rng = np.random.default_rng([seed, len(variant)])
+        value = 0.5 + (gap if variant == "shared-0" else 0.0) + rng.normal(0, spread)
+        metrics = {"test/ads_auc": 0.5, "test/rot_lt_10deg": float(value)}
+        for k, v in metrics.items():
+            client.log_metric(run_id, k, v, step=0)
+        return types.SimpleNamespace(metrics=metrics, run_id=run_id)
+
+    return evaluate
+
+
+def test_resolve_claims_adds_seeds_until_the_cap(fakes, tmp_path, monkeypatch):
+    import cloudpose.evaluate
+
+    monkeypatch.setattr(cloudpose.evaluate, "evaluate", _noisy_evaluate(fakes, 0.0, 0.05))
+    _run(tmp_path, seeds=2)
+    lines: list[str] = []
+    rounds = ablate.resolve_claims(
+        "loss", "smoke", tmp_path, max_seeds=5, step=2, echo=lines.append, progress=False
+    )
+    # no real difference, seed noise of 5 pp against a 2 pp margin: grows 2 -> 4 -> 5, then capped
+    assert [r.wanted for r in rounds] == [{"l2": 4, "shared-0": 4}, {"l2": 5, "shared-0": 5}, {}]
+    assert sorted(set(fakes.trained)) == [(v, s) for v in ("l2", "shared-0") for s in range(1, 6)]
+    assert "no variant needs more seeds (cap 5)" in lines[-1]
+
+
+def test_resolve_claims_stops_when_the_claim_is_decided(fakes, tmp_path, monkeypatch):
+    import cloudpose.evaluate
+
+    # geodesic (shared-0) 20 pp ahead of L2 with 0.5 pp noise: decided at the third seed
+    monkeypatch.setattr(cloudpose.evaluate, "evaluate", _noisy_evaluate(fakes, 0.2, 0.005))
+    _run(tmp_path, seeds=2)
+    rounds = ablate.resolve_claims(
+        "loss", "smoke", tmp_path, max_seeds=10, step=1, echo=lambda s: None, progress=False
+    )
+    assert rounds[-1].wanted == {} and rounds[-1].unresolved < rounds[0].unresolved
+    assert max(s for _, s in fakes.trained) == 3
