@@ -420,8 +420,8 @@ def seeds_wanted(results: list[ClaimResult], cap: int = 10) -> dict[str, int]:
         c, d = r.claim, r.diff
         for v in {c.favoured[0], c.other[0]}:
             have[v] = max(have.get(v, 0), d.n)
-        if d.verdict != UNRESOLVED or c.favoured[0].startswith("baseline-"):
-            continue
+        if d.verdict != UNRESOLVED or d.n == 0 or c.favoured[0].startswith("baseline-"):
+            continue  # decided, or a metric no run has: more seeds cannot help
         width, m = d.high - d.low, margin_for(c.metric)
         if math.isfinite(width) and width <= 2 * m:
             continue
