@@ -261,9 +261,9 @@ def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, t
 
 def test_fpfh_gives_the_same_pose_whatever_threads_open3d_may_use():
     """Open3D's RANSAC threads draw their samples from one shared generator, so on several
-    threads the pose depended on their scheduling (this real segment: 10 of 20 seeds gave
-    another pose on 4 threads than on 1). The estimator runs RANSAC on one thread: the same
-    call gives the same pose on any machine."""
+    threads the pose depended on their scheduling (on this real segment, 3-5 of these 8 seeds
+    gave another pose on 4 threads). The estimator runs RANSAC on one thread: the same call
+    gives the same pose on any machine."""
     from cloudpose import runtime
     from cloudpose.data.layout import open_dataset
     from cloudpose.data.segments import extract_segments

@@ -203,6 +203,51 @@ def test_instance_without_points_is_kept_as_a_miss():
     assert segs[2].R is not None and np.isclose(segs[2].occlusion, 1.0)
 
 
+def _three_objects():
+    depth = np.zeros((480, 640), np.float32)
+    label = np.zeros((480, 640), np.uint8)
+    for k, c in enumerate((3, 4, 9)):
+        label[10 + 60 * k : 50 + 60 * k, 10:50] = c
+        depth[10 + 60 * k : 50 + 60 * k, 10:50] = 0.8 + 0.05 * k
+    return depth, label
+
+
+def test_an_instance_dropped_or_missed_leaves_the_others_points_unchanged():
+    """Each instance samples from its own random stream: dropping one instance from a frame,
+    or one without a usable point, leaves the points of every other instance as they were."""
+    depth, label = _three_objects()
+
+    def points(cls_ids, d=depth):
+        segs = sg.extract_segments(
+            _frame(d, label, cls_ids), n_fps=64, rng=np.random.default_rng(7)
+        )
+        return {s.cls_id: s.points for s in segs if s.valid}
+
+    full = points([3, 4, 9])
+    assert len({p[0].tobytes() for p in full.values()}) == 3
+    dropped = points([3, 9])
+    np.testing.assert_array_equal(dropped[9], full[9])
+    np.testing.assert_array_equal(dropped[3], full[3])
+    missed = depth.copy()
+    missed[label == 3] = 0  # the first instance has no depth: a miss
+    with pytest.warns(sg.SegmentWarning, match="no usable point"):
+        got = points([3, 4, 9], missed)
+    assert set(got) == {4, 9}
+    np.testing.assert_array_equal(got[4], full[4])
+    np.testing.assert_array_equal(got[9], full[9])
+    # the frame's generator still decides: another seed, other start points
+    other = sg.extract_segments(_frame(depth, label, [3]), n_fps=64, rng=np.random.default_rng(8))
+    assert not np.array_equal(other[0].points, full[3])
+
+
+def test_instance_streams_are_keyed_by_class_and_rank():
+    a = sg.instance_streams(np.random.default_rng(1), [5, 2, 5])
+    b = sg.instance_streams(np.random.default_rng(1), [2, 5])
+    draw = [g.integers(2**32) for g in a]
+    assert [g.integers(2**32) for g in b] == [draw[1], draw[0]]
+    assert len(set(draw)) == 3  # a class's second instance has a stream of its own
+
+
 def test_frame_without_ground_truth():
     depth = np.full((480, 640), 1.0, np.float32)
     label = np.zeros((480, 640), np.uint8)

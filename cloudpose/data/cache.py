@@ -46,11 +46,13 @@ from cloudpose.files import atomic_text, atomic_write
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
 
-PIPELINE_VERSION = 1
-"""Bumped whenever a code change alters the segments; part of the cache key."""
+PIPELINE_VERSION = 2
+"""Bumped whenever a code change alters the segments; part of the cache key. Version 2: each
+instance draws its FPS start from its own stream (version 1: one stream per frame)."""
 
 FPS_SEED = 0
-"""Seed of the FPS start points; segment s of frame f draws from (FPS_SEED, crc32(f))."""
+"""Seed of the FPS start points: frame f's generator is (FPS_SEED, crc32(f)), and each of its
+instances draws from its own stream of it (:func:`~cloudpose.data.segments.instance_streams`)."""
 
 ALONE_SURFACE_VERSION = 2
 """Surfaces (:class:`cloudpose.data.render.Renderer`) that render the object-alone pixel counts

@@ -236,6 +236,31 @@ def occlusion_factor(visible: np.ndarray, alone: np.ndarray) -> np.ndarray:
     return np.where(alone > 0, np.clip(o, 0.0, 1.0), np.nan)
 
 
+def instance_streams(rng: np.random.Generator, cls_ids) -> list[np.random.Generator]:
+    """One random stream per instance of a frame.
+
+    One draw from ``rng`` is the frame's entropy; each instance's stream is the
+    ``SeedSequence`` child of it keyed by the instance's class and its rank among the frame's
+    instances of that class. An instance's stream then does not depend on the other instances
+    of the frame: whether they are annotated, found by a mask, or have any usable point.
+
+    Args:
+        rng: the frame's generator (one number is drawn from it).
+        cls_ids: (N,) class ids of the frame's instances, in order.
+
+    Returns:
+        N generators, in ``cls_ids`` order.
+    """
+    entropy = int(rng.integers(2**63))
+    rank: dict[int, int] = {}
+    out = []
+    for c in np.asarray(cls_ids, dtype=np.int64).reshape(-1).tolist():
+        k = rank.get(c, 0)
+        rank[c] = k + 1
+        out.append(np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=(c, k))))
+    return out
+
+
 def extract_segments(
     frame: Frame,
     alone_pixels: np.ndarray | None = None,
@@ -256,7 +281,9 @@ def extract_segments(
         n_fps: points kept per segment.
         outlier_radius: points farther than this from the segment mean are dropped, metres.
         segmentation: mask source name (:data:`MASK_SOURCES`).
-        rng: draws each segment's FPS start (default: a fresh generator).
+        rng: the frame's generator (default: a fresh one); each instance draws its FPS start
+            from its own stream (:func:`instance_streams`), so one instance's points do not
+            depend on the others.
         with_gt: False ignores the frame's poses (prediction): R, t None, occlusion NaN.
 
     Returns:
@@ -268,9 +295,9 @@ def extract_segments(
         raise ValueError(f"n_fps must be >= 1, got {n_fps}")
     if not outlier_radius > 0:
         raise ValueError(f"outlier_radius must be > 0 metres, got {outlier_radius}")
-    rng = rng or np.random.default_rng()
     cls_ids = np.asarray(frame.cls_ids, dtype=np.int64)
     n = len(cls_ids)
+    streams = instance_streams(rng or np.random.default_rng(), cls_ids)
     K = np.asarray(frame.K, dtype=np.float64)
     poses = frame.poses if with_gt else None
     occlusion = np.full(n, np.nan)
@@ -305,7 +332,7 @@ def extract_segments(
             R = t = None
         valid = len(pts) > 0
         if valid:
-            sample = pts[farthest_point_sampling(pts, n_fps, rng)].astype(np.float32)
+            sample = pts[farthest_point_sampling(pts, n_fps, streams[i])].astype(np.float32)
         else:
             sample = np.zeros((n_fps, 3), dtype=np.float32)
             warnings.warn(
