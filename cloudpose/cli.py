@@ -676,6 +676,10 @@ def run(
     from cloudpose.pipeline import train_and_evaluate
 
     cfg = _config(variant, preset, seed, data, set_)
+    if group is not None:
+        from cloudpose.tracking import check_name
+
+        check_name("group", group)
     plan = plan_configs(
         [cfg],
         title=f"main job {tracking_name(cfg)}",
@@ -986,7 +990,9 @@ def report(
 ) -> None:
     """Render the tables, claims and figures of a preset from existing MLflow runs only."""
     from cloudpose.report import render_reports
+    from cloudpose.tracking import check_name
 
+    check_name("--preset", preset)  # it names the output folder reports/PRESET
     groups = None if all_groups or not group else list(group)
     res = render_reports(
         preset,

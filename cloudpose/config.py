@@ -131,6 +131,10 @@ class TrainConfig:
         augment_roll_deg: turn each training segment about the camera's optical axis by a
             uniform angle in +-this many degrees (points, R and t alike). Exact for depth
             data: a camera rolled about its optical axis sees the same surface points. 0 = off.
+        threads: intra-op CPU threads of training (``torch.set_num_threads``), whatever the
+            machine has. CPU kernels split their sums by thread (BatchNorm statistics, the
+            reduction dimension of a GEMM), so the thread count changes a run's numbers: it is
+            a setting, part of the run's identity, not the machine's core count.
     """
 
     epochs: int = 90
@@ -145,10 +149,19 @@ class TrainConfig:
     sampler: str = "shuffle"
     lr_schedule: str = "constant"
     augment_roll_deg: float = 0.0
+    threads: int = 2
 
     def __post_init__(self) -> None:
+        if self.threads < 1:
+            raise ValueError(f"train.threads must be >= 1, got {self.threads}")
         if self.epochs < 1:
             raise ValueError(f"train.epochs must be >= 1, got {self.epochs}")
+        if self.n_points < 1:
+            raise ValueError(f"train.n_points must be >= 1, got {self.n_points}")
+        if not self.lr > 0:
+            raise ValueError(f"train.lr must be > 0, got {self.lr}")
+        if not 0 <= self.val_fraction < 1:
+            raise ValueError(f"train.val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.batch_size < 2:
             raise ValueError(f"train.batch_size must be >= 2 (BatchNorm), got {self.batch_size}")
         if self.sampler not in SAMPLERS:
@@ -267,6 +280,13 @@ class Config:
     data: DataConfig = field(default_factory=DataConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
 
+    def __post_init__(self) -> None:
+        if self.train.n_points > self.data.n_fps:
+            raise ValueError(
+                f"train.n_points={self.train.n_points} exceeds data.n_fps={self.data.n_fps} "
+                "(the network's points are a prefix of each segment's FPS points)"
+            )
+
     def to_dict(self) -> dict[str, Any]:
         """Nested plain dict (JSON/TOML-safe)."""
         return dataclasses.asdict(self)
@@ -331,11 +351,13 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_workers": 1,
     },
     "icp": {"fallback": False, "fallback_min_fitness": 0.1},
+    "train": {"threads": 2},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
 synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
 every run stored before the on-line source existed trained on frames; every run stored before
-the ``icp`` section existed was refined without the guard.
+the ``icp`` section existed was refined without the guard; every run stored before
+``train.threads`` existed trained on this project's 2-core machines with 2 threads.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 
@@ -465,5 +487,32 @@ def resolve(
     cfg = _apply(cfg, table[preset][1])
     cfg = _apply(cfg, get_variant(variant).delta)
     if overrides:
-        cfg = _apply(cfg, _check_delta("overrides", overrides))
+        cfg = _apply(cfg, _check_types("overrides", _check_delta("overrides", overrides)))
     return cfg
+
+
+_TYPES = {
+    "int": (int,),
+    "float": (int, float),
+    "str": (str,),
+    "bool": (bool,),
+    "None": (type(None),),
+}
+
+
+def _check_types(where: str, delta: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``delta`` if each value has its field's type (``train.epochs`` an integer, ``train.lr``
+    a number, a tuple field a list), else ``ValueError`` naming the field."""
+    for section, fields in delta.items():
+        annotations = {f.name: str(f.type) for f in dataclasses.fields(_SECTIONS[section])}
+        for key, value in fields.items():
+            kind = annotations[key]
+            if kind.startswith("tuple"):
+                ok = isinstance(value, list | tuple)
+            else:
+                parts = [_TYPES.get(p.strip(), (object,)) for p in kind.split("|")]
+                allowed = tuple(t for types in parts for t in types)
+                ok = isinstance(value, allowed) and (bool in allowed or not isinstance(value, bool))
+            if not ok:
+                raise ValueError(f"{where}: {section}.{key}={value!r}: expected {kind}")
+    return delta

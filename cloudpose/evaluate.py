@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import tracking
+from cloudpose import runs, tracking
 from cloudpose.data.dataset import Prepared
 from cloudpose.data.segments import mask_source_label
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
@@ -179,6 +179,42 @@ def evaluation_name(root: str | Path, frames: str, key: str) -> str:
     return tracking.metric_key(f"{Path(root).resolve().name}-{frames}-{key[:10]}")
 
 
+def check_evaluation_name(name: str, data: str | Path | None) -> str:
+    """``name`` if a user may name an evaluation so (``--name``), else ``ValueError``.
+
+    It becomes a metric prefix (``{name}/...`` and ``{name}_icp/...``) and an artifact folder
+    (``eval/{name}``), so it is one safe path component (:func:`tracking.check_name`). It may
+    not be a prefix that training logs per epoch (``train``, ``val``, ``fit``, ``time``: an
+    evaluation would add a point to those curves), nor end in ``_icp`` (the suffix of an
+    evaluation's ICP results). :data:`OWN_TEST` belongs to the run's own test set (refused with
+    other ``data``) and :data:`REAL_DEV` to the packaged real development frames.
+    """
+    tracking.check_name("--name", name)
+    if name in runs.TRAINING_PREFIXES:
+        prefixes = ", ".join(runs.TRAINING_PREFIXES)
+        raise ValueError(
+            f"--name {name!r} is a metric prefix of training ({prefixes}): an evaluation under "
+            "it would add points to the training curves; choose another name"
+        )
+    if name.endswith("_icp"):
+        raise ValueError(
+            f"--name {name!r}: names ending in _icp are the ICP results of another evaluation; "
+            "choose another name"
+        )
+    if data is not None and name == OWN_TEST:
+        raise ValueError(
+            f"--name {name!r} is reserved for the run's own test set; leave it unset to "
+            "name the evaluation by its data"
+        )
+    is_real = data is not None and Path(data).resolve() == real_dev_root().resolve()
+    if name == REAL_DEV and not is_real:
+        raise ValueError(
+            f"--name {name!r} is reserved for the packaged real development frames; leave it "
+            "unset to name the evaluation by its data"
+        )
+    return name
+
+
 def evaluate(
     run: str,
     *,
@@ -203,7 +239,7 @@ def evaluate(
         frames: with ``data``: frame list to read ("keyframe" = YCB-Video's keyframes or the
             BOP19 test targets, "all", or an image_sets name).
         name: metric prefix; default :data:`OWN_TEST` for the run's own test set, else
-            :func:`evaluation_name` (a name of the user's must not be ``test``/``test_icp``).
+            :func:`evaluation_name` (a name of the user's: :func:`check_evaluation_name`).
         icp: also evaluate after ICP refinement.
         icp_settings: the ICP schedule and guard; default the run's (``cfg.icp``). Other
             settings name the evaluation ``{name}-fallback`` (guard on) or
@@ -218,14 +254,16 @@ def evaluate(
             ``{test or the data's name}-{label}`` (:func:`mask_source_label`).
 
     Raises:
-        ValueError: no instance to evaluate; a reserved ``name`` with ``data``; ``name``
-            already holding an evaluation of other data in this run.
+        ValueError: no instance to evaluate; a ``name`` that :func:`check_evaluation_name`
+            refuses; ``name`` already holding an evaluation of other data in this run.
     """
     from cloudpose.data.cache import cache_key, segments_for
     from cloudpose.data.dataset import only_classes, prepare_data
     from cloudpose.data.layout import describe_split, open_dataset
     from cloudpose.infer import load_checkpoint
 
+    if name is not None:
+        check_evaluation_name(name, data)
     project_dir = (project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)
     run_id, ckpt = resolve_run(client, run)
@@ -248,11 +286,6 @@ def evaluate(
         name = name or own_test_name(masks)
         data_key = segs.key
     else:
-        if name in (OWN_TEST, f"{OWN_TEST}_icp"):
-            raise ValueError(
-                f"--name {name!r} is reserved for the run's own test set; leave it unset to "
-                "name the evaluation by its data"
-            )
         dataset = open_dataset(data)
         data_key = cache_key(data, frames, seg_cfg, memo_dir=project_dir / "data" / "cache")
         cache_dir = project_dir / "data" / "cache"
@@ -287,9 +320,7 @@ def evaluate(
     t_net = time.monotonic() - t0
     if icp:
         t0 = time.monotonic()
-        est["icp"], stats = refine_poses(
-            segs, est["net"], models_by_class, icp_settings, progress
-        )
+        est["icp"], stats = refine_poses(segs, est["net"], models_by_class, icp_settings, progress)
         t_icp = time.monotonic() - t0
     table = instance_table(segs, est, models_by_class, dataset.classes)
     if icp:
@@ -315,9 +346,14 @@ def log_evaluation(
     client, run_id: str, name: str, table: pd.DataFrame, metrics: dict[str, float]
 ) -> None:
     """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.csv``
-    (what the reports read) and the finite metrics."""
+    (what the reports read) and the finite metrics; on the run's own test set
+    (:data:`OWN_TEST`) also its headline metrics (:data:`cloudpose.headline.HEADLINE`)."""
+    from cloudpose.headline import headline
+
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "instances.csv"
         table.to_csv(path, index=False)
         client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
+    if name == OWN_TEST:
+        metrics = {**metrics, **headline(metrics)}
     client.log_batch(run_id, metrics=tracking.metric_batch(metrics, finite_only=True))

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cloudpose import tracking
 from cloudpose.data.dataset import Prepared, prepare_data
 from cloudpose.distributed import SINGLE, World
 
@@ -49,6 +50,8 @@ def train_run(
     from cloudpose.train import train
 
     project_dir = (project_dir or Path.cwd()).resolve()
+    if group is not None:  # before any data is made
+        tracking.check_name("group", group)
     if data is None:
         data = world.main_first(
             lambda: prepare_data(cfg.data, project_dir, progress=progress and world.is_main)
@@ -78,6 +81,8 @@ def train_and_evaluate(
     from cloudpose.evaluate import evaluate, evaluate_real
 
     project_dir = (project_dir or Path.cwd()).resolve()
+    if group is not None:  # before any data is made
+        tracking.check_name("group", group)
     data = data or prepare_data(cfg.data, project_dir, progress=progress)
     out = train_run(cfg, project_dir=project_dir, group=group, progress=progress, data=data)
     run = str(out.run_dir)

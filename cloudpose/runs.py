@@ -12,10 +12,14 @@ preset values, seed and every override) trained on one dataset
   (:func:`run_name`), plus ``+{config[:8]}`` for a config that is not its preset's own
   (:func:`display_name`), so runs of different configs never share a name.
 
-A user names a run by its folder, its MLflow run id, or ``variant/preset/seedS``; the last means
-the one finished run of the preset's own config (:func:`resolve_run_id`), and an error lists
-the candidates when there are none or several. The ablation runner takes a run as done when a
+A user names a run by its folder, its MLflow run id, or its name: ``variant/preset/seedS`` means
+the one finished run of the preset's own config, ``variant/preset/seedS+CONFIG`` the one of
+the config whose fingerprint starts with CONFIG (:func:`resolve_run_id`); an error lists the
+candidates when there are none or several. The ablation runner takes a run as done when a
 finished run of exactly the config on exactly the data has test metrics (:func:`finished_run`).
+
+One process at a time trains a run folder: the others wait on its lock file ``.{folder}.lock``
+beside it (:func:`run_lock`).
 
 Run folders live under ``CLOUDPOSE_RUNS_DIR`` when it is set (a worker node's own disk), else
 under the project folder's ``runs/``. A machine that lacks a run's folder rebuilds it from the
@@ -26,11 +30,13 @@ tracking server).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
 import tempfile
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +53,7 @@ __all__ = [
     "drop_checkpoint_artifact",
     "finished_run",
     "is_preset_config",
+    "lock_path",
     "read_info",
     "resolve_run",
     "resolve_run_id",
@@ -54,6 +61,7 @@ __all__ = [
     "run_dir",
     "run_folder",
     "run_has_config",
+    "run_lock",
     "run_name",
     "write_info",
 ]
@@ -111,6 +119,37 @@ def run_folder(
 def run_dir(cfg: Config, data_key: str, project_dir: Path) -> Path:
     """The run folder of ``cfg`` trained on data ``data_key`` (:func:`run_folder`)."""
     return run_folder(cfg.variant, cfg.preset, cfg.seed, data_key, cfg.fingerprint(), project_dir)
+
+
+def lock_path(folder: Path) -> Path:
+    """The lock file of a run folder: ``.{name}.lock`` beside it (:func:`run_lock`)."""
+    folder = Path(folder)
+    return folder.parent / f".{folder.name}.lock"
+
+
+@contextlib.contextmanager
+def run_lock(folder: Path) -> Iterator[None]:
+    """Hold the run folder's lock: one process at a time trains (or restores) a run on this
+    machine. Another process of the same run waits, with a warning, until the first one ends
+    (it then finds the run finished, or resumes it); a process that dies releases its lock.
+    """
+    from filelock import FileLock, Timeout
+
+    path = lock_path(folder)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = FileLock(str(path))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        warnings.warn(
+            f"{folder}: another process is training this run; waiting for it to end (lock {path})",
+            stacklevel=3,
+        )
+        lock.acquire()
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def read_info(folder: Path) -> dict[str, Any]:
@@ -229,6 +268,9 @@ def restore_run_folder(client, cfg: Config, data: str, folder: Path) -> dict[str
 _TRAINED = ("train", "val", "fit")
 """Metric prefixes training logs (a finished run's ``run.json`` metrics)."""
 
+TRAINING_PREFIXES = (*_TRAINED, "time")
+"""Every metric prefix training logs, per epoch: no evaluation may be named like one."""
+
 
 def _fetch_artifact(client, run_id: str, path: str, dest: Path) -> bool:
     """Download the run's artifact ``path`` to ``dest``; False when the run has none."""
@@ -264,40 +306,60 @@ def resolve_run_id(client, run: str) -> str:
     if is_run_folder(run):
         return read_info(Path(run))["run_id"]
     if run.count("/") == 2:
-        variant, preset, seed = run.split("/")
-        try:
-            seed_n = int(seed.removeprefix("seed"))
-        except ValueError:
-            raise ValueError(f"--run {run!r}: expected variant/preset/seedN") from None
-        found = tracking.find_runs(client, variant=variant, preset=preset, seed=seed_n)
-        own = [r for r in found if is_preset_config(r)]
-        if not found:
-            raise ValueError(f"no finished run named {run!r} in {tracking.tracking_uri()}")
-        if len(own) != 1:
-            listed = "; ".join(describe_run(r) for r in (own or found))
-            why = (
-                f"{len(own)} finished runs of preset {preset!r}'s own config are named {run!r}"
-                if own
-                else f"no finished run named {run!r} has preset {preset!r}'s own config "
-                "(the ones there were made with overrides or an older preset)"
-            )
-            raise ValueError(f"{why}: {listed}. Pass the run id or run folder")
-        return own[0].info.run_id
+        return _resolve_name(client, run)
     try:
         return client.get_run(run).info.run_id
     except Exception as exc:
         raise ValueError(
-            f"--run {run!r} is neither a run folder, a run name variant/preset/seedS, "
+            f"--run {run!r} is neither a run folder, a run name variant/preset/seedS[+CONFIG], "
             f"nor an MLflow run id in {tracking.tracking_uri()}"
         ) from exc
+
+
+def _resolve_name(client, run: str) -> str:
+    """MLflow run id of the one finished run named ``variant/preset/seedS`` (the preset's own
+    config) or ``variant/preset/seedS+CONFIG`` (the config whose fingerprint starts with
+    CONFIG, as :func:`display_name` prints it)."""
+    name, plus, config = run.partition("+")
+    variant, preset, seed = name.split("/")
+    try:
+        seed_n = int(seed.removeprefix("seed"))
+    except ValueError:
+        raise ValueError(f"--run {run!r}: expected variant/preset/seedN[+CONFIG]") from None
+    if plus and not config:
+        raise ValueError(f"--run {run!r}: expected a config fingerprint after '+'")
+    found = tracking.find_runs(client, variant=variant, preset=preset, seed=seed_n)
+    if not found:
+        raise ValueError(f"no finished run named {run!r} in {tracking.tracking_uri()}")
+    if plus:
+        own = [r for r in found if r.data.tags.get("config", "").startswith(config)]
+        what = f"of config {config}"
+    else:
+        own = [r for r in found if is_preset_config(r)]
+        what = f"of preset {preset!r}'s own config"
+    if len(own) == 1:
+        return own[0].info.run_id
+    listed = "; ".join(describe_run(r) for r in (own or found))
+    if own:
+        why = f"{len(own)} finished runs {what} are named {run!r}"
+    elif plus:
+        why = f"no finished run named {name!r} has a config starting with {config!r}"
+    else:
+        why = (
+            f"no finished run named {run!r} has preset {preset!r}'s own config "
+            "(the ones there were made with overrides or an older preset)"
+        )
+    raise ValueError(f"{why}: {listed}. Pass the run id or run folder")
 
 
 def resolve_run(client, run: str) -> tuple[str, Path]:
     """MLflow run id and local checkpoint of ``run``.
 
-    ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name
-    ``variant/preset/seedS``: the one finished run of that name trained with the preset's own
-    config (an error listing the candidates when there are none or several). A checkpoint that
+    ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name:
+    ``variant/preset/seedS``, the one finished run of that name trained with the preset's own
+    config, or ``variant/preset/seedS+CONFIG`` as :func:`display_name` prints a run made with
+    overrides, the one finished run whose config fingerprint starts with CONFIG (an error
+    listing the candidates when there are none or several). A checkpoint that
     is not on this machine is downloaded from the run's artifacts.
     """
     run_id = resolve_run_id(client, run)

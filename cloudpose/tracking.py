@@ -26,6 +26,20 @@ from typing import Any
 
 EXPERIMENT_PREFIX = "cloudpose-"
 _KEY_BAD = re.compile(r"[^A-Za-z0-9_\-./ ]")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+
+
+def check_name(what: str, name: str) -> str:
+    """``name`` if it is safe as one path component, an experiment name and a metric prefix:
+    1-100 letters, digits, ``_ - .``, starting with a letter or digit (so never ``.``, ``..``,
+    a path separator or an absolute path). Else ``ValueError`` naming ``what`` (``--group``).
+    """
+    if not isinstance(name, str) or _NAME.fullmatch(name) is None:
+        raise ValueError(
+            f"{what} {name!r}: expected 1-100 letters, digits, '_', '-' or '.', starting with "
+            "a letter or digit (it names a folder and an MLflow experiment or metric prefix)"
+        )
+    return name
 
 
 def tracking_uri(project_dir: Path | None = None) -> str:
@@ -146,7 +160,7 @@ def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
     """
     from mlflow.exceptions import MlflowException
 
-    name = EXPERIMENT_PREFIX + group
+    name = EXPERIMENT_PREFIX + check_name("group", group)
     exp = client.get_experiment_by_name(name)
     if exp is not None:
         return exp.experiment_id

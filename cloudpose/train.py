@@ -24,6 +24,7 @@ scene) is held out, chosen from the frame ids alone so every seed and variant se
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -220,18 +221,74 @@ def train(
     Returns:
         The run's id, folder, final checkpoint and final metrics. A finished run is returned
         as it is, without training again.
+
+    A second process training the same run on this machine waits for the first
+    (:func:`cloudpose.runs.run_lock`). A run that stops on an error is marked FAILED in
+    MLflow (KILLED after Ctrl-C); the same command resumes it.
     """
+    project_dir = (project_dir or Path.cwd()).resolve()
+    if group is not None:
+        tracking.check_name("group", group)
+    rdir = runs.run_dir(cfg, data.key, project_dir)
+    # One process at a time per run folder: a second identical command waits, then finds
+    # the run finished (or resumes it), instead of training a twin into the same folder.
+    with runs.run_lock(rdir) if world.is_main else contextlib.nullcontext():
+        try:
+            return _train(
+                cfg,
+                data,
+                rdir,
+                project_dir=project_dir,
+                group=group,
+                progress=progress,
+                checkpoint_every_s=checkpoint_every_s,
+                max_steps=max_steps,
+                world=world,
+                checkpoint_artifacts=checkpoint_artifacts,
+            )
+        except TrainingInterrupted:
+            raise
+        except BaseException as exc:
+            if world.is_main:
+                _mark_ended(project_dir, rdir, exc)
+            raise
+
+
+def _mark_ended(project_dir: Path, rdir: Path, exc: BaseException) -> None:
+    """Mark the MLflow run of ``rdir`` (if it has one) FAILED, or KILLED after Ctrl-C: a run
+    that stopped on an error is not left RUNNING. Rerunning the command resumes it."""
+    run_id = runs.read_info(rdir).get("run_id")
+    if run_id is None:
+        return
+    status = "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED"
+    try:
+        tracking.setup(project_dir).set_terminated(run_id, status)
+    except Exception as e:  # the store's own failure must not hide the training error
+        warnings.warn(f"run {run_id}: could not mark it {status} ({e})", stacklevel=3)
+
+
+def _train(
+    cfg: Config,
+    data: Prepared,
+    rdir: Path,
+    *,
+    project_dir: Path,
+    group: str | None,
+    progress: bool,
+    checkpoint_every_s: float,
+    max_steps: int | None,
+    world: World,
+    checkpoint_artifacts: bool | None,
+) -> TrainOutcome:
+    """:func:`train` with the run folder's lock held (rank 0)."""
     from cloudpose.data.layout import open_dataset
 
-    project_dir = (project_dir or Path.cwd()).resolve()
     device = world.device(runtime.pick_device(cfg.train.device))
     shard = world.shard(cfg.train.batch_size)
     train_set, data_key = data.train, data.key
-    rdir = runs.run_dir(cfg, data_key, project_dir)
     last, final = rdir / "last.pt", rdir / "model.pt"
     client, info = None, {}
     if world.is_main:
-        rdir.mkdir(parents=True, exist_ok=True)
         info = runs.read_info(rdir)
         client = tracking.setup(project_dir)
         if checkpoint_artifacts is None:
@@ -300,6 +357,7 @@ def train(
             "git_commit": tracking.git_commit(),
             "run_dir": str(rdir),
         }
+        rdir.mkdir(parents=True, exist_ok=True)
         run = client.create_run(exp, tags=tags, run_name=runs.display_name(cfg))
         run_id = run.info.run_id
         params = tracking.flat_params(cfg.flat())
@@ -344,7 +402,7 @@ def train(
         total=cfg.train.epochs * n_batches,
         initial=epoch * n_batches + batch,
         disable=not progress or not world.is_main,
-        desc=runs.run_name(cfg.variant, cfg.preset, cfg.seed),
+        desc=runs.display_name(cfg),
         unit="step",
         dynamic_ncols=True,
     )

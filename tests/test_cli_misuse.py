@@ -1,9 +1,14 @@
 """Ordinary mistakes of a new user against the real CLI on the smoke preset: each gives a clear
-one-line error or a correct result, never a silent wrong number or a traceback."""
+one-line error or a correct result, never a silent wrong number or a traceback. The mistakes
+caught before any work are fast; the ones against a trained run are marked slow."""
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +20,6 @@ from cloudpose import tracking
 from cloudpose.cli import app
 
 DATA = Path(__file__).parent / "data"
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture
@@ -38,6 +42,7 @@ def one_line_error(res, *needles: str) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "needles"),
     [
@@ -52,11 +57,13 @@ def test_bad_names_and_settings_are_one_line(project, args, needles):
     one_line_error(cli(*args), *needles)
 
 
+@pytest.mark.slow
 def test_debug_shows_the_traceback(project):
     res = cli("--debug", "train", "--variant", "nope", "--preset", "smoke")
     assert res.exit_code != 0 and isinstance(res.exception, ValueError)
 
 
+@pytest.mark.slow
 def test_a_file_that_is_not_a_checkpoint(project, tmp_path):
     text = tmp_path / "notes.pt"
     text.write_text("these are my notes, not a model\n" * 10)
@@ -73,6 +80,7 @@ def test_a_file_that_is_not_a_checkpoint(project, tmp_path):
         one_line_error(res, str(bad), "not a cloudpose checkpoint")
 
 
+@pytest.mark.slow
 def test_a_malicious_pickle_is_refused_in_one_line(project, tmp_path):
     import pickle
 
@@ -90,6 +98,7 @@ def test_a_malicious_pickle_is_refused_in_one_line(project, tmp_path):
         load_checkpoint(path)
 
 
+@pytest.mark.slow
 def test_evaluating_another_folder_named_test_keeps_the_runs_own_results(project, tmp_path):
     proj, out = project
     client = tracking.setup(proj)
@@ -164,6 +173,7 @@ def test_evaluating_another_folder_named_test_keeps_the_runs_own_results(project
     assert sorted(codes) == [0, 2]
 
 
+@pytest.mark.slow
 def test_an_empty_frame_list_is_an_error(project, tmp_path):
     _, out = project
     folder = tmp_path / "empty"
@@ -173,6 +183,7 @@ def test_an_empty_frame_list_is_an_error(project, tmp_path):
     one_line_error(res, "keyframe", "empty")
 
 
+@pytest.mark.slow
 def test_a_run_name_resolves_to_the_presets_own_config(project):
     proj, out = project
     name = "shared-0/smoke/seed1"
@@ -184,6 +195,11 @@ def test_a_run_name_resolves_to_the_presets_own_config(project):
     res = cli("train", "--preset", "smoke", "--set", "train.epochs=1", "--no-progress")
     assert res.exit_code == 0, res.output
     assert resolve_run_id(client, name) == out.run_id
+    # the name train prints (with +CONFIG) names that run, for --run as for the library
+    printed, run_id = re.search(r"^run (\S+) \(MLflow run (\w+),", res.output, re.M).groups()
+    assert printed.startswith(name + "+") and resolve_run_id(client, printed) == run_id
+    res = cli("evaluate", "--run", printed, "--no-icp", "--no-progress")
+    assert res.exit_code == 0 and f"run {run_id}" in res.output, res.output
     names = {r.info.run_name for r in tracking.find_runs(client, variant="shared-0", seed=1)}
     assert name in names and any(n.startswith(name + "+") for n in names)  # never one name
     # two finished runs of the preset's own config (here: the same run tagged again)
@@ -200,6 +216,7 @@ def test_a_run_name_resolves_to_the_presets_own_config(project):
     client.delete_run(twin.info.run_id)
 
 
+@pytest.mark.slow
 def test_depth_in_millimetres_is_caught(project, tmp_path):
     _, out = project
     depth = np.array(Image.open(DATA / "demo_no_gt" / "depth.png")).astype(np.uint32)
@@ -221,6 +238,7 @@ def test_depth_in_millimetres_is_caught(project, tmp_path):
     assert res.exit_code == 0, res.output
 
 
+@pytest.mark.slow
 def test_device_is_one_choice(project):
     import torch
 
@@ -233,3 +251,131 @@ def test_device_is_one_choice(project):
     if not torch.cuda.is_available():
         res = cli("evaluate", "--run", str(out.run_dir), "--device", "cuda", "--no-progress")
         one_line_error(res, "CUDA is not available")
+
+
+# --- caught before any work: no data made, no run folder, no MLflow run -----------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["--set", 'train.epochs="two"'], ["train.epochs='two'", "expected int"]),
+        (["--set", "train.epochs=2.5"], ["train.epochs=2.5", "expected int"]),
+        (["--set", "train.n_points=0"], ["train.n_points must be >= 1"]),
+        (["--set", "train.lr=-1"], ["train.lr must be > 0"]),
+        (["--group", "../../x"], ["group '../../x'", "letters, digits"]),
+        (["--group", "/tmp/elsewhere"], ["group '/tmp/elsewhere'"]),
+    ],
+)
+@pytest.mark.parametrize("command", ["train", "run"])
+def test_bad_settings_and_groups_stop_before_anything_is_written(command, args, needles):
+    one_line_error(cli(command, "--preset", "smoke", "--no-progress", *args), *needles)
+    assert list(Path.cwd().iterdir()) == []  # no data/, runs/, mlartifacts/ nor mlflow.db
+
+
+@pytest.mark.parametrize(
+    ("name", "needles"),
+    [
+        ("val", ["'val' is a metric prefix of training"]),
+        ("fit", ["'fit' is a metric prefix of training"]),
+        ("train", ["metric prefix of training"]),
+        ("time", ["metric prefix of training"]),
+        ("mine_icp", ["ending in _icp"]),
+        ("../../x", ["--name '../../x'", "letters, digits"]),
+        ("a/b", ["--name 'a/b'"]),
+        ("real", ["reserved for the packaged real development frames"]),
+    ],
+)
+def test_evaluation_names_that_collide_are_refused(name, needles):
+    res = cli("evaluate", "--run", "any", "--data", str(DATA / "ycb_real"), "--name", name)
+    one_line_error(res, *needles)
+
+
+def test_an_existing_bop_csv_is_not_overwritten(tmp_path):
+    mine = tmp_path / "mine.csv"
+    mine.write_text("my results\n")
+    res = cli("evaluate", "--run", "any", "--bop-csv", str(mine))
+    one_line_error(res, str(mine), "exists; pass --force")
+    assert mine.read_text() == "my results\n"
+    one_line_error(cli("evaluate", "--run", "any", "--bop-csv", str(tmp_path)), "is a folder")
+    # with --force the command goes on (here to the unknown run)
+    one_line_error(cli("evaluate", "--run", "any", "--bop-csv", str(mine), "--force"), "'any'")
+
+
+def test_export_onto_a_file_is_one_line(tmp_path):
+    out = tmp_path / "out.txt"
+    out.write_text("keep me\n")
+    res = cli("export", "--data", str(DATA / "ycb_real"), "--out", str(out), "--no-progress")
+    one_line_error(res, str(out), "is a file")
+    assert out.read_text() == "keep me\n"
+
+
+def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
+    import cloudpose.ablate
+
+    def unreachable(*args, **kwargs):
+        raise ConnectionError("Could not find any running Ray instance. Please specify ...")
+
+    monkeypatch.setattr(cloudpose.ablate, "run_group", unreachable)
+    res = cli("ablate", "--group", "shared", "--preset", "smoke", "--executor", "ray")
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    last = res.output.strip().splitlines()[-1]  # after the sweep's plan
+    assert last.startswith("error: Could not find any running Ray instance"), res.output
+
+
+# --- runs that fail, and runs started twice ------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_run_that_fails_is_marked_failed_and_resumes(tmp_path, smoke_data, monkeypatch):
+    import cloudpose.train
+    from cloudpose.config import resolve
+    from cloudpose.pipeline import train_run
+    from tests.conftest import make_project
+
+    proj = make_project(tmp_path / "proj", smoke_data, monkeypatch)
+    cfg = resolve("shared-0", "smoke", 1, {"train": {"epochs": 1}})
+
+    def nan_loss(*args, **kwargs):
+        terms = real_loss(*args, **kwargs)
+        return type(terms)(*(t * float("nan") for t in terms))
+
+    real_loss = cloudpose.train.pose_loss
+    monkeypatch.setattr(cloudpose.train, "pose_loss", nan_loss)
+    with pytest.raises(FloatingPointError, match="loss became nan"):
+        train_run(cfg, project_dir=proj, progress=False)
+    client = tracking.setup(proj)
+    (run,) = tracking.find_runs(client, variant="shared-0", status=None)
+    assert run.info.status == "FAILED"
+    monkeypatch.setattr(cloudpose.train, "pose_loss", real_loss)
+    out = train_run(cfg, project_dir=proj, progress=False)  # the same command again
+    assert out.run_id == run.info.run_id
+    assert client.get_run(out.run_id).info.status == "FINISHED"
+
+
+@pytest.mark.slow
+def test_two_identical_trains_started_together_make_one_run(tmp_path, smoke_data, monkeypatch):
+    from tests.conftest import make_project
+
+    proj = make_project(tmp_path / "proj", smoke_data, monkeypatch)
+    argv = [sys.executable, "-m", "cloudpose.cli", "train", "--preset", "smoke", "--no-progress"]
+    argv += ["--set", "train.epochs=1"]
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    procs = [
+        subprocess.Popen(argv, cwd=proj, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        for _ in range(2)
+    ]
+    outputs = [p.communicate(timeout=600)[0].decode() for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outputs
+    ids = {re.search(r"\(MLflow run (\w+),", o).group(1) for o in outputs}
+    client = tracking.setup(proj)
+    runs = tracking.find_runs(client, variant="shared-0", status=None)
+    assert len(ids) == 1 and [r.info.run_id for r in runs] == list(ids), outputs
+    folders = [p for p in (proj / "runs" / "shared-0" / "smoke").iterdir() if p.is_dir()]
+    assert len(folders) == 1
+
+
+def test_a_report_preset_that_is_a_path_is_refused():
+    res = cli("report", "--preset", "../../elsewhere", "--no-mlflow")
+    one_line_error(res, "--preset '../../elsewhere'", "letters, digits")
+    assert list(Path.cwd().iterdir()) == []

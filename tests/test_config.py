@@ -319,3 +319,32 @@ def test_cli_set_parses_toml_values():
     assert cfg.data.classes == ("011_banana", "025_mug") and cfg.train.epochs == 3
     with pytest.raises(ValueError, match=r"section\.field=value"):
         parse_sets(["epochs=3"])
+
+
+def test_override_values_must_have_their_fields_type():
+    for bad in ({"epochs": "two"}, {"epochs": 2.5}, {"epochs": True}, {"lr": "fast"}):
+        ((key, value),) = bad.items()
+        with pytest.raises(ValueError, match=rf"train\.{key}={value!r}: expected"):
+            resolve("shared-0", "smoke", 1, {"train": bad})
+    with pytest.raises(ValueError, match=r"data\.classes='011_banana': expected tuple"):
+        resolve("shared-0", "smoke", 1, {"data": {"classes": "011_banana"}})
+    # what the fields take: an integer for a float, a string or integer for shared_layers
+    assert resolve("shared-0", "smoke", 1, {"train": {"lr": 1}}).train.lr == 1
+    cfg = resolve("shared-0", "smoke", 1, {"model": {"shared_layers": "all"}})
+    assert cfg.model.shared_layers == "all"
+
+
+@pytest.mark.parametrize(
+    ("train", "message"),
+    [
+        ({"n_points": 0}, "train.n_points must be >= 1"),
+        ({"lr": -1}, "train.lr must be > 0"),
+        ({"lr": 0.0}, "train.lr must be > 0"),
+        ({"lr": float("nan")}, "train.lr must be > 0"),
+        ({"val_fraction": 1.0}, r"train.val_fraction must be in \[0, 1\)"),
+        ({"n_points": 2048}, "exceeds data.n_fps=1024"),
+    ],
+)
+def test_training_values_out_of_range_fail_at_resolve(train, message):
+    with pytest.raises(ValueError, match=message):
+        resolve("shared-0", "smoke", 1, {"train": train})

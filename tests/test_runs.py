@@ -60,3 +60,61 @@ def test_resolve_run_id_errors(tmp_path):
         runs.resolve_run_id(client, "not-a-run")
     runs.write_info(tmp_path / "r", {"run_id": "from-the-folder"})
     assert runs.resolve_run_id(client, str(tmp_path / "r")) == "from-the-folder"
+
+
+def _finished(client, exp: str, cfg, name: str, data: str = "d" * 16) -> str:
+    tags = {
+        "variant": cfg.variant,
+        "preset": cfg.preset,
+        "seed": str(cfg.seed),
+        "data": data,
+        "config": cfg.fingerprint(),
+    }
+    run = client.create_run(exp, tags=tags, run_name=name)
+    client.set_terminated(run.info.run_id, "FINISHED")
+    return run.info.run_id
+
+
+def test_every_printed_run_name_resolves(tmp_path):
+    """``variant/preset/seedS+CONFIG``, as display_name prints a run with overrides, names that
+    run; the plain name keeps naming the preset's own config."""
+    client = tracking.setup(tmp_path)
+    exp = tracking.experiment_id(client, "shared", tmp_path)
+    own = resolve("shared-0", "smoke", seed=1)
+    other = resolve("shared-0", "smoke", 1, {"train": {"epochs": 1}})
+    own_id = _finished(client, exp, own, runs.display_name(own))
+    other_id = _finished(client, exp, other, runs.display_name(other))
+    assert runs.display_name(other).startswith("shared-0/smoke/seed1+")
+    assert runs.resolve_run_id(client, runs.display_name(own)) == own_id
+    assert runs.resolve_run_id(client, runs.display_name(other)) == other_id
+    assert runs.resolve_run_id(client, f"shared-0/smoke/seed1+{other.fingerprint()}") == other_id
+    with pytest.raises(ValueError, match="no finished run named 'shared-0/smoke/seed1' has a"):
+        runs.resolve_run_id(client, "shared-0/smoke/seed1+ffffffff")
+    with pytest.raises(ValueError, match="a config fingerprint after"):
+        runs.resolve_run_id(client, "shared-0/smoke/seed1+")
+    # the same config on two datasets: both listed, neither guessed
+    twin_id = _finished(client, exp, other, runs.display_name(other), data="e" * 16)
+    with pytest.raises(ValueError, match="2 finished runs of config") as info:
+        runs.resolve_run_id(client, runs.display_name(other))
+    assert other_id in str(info.value) and twin_id in str(info.value)
+
+
+def test_a_second_process_of_one_run_waits_for_the_first(tmp_path):
+    import threading
+
+    folder = tmp_path / "runs" / "shared-0" / "smoke" / "seed1-abc-def"
+    entered = threading.Event()
+
+    def second() -> None:
+        with runs.run_lock(folder):
+            entered.set()
+
+    with runs.run_lock(folder):
+        assert runs.lock_path(folder).parent == folder.parent
+        worker = threading.Thread(target=second, daemon=True)
+        with pytest.warns(UserWarning, match="another process is training this run"):
+            worker.start()
+            assert not entered.wait(1.0)  # held: the second one waits
+    assert entered.wait(10.0)  # released: it goes on
+    worker.join(10.0)
+    assert not folder.exists()  # the lock lives beside the folder, which it does not make

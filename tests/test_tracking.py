@@ -71,3 +71,18 @@ def test_cli_says_a_broken_store_in_one_line(tmp_path):
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "mlflow.db" in lines[0] and "mv " in lines[0], out.stderr
     assert not any(Path(tmp_path).glob("mlruns"))
+
+
+def test_a_group_that_is_not_one_plain_name_is_refused(tmp_path):
+    """A group names an experiment (``cloudpose-{group}``) and a folder (``mlartifacts/{group}``):
+    a path in it would write outside the project folder."""
+    client = tracking.setup(tmp_path)
+    for bad in ["../../x", "/abs/path", "a/b", "", ".", "..", ".hidden", "-x", "a b", "x" * 101]:
+        with pytest.raises(ValueError, match=r"group .*: expected 1-100 letters, digits"):
+            tracking.check_name("group", bad)
+        with pytest.raises(ValueError, match="group"):
+            tracking.experiment_id(client, bad, tmp_path)
+    assert [e.name for e in client.search_experiments()] == ["Default"]
+    assert not (tmp_path / "mlartifacts").exists()
+    for good in ("shared", "my-group_2.1", "G"):
+        assert tracking.check_name("group", good) == good
