@@ -99,3 +99,75 @@ def test_open3d_threads_limits_open3d_inside_the_block_only() -> None:
     with pytest.raises(ValueError, match="n must be >= 1"):
         with open3d_threads(0):
             pass
+
+
+def _three_steps(project: Path, process_threads: int) -> dict:
+    """Model weights of the smoke run after 3 steps, trained in a process that has
+    ``process_threads`` intra-op threads when training starts."""
+    from cloudpose.config import resolve
+    from cloudpose.pipeline import train_run
+    from cloudpose.train import TrainingInterrupted
+
+    cfg = resolve("shared-0", "smoke", 1)
+    before = torch.get_num_threads()
+    torch.set_num_threads(process_threads)
+    try:
+        with pytest.raises(TrainingInterrupted) as stop:
+            train_run(cfg, project_dir=project, progress=False, max_steps=3)
+    finally:
+        torch.set_num_threads(before)
+    return torch.load(stop.value.args[0] / "last.pt", weights_only=True)["model"]
+
+
+def test_one_and_two_threads_give_other_numbers_after_one_step() -> None:
+    """Why the thread count is a setting: CPU kernels split their sums by thread (a
+    training-mode BatchNorm's statistics), so 1 and 2 threads differ in the last bits, and
+    training amplifies that into other results."""
+    x = torch.randn(4096, 64, generator=torch.Generator().manual_seed(0))
+    bn = torch.nn.BatchNorm1d(64).train()
+    before = torch.get_num_threads()
+    try:
+        outs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            outs.append(bn(x))
+    finally:
+        torch.set_num_threads(before)
+    assert not torch.equal(outs[0], outs[1])
+    torch.testing.assert_close(outs[0], outs[1])
+
+
+def test_the_thread_count_is_part_of_a_runs_identity(tmp_path) -> None:
+    """``train.threads`` names the run: another count is another run folder and config, and a
+    run stored before the setting existed (trained with 2 threads) keeps its identity."""
+    from cloudpose.config import Config, resolve
+    from cloudpose.runs import display_name, run_dir
+
+    default = resolve("shared-0", "smoke", 1)
+    assert default.train.threads == 2
+    stored = default.to_dict()
+    del stored["train"]["threads"]
+    assert Config.from_dict(stored).fingerprint() == default.fingerprint()
+    assert Config.from_dict(stored) == default
+    one = resolve("shared-0", "smoke", 1, {"train": {"threads": 1}})
+    assert run_dir(one, "k", tmp_path) != run_dir(default, "k", tmp_path)
+    assert display_name(one) != display_name(default) == "shared-0/smoke/seed1"
+    with pytest.raises(ValueError, match=r"train\.threads must be >= 1"):
+        resolve("shared-0", "smoke", 1, {"train": {"threads": 0}})
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="train._train does not apply train.threads yet: "
+    "runtime.configure_threads(cfg.train.threads) before the model is built",
+)
+def test_a_run_trains_with_its_configured_threads_on_any_machine(
+    tmp_path, smoke_data, monkeypatch
+) -> None:
+    """A run trains with ``train.threads``, not the count its process had: the same config
+    gives the same weights from a 1- and a 2-thread process."""
+    from tests.conftest import make_project
+
+    a = _three_steps(make_project(tmp_path / "a", smoke_data, monkeypatch), 1)
+    b = _three_steps(make_project(tmp_path / "b", smoke_data, monkeypatch), 2)
+    assert all(torch.equal(a[k], b[k]) for k in a)
