@@ -268,6 +268,9 @@ def evaluate(
     client = tracking.setup(project_dir)
     run_id, ckpt = resolve_run(client, run)
     model, cfg = load_checkpoint(ckpt, device)
+    from cloudpose import runtime
+
+    runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
     device = next(model.buffers()).device
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
     seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data

@@ -284,6 +284,10 @@ def _train(
     from cloudpose.data.layout import open_dataset
 
     device = world.device(runtime.pick_device(cfg.train.device))
+    if not world.distributed:
+        # the thread count changes the numbers (training BatchNorm and GEMM reductions split
+        # across threads), so a run trains with its own, part of its identity
+        runtime.configure_threads(cfg.train.threads)
     shard = world.shard(cfg.train.batch_size)
     train_set, data_key = data.train, data.key
     last, final = rdir / "last.pt", rdir / "model.pt"

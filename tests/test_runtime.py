@@ -156,11 +156,6 @@ def test_the_thread_count_is_part_of_a_runs_identity(tmp_path) -> None:
         resolve("shared-0", "smoke", 1, {"train": {"threads": 0}})
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="train._train does not apply train.threads yet: "
-    "runtime.configure_threads(cfg.train.threads) before the model is built",
-)
 def test_a_run_trains_with_its_configured_threads_on_any_machine(
     tmp_path, smoke_data, monkeypatch
 ) -> None:
