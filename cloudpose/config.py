@@ -210,6 +210,11 @@ class DataConfig:
             segments. Use it with ``train.augment_roll_deg`` so the uses differ.
         online_workers: with "online", synthesis processes beside training (0 = in the training
             process); changes speed only, never the numbers.
+        segment_streams: how a frame's instances draw their FPS start points
+            (:data:`cloudpose.data.segments.SEGMENT_STREAMS`): "instance", each from its own
+            stream, so a missed or dropped instance changes no other; "frame", one stream per
+            frame, as the segments of every run stored before this field existed were made
+            (the presets of the committed cpu results keep it, so their runs stay current).
     """
 
     root: str = ""
@@ -227,9 +232,14 @@ class DataConfig:
     online_epoch_segments: int = 4096
     online_reuse: int = 4
     online_workers: int = 1
+    segment_streams: str = "instance"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "classes", tuple(self.classes))
+        if self.segment_streams not in ("instance", "frame"):
+            raise ValueError(
+                f"data.segment_streams={self.segment_streams!r}: expected 'instance' or 'frame'"
+            )
         if self.train_source not in TRAIN_SOURCES:
             raise ValueError(
                 f"data.train_source={self.train_source!r}: expected one of {TRAIN_SOURCES}"
@@ -349,13 +359,15 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_epoch_segments": 4096,
         "online_reuse": 4,
         "online_workers": 1,
+        "segment_streams": "frame",
     },
     "icp": {"fallback": False, "fallback_min_fitness": 0.1},
     "train": {"threads": 2},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
 synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
-every run stored before the on-line source existed trained on frames; every run stored before
+every run stored before the on-line source existed trained on frames, and on segments whose
+instances drew from one stream per frame; every run stored before
 the ``icp`` section existed was refined without the guard; every run stored before
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that

@@ -248,6 +248,49 @@ def test_instance_streams_are_keyed_by_class_and_rank():
     assert len(set(draw)) == 3  # a class's second instance has a stream of its own
 
 
+def test_frame_streams_reproduce_one_stream_per_frame():
+    """``streams="frame"``: every instance draws from the frame's generator in turn (as data
+    made before per-instance streams), so dropping the first instance moves the later ones."""
+    depth, label = _three_objects()
+
+    def points(cls_ids, streams):
+        segs = sg.extract_segments(
+            _frame(depth, label, cls_ids), n_fps=64, rng=np.random.default_rng(7), streams=streams
+        )
+        return {s.cls_id: s.points for s in segs}
+
+    frame_mode, own = points([3, 4, 9], "frame"), points([3, 4, 9], "instance")
+    assert any(not np.array_equal(frame_mode[c], own[c]) for c in (3, 4, 9))
+    # one instance: its start is the frame generator's first draw in both layouts of the code
+    single = points([4], "frame")[4]
+    first = sg.extract_segments(
+        _frame(depth, label, [4, 9]), n_fps=64, rng=np.random.default_rng(7), streams="frame"
+    )[0].points
+    np.testing.assert_array_equal(single, first)
+    assert not np.array_equal(points([4, 9], "frame")[9], frame_mode[9])
+    with pytest.raises(ValueError, match="streams"):
+        sg.extract_segments(_frame(depth, label, [3]), n_fps=64, streams="scene")
+
+
+def test_the_committed_cpu_presets_keep_one_stream_per_frame():
+    from cloudpose.config import Config, resolve
+    from cloudpose.data import cache
+
+    for preset in ("cpu", "cpu-paper", "cpu-long", "memorize", "cpu-4k"):
+        cfg = resolve("shared-0", preset, 1)
+        assert cfg.data.segment_streams == "frame", preset
+        assert cache._settings(cfg.data)["pipeline_version"] == 1
+    # a stored config (no such field) reads as "frame" and keeps its fingerprint
+    cpu = resolve("shared-0", "cpu", 1)
+    stored = cpu.to_dict()
+    del stored["data"]["segment_streams"]
+    assert Config.from_dict(stored) == cpu
+    assert cpu.fingerprint() == "ef338e3a7c1144f5"  # the config tag of the committed cpu store
+    online = resolve("shared-0", "online", 1)
+    assert online.data.segment_streams == "instance"
+    assert cache._settings(online.data)["pipeline_version"] == cache.PIPELINE_VERSION == 2
+
+
 def test_frame_without_ground_truth():
     depth = np.full((480, 640), 1.0, np.float32)
     label = np.zeros((480, 640), np.uint8)

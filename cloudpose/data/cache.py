@@ -48,7 +48,11 @@ if TYPE_CHECKING:
 
 PIPELINE_VERSION = 2
 """Bumped whenever a code change alters the segments; part of the cache key. Version 2: each
-instance draws its FPS start from its own stream (version 1: one stream per frame)."""
+instance draws its FPS start from its own stream (version 1: one stream per frame, which
+``data.segment_streams = "frame"`` still makes, under version 1's key)."""
+
+_STREAMS_VERSION = {"instance": PIPELINE_VERSION, "frame": 1}
+"""The pipeline version (and so the key) of segments made with each ``data.segment_streams``."""
 
 FPS_SEED = 0
 """Seed of the FPS start points: frame f's generator is (FPS_SEED, crc32(f)), and each of its
@@ -187,7 +191,7 @@ def _settings(cfg: DataConfig) -> dict:
         "outlier_radius": float(cfg.outlier_radius),
         "segmentation": cfg.segmentation,
         "fps_seed": FPS_SEED,
-        "pipeline_version": PIPELINE_VERSION,
+        "pipeline_version": _STREAMS_VERSION[cfg.segment_streams],
     }
 
 
@@ -323,6 +327,7 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
             outlier_radius=settings["outlier_radius"],
             segmentation=settings["segmentation"],
             rng=rng,
+            streams="frame" if settings["pipeline_version"] == 1 else "instance",
         )
     return segs, sum(issubclass(w.category, SegmentWarning) for w in caught)
 

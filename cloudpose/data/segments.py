@@ -261,6 +261,12 @@ def instance_streams(rng: np.random.Generator, cls_ids) -> list[np.random.Genera
     return out
 
 
+SEGMENT_STREAMS = ("instance", "frame")
+"""How a frame's instances draw their FPS starts: "instance", each from its own stream
+(:func:`instance_streams`); "frame", all from the frame's one generator in instance order (an
+instance's points then depend on the instances before it; kept to reproduce data made so)."""
+
+
 def extract_segments(
     frame: Frame,
     alone_pixels: np.ndarray | None = None,
@@ -270,6 +276,7 @@ def extract_segments(
     segmentation: str = "gt",
     rng: np.random.Generator | None = None,
     with_gt: bool = True,
+    streams: str = "instance",
 ) -> list[Segment]:
     """Segments of every annotated instance of a frame (DESIGN.md, "Data flow").
 
@@ -285,6 +292,8 @@ def extract_segments(
             from its own stream (:func:`instance_streams`), so one instance's points do not
             depend on the others.
         with_gt: False ignores the frame's poses (prediction): R, t None, occlusion NaN.
+        streams: :data:`SEGMENT_STREAMS`; "frame" draws every instance's start from ``rng``
+            itself, one after another.
 
     Returns:
         One :class:`Segment` per instance, in ``frame.cls_ids`` order; invalid ones (no usable
@@ -297,7 +306,10 @@ def extract_segments(
         raise ValueError(f"outlier_radius must be > 0 metres, got {outlier_radius}")
     cls_ids = np.asarray(frame.cls_ids, dtype=np.int64)
     n = len(cls_ids)
-    streams = instance_streams(rng or np.random.default_rng(), cls_ids)
+    if streams not in SEGMENT_STREAMS:
+        raise ValueError(f"streams={streams!r}: expected one of {SEGMENT_STREAMS}")
+    rng = rng or np.random.default_rng()
+    streams = instance_streams(rng, cls_ids) if streams == "instance" else [rng] * n
     K = np.asarray(frame.K, dtype=np.float64)
     poses = frame.poses if with_gt else None
     occlusion = np.full(n, np.nan)
