@@ -968,6 +968,68 @@ def mlflow_server(
     raise typer.Exit(code if code > 0 else 1)
 
 
+@app.command("mlflow-ui")
+def mlflow_ui(
+    backend: Annotated[
+        str | None,
+        typer.Option(help="Store to browse; default MLFLOW_TRACKING_URI, else ./mlflow.db."),
+    ] = None,
+    host: Annotated[str, typer.Option(help="Interface to bind.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port.")] = 5000,
+    serve: Annotated[
+        bool, typer.Option("--serve/--no-serve", help="Start the UI (else only prepare and print).")
+    ] = True,
+) -> None:
+    """The MLflow UI, opening on each experiment's runs grouped by variant with the headline
+    metrics averaged over seeds. First logs the headline metrics of runs stored without them and
+    the saved view "variants" on every cloudpose experiment (experiment tags), and prints each
+    experiment's address."""
+    import os
+    import subprocess
+
+    from cloudpose import headline, tracking
+
+    if backend:
+        os.environ["MLFLOW_TRACKING_URI"] = backend
+    uri = tracking.tracking_uri()
+    remote = tracking.is_remote(uri)
+    if serve and not remote:
+        from cloudpose.cluster import check_port_free
+
+        check_port_free(host, port)
+    base = uri.rstrip("/") if remote else f"http://{host}:{port}"
+    prepared = headline.prepare_ui(tracking.setup())
+    backfilled = sum(p.backfilled for p in prepared)
+    if backfilled:
+        keys = ", ".join(headline.HEADLINE)
+        typer.echo(f"headline metrics ({keys}) logged now for {backfilled} runs stored before them")
+    shown = [p for p in prepared if p.runs]
+    if shown:
+        typer.echo(
+            "Runs grouped by variant, headline metrics averaged over seeds (view "
+            f'"{headline.VIEW_NAME}"):'
+        )
+        width = max(len(p.name) for p in shown)
+        for p in shown:
+            url = headline.view_url(base, p.experiment_id)
+            typer.echo(f"  {p.name:<{width}}  {p.runs:>3} runs  {url}")
+    else:
+        typer.echo(f"no cloudpose run in {uri} yet")
+    if not serve or remote:
+        return
+    typer.echo(f"MLflow UI on {base} (store {uri}); Ctrl-C ends it")
+    cmd = headline.ui_command(uri, host, port)
+    env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    code = subprocess.run(cmd, env=env, check=False).returncode
+    typer.secho(
+        f"error: the MLflow UI on {host}:{port} stopped (exit code {code}); its output above "
+        "says why",
+        fg=typer.colors.RED,
+        err=True,
+    )
+    raise typer.Exit(code if code > 0 else 1)
+
+
 @app.command()
 def report(
     ctx: typer.Context,

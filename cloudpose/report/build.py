@@ -365,12 +365,21 @@ def log_report_run(
 
 
 def _summary_note(group: str, preset: str, files: list[Path], prov: Provenance) -> str:
-    """Markdown for the MLflow UI: the group's table (as rendered) and where it comes from."""
+    """Markdown for the MLflow UI: the group's table (as rendered) and where it comes from.
+
+    The first line is plain text (group, preset, the table's title): the experiments list
+    shows the description unrendered, cut to that line; the experiment's page renders the rest.
+    """
     table = next((p for p in files if p.name == f"{GROUP_TABLE.get(group, '')}.md"), None)
     body = table.read_text(encoding="utf-8") if table is not None and table.exists() else ""
+    title, _, rest = body.partition("\n")
+    if title.startswith("# "):
+        title, body = title[2:].strip(), rest.lstrip("\n")
+    else:
+        title = "Report"
     return (
-        f"**Report of group `{group}`, preset `{preset}`** (run `report/{group}/{preset}` "
-        f"holds every table and plot as artifacts).\n\n{body}\n\n{prov.line()}"
+        f"{group} ({preset} preset): {title}; every table and plot are artifacts of the run "
+        f"report/{group}/{preset}.\n\n{body}\n\n{prov.line()}"
     )
 
 
