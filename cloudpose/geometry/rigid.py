@@ -1,4 +1,5 @@
-"""Rigid-motion math in numpy: Umeyama's least-squares alignment (no scale).
+"""Rigid-motion math in numpy: Umeyama's least-squares alignment (no scale), and the angle
+between two rotations.
 
 One numpy implementation, written on the correspondences' homogeneous moment matrix so that
 ICP can accumulate the moments in one pass; ``umeyama_rigid`` forms the moments of two point
@@ -11,7 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["correspondence_moments", "umeyama_from_moments", "umeyama_rigid"]
+__all__ = [
+    "correspondence_moments",
+    "rotation_error_deg",
+    "umeyama_from_moments",
+    "umeyama_rigid",
+]
 
 
 def correspondence_moments(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -77,3 +83,36 @@ def umeyama_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndar
     T = umeyama_from_moments(correspondence_moments(src - c_s, dst - c_d))
     R = T[:3, :3]
     return R, c_d + T[:3, 3] - R @ c_s
+
+
+def rotation_error_deg(R_gt: np.ndarray, R_est: np.ndarray) -> np.ndarray:
+    """Geodesic angle between rotations, degrees.
+
+    Computed as atan2(|skew part|, (trace - 1) / 2) of R_gt^T R_est, accurate at 0 and at 180
+    degrees where arccos of the trace is not.
+
+    Args:
+        R_gt: (..., 3, 3) rotations.
+        R_est: (..., 3, 3) rotations.
+
+    Returns:
+        (...) angles in [0, 180] degrees.
+    """
+    R_gt = np.asarray(R_gt, dtype=np.float64)
+    R_est = np.asarray(R_est, dtype=np.float64)
+    if R_gt.shape[-2:] != (3, 3) or R_est.shape[-2:] != (3, 3):
+        raise ValueError(
+            f"R_gt, R_est: expected shape (..., 3, 3), got {R_gt.shape}, {R_est.shape}"
+        )
+    Rr = np.swapaxes(R_gt, -1, -2) @ R_est  # (..., 3, 3)
+    v = np.stack(
+        [
+            Rr[..., 2, 1] - Rr[..., 1, 2],
+            Rr[..., 0, 2] - Rr[..., 2, 0],
+            Rr[..., 1, 0] - Rr[..., 0, 1],
+        ],
+        axis=-1,
+    )  # 2 sin(theta) * axis
+    sin = 0.5 * np.linalg.norm(v, axis=-1)
+    cos = 0.5 * (np.trace(Rr, axis1=-2, axis2=-1) - 1.0)
+    return np.degrees(np.arctan2(sin, cos))

@@ -46,6 +46,7 @@ import numpy as np
 import torch
 
 from cloudpose.conventions import resource_path
+from cloudpose.geometry.rigid import rotation_error_deg
 from cloudpose.geometry.rotations import rotmat_geodesic_distance, safe_norm
 
 SYMMETRY_FILE = resource_path("symmetries.json")
@@ -232,8 +233,6 @@ def symmetric_rotation_error_deg(
     Returns:
         (M,) ``min over equivalent ground truths`` of the geodesic angle, in [0, 180].
     """
-    from cloudpose.metrics import rotation_error_deg
-
     R_gt = np.asarray(R_gt, dtype=np.float64)
     R_est = np.asarray(R_est, dtype=np.float64)
     if sym.axis is not None:
@@ -387,8 +386,6 @@ def symmetry_from_bop(entry: dict, where: str = "models_info.json") -> ClassSymm
 
 
 def _same_rotations(A: np.ndarray, B: np.ndarray, tol_deg: float) -> bool:
-    from cloudpose.metrics import rotation_error_deg
-
     def covered(X, Y):
         return all(min(rotation_error_deg(x[None], y[None])[0] for y in Y) <= tol_deg for x in X)
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from cloudpose import kernels
 from cloudpose.data.models import ModelIndex
+from cloudpose.geometry.rigid import rotation_error_deg
 
 _AD_CHUNK_POINTS = 1 << 15
 _ADS_CHUNK_POINTS = 1 << 18
@@ -181,40 +182,7 @@ def adds_distance_reference(
 
 
 # ---------------------------------------------------------------------------------------------
-# Rotation / translation errors
-
-
-def rotation_error_deg(R_gt: np.ndarray, R_est: np.ndarray) -> np.ndarray:
-    """Geodesic angle between rotations, degrees.
-
-    Computed as atan2(|skew part|, (trace - 1) / 2) of R_gt^T R_est, accurate at 0 and at 180
-    degrees where arccos of the trace is not.
-
-    Args:
-        R_gt: (..., 3, 3) rotations.
-        R_est: (..., 3, 3) rotations.
-
-    Returns:
-        (...) angles in [0, 180] degrees.
-    """
-    R_gt = np.asarray(R_gt, dtype=np.float64)
-    R_est = np.asarray(R_est, dtype=np.float64)
-    if R_gt.shape[-2:] != (3, 3) or R_est.shape[-2:] != (3, 3):
-        raise ValueError(
-            f"R_gt, R_est: expected shape (..., 3, 3), got {R_gt.shape}, {R_est.shape}"
-        )
-    Rr = np.swapaxes(R_gt, -1, -2) @ R_est  # (..., 3, 3)
-    v = np.stack(
-        [
-            Rr[..., 2, 1] - Rr[..., 1, 2],
-            Rr[..., 0, 2] - Rr[..., 2, 0],
-            Rr[..., 1, 0] - Rr[..., 0, 1],
-        ],
-        axis=-1,
-    )  # 2 sin(theta) * axis
-    sin = 0.5 * np.linalg.norm(v, axis=-1)
-    cos = 0.5 * (np.trace(Rr, axis1=-2, axis2=-1) - 1.0)
-    return np.degrees(np.arctan2(sin, cos))
+# Translation error (the rotation error is cloudpose.geometry.rigid.rotation_error_deg)
 
 
 def translation_error(t_gt: np.ndarray, t_est: np.ndarray) -> np.ndarray:
