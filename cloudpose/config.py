@@ -28,6 +28,31 @@ LR_SCHEDULES = ("constant", "cosine")
 TRAIN_SOURCES = ("frames", "online")
 KERNELS = ("fused", "plain")
 
+GENERATOR_VERSIONS = (1, 2)
+"""The generators frames can be made with (``DataConfig.synth_version``; stored in
+``synth.json``). A version's frames never change; a change that alters frames is a new version.
+
+1. Surfaces that close through-holes (surface version 1), the Kinect noise model with
+   edge and random dropout (:func:`~cloudpose.data.synth.sensor.add_sensor_noise`), objects
+   only on the table.
+2. Surfaces that keep through-holes (surface version 2); on object pixels missing depth
+   fitted to real frames (:func:`~cloudpose.data.synth.sensor.add_sensor_noise_v2`); a share
+   of objects resting on another (:data:`~cloudpose.data.synth.scenes.STACK_SHARE`); floating
+   rotations from scipy's sampler.
+"""
+GENERATOR_VERSION = 2
+"""The newest generator version (the default)."""
+
+
+def check_synth_version(version: int) -> int:
+    """``version`` if it is one of :data:`GENERATOR_VERSIONS`, else ValueError."""
+    if version not in GENERATOR_VERSIONS:
+        raise ValueError(
+            f"synthetic generator version {version!r}: expected one of {GENERATOR_VERSIONS} "
+            "(data.synth_version)"
+        )
+    return int(version)
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -189,7 +214,7 @@ class DataConfig:
         synth_seed: seed of the synthetic scenes (independent of the training seed).
         noise: apply the depth-sensor noise model when rendering.
         uniform_rotation: objects float in full SO(3) instead of resting on a table.
-        synth_version: synthetic generator version (``cloudpose.data.synth.GENERATOR_VERSIONS``:
+        synth_version: synthetic generator version (:data:`GENERATOR_VERSIONS`:
             1 = solid handles, Kinect edge dropout, table only; 2 = through-holes kept, missing
             depth fitted to real frames, stacked objects). Each version renders into its own
             default root.
@@ -250,9 +275,7 @@ class DataConfig:
                 f"data.online_workers >= 0; got {self.online_epoch_segments}, "
                 f"{self.online_reuse}, {self.online_workers}"
             )
-        from cloudpose.data.synth.frames import check_version
-
-        check_version(self.synth_version)
+        check_synth_version(self.synth_version)
 
 
 @dataclass(frozen=True)

@@ -52,10 +52,9 @@ Modules: ``scenes`` (resting poses, table and floating arrangements, stacking), 
 ``write`` (the resumable writer, :func:`synthesize`), ``compare`` (against real frames).
 """
 
+from cloudpose.config import GENERATOR_VERSION, GENERATOR_VERSIONS
 from cloudpose.data.synth.frames import (
     FRAMES_PER_SEQ,
-    GENERATOR_VERSION,
-    GENERATOR_VERSIONS,
     SEQ_OFFSET,
     SPLIT_CODES,
     SynthFrame,

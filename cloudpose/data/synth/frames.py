@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cloudpose.config import GENERATOR_VERSION, check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.synth.resting import resting_poses
 from cloudpose.data.synth.scenes import (
@@ -20,21 +21,6 @@ from cloudpose.data.synth.scenes import (
     uniform_rotations,
 )
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, background_depth
-
-GENERATOR_VERSIONS = (1, 2)
-"""The generators frames can be made with (``DataConfig.synth_version``; stored in
-``synth.json``). A version's frames never change; a change that alters frames is a new version.
-
-1. Surfaces that close through-holes (surface version 1), the Kinect noise model with
-   edge and random dropout (:func:`~cloudpose.data.synth.sensor.add_sensor_noise`), objects
-   only on the table.
-2. Surfaces that keep through-holes (surface version 2); on object pixels missing depth
-   fitted to real frames (:func:`~cloudpose.data.synth.sensor.add_sensor_noise_v2`); a share
-   of objects resting on another (:data:`~cloudpose.data.synth.scenes.STACK_SHARE`); floating
-   rotations from scipy's sampler.
-"""
-GENERATOR_VERSION = 2
-"""The newest generator version (the default)."""
 
 SPLIT_CODES = {"train": 0, "test": 1}
 SEQ_OFFSET = {"train": 0, "test": 1000}
@@ -75,16 +61,6 @@ def frame_id(split: str, index: int) -> str:
     return f"{seq:04d}/{index % FRAMES_PER_SEQ + 1:06d}"
 
 
-def check_version(version: int) -> int:
-    """``version`` if it is one of :data:`GENERATOR_VERSIONS`, else ValueError."""
-    if version not in GENERATOR_VERSIONS:
-        raise ValueError(
-            f"synthetic generator version {version!r}: expected one of {GENERATOR_VERSIONS} "
-            "(data.synth_version)"
-        )
-    return int(version)
-
-
 class _Generator:
     """Holds what every frame of a generator version needs (renderer with meshes, models,
     resting poses); build it with :func:`_generator` (one per process and version)."""
@@ -93,7 +69,7 @@ class _Generator:
         from cloudpose.data.render import Renderer
         from cloudpose.data.surfaces import load_packaged_models
 
-        self.version = check_version(version)
+        self.version = check_synth_version(version)
         self.models = load_packaged_models()
         self.renderer = Renderer(self.models, surface_version=self.version)
         self.resting = {c: resting_poses(p) for c, p in self.models.items()}
@@ -122,7 +98,7 @@ def generate_frame(
     Raises:
         ValueError: an unknown version, or a ``generator`` of another version.
     """
-    gen = generator or _generator(check_version(version))
+    gen = generator or _generator(check_synth_version(version))
     if gen.version != version:
         raise ValueError(f"generator of version {gen.version} asked for a version-{version} frame")
     rng = np.random.default_rng([seed, SPLIT_CODES[split], index])

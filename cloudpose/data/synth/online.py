@@ -33,9 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cloudpose.config import check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import SegmentWarning, extract_segments
-from cloudpose.data.synth.frames import _generator, check_version
+from cloudpose.data.synth.frames import _generator
 from cloudpose.data.synth.scenes import MIN_VISIBLE_PIXELS, STACK_SHARE, Scene, sample_table_scene
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, background_depth
 
@@ -85,7 +86,7 @@ class OnlineSynth:
     """Draws table scenes and cuts them into training segments (see the module doc).
 
     Args:
-        version: generator version (:data:`~cloudpose.data.synth.frames.GENERATOR_VERSIONS`):
+        version: generator version (:data:`~cloudpose.config.GENERATOR_VERSIONS`):
             its surfaces, stacking share and sensor model.
         noise: apply the version's sensor model.
         n_points: points per segment (FPS prefix; the network's n).
@@ -108,7 +109,7 @@ class OnlineSynth:
         shape: tuple[int, int] = IMAGE_SHAPE,
         nthreads: int = 0,
     ) -> None:
-        self.version = check_version(version)
+        self.version = check_synth_version(version)
         self.nthreads = int(nthreads)
         if n_points < 1:
             raise ValueError(f"n_points must be >= 1, got {n_points}")

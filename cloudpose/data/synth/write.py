@@ -11,13 +11,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cloudpose.config import GENERATOR_VERSION, check_synth_version
 from cloudpose.conventions import YCB_INTRINSICS, resource_path
 from cloudpose.data.synth.frames import (
-    GENERATOR_VERSION,
     SynthFrame,
     _Generator,
     _generator,
-    check_version,
     frame_id,
     generate_frame,
 )
@@ -167,7 +166,7 @@ def synthesize(
         uniform_rotation: floating objects in uniform SO(3) rotations instead of table scenes.
         workers: processes (default: all cores); 1 renders in this process.
         progress: show a tqdm progress bar.
-        version: generator version (:data:`~cloudpose.data.synth.frames.GENERATOR_VERSIONS`).
+        version: generator version (:data:`~cloudpose.config.GENERATOR_VERSIONS`).
 
     Returns:
         :class:`SynthSummary`.
@@ -178,7 +177,7 @@ def synthesize(
     """
     if train_frames < 0 or test_frames < 0:
         raise ValueError(f"frame counts must be >= 0, got {train_frames=}, {test_frames=}")
-    check_version(version)
+    check_synth_version(version)
     t0 = time.perf_counter()
     root = Path(root)
     _prepare_root(root, seed, noise, uniform_rotation, version)
