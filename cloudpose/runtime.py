@@ -31,8 +31,11 @@ from pathlib import Path
 
 __all__ = [
     "ALLOCATOR_LIBS",
+    "CPU_FLAGS_OF_INTEREST",
     "active_allocator",
     "configure_threads",
+    "cpu_features",
+    "describe_cpu",
     "open3d_parallelism",
     "open3d_threads",
     "pick_device",
@@ -168,6 +171,80 @@ def _allocator_to_preload() -> Path | None:
     if active_allocator() != "glibc":
         return None
     return preferred_allocator()
+
+
+CPU_FLAGS_OF_INTEREST = (
+    "avx",
+    "avx2",
+    "fma",
+    "avx512f",
+    "avx512bw",
+    "avx512_vnni",
+    "avx512_bf16",
+    "amx_bf16",
+    "amx_tile",
+)
+"""CPU flags that decide which matrix-product kernels (fp32 / bf16) run fast."""
+
+
+def cpu_features(cpuinfo: str | None = None) -> dict:
+    """What this CPU offers the matrix products: model, vendor, flags, cores, torch's view.
+
+    Args:
+        cpuinfo: the text of ``/proc/cpuinfo`` (read when None; empty where unreadable).
+
+    Returns:
+        ``model``, ``vendor``, ``flags`` (those of :data:`CPU_FLAGS_OF_INTEREST` present),
+        ``cores`` (logical CPUs), ``usable_cores`` (this process's affinity mask),
+        ``torch_capability`` (``torch.backends.cpu.get_cpu_capability()``: the vector ISA
+        torch's own kernels dispatch to), ``bf16_hardware`` (avx512_bf16 or AMX: bfloat16
+        products run natively rather than emulated) and ``amx`` (AMX tiles with bf16).
+    """
+    import platform
+
+    import torch
+
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    model = vendor = ""
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and not model:
+            model = value.strip()
+        elif key == "vendor_id" and not vendor:
+            vendor = value.strip()
+        elif key == "flags" and not flags:
+            flags = set(value.split())
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = os.cpu_count()
+    amx = {"amx_bf16", "amx_tile"} <= flags
+    return {
+        "model": model or platform.processor() or platform.machine(),
+        "vendor": vendor or "unknown",
+        "flags": [f for f in CPU_FLAGS_OF_INTEREST if f in flags],
+        "cores": os.cpu_count(),
+        "usable_cores": usable,
+        "torch_capability": torch.backends.cpu.get_cpu_capability(),
+        "bf16_hardware": bool("avx512_bf16" in flags or amx),
+        "amx": amx,
+    }
+
+
+def describe_cpu(features: dict | None = None) -> str:
+    """One line naming the CPU and what it has, e.g. for a benchmark report's header."""
+    f = features if features is not None else cpu_features()
+    bf16 = "AMX bf16" if f["amx"] else ("avx512_bf16" if f["bf16_hardware"] else "no bf16 GEMM")
+    return (
+        f"{f['model']} ({f['vendor']}), {f['usable_cores']}/{f['cores']} cores, flags "
+        f"{' '.join(f['flags']) or '-'}; torch dispatches {f['torch_capability']}; {bf16}"
+    )
 
 
 def configure_threads(num_threads: int | None = None) -> int:

@@ -288,6 +288,25 @@ class FoldedPoseNet(nn.Module):
     def _dtype(self) -> torch.dtype:
         return next(iter(self.buffers())).dtype
 
+    @staticmethod
+    def _pooled_product(h: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """``(h @ w).amax(dim=2)`` of h (2, B, n, C) and w (2, C, D), one sample at a time.
+
+        Each sample's (2, n, D) product (2 MiB at n = 256, D = 1024) is reduced while it is
+        still in cache, instead of writing all B of them to memory and reading them back;
+        the values are the same (each product element and each max are computed alike).
+        """
+        _, B, n, _ = h.shape
+        D = w.shape[2]
+        if B == 1:
+            return torch.bmm(h[:, 0], w).amax(dim=1)[:, None, :]
+        buf = torch.empty(2, n, D, dtype=h.dtype, device=h.device)
+        out = torch.empty(B, 2, D, dtype=h.dtype, device=h.device)
+        for s in range(B):
+            torch.bmm(h[:, s], w, out=buf)
+            torch.amax(buf, dim=1, out=out[s])
+        return out.transpose(0, 1)
+
     def _paired(
         self, points: torch.Tensor, centred: torch.Tensor, cls0: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -302,7 +321,7 @@ class FoldedPoseNet(nn.Module):
             h = torch.relu_(
                 torch.baddbmm(getattr(self, f"p_b{i}")[:, None, :], h, getattr(self, f"p_w{i}"))
             )
-        u = torch.bmm(h, getattr(self, f"p_w{last}")).view(2, B, n, -1).amax(dim=2)  # (2, B, D)
+        u = self._pooled_product(h.view(2, B, n, -1), getattr(self, f"p_w{last}"))  # (2, B, D)
         g = torch.relu_(u.add_(getattr(self, f"p_b{last}")[:, None, :]))
         for i in range(self.n_head):
             g = torch.baddbmm(getattr(self, f"p_hb{i}")[:, None, :], g, getattr(self, f"p_hw{i}"))
