@@ -60,7 +60,6 @@ import torch.nn.functional as F
 from torch import nn
 from torch.autograd.function import once_differentiable
 
-from cloudpose.distributed import GroupBatchStats, all_reduce_sum, global_mean
 from cloudpose.models.basenet import PointLayerMaxPool
 
 __all__ = [
@@ -173,6 +172,8 @@ def _batch_stats(
         xc = xf - mean_x  # (N, C)
         cov = (xc.T @ xc).div_(N)  # (C, C), biased
     else:
+        from cloudpose.distributed import all_reduce_sum, global_mean
+
         mean_x, N = global_mean(xf, group)  # (C,), points of every process
         xc = xf - mean_x  # (N_r, C)
         cov = all_reduce_sum(xc.T @ xc, group).div_(N)  # (C, C), biased
@@ -269,6 +270,8 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
                     k1 = a * dbeta / N  # (D,)
                     k2 = a * dgamma * inv_std / N  # (D,)
                 else:
+                    from cloudpose.distributed import all_reduce_sum
+
                     sums = torch.stack([dbeta, dgamma])  # (2, D) this process's points
                     n_all = ctx.n_all
                     sums = all_reduce_sum(sums, ctx.group)  # every process's points
@@ -382,7 +385,7 @@ def fused_point_max_pool(
     )
 
 
-class FusedPointLayerMaxPool(GroupBatchStats, nn.Module):
+class FusedPointLayerMaxPool(nn.Module):
     """Drop-in, exact replacement of :class:`~cloudpose.models.basenet.PointLayerMaxPool`.
 
     Same submodules (``linear``: nn.Linear, ``bn``: nn.BatchNorm1d), hence the same parameters,
@@ -401,6 +404,8 @@ class FusedPointLayerMaxPool(GroupBatchStats, nn.Module):
             equal share of the batch: BatchNorm then uses the whole batch's statistics
             (:func:`cloudpose.distributed.sync_batch_stats` sets it).
     """
+
+    process_group: Any = None
 
     def __init__(
         self,
