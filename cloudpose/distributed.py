@@ -36,6 +36,7 @@ from torch import nn
 
 __all__ = [
     "SINGLE",
+    "GroupBatchStats",
     "SyncBatchNorm1d",
     "World",
     "all_reduce_sum",
@@ -189,6 +190,16 @@ def global_mean(x: torch.Tensor, group: Any) -> tuple[torch.Tensor, int]:
     return s[:-1] / n, n
 
 
+class GroupBatchStats:
+    """A module that computes its own training BatchNorm statistics and all-reduces them over
+    ``process_group``, the processes that each hold a share of the batch (None: this process's
+    batch alone). :class:`SyncBatchNorm1d` is one, and so is the fused last layer
+    (:class:`cloudpose.models.fused.FusedPointLayerMaxPool`); :func:`sync_batch_stats` and
+    :func:`local_batch_stats` set the group of every such module of a model."""
+
+    process_group: Any = None
+
+
 class _SyncBatchNormFn(torch.autograd.Function):
     """BatchNorm over the rows of every process: statistics and their gradient all-reduced."""
 
@@ -220,7 +231,7 @@ class _SyncBatchNormFn(torch.autograd.Function):
         return dx, dgamma, dbeta, None, None
 
 
-class SyncBatchNorm1d(nn.BatchNorm1d):
+class SyncBatchNorm1d(GroupBatchStats, nn.BatchNorm1d):
     """``nn.BatchNorm1d`` whose training statistics are those of every process's rows.
 
     With ``process_group`` None (the default) or in eval mode it is ``nn.BatchNorm1d``
@@ -228,8 +239,6 @@ class SyncBatchNorm1d(nn.BatchNorm1d):
     unbiased variance over the global count). Input (N_r, C) only: the layers here normalise
     (B*n, C) point features or (B, C) pooled ones.
     """
-
-    process_group: Any = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if not (self.training and self.process_group is not None):
@@ -258,18 +267,16 @@ def sync_batch_stats(model: nn.Module, group: Any) -> nn.Module:
 
     Each plain ``nn.BatchNorm1d`` becomes a :class:`SyncBatchNorm1d` in place (its class is
     switched: same parameters, buffers, state_dict and module identity, so a module two
-    branches share stays shared); every fused layer gets the group. ``group`` None turns the
-    synchronisation off again.
+    branches share stays shared); every :class:`GroupBatchStats` module gets the group.
+    ``group`` None turns the synchronisation off again.
 
     Returns:
         ``model``.
     """
-    from cloudpose.models.fused import FusedPointLayerMaxPool
-
     for m in model.modules():
         if type(m) is nn.BatchNorm1d:
             m.__class__ = SyncBatchNorm1d
-        if isinstance(m, SyncBatchNorm1d | FusedPointLayerMaxPool):
+        if isinstance(m, GroupBatchStats):
             m.process_group = group
     return model
 
@@ -278,9 +285,7 @@ def sync_batch_stats(model: nn.Module, group: Any) -> nn.Module:
 def local_batch_stats(model: nn.Module) -> Iterator[nn.Module]:
     """Within the block, ``model``'s BatchNorms use this process's own batch statistics (one
     process validating or re-estimating running statistics on whole batches of its own)."""
-    from cloudpose.models.fused import FusedPointLayerMaxPool
-
-    mods = [m for m in model.modules() if isinstance(m, SyncBatchNorm1d | FusedPointLayerMaxPool)]
+    mods = [m for m in model.modules() if isinstance(m, GroupBatchStats)]
     groups = [m.process_group for m in mods]
     for m in mods:
         m.process_group = None

@@ -60,6 +60,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.autograd.function import once_differentiable
 
+from cloudpose.distributed import GroupBatchStats, all_reduce_sum, global_mean
 from cloudpose.models.basenet import PointLayerMaxPool
 
 __all__ = [
@@ -172,8 +173,6 @@ def _batch_stats(
         xc = xf - mean_x  # (N, C)
         cov = (xc.T @ xc).div_(N)  # (C, C), biased
     else:
-        from cloudpose.distributed import all_reduce_sum, global_mean
-
         mean_x, N = global_mean(xf, group)  # (C,), points of every process
         xc = xf - mean_x  # (N_r, C)
         cov = all_reduce_sum(xc.T @ xc, group).div_(N)  # (C, C), biased
@@ -270,8 +269,6 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
                     k1 = a * dbeta / N  # (D,)
                     k2 = a * dgamma * inv_std / N  # (D,)
                 else:
-                    from cloudpose.distributed import all_reduce_sum
-
                     sums = torch.stack([dbeta, dgamma])  # (2, D) this process's points
                     n_all = ctx.n_all
                     sums = all_reduce_sum(sums, ctx.group)  # every process's points
@@ -293,12 +290,9 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
                     db = v.sum(dim=1)
             if dx is not None:
                 # S W: row flat[d, b] of dx gets v[d, b] * W[d]; in channel chunks of ~4 MiB.
-                # v in row-major order: a (D, B) view of the transposed g_out would make each
-                # chunk's product permuted, and its reshape a copy of the chunk.
                 dc = max(1, (1 << 20) // max(1, B * C))
-                vc = v.contiguous()
                 for s in range(0, D, dc):
-                    src = vc[s : s + dc, :, None] * weight[s : s + dc, None, :]  # (dc, B, C)
+                    src = v[s : s + dc, :, None] * weight[s : s + dc, None, :]  # (dc, B, C)
                     dx.index_add_(0, flat[s : s + dc].reshape(-1), src.reshape(-1, C))
                 dx = dx.view(B, n, C)
             if dw is not None:
@@ -385,7 +379,7 @@ def fused_point_max_pool(
     )
 
 
-class FusedPointLayerMaxPool(nn.Module):
+class FusedPointLayerMaxPool(GroupBatchStats, nn.Module):
     """Drop-in, exact replacement of :class:`~cloudpose.models.basenet.PointLayerMaxPool`.
 
     Same submodules (``linear``: nn.Linear, ``bn``: nn.BatchNorm1d), hence the same parameters,
@@ -404,8 +398,6 @@ class FusedPointLayerMaxPool(nn.Module):
             equal share of the batch: BatchNorm then uses the whole batch's statistics
             (:func:`cloudpose.distributed.sync_batch_stats` sets it).
     """
-
-    process_group: Any = None
 
     def __init__(
         self,
