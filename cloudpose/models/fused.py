@@ -290,9 +290,12 @@ class _FusedPointMaxPoolFn(torch.autograd.Function):
                     db = v.sum(dim=1)
             if dx is not None:
                 # S W: row flat[d, b] of dx gets v[d, b] * W[d]; in channel chunks of ~4 MiB.
+                # v in row-major order: a (D, B) view of the transposed g_out would make each
+                # chunk's product permuted, and its reshape a copy of the chunk.
                 dc = max(1, (1 << 20) // max(1, B * C))
+                vc = v.contiguous()
                 for s in range(0, D, dc):
-                    src = v[s : s + dc, :, None] * weight[s : s + dc, None, :]  # (dc, B, C)
+                    src = vc[s : s + dc, :, None] * weight[s : s + dc, None, :]  # (dc, B, C)
                     dx.index_add_(0, flat[s : s + dc].reshape(-1), src.reshape(-1, C))
                 dx = dx.view(B, n, C)
             if dw is not None:
