@@ -296,15 +296,15 @@ class FoldedPoseNet(nn.Module):
         still in cache, instead of writing all B of them to memory and reading them back;
         the values are the same (each product element and each max are computed alike).
         """
-        _, B, n, _ = h.shape
-        D = w.shape[2]
+        B, D = h.shape[1], w.shape[2]
         if B == 1:
             return torch.bmm(h[:, 0], w).amax(dim=1)[:, None, :]
-        buf = torch.empty(2, n, D, dtype=h.dtype, device=h.device)
-        out = torch.empty(B, 2, D, dtype=h.dtype, device=h.device)
+        out = None
         for s in range(B):
-            torch.bmm(h[:, s], w, out=buf)
-            torch.amax(buf, dim=1, out=out[s])
+            u = torch.bmm(h[:, s], w)  # (2, n, D); its dtype follows autocast where enabled
+            if out is None:
+                out = u.new_empty(B, 2, D)
+            torch.amax(u, dim=1, out=out[s])
         return out.transpose(0, 1)
 
     def _paired(
