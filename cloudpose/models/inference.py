@@ -3,7 +3,9 @@
 In eval mode a BatchNorm is an affine map per channel, ``z = a * (y - mean) + beta`` with
 ``a = gamma / sqrt(running_var + eps)``, so ``BN(x W^T + b) = x (a W)^T + a (b - mean) + beta``:
 one Linear. :func:`fold_for_inference` turns a trained :class:`~cloudpose.models.pose.PoseNet`
-into a :class:`FoldedPoseNet` that computes the same eval-mode outputs with
+into a :class:`FoldedPoseNet` that computes the same eval-mode outputs. Its forward pass is the
+network's own (:func:`~cloudpose.models.pose.pose_forward`: centring, what each branch sees,
+R and t from the outputs); only its layers run differently, with
 
 - no BatchNorm op: each (Linear, BN) pair is one ``addmm`` with folded weights, then ReLU in
   place;
@@ -30,7 +32,7 @@ from torch import nn
 
 from cloudpose.models.basenet import BaseNet, PointLayer, PointLayerMaxPool, RegressionHead
 from cloudpose.models.fused import FusedPointLayerMaxPool
-from cloudpose.models.pose import PoseNet, PoseOutput, check_pose_inputs, raw_rotation_to_rotmat
+from cloudpose.models.pose import PoseNet, PoseOutput, branch_layout, pose_forward
 
 __all__ = ["FoldedPoseNet", "fold_bn", "fold_for_inference"]
 
@@ -170,7 +172,7 @@ class FoldedPoseNet(nn.Module):
         super().__init__()
         self.cfg = model.cfg
         self.k = model.cfg.num_classes
-        self.mode = "all" if model.net is not None else ("trunk" if len(model.trunk) else "pair")
+        self.mode = branch_layout(model.cfg)
         if self.mode == "all":
             assert model.net is not None
             self.net = _FoldedBaseNet(model.net)
@@ -247,7 +249,8 @@ class FoldedPoseNet(nn.Module):
 
     @torch.inference_mode()
     def forward(self, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
-        """Same contract as :meth:`PoseNet.forward <cloudpose.models.pose.PoseNet.forward>`.
+        """:func:`~cloudpose.models.pose.pose_forward` with the folded layers: the contract of
+        :meth:`PoseNet.forward <cloudpose.models.pose.PoseNet.forward>`.
 
         Args:
             points: (B, n, 3) segment points in the camera frame, metres.
@@ -256,34 +259,34 @@ class FoldedPoseNet(nn.Module):
         Returns:
             PoseOutput with R (B, 3, 3), t (B, 3), rot_raw, t_residual (B, 3), mu (B, 3).
         """
-        k = self.k
-        check_pose_inputs(points, cls_id, k)
-        points = points.to(self._dtype())
-        cls0 = cls_id.long() - 1
-        mu = points.mean(dim=1)  # (B, 3)
-        centred = points - mu[:, None, :]  # (B, n, 3)
-        if self.mode == "all":
-            h = self._first(self.net.stages, self.w_xyz, self.w_cls, centred, cls0)
-            out = self.net.head(self.net.stages(h, first=1))
-            t_res, rot_raw = out[:, :3], out[:, 3:]
-        elif self.mode == "trunk":
-            h = self._first(self.trunk, self.w_xyz, self.w_cls, centred, cls0)
-            h = self.trunk(h, first=1)
-            rot_raw, t_res = self.rot(h), self.trans(h)
-        elif self.paired:
-            rot_raw, t_res = self._paired(self._rot_xyz(points, centred), centred, cls0)
-        else:
-            rot_xyz = self._rot_xyz(points, centred)
-            hr = self._first(self.rot.stages, self.rot_w_xyz, self.rot_w_cls, rot_xyz, cls0)
-            ht = self._first(self.trans.stages, self.trans_w_xyz, self.trans_w_cls, centred, cls0)
-            rot_raw = self.rot.head(self.rot.stages(hr, first=1))
-            t_res = self.trans.head(self.trans.stages(ht, first=1))
-        R = raw_rotation_to_rotmat(rot_raw, self.cfg.rotation)
-        return PoseOutput(R, t_res + mu, rot_raw, t_res, mu)
+        return pose_forward(self, points.to(self._dtype()), cls_id)
 
-    def _rot_xyz(self, points: torch.Tensor, centred: torch.Tensor) -> torch.Tensor:
-        """The rotation branch's xyz input of shared-0 (``ModelConfig.rotation_input``)."""
-        return centred if self.cfg.rotation_input == "centred" else points
+    def run_all(self, xyz: torch.Tensor, cls_id: torch.Tensor) -> torch.Tensor:
+        """See :class:`~cloudpose.models.pose.PoseBranches`."""
+        h = self._first(self.net.stages, self.w_xyz, self.w_cls, xyz, cls_id.long() - 1)
+        return self.net.head(self.net.stages(h, first=1))
+
+    def run_trunk(
+        self, xyz: torch.Tensor, cls_id: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """See :class:`~cloudpose.models.pose.PoseBranches`."""
+        h = self._first(self.trunk, self.w_xyz, self.w_cls, xyz, cls_id.long() - 1)
+        h = self.trunk(h, first=1)
+        return self.rot(h), self.trans(h)
+
+    def run_pair(
+        self, rot_xyz: torch.Tensor, trans_xyz: torch.Tensor, cls_id: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """See :class:`~cloudpose.models.pose.PoseBranches`; both branches as one batched
+        product per layer where their shapes allow (:meth:`_paired`)."""
+        cls0 = cls_id.long() - 1
+        if self.paired:
+            return self._paired(rot_xyz, trans_xyz, cls0)
+        hr = self._first(self.rot.stages, self.rot_w_xyz, self.rot_w_cls, rot_xyz, cls0)
+        ht = self._first(self.trans.stages, self.trans_w_xyz, self.trans_w_cls, trans_xyz, cls0)
+        return self.rot.head(self.rot.stages(hr, first=1)), self.trans.head(
+            self.trans.stages(ht, first=1)
+        )
 
     def _dtype(self) -> torch.dtype:
         return next(iter(self.buffers())).dtype

@@ -21,7 +21,7 @@ Class ids are 1-based (0 = background); the one-hot uses ``id - 1`` (cloudpose.c
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import torch
 import torch.nn.functional as F
@@ -77,6 +77,77 @@ def raw_rotation_to_rotmat(rot_raw: torch.Tensor, rotation: str) -> torch.Tensor
     if rotation == "quaternion":
         return unitquat_to_rotmat(normalize_quat(rot_raw))
     return rot6d_to_rotmat(rot_raw)
+
+
+def branch_layout(cfg: ModelConfig) -> str:
+    """How a pose network of ``cfg`` runs its branches: "all" (``shared_layers = "all"``: one
+    BaseNet whose output is ``[dt, rotation]``), "trunk" (1..5: the shared per-point stages,
+    then each branch's own) or "pair" (0: two branches of their own)."""
+    if cfg.shared_layers == "all":
+        return "all"
+    return "trunk" if int(cfg.shared_layers) > 0 else "pair"
+
+
+class PoseBranches(Protocol):
+    """What :func:`pose_forward` asks of a network: its config and how its layers run.
+
+    Each method takes xyz in metres, (B, n, 3), and the 1-based class ids (B,), and applies
+    the network's layers to them (the xyz scale and the one-hot class are its business).
+    """
+
+    cfg: ModelConfig
+
+    def run_all(self, xyz: torch.Tensor, cls_id: torch.Tensor) -> torch.Tensor:
+        """Layout "all": the one network's output (B, 3 + rot), ``[dt, rotation]``."""
+        ...
+
+    def run_trunk(
+        self, xyz: torch.Tensor, cls_id: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Layout "trunk": the trunk once, then both branches: rotation (B, rot), dt (B, 3)."""
+        ...
+
+    def run_pair(
+        self, rot_xyz: torch.Tensor, trans_xyz: torch.Tensor, cls_id: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Layout "pair": each branch on its own input: rotation (B, rot), dt (B, 3).
+        ``rot_xyz is trans_xyz`` when both branches see the same points."""
+        ...
+
+
+def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
+    """The forward pass of a pose network: the one used in training (:class:`PoseNet`) and
+    at inference (:class:`~cloudpose.models.inference.FoldedPoseNet`).
+
+    The points are centred on their mean mu; the translation branch (and a trunk) sees the
+    centred points, the rotation branch of layout "pair" the centred or the raw points
+    (``ModelConfig.rotation_input``); the rotation output becomes R, and ``t = dt + mu``.
+    ``net`` supplies how its layers run (:class:`PoseBranches`).
+
+    Args:
+        net: the network.
+        points: (B, n, 3) segment points in the camera frame, metres.
+        cls_id: (B,) integer class ids, 1-based (1..num_classes).
+
+    Returns:
+        PoseOutput with R (B, 3, 3), t (B, 3), rot_raw (B, 3|4|6), t_residual (B, 3),
+        mu (B, 3).
+    """
+    cfg = net.cfg
+    check_pose_inputs(points, cls_id, cfg.num_classes)
+    mu = points.mean(dim=1)  # (B, 3)
+    centred = points - mu[:, None, :]  # (B, n, 3)
+    layout = branch_layout(cfg)
+    if layout == "all":
+        out = net.run_all(centred, cls_id)  # (B, 3 + rot)
+        t_residual, rot_raw = out[:, :3], out[:, 3:]
+    elif layout == "trunk":
+        rot_raw, t_residual = net.run_trunk(centred, cls_id)
+    else:
+        rot_xyz = centred if cfg.rotation_input == "centred" else points
+        rot_raw, t_residual = net.run_pair(rot_xyz, centred, cls_id)
+    R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)  # (B, 3, 3)
+    return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
 
 
 def check_pose_inputs(points: torch.Tensor, cls_id: torch.Tensor, num_classes: int) -> None:
@@ -157,7 +228,7 @@ class PoseNet(nn.Module):
         return [*self.trunk, *net.stages, net.head]
 
     def forward(self, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
-        """Regress the pose of each segment.
+        """Regress the pose of each segment (:func:`pose_forward`).
 
         Args:
             points: (B, n, 3) segment points in the camera frame, metres.
@@ -167,35 +238,38 @@ class PoseNet(nn.Module):
             PoseOutput with R (B, 3, 3), t (B, 3), rot_raw (B, 3|4|6), t_residual (B, 3),
             mu (B, 3).
         """
+        return pose_forward(self, points, cls_id)
+
+    def _encode(self, xyz: torch.Tensor, cls_id: torch.Tensor) -> torch.Tensor:
+        """(B, n, 3 + k) network input: xyz (B, n, 3) times ``1 / xyz_scale``, then the
+        one-hot class."""
+        B, n, _ = xyz.shape
         k = self.cfg.num_classes
-        check_pose_inputs(points, cls_id, k)
-
-        B, n, _ = points.shape
-        mu = points.mean(dim=1)  # (B, 3)
-        onehot = F.one_hot(cls_id.long() - 1, k).to(points.dtype)  # (B, k)
+        onehot = F.one_hot(cls_id.long() - 1, k).to(xyz.dtype)  # (B, k)
         onehot = onehot[:, None, :].expand(B, n, k)  # (B, n, k)
-        scale = 1.0 / self.cfg.xyz_scale
-        centred = torch.cat([(points - mu[:, None, :]) * scale, onehot], dim=-1)  # (B, n, 3+k)
+        return torch.cat([xyz * (1.0 / self.cfg.xyz_scale), onehot], dim=-1)
 
-        if self.net is not None:
-            out = self.net(centred)  # (B, 3 + rot)
-            t_residual, rot_raw = out[:, :3], out[:, 3:]
-        else:
-            assert self.rotation_net is not None and self.translation_net is not None
-            if len(self.trunk) == 0:
-                rot_in = (
-                    centred
-                    if self.cfg.rotation_input == "centred"
-                    else torch.cat([points * scale, onehot], dim=-1)
-                )  # (B, n, 3+k)
-                trans_in = centred
-            else:
-                rot_in = trans_in = self.trunk(centred)  # (B, n, C_k) or (B, C_L)
-            rot_raw = self.rotation_net(rot_in)  # (B, rot)
-            t_residual = self.translation_net(trans_in)  # (B, 3)
+    def run_all(self, xyz: torch.Tensor, cls_id: torch.Tensor) -> torch.Tensor:
+        """See :class:`PoseBranches`."""
+        assert self.net is not None
+        return self.net(self._encode(xyz, cls_id))  # (B, 3 + rot)
 
-        R = raw_rotation_to_rotmat(rot_raw, self.cfg.rotation)  # (B, 3, 3)
-        return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
+    def run_trunk(
+        self, xyz: torch.Tensor, cls_id: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """See :class:`PoseBranches`."""
+        assert self.rotation_net is not None and self.translation_net is not None
+        h = self.trunk(self._encode(xyz, cls_id))  # (B, n, C_k) or (B, C_L)
+        return self.rotation_net(h), self.translation_net(h)
+
+    def run_pair(
+        self, rot_xyz: torch.Tensor, trans_xyz: torch.Tensor, cls_id: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """See :class:`PoseBranches`."""
+        assert self.rotation_net is not None and self.translation_net is not None
+        trans_in = self._encode(trans_xyz, cls_id)  # (B, n, 3+k)
+        rot_in = trans_in if rot_xyz is trans_xyz else self._encode(rot_xyz, cls_id)
+        return self.rotation_net(rot_in), self.translation_net(trans_in)
 
 
 def build_model(cfg: ModelConfig) -> PoseNet:
