@@ -525,7 +525,7 @@ def mask_ablation(
         echo: where progress lines go (default: print).
         out_dir: the reports' folder (default :func:`cloudpose.report.build.default_out_dir`).
     """
-    from cloudpose.data.segments import get_mask_source
+    from cloudpose.data.mask_sources import get_mask_source
     from cloudpose.evaluate import evaluate
     from cloudpose.report import segmentation
 

@@ -23,7 +23,7 @@ import pandas as pd
 
 from cloudpose import runs, tracking
 from cloudpose.data.dataset import Prepared
-from cloudpose.data.segments import mask_source_label
+from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.infer import Estimates, estimate_poses, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize

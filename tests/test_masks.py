@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cloudpose.data.mask_sources import get_mask_source
 from cloudpose.data.masks import DEGRADATIONS, Degradation, degraded_mask
-from cloudpose.data.segments import get_mask_source
 from cloudpose.data.ycb import YCBVideo
 
 REAL = Path(__file__).parent / "data" / "ycb_real"

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import scipy.io
 
+from cloudpose.data.mask_sources import get_mask_source, mask_source_label
 from cloudpose.data.posecnn import PoseCNNMasks
-from cloudpose.data.segments import extract_segments, get_mask_source, mask_source_label
+from cloudpose.data.segments import extract_segments
 from cloudpose.data.ycb import YCBVideo
 
 REAL = Path(__file__).parent / "data" / "ycb_real"

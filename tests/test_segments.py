@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from pykdtree.kdtree import KDTree
 
 from cloudpose.conventions import YCB_INTRINSICS, transform_points
+from cloudpose.data import mask_sources
 from cloudpose.data import segments as sg
 from cloudpose.data.ycb import Frame, YCBVideo
 
@@ -311,12 +312,14 @@ def test_segmentation_sources():
     f = _frame(depth, label, [2])
     with pytest.raises(ValueError, match="valid segmentations: gt"):
         sg.extract_segments(f, segmentation="posecnn")
-    sg.register_mask_source("left-half", lambda fr, c: (fr.label == c) & (np.arange(640) < 20))
+    mask_sources.register_mask_source(
+        "left-half", lambda fr, c: (fr.label == c) & (np.arange(640) < 20)
+    )
     try:
         (s,) = sg.extract_segments(f, segmentation="left-half", n_fps=8)
         assert s.count == 40 * 20
     finally:
-        del sg.MASK_SOURCES["left-half"]
+        del mask_sources.MASK_SOURCES["left-half"]
 
 
 # --------------------------------------------------------------------------- real frame

@@ -32,13 +32,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloudpose.data.mask_sources import get_mask_source
 from cloudpose.data.segments import (
     Segment,
     SegmentWarning,
     depth_scale_problem,
     depth_scale_stats,
     extract_segments,
-    get_mask_source,
     report_depth_scale,
 )
 from cloudpose.files import atomic_text, atomic_write

@@ -26,8 +26,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import ndimage
 
-from cloudpose.data.segments import register_mask_source
-
 if TYPE_CHECKING:
     from cloudpose.data.ycb import Frame
 
@@ -73,7 +71,3 @@ def degraded_mask(frame: Frame, cls_id: int, how: Degradation) -> np.ndarray:
         near = ndimage.binary_dilation(gt, iterations=how.bleed_px)
         mask |= near & others
     return mask
-
-
-for _name, _how in DEGRADATIONS.items():
-    register_mask_source(_name, lambda frame, cls_id, _how=_how: degraded_mask(frame, cls_id, _how))

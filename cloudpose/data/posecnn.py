@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cloudpose.conventions import resource_path
-from cloudpose.data.segments import register_mask_source_family
 
 if TYPE_CHECKING:
     from cloudpose.data.ycb import Frame
@@ -126,6 +125,3 @@ class PoseCNNMasks:
         if int(cls_id) not in detected:
             return np.zeros(labels.shape, dtype=bool)
         return labels == int(cls_id)
-
-
-register_mask_source_family("posecnn", PoseCNNMasks)

@@ -7,9 +7,8 @@ orders 1024 of them; any prefix of that order is itself an FPS sample, so the ne
 first n. A segment with fewer points is filled by repeating its FPS order (the true count is
 kept); an instance without a usable point is kept as invalid (a miss at test time).
 
-The mask comes from a *segmentation source* (:data:`MASK_SOURCES`): "gt" = the ground-truth
-label image; degraded masks (:mod:`cloudpose.data.masks`) and PoseCNN's published labels
-(``posecnn:DIR``, :mod:`cloudpose.data.posecnn`) are registered beside it. The occlusion factor
+The mask comes from a *segmentation source* (:mod:`cloudpose.data.mask_sources`): "gt" = the
+ground-truth label image, degraded masks, or PoseCNN's published labels. The occlusion factor
 always uses the ground-truth labels.
 """
 
@@ -17,14 +16,13 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cloudpose import kernels
+from cloudpose.data.mask_sources import get_mask_source
 
 if TYPE_CHECKING:
     from cloudpose.data.render import Renderer
@@ -114,59 +112,6 @@ def farthest_point_sampling_reference(
         order.append(len(pts) - 1 - int(np.argmax(nearest[::-1])))  # the last maximum
     out = np.asarray(order, dtype=np.int64)
     return _fill(out, k) if m < k else out
-
-
-# --------------------------------------------------------------------------- mask sources
-
-MaskSource = Callable[["Frame", int], np.ndarray]
-"""(frame, class id) -> (H, W) bool mask of that instance."""
-
-
-def gt_mask(frame: Frame, cls_id: int) -> np.ndarray:
-    """Ground-truth segmentation: pixels whose label is ``cls_id``."""
-    return frame.label == cls_id
-
-
-MASK_SOURCES: dict[str, MaskSource] = {"gt": gt_mask}
-"""Segmentation sources by name (DataConfig.segmentation)."""
-
-MASK_SOURCE_FAMILIES: dict[str, Callable[[str], MaskSource]] = {}
-"""Sources that take an argument, by prefix: ``posecnn:DIR`` -> ``factory("DIR")``. A source
-may have a method ``content_files(frame_id) -> list[Path]``: the files it reads, which then
-belong to the segments' cache key."""
-
-
-def register_mask_source(name: str, source: MaskSource) -> None:
-    """Add a segmentation source, e.g. "degraded-mild"."""
-    MASK_SOURCES[name] = source
-
-
-def register_mask_source_family(prefix: str, factory: Callable[[str], MaskSource]) -> None:
-    """Add sources named ``PREFIX:ARG``, made by ``factory(ARG)`` on first use."""
-    MASK_SOURCE_FAMILIES[prefix] = factory
-
-
-def get_mask_source(name: str) -> MaskSource:
-    """The segmentation source ``name``; unknown names raise with the list of valid ones."""
-    if name not in MASK_SOURCES:
-        import cloudpose.data.masks
-        import cloudpose.data.posecnn  # noqa: F401  (registers posecnn:DIR)
-
-        family, sep, arg = name.partition(":")
-        if sep and family in MASK_SOURCE_FAMILIES:
-            MASK_SOURCES[name] = MASK_SOURCE_FAMILIES[family](arg)
-    if name not in MASK_SOURCES:
-        valid = [*MASK_SOURCES, *(f"{p}:DIR" for p in MASK_SOURCE_FAMILIES)]
-        raise ValueError(f"unknown segmentation {name!r}; valid segmentations: {', '.join(valid)}")
-    return MASK_SOURCES[name]
-
-
-def mask_source_label(name: str) -> str:
-    """A short name of a segmentation source for metric prefixes: the name, or for a source
-    with an argument its prefix and the argument's last path part
-    (``posecnn:/data/results_PoseCNN_RSS2018`` -> ``posecnn-results_PoseCNN_RSS2018``)."""
-    family, sep, arg = name.partition(":")
-    return f"{family}-{Path(arg).name or arg}" if sep else name
 
 
 # --------------------------------------------------------------------------- segments
@@ -287,7 +232,7 @@ def extract_segments(
         renderer: renders the alone-pixel counts when ``alone_pixels`` is None.
         n_fps: points kept per segment.
         outlier_radius: points farther than this from the segment mean are dropped, metres.
-        segmentation: mask source name (:data:`MASK_SOURCES`).
+        segmentation: mask source name (:data:`cloudpose.data.mask_sources.MASK_SOURCES`).
         rng: the frame's generator (default: a fresh one); each instance draws its FPS start
             from its own stream (:func:`instance_streams`), so one instance's points do not
             depend on the others.
