@@ -571,12 +571,12 @@ EXPORT_UNIT_FRAMES = 3
 
 
 def check_export_units(src, frame_ids: list[str], models: dict[int, np.ndarray]) -> None:
-    """The depth unit check (:func:`cloudpose.data.cache.check_units`) of the frames an export
-    is about to write, on :data:`EXPORT_UNIT_FRAMES` frames of each scene, before any file is
-    written: depth in another unit than the source says stops the export in one line."""
+    """The depth unit check (:func:`cloudpose.data.segment_set.check_units`) of the frames an
+    export is about to write, on :data:`EXPORT_UNIT_FRAMES` frames of each scene, before any file
+    is written: depth in another unit than the source says stops the export in one line."""
     import warnings
 
-    from cloudpose.data.cache import SegmentSet, check_units, unit_stats
+    from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
     from cloudpose.data.segments import SegmentWarning, extract_segments
 
     by_scene: dict[str, list[str]] = {}
@@ -627,8 +627,8 @@ def export_bop(
     """
     from tqdm import tqdm
 
-    from cloudpose.data.cache import ALONE_SURFACE_VERSION
     from cloudpose.data.render import Renderer
+    from cloudpose.data.segments import ALONE_SURFACE_VERSION
     from cloudpose.data.ycb import YCBVideo
 
     src = YCBVideo(source)

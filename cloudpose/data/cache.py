@@ -26,22 +26,17 @@ import json
 import os
 import warnings
 import zlib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloudpose.data.layout import open_dataset
 from cloudpose.data.mask_sources import get_mask_source
-from cloudpose.data.segments import (
-    Segment,
-    SegmentWarning,
-    depth_scale_problem,
-    depth_scale_stats,
-    extract_segments,
-    report_depth_scale,
-)
-from cloudpose.files import atomic_text, atomic_write
+from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
+from cloudpose.data.segments import ALONE_SURFACE_VERSION, Segment, SegmentWarning, extract_segments
+from cloudpose.data.ycb import YCBVideo
+from cloudpose.files import atomic_text
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -58,115 +53,6 @@ FPS_SEED = 0
 """Seed of the FPS start points: frame f's generator is (FPS_SEED, crc32(f)), and each of its
 instances draws from its own stream of it (:func:`~cloudpose.data.segments.instance_streams`)."""
 
-ALONE_SURFACE_VERSION = 2
-"""Surfaces (:class:`cloudpose.data.render.Renderer`) that render the object-alone pixel counts
-of the occlusion factor for frames that do not carry them (real YCB-Video): version 2 keeps the
-holes of handles, which version 1 fills (a mug's or pitcher's occlusion came out too low). Part
-of the cache key of such data only: synthetic and BOP frames carry their own counts."""
-
-
-@dataclass
-class SegmentSet:
-    """Segments as columnar arrays (M segments).
-
-    Attributes:
-        points: (M, n_fps, 3) float32 camera-frame points, metres, FPS order.
-        count: (M,) int32 true point count after the outlier filter.
-        cls_id: (M,) int16 1-based class ids.
-        R: (M, 3, 3) float32 ground-truth rotations (NaN without ground truth).
-        t: (M, 3) float32 ground-truth translations, metres (NaN without ground truth).
-        occlusion: (M,) float32 occlusion factors in [0, 1] (NaN when unknown).
-        frame_id: (M,) str "SEQ/FRAME".
-        instance: (M,) int16 instance index within its frame.
-        valid: (M,) bool; False = no usable point (a miss at test time).
-        key: cache key of the data and settings ("" when built in memory).
-    """
-
-    points: np.ndarray
-    count: np.ndarray
-    cls_id: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    occlusion: np.ndarray
-    frame_id: np.ndarray
-    instance: np.ndarray
-    valid: np.ndarray
-    key: str = ""
-
-    _ARRAYS = ("points", "count", "cls_id", "R", "t", "occlusion", "frame_id", "instance", "valid")
-
-    def __len__(self) -> int:
-        return len(self.count)
-
-    def subset(self, index: np.ndarray | slice) -> SegmentSet:
-        """The segments selected by a bool mask (M,), an index array or a slice."""
-        parts = {name: getattr(self, name)[index] for name in self._ARRAYS}
-        return SegmentSet(**parts, key=self.key)
-
-    @classmethod
-    def from_segments(cls, segments: list[Segment], n_fps: int = 1024) -> SegmentSet:
-        """Stack :class:`Segment` objects (frames without ground truth get NaN poses)."""
-        m = len(segments)
-        nan_R, nan_t = np.full((3, 3), np.nan, np.float32), np.full(3, np.nan, np.float32)
-        if m == 0:
-            points = np.zeros((0, n_fps, 3), np.float32)
-        else:
-            points = np.stack([s.points for s in segments]).astype(np.float32)
-        return cls(
-            points=points,
-            count=np.array([s.count for s in segments], dtype=np.int32),
-            cls_id=np.array([s.cls_id for s in segments], dtype=np.int16),
-            R=np.array([nan_R if s.R is None else s.R for s in segments], np.float32).reshape(
-                m, 3, 3
-            ),
-            t=np.array([nan_t if s.t is None else s.t for s in segments], np.float32).reshape(m, 3),
-            occlusion=np.array([s.occlusion for s in segments], dtype=np.float32),
-            frame_id=np.array([s.frame_id for s in segments], dtype=str),
-            instance=np.array([s.instance for s in segments], dtype=np.int16),
-            valid=np.array([s.valid for s in segments], dtype=bool),
-        )
-
-    @classmethod
-    def concatenate(cls, sets: list[SegmentSet]) -> SegmentSet:
-        """Join sets (keys dropped)."""
-        if not sets:
-            raise ValueError("concatenate needs at least one SegmentSet")
-        return cls(**{n: np.concatenate([getattr(s, n) for s in sets]) for n in cls._ARRAYS})
-
-    def save(self, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> None:
-        """Write one uncompressed ``.npz`` (atomically: temporary name, then rename), with the
-        arrays ``extra`` beside the segments' (:meth:`load` leaves them out)."""
-        arrays = {**(extra or {}), **{n: getattr(self, n) for n in self._ARRAYS}}
-        arrays["frame_id"] = np.asarray(self.frame_id, dtype=str)
-        atomic_write(path, lambda tmp: np.savez(tmp, key=np.array(self.key), **arrays), ".npz")
-
-    @classmethod
-    def load(cls, path: str | Path) -> SegmentSet:
-        """Read a set written by :meth:`save`.
-
-        Raises:
-            FileNotFoundError: no such file.
-            ValueError: the file lacks a field or a field has the wrong shape.
-        """
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: segment cache not found")
-        with np.load(path, allow_pickle=False) as z:
-            missing = [n for n in (*cls._ARRAYS, "key") if n not in z.files]
-            if missing:
-                raise ValueError(f"{path}: segment cache lacks fields {missing}")
-            parts = {n: z[n] for n in cls._ARRAYS}
-            key = str(z["key"])
-        m = len(parts["count"])
-        p = parts["points"]
-        if p.ndim != 3 or p.shape[0] != m or p.shape[2] != 3:
-            raise ValueError(f"{path}: points have shape {p.shape}, expected ({m}, n_fps, 3)")
-        for n in cls._ARRAYS:
-            if len(parts[n]) != m:
-                raise ValueError(f"{path}: field {n} has {len(parts[n])} rows, expected {m}")
-        return cls(**parts, key=key)
-
-
 # --------------------------------------------------------------------------- keys
 
 
@@ -174,8 +60,6 @@ def _split_frames(root: Path, split: str) -> list[str]:
     """Frame ids of a split of either layout (:mod:`cloudpose.data.layout`): "train" ->
     image_sets/train.txt (BOP: train_real/); "test" or "keyframe" -> keyframe.txt (BOP: the
     BOP19 test targets); "all" -> every frame; else image_sets/SPLIT.txt."""
-    from cloudpose.data.layout import open_dataset
-
     ds = open_dataset(root)
     name = "keyframe" if split in ("test", "keyframe") else split
     frames = ds.image_set(name)
@@ -206,9 +90,6 @@ def cache_key(
     size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
     so a large dataset is read once, not on every command.
     """
-    from cloudpose.data.layout import open_dataset
-    from cloudpose.data.ycb import YCBVideo
-
     root = Path(root)
     ds = open_dataset(root)
     frames = _split_frames(root, split)
@@ -292,8 +173,6 @@ _worker: dict = {}
 
 
 def _init_worker(root: str) -> None:
-    from cloudpose.data.layout import open_dataset
-
     _worker.clear()
     _worker["ds"] = open_dataset(root)
 
@@ -346,52 +225,6 @@ def _run(jobs: list, root: str, workers: int):
 
 # --------------------------------------------------------------------------- units
 
-UNIT_SAMPLE = 64
-"""Segments per scene that the depth unit check measures (evenly spaced over its valid ones)."""
-
-
-def unit_stats(segs: SegmentSet, models_by_class: dict[int, np.ndarray]) -> dict[str, np.ndarray]:
-    """Per scene (the ``SEQ`` of ``SEQ/FRAME``), what the depth unit check looks at
-    (:func:`cloudpose.data.segments.depth_scale_stats`: median extent / model diameter, median
-    depth in metres), from up to :data:`UNIT_SAMPLE` of its valid segments.
-
-    Returns:
-        ``unit_scene`` (S,) str and ``unit_stats`` (S, 2) float64 (NaN: no usable segment), as
-        the segment cache stores them.
-    """
-    scene = np.array([str(f).split("/", 1)[0] for f in segs.frame_id], dtype=str)
-    names = np.unique(scene)
-    stats = np.full((len(names), 2), np.nan)
-    n_fps = segs.points.shape[1]
-    for k, name in enumerate(names):
-        idx = np.flatnonzero((scene == name) & np.asarray(segs.valid, dtype=bool))
-        if len(idx) > UNIT_SAMPLE:
-            idx = idx[np.linspace(0, len(idx) - 1, UNIT_SAMPLE).round().astype(np.int64)]
-        points = [segs.points[i, : min(int(segs.count[i]), n_fps)] for i in idx]
-        found = depth_scale_stats(points, [int(segs.cls_id[i]) for i in idx], models_by_class)
-        if found is not None:
-            stats[k] = found
-    return {"unit_scene": names, "unit_stats": stats}
-
-
-def check_units(dataset, unit: dict[str, np.ndarray]) -> None:
-    """The depth unit check of a dataset's segments (:func:`unit_stats`): the first scene that
-    looks like depth in another unit stops it with one line naming the scene folder and the
-    setting to fix (the count of other such scenes added), or warns where
-    :data:`cloudpose.data.segments.UNIT_CHECK_OFF` is set."""
-    bad = [
-        (str(scene), float(ratio), float(depth))
-        for scene, (ratio, depth) in zip(unit["unit_scene"], unit["unit_stats"], strict=True)
-        if not np.isnan(ratio) and depth_scale_problem(ratio, depth, "", "") is not None
-    ]
-    if not bad:
-        return
-    scene, ratio, depth = bad[0]
-    where, setting, meaning = dataset.depth_unit_setting(scene)
-    if len(bad) > 1:
-        where += f" (and {len(bad) - 1} more scenes alike)"
-    report_depth_scale(depth_scale_problem(ratio, depth, where, setting, meaning))
-
 
 def _stored_unit_stats(path: Path, models_by_class: dict[int, np.ndarray]) -> dict:
     """The unit statistics a cache file stores; measured from its segments for a file written
@@ -435,8 +268,6 @@ def prepare(
         ValueError: a scene's segments look like depth in another unit (:func:`check_units`;
             the cache is written all the same, and checked again on every use).
     """
-    from cloudpose.data.layout import open_dataset
-
     root = Path(root)
     settings = _settings(cfg)
     path = cache_path(root, split, cfg, cache_dir or root / "cache")

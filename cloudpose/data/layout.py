@@ -13,11 +13,9 @@ BOP's 900 target images in the other.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from cloudpose.data.bop import BOPYcbv
-    from cloudpose.data.ycb import YCBVideo
+from cloudpose.data.bop import BOPYcbv, is_bop_root
+from cloudpose.data.ycb import YCBVideo
 
 __all__ = ["describe_split", "detect_layout", "open_dataset"]
 
@@ -33,8 +31,6 @@ def detect_layout(root: str | Path) -> str:
         FileNotFoundError: ``root`` is not a folder.
         ValueError: it is neither, naming the folder and what each layout holds.
     """
-    from cloudpose.data.bop import is_bop_root
-
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: dataset root not found")
@@ -51,11 +47,7 @@ def detect_layout(root: str | Path) -> str:
 def open_dataset(root: str | Path) -> YCBVideo | BOPYcbv:
     """The dataset object of ``root``, in the layout :func:`detect_layout` finds."""
     if detect_layout(root) == "bop":
-        from cloudpose.data.bop import BOPYcbv
-
         return BOPYcbv(root)
-    from cloudpose.data.ycb import YCBVideo
-
     return YCBVideo(root)
 
 

@@ -206,6 +206,13 @@ def instance_streams(rng: np.random.Generator, cls_ids) -> list[np.random.Genera
     return out
 
 
+ALONE_SURFACE_VERSION = 2
+"""Surfaces (:class:`cloudpose.data.render.Renderer`) that render the object-alone pixel counts
+of the occlusion factor for frames that do not carry them (real YCB-Video): version 2 keeps the
+holes of handles, which version 1 fills (a mug's or pitcher's occlusion came out too low). Part
+of the cache key of such data only: synthetic and BOP frames carry their own counts."""
+
+
 SEGMENT_STREAMS = ("instance", "frame")
 """How a frame's instances draw their FPS starts: "instance", each from its own stream
 (:func:`instance_streams`); "frame", all from the frame's one generator in instance order (an
