@@ -56,7 +56,7 @@ def check_synth_version(version: int) -> int:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Network architecture (DESIGN.md, "BaseNet" and "The pose networks").
+    """Network architecture (docs/design.md, "BaseNet" and "The pose networks").
 
     Attributes:
         shared_layers: 0-5 = how many leading per-point layers the rotation and translation
@@ -205,7 +205,7 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class DataConfig:
-    """Dataset and segment settings (DESIGN.md, "Data flow" and "Data").
+    """Dataset and segment settings (docs/design.md, "Data flow" and "Data").
 
     Attributes:
         root: dataset root in YCB-Video layout; "" = the synthetic default under ``data/``.
@@ -280,7 +280,7 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class ICPConfig:
-    """The guard on ICP refinement after the network (DESIGN.md "Refinement" is the schedule,
+    """The guard on ICP refinement after the network (docs/design.md "Refinement" is the schedule,
     :class:`cloudpose.refine.ICPSettings`).
 
     Attributes:

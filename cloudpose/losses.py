@@ -1,4 +1,5 @@
-"""Training losses: ``alpha * l_t + l_r`` (Gao et al. ICRA 2020, eq. 6; DESIGN.md "The pose networks").
+"""Training losses: ``alpha * l_t + l_r`` (Gao et al. ICRA 2020, eq. 6; docs/design.md "The pose
+networks").
 
 Per-sample terms return ``(B,)`` tensors so callers can log or weight them; :func:`pose_loss`
 reduces them to batch means. Rotation losses are in radians (geodesic) or in axis-angle units

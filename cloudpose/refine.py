@@ -1,6 +1,6 @@
 """ICP refinement of a network pose estimate against the object's model points.
 
-The paper's schedule (DESIGN.md "Refinement"): Open3D point-to-point ICP, 10 iterations, the
+The paper's schedule (docs/design.md "Refinement"): Open3D point-to-point ICP, 10 iterations, the
 maximum correspondence distance starting at 0.01 m and shrinking by 10% after each iteration.
 The observed segment (source) is registered to the model points posed by the estimate (target),
 so each observed point finds its model point and the model's hidden back side does not pull the

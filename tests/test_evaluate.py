@@ -57,6 +57,6 @@ def test_evaluate_on_the_real_ycb_frame(project):
     assert not df.miss.any()
     assert np.all(np.isfinite(df[["net_ad", "net_ads", "icp_ad", "icp_ads"]].to_numpy()))
     assert ev.name.startswith("ycb_real-all-") and f"{ev.name}_icp/ads_auc" in ev.metrics
-    # The mug is partly hidden by the foam brick in this frame (DESIGN.md occlusion factor).
+    # The mug is partly hidden by the foam brick in this frame (docs/design.md occlusion factor).
     occ = dict(zip(df["class"], df["occlusion"], strict=True))
     assert occ["025_mug"] > 0.1 and occ["009_gelatin_box"] < 0.05

@@ -63,7 +63,7 @@ def batch() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     return points, cls_id, R_gt, t_gt
 
 
-# --- analytic parameter counts, from the layer widths of DESIGN.md -----------------------------
+# --- analytic parameter counts, from the layer widths of docs/design.md ------------------------
 
 
 def _linear(c_in: int, c_out: int) -> int:
@@ -223,7 +223,7 @@ def test_shared_layers_are_one_module(shared, batch):
 
 
 def test_shared_trunk_sees_centred_points(batch):
-    """DESIGN.md: a shared trunk takes the translation branch's (mean-centred) input, so the
+    """docs/design.md: a shared trunk takes the translation branch's (mean-centred) input, so the
     output does not change when the whole segment is shifted, except t by the shift."""
     points, cls_id, _, _ = batch
     shift = torch.tensor([0.3, -0.2, 0.5])
@@ -269,7 +269,7 @@ def test_posenet_permutation_invariant(shared, batch):
 
 
 def test_basenet_layout():
-    """DESIGN.md: 64-64-64-128-1024 per point, max pool, FC 512-256-out; BN everywhere but the
+    """docs/design.md: 64-64-64-128-1024 per point, max pool, FC 512-256-out; BN everywhere but the
     output layer; no dropout; BN momentum from the config."""
     net = BaseNet(24, 7, bn_momentum=0.01)
     linears = [m for m in net.modules() if isinstance(m, nn.Linear)]

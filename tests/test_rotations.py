@@ -280,7 +280,7 @@ def test_geodesic_matches_scipy(dtype):
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_geodesic_agrees_with_arccos_twin(dtype):
-    """Slow twin: DESIGN.md's arccos((trace(R1 R2^T) - 1) / 2), fine away from 0 and pi."""
+    """Slow twin: docs/design.md's arccos((trace(R1 R2^T) - 1) / 2), fine away from 0 and pi."""
     R1 = random_rotmat(100, generator=torch.Generator().manual_seed(11), dtype=torch.float64)
     R2 = random_rotmat(100, generator=torch.Generator().manual_seed(12), dtype=torch.float64)
     cos = ((R1 @ R2.mT).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2

@@ -215,7 +215,7 @@ class Renderer:
 
     def alone_pixels(self, K, shape: tuple[int, int], cls_ids, poses) -> np.ndarray:
         """Pixels of each object rendered alone at its pose: the nu of the occlusion factor
-        O = 1 - visible / alone (DESIGN.md; the paper's Fig. 5).
+        O = 1 - visible / alone (docs/design.md; the paper's Fig. 5).
 
         Args:
             K: (3, 3) intrinsics.

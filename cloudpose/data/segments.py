@@ -1,6 +1,6 @@
 """Object segments: mask -> back-projection -> outlier filter -> farthest point sampling.
 
-DESIGN.md, "Data flow": per annotated instance of a frame, the pixels with label == class and
+docs/design.md, "Data flow": per annotated instance of a frame, the pixels with label == class and
 depth > 0 are back-projected with the intrinsics (metres, camera frame), points farther than
 0.2 m from the segment mean are dropped, and farthest point sampling (FPS) from a random start
 orders 1024 of them; any prefix of that order is itself an FPS sample, so the network takes the
@@ -80,7 +80,7 @@ def farthest_point_sampling(
 
     Returns:
         (k,) int64 indices in FPS order. If N < k: the FPS order of all N points, then
-        repeated cyclically (DESIGN.md: segments are filled by repeating points).
+        repeated cyclically (docs/design.md: segments are filled by repeating points).
     """
     pts = _check_fps_args(points, k)
     s = _start(len(pts), start)
@@ -171,7 +171,7 @@ def occlusion_factor(visible: np.ndarray, alone: np.ndarray) -> np.ndarray:
         alone: (N,) pixels of the object rendered alone (nu).
 
     Returns:
-        (N,) float64 occlusion factors (DESIGN.md, "Metrics"). On real frames the label can
+        (N,) float64 occlusion factors (docs/design.md, "Metrics"). On real frames the label can
         exceed the rendering by a few pixels; that clips to 0.
     """
     visible = np.asarray(visible, dtype=np.float64)
@@ -230,7 +230,7 @@ def extract_segments(
     with_gt: bool = True,
     streams: str = "instance",
 ) -> list[Segment]:
-    """Segments of every annotated instance of a frame (DESIGN.md, "Data flow").
+    """Segments of every annotated instance of a frame (docs/design.md, "Data flow").
 
     Args:
         frame: the frame (depth, label, K, cls_ids, poses or None).

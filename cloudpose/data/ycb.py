@@ -3,7 +3,7 @@
 Reader, writer and their field checks stay in one file over ~450 lines on purpose: they are
 the two halves of one file format and must change together (tests read back what is written).
 
-Layout under a dataset root (DESIGN.md, "Data")::
+Layout under a dataset root (docs/design.md, "Data")::
 
     classes.txt                      one class name per line; line i -> class id i + 1
     keyframe.txt                     test frames, one "SEQ/FRAME" per line

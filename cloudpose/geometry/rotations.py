@@ -225,7 +225,7 @@ def rotmat_to_rot6d(R: torch.Tensor) -> torch.Tensor:
 def rotmat_geodesic_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     """Angle of the rotation taking ``R2`` to ``R1``, in radians, in [0, pi].
 
-    DESIGN.md defines ``geodesic(R1, R2) = arccos((trace(R1 R2^T) - 1) / 2)``. With
+    docs/design.md defines ``geodesic(R1, R2) = arccos((trace(R1 R2^T) - 1) / 2)``. With
     ``M = R1 R2^T`` of angle ``theta``, ``|vee(M - M^T)| = 2 sin(theta)`` (``vee`` of the skew
     part, doubled) and ``trace(M) - 1 = 2 cos(theta)``, so here
 

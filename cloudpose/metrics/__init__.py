@@ -1,6 +1,6 @@
 """Pose error metrics and their summaries, as the YCB-Video toolbox computes them.
 
-DESIGN.md "Metrics":
+docs/design.md "Metrics":
 
 - AD  = mean over model points x of |(R x + t) - (R^ x + t^)|                  (metres)
 - ADS = mean over x1 of min over x2 of |(R x1 + t) - (R^ x2 + t^)|             (metres)

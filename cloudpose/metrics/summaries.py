@@ -42,7 +42,7 @@ def _check_distances(distances: np.ndarray) -> np.ndarray:
 def voc_ap_auc(distances: np.ndarray, max_threshold: float = AUC_MAX_THRESHOLD) -> float:
     """Area under the accuracy-threshold curve, the YCB-Video toolbox's VOCap.
 
-    DESIGN.md: distances above 0.1 m become infinite; sort the finite ones,
+    docs/design.md: distances above 0.1 m become infinite; sort the finite ones,
     d_1 <= ... <= d_k, with accuracy a_j = j / n (n = all instances, misses included). Let
     x = [0, d_1..d_k, 0.1] and y = [0, a_1..a_k, a_k]; make y non-decreasing (running max);
     AUC = 10 * sum over the indices i where x[i] != x[i-1] of (x[i] - x[i-1]) * y[i].

@@ -1,4 +1,4 @@
-"""BaseNet: PointNet without the spatial transformers (paper Sec. IV-A, DESIGN.md "BaseNet").
+"""BaseNet: PointNet without the spatial transformers (paper Sec. IV-A, docs/design.md "BaseNet").
 
     (B, n, 3 + k) -> per-point MLP 64-64-64-128-1024 (Linear + BN + ReLU on every point)
                   -> max pool over the n points -> (B, 1024)

@@ -1,6 +1,6 @@
 """Pose networks built from a variant: rotation and translation BaseNets, shared as asked.
 
-Paper Sec. IV (DESIGN.md "The pose networks" and "The ablation registry"):
+Paper Sec. IV (docs/design.md "The pose networks" and "The ablation registry"):
 
 - Rotation branch: raw camera-frame xyz + one-hot class -> rotation output (axis-angle 3,
   unit quaternion 4 or 6D 6 numbers) -> rotation matrix R. ``rotation_input = "centred"``
@@ -10,7 +10,7 @@ Paper Sec. IV (DESIGN.md "The pose networks" and "The ablation registry"):
   network's n input points (the paper's mean of X), not of the whole segment.
 - ``shared_layers = k`` in 1..5: the first k per-point stages are ONE module (``trunk``) that
   both branches run through, computed once per forward. Our choice where the paper is silent
-  (DESIGN.md): the trunk takes the translation branch's input, the mean-centred points +
+  (docs/design.md): the trunk takes the translation branch's input, the mean-centred points +
   one-hot, so for k >= 1 the rotation branch too sees centred points. k = 5 shares the whole
   per-point MLP and the pooled feature; the branches are then two regression heads.
 - ``shared_layers = "all"``: one BaseNet on the centred input whose output is

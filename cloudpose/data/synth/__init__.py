@@ -1,6 +1,6 @@
 """Synthetic YCB-Video scenes rendered from the 21 real model point sets (``cloudpose synth``).
 
-The output is a dataset root in the real YCB-Video layout (DESIGN.md, "Data"), so one reader
+The output is a dataset root in the real YCB-Video layout (docs/design.md, "Data"), so one reader
 (:class:`cloudpose.data.ycb.YCBVideo`) and one segment pipeline serve real and synthetic data::
 
     ROOT/classes.txt                        the 21 YCB-Video classes (copy of the package's)
@@ -45,8 +45,8 @@ complete files. ``synth.json`` records the generator version and the surface set
 holding frames of another version, or of other surfaces, is refused.
 
 ``alone_pixels``: each meta also stores, per instance, the pixel count of the object rendered
-alone at its pose (the occlusion factor's nu, DESIGN.md "Metrics"). The real dataset has no such
-field; the segment pipeline renders it when it is absent.
+alone at its pose (the occlusion factor's nu, docs/design.md "Metrics"). The real dataset has
+no such field; the segment pipeline renders it when it is absent.
 Modules: ``scenes`` (resting poses, table and floating arrangements, stacking), ``sensor``
 (background depth, noise, missing depth), ``frames`` (one frame from its seed and version),
 ``write`` (the resumable writer, :func:`synthesize`), ``compare`` (against real frames).
