@@ -39,10 +39,56 @@ def _child(env_extra: dict[str, str]) -> str:
     return out.stdout.strip().splitlines()[-1]
 
 
-def test_preferred_allocator_is_a_file_or_none() -> None:
-    lib = preferred_allocator()
-    assert lib is None or (lib.is_file() and ("tcmalloc" in lib.name or "jemalloc" in lib.name))
-    assert active_allocator() in ("glibc", "tcmalloc", "jemalloc", "unknown")
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="allocators are looked up on Linux"
+)
+def test_preferred_allocator_takes_the_first_library_found(tmp_path, monkeypatch) -> None:
+    """By library (tcmalloc minimal, tcmalloc, jemalloc), each from the library folders, then
+    from ldconfig's list; a listed path that is no file is passed over; None when none is."""
+    from cloudpose import runtime
+
+    libdir, other = tmp_path / "lib", tmp_path / "other"
+    libdir.mkdir()
+    other.mkdir()
+    listed: dict[str, Path] = {"libtcmalloc_minimal.so.4": other / "gone.so"}
+    monkeypatch.setattr(runtime, "_LIB_DIRS", (str(libdir),))
+    monkeypatch.setattr(runtime, "_ldconfig_paths", lambda: listed)
+    assert preferred_allocator() is None
+    (libdir / "libjemalloc.so.2").touch()
+    assert preferred_allocator() == libdir / "libjemalloc.so.2"
+    listed["libtcmalloc.so.4"] = other / "libtcmalloc.so.4"
+    listed["libtcmalloc.so.4"].touch()
+    assert preferred_allocator() == other / "libtcmalloc.so.4"  # before jemalloc, wherever
+    (libdir / "libtcmalloc_minimal.so.4").touch()
+    assert preferred_allocator() == libdir / "libtcmalloc_minimal.so.4"
+
+
+@pytest.mark.parametrize(
+    ("maps", "expected"),
+    [
+        (
+            "7f0 r-xp 00 08:01 12 /usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4.5.9\n",
+            "tcmalloc",
+        ),
+        ("7f0 r-xp 00 08:01 12 /usr/lib/x86_64-linux-gnu/libjemalloc.so.2\n", "jemalloc"),
+        ("7f0 r-xp 00 08:01 12 /usr/lib/x86_64-linux-gnu/libc.so.6\n", "glibc"),
+        (None, "unknown"),
+    ],
+)
+def test_active_allocator_reads_the_memory_map(monkeypatch, maps, expected) -> None:
+    from cloudpose import runtime
+
+    class _Maps:
+        def __init__(self, path: str) -> None:
+            assert path == "/proc/self/maps"
+
+        def read_text(self) -> str:
+            if maps is None:
+                raise OSError("no /proc")
+            return maps
+
+    monkeypatch.setattr(runtime, "Path", _Maps)
+    assert active_allocator() == expected
 
 
 def test_reexec_installs_the_allocator_once() -> None:
