@@ -1,0 +1,91 @@
+"""The runs a report is made from (cloudpose.report.runs): finished, evaluated runs of a preset's
+own config, one per (variant, seed), on one dataset."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from cloudpose import tracking
+from cloudpose.config import resolve
+from cloudpose.report.runs import TEST_KEY, load_runs
+
+
+@pytest.fixture
+def store(tmp_path):
+    """An MLflow store with one cloudpose experiment; ``add`` logs a finished run into it."""
+    client = tracking.setup(tmp_path)
+    exp = client.create_experiment(f"{tracking.EXPERIMENT_PREFIX}shared")
+    clock = iter(range(1_000, 100_000, 1_000))
+
+    def add(variant, seed, data, ads=None, config=None, params=None, status="FINISHED"):
+        fp = config or resolve(variant, "smoke", seed).fingerprint()
+        tags = {"variant": variant, "seed": str(seed), "preset": "smoke", "data": data}
+        tags.update(config=fp, git_commit="abc1234")
+        run = client.create_run(exp, start_time=next(clock), tags=tags)
+        for k, v in {
+            "data.synth_seed": "0",
+            "model.parameters": "1600000",
+            **(params or {}),
+        }.items():
+            client.log_param(run.info.run_id, k, v)
+        if ads is not None:
+            client.log_metric(run.info.run_id, TEST_KEY, ads)
+        client.set_terminated(run.info.run_id, status)
+        return run.info.run_id
+
+    return client, add
+
+
+def test_one_dataset_and_the_newest_run_per_variant_and_seed(store):
+    client, add = store
+    add("shared-0", 1, "aaaa", ads=0.50)
+    newest = add("shared-0", 1, "aaaa", ads=0.55)
+    add("shared-0", 2, "aaaa", ads=0.60)
+    add("l2", 1, "aaaa", ads=0.40)
+    add("shared-0", 3, "bbbb", ads=0.90)  # other data: fewer (variant, seed) pairs
+    add("l2", 2, "aaaa")  # not evaluated
+    add("l2", 3, "aaaa", ads=0.1, status="FAILED")
+    with pytest.warns(UserWarning, match="1 finished run.* other data than aaaa"):
+        rs = load_runs("smoke", client=client)
+    assert rs.data == "aaaa" and rs.ignored == 1
+    assert rs.variants == ["l2", "shared-0"] and rs.seeds == [1, 2]
+    assert [r.seed for r in rs.of("shared-0")] == [1, 2]
+    assert rs.of("shared-0")[0].run_id == newest
+    assert rs.values("shared-0", TEST_KEY) == {1: 0.55, 2: 0.60}
+    assert rs.values("shared-0", "test/missing") == {}
+    assert rs.subset(["l2"]).variants == ["l2"] and rs.commits == ["abc1234"]
+    rec = rs.of("l2")[0]
+    assert rec.parameters == 1_600_000 and math.isnan(rec.metric("test/missing"))
+    assert rs.data_label() == "synthetic YCB-Video-layout scenes (synth seed 0, data aaaa)"
+
+
+def test_data_asked_for_wins_over_the_most_common(store):
+    client, add = store
+    add("shared-0", 1, "aaaa", ads=0.5)
+    add("shared-0", 2, "aaaa", ads=0.5)
+    add("shared-0", 1, "bbbb", ads=0.7)
+    with pytest.warns(UserWarning, match="2 finished run"):
+        rs = load_runs("smoke", data="bbbb", client=client)
+    assert [r.metric(TEST_KEY) for r in rs.records] == [0.7]
+
+
+def test_runs_of_another_config_are_left_out(store):
+    client, add = store
+    add("shared-0", 1, "aaaa", ads=0.5)
+    add("shared-0", 2, "aaaa", ads=0.9, config="0123456789")  # --set, or an edited preset
+    with pytest.warns(UserWarning, match="1 finished run.* another config"):
+        rs = load_runs("smoke", client=client)
+    assert [r.seed for r in rs.records] == [1]
+
+
+def test_no_runs_is_an_empty_set_and_a_real_root_is_named(store, tmp_path):
+    client, add = store
+    assert load_runs("smoke", client=client).records == []
+    assert load_runs("smoke", client=client).data_label() == "no runs"
+    root = str(tmp_path / "YCB_Video_Dataset")
+    cfg = resolve("shared-0", "smoke", 1, {"data": {"root": root}})
+    add("shared-0", 1, "cccc", ads=0.3, config=cfg.fingerprint(), params={"data.root": root})
+    rs = load_runs("smoke", client=client)
+    assert rs.data_label() == "YCB_Video_Dataset (data cccc)"
