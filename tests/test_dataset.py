@@ -1,0 +1,74 @@
+"""Which dataset a config means and its segments (cloudpose.data.dataset)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cloudpose.config import DataConfig, resolve
+from cloudpose.data.dataset import (
+    data_fingerprint,
+    dataset_root,
+    ensure_dataset,
+    only_classes,
+    prepare_data,
+    synthetic_root,
+)
+from cloudpose.data.layout import open_dataset
+from tests.conftest import make_project
+
+REAL = Path(__file__).parent / "data" / "ycb_real"
+
+
+@pytest.fixture
+def project(tmp_path, smoke_data, monkeypatch) -> Path:
+    return make_project(tmp_path / "proj", smoke_data, monkeypatch)
+
+
+def test_synthetic_root_names_the_generator_settings(tmp_path):
+    base = DataConfig()
+    assert synthetic_root(base, tmp_path) == tmp_path / "data" / "synth-seed0-v2"
+    other = dataclasses.replace(
+        base, synth_seed=3, uniform_rotation=not base.uniform_rotation, noise=False, synth_version=1
+    )
+    assert synthetic_root(other, tmp_path).name == "synth-seed3-uniform-nonoise"
+    assert dataset_root(base, tmp_path) == synthetic_root(base, tmp_path)
+
+
+def test_a_real_root_is_the_dataset_and_must_exist(tmp_path):
+    assert dataset_root(DataConfig(root=str(REAL)), tmp_path) == REAL
+    with pytest.raises(FileNotFoundError, match="dataset root not found"):
+        dataset_root(DataConfig(root=str(tmp_path / "missing")), tmp_path)
+
+
+def test_prepare_data_reads_the_rendered_set_and_keys_it(project):
+    cfg = resolve("shared-0", "smoke").data
+    frames = sorted((project / "data").rglob("*-depth.png"))
+    prep = prepare_data(cfg, project, progress=False)
+    assert sorted((project / "data").rglob("*-depth.png")) == frames  # nothing rendered again
+    assert prep.root == synthetic_root(cfg, project) and prep.cache_dir == prep.root / "cache"
+    assert len(prep.train) > 0 and len(prep.test) > 0
+    assert set(np.char.partition(prep.test.frame_id.astype(str), "/")[:, 0]) <= {"1000"}
+    assert prep.key == data_fingerprint(cfg, project) and len(prep.key) == 16
+    train, test = ensure_dataset(cfg, project, progress=False)
+    assert (train.key, test.key) == (prep.train.key, prep.test.key)
+    # another segment setting is other data, with another key
+    assert data_fingerprint(dataclasses.replace(cfg, n_fps=cfg.n_fps // 2), project) != prep.key
+
+
+def test_only_classes_keeps_the_named_classes(project):
+    cfg = resolve("shared-0", "smoke").data
+    prep = prepare_data(cfg, project, progress=False)
+    names = open_dataset(prep.root).classes
+    cls = int(prep.test.cls_id[0])
+    sub = only_classes(prep.test, prep.root, (names[cls - 1],))
+    assert len(sub) == int(np.sum(prep.test.cls_id == cls)) and set(sub.cls_id.tolist()) == {cls}
+    assert only_classes(prep.test, prep.root, ()) is prep.test
+    with pytest.raises(ValueError, match="unknown classes"):
+        only_classes(prep.test, prep.root, ("999_not_a_class",))
+    narrowed = dataclasses.replace(cfg, classes=(names[cls - 1],))
+    _, test = ensure_dataset(narrowed, project, progress=False)
+    assert set(test.cls_id.tolist()) == {cls}
