@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cloudpose import tracking
-from cloudpose.data.dataset import Prepared, prepare_data
+from cloudpose.data import dataset
+from cloudpose.data.dataset import Prepared
 from cloudpose.distributed import SINGLE, World
 
 if TYPE_CHECKING:
@@ -54,7 +55,7 @@ def train_run(
         tracking.check_name("group", group)
     if data is None:
         data = world.main_first(
-            lambda: prepare_data(cfg.data, project_dir, progress=progress and world.is_main)
+            lambda: dataset.prepare_data(cfg.data, project_dir, progress=progress and world.is_main)
         )
     return train(
         cfg,
@@ -83,7 +84,7 @@ def train_and_evaluate(
     project_dir = (project_dir or Path.cwd()).resolve()
     if group is not None:  # before any data is made
         tracking.check_name("group", group)
-    data = data or prepare_data(cfg.data, project_dir, progress=progress)
+    data = data or dataset.prepare_data(cfg.data, project_dir, progress=progress)
     out = train_run(cfg, project_dir=project_dir, group=group, progress=progress, data=data)
     run = str(out.run_dir)
     ev = evaluate(run, project_dir=project_dir, progress=progress, own_data=data)

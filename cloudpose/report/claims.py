@@ -216,7 +216,10 @@ class _Measure:
         out = {}
         for r in self.runs.of(variant):
             df = r.instances("test")
-            if df is None or column not in df:
+            need = {column, "frame_id", "instance"} | (
+                {"class"} if metric.startswith("rot_asym_") else set()
+            )
+            if df is None or not need <= set(df.columns):
                 return {}
             df = df.sort_values(["frame_id", "instance"], kind="stable")
             keys = pd.Index(df["frame_id"].astype(str) + "#" + df["instance"].astype(str))
