@@ -10,9 +10,15 @@ on a frame of 8 objects, in the same process and interleaved:
 - ``fused``: PoseNet with ``cloudpose.models.fused.fuse_model`` (what ``load_checkpoint`` gave
   before folding).
 
-The lower bound is the forward FLOPs (counted from the Linear layers) at this machine's
-float32 GEMM rate for the 128 -> 1024 layer's shape, measured in the same run. Threads: all
-usable cores (``cloudpose.runtime.configure_threads``).
+The floor is the forward FLOPs (counted from the Linear layers) at this machine's float32 GEMM
+rate for the 128 -> 1024 layer's shape at the same rows (256 per object), that product timed in
+the same loop as the networks, interleaved, so load from other processes hits both alike. The
+target is the folded network within 1.25x of the floor, for 1 and for 8 objects. Threads: all
+usable cores (``cloudpose.runtime.configure_threads``), and the same figures with one thread
+(stable when other processes hold the cores: with two threads a forward then waits for
+scheduler time slices). Where the CPU has bf16 hardware (``cloudpose.runtime.cpu_features``)
+the folded network under bf16 autocast is timed too, with its deviation (information: the
+figures are fp32).
 
 Usage: ``python -m benchmarks.bench_infer [--quick]``
 """
@@ -22,6 +28,7 @@ from __future__ import annotations
 import statistics
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -31,15 +38,16 @@ from torch import nn
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import gemm_rate, quick_main
+from benchmarks.common import quick_main
 from cloudpose.config import resolve
 from cloudpose.models import build_model
 from cloudpose.models.fused import fuse_model
 from cloudpose.models.inference import fold_for_inference
+from cloudpose.runtime import cpu_features, describe_cpu
 
 N_POINTS = 256
-TARGET_MS_1 = 1.0
-TARGET_MS_8 = 4.0
+TARGET_OVER_FLOOR = 1.25
+D_POOL, C_POOL = 1024, 128  # the pooled layer's product: the floor's GEMM shape
 
 
 def forward_flops(model: nn.Module, B: int, n: int = N_POINTS) -> float:
@@ -79,41 +87,50 @@ def _trained_like(variant: str) -> nn.Module:
     return model.eval()
 
 
-def _one_thread_ms(
-    impls: dict[str, nn.Module], batches: dict[int, tuple], repeats: int
-) -> dict[str, dict[str, float]]:
-    """The same timings with one intra-op thread: stable when another process holds a core
-    (with two threads a forward then waits for scheduler time slices, 5-30x slower)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        times: dict[str, dict[int, list[float]]] = {k: {B: [] for B in batches} for k in impls}
-        with torch.inference_mode():
-            for _ in range(repeats + 1):
-                for name, m in impls.items():
-                    for B, b in batches.items():
-                        t0 = time.perf_counter()
-                        m(*b)
-                        times[name][B].append((time.perf_counter() - t0) * 1e3)
-        return {
-            k: {str(B): statistics.median(v[1:]) for B, v in d.items()} for k, d in times.items()
-        }
-    finally:
+def _interleaved_ms(
+    cases: dict[str, Any], repeats: int, threads: int | None = None
+) -> dict[str, float]:
+    """Median ms of each case, round-robin over ``repeats`` rounds after two untimed ones."""
+    before = torch.get_num_threads()
+    if threads is not None:
         torch.set_num_threads(threads)
+    try:
+        times: dict[str, list[float]] = {k: [] for k in cases}
+        with torch.inference_mode():
+            for _ in range(2):
+                for f in cases.values():
+                    f()
+            for _ in range(repeats):
+                for name, f in cases.items():
+                    t0 = time.perf_counter()
+                    f()
+                    times[name].append((time.perf_counter() - t0) * 1e3)
+        return {k: statistics.median(v) for k, v in times.items()}
+    finally:
+        torch.set_num_threads(before)
+
+
+def _gemm_case(rows: int) -> tuple[Any, float]:
+    """The floor's product, (rows, 128) @ (128, 1024) into a preallocated output, and its FLOPs."""
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(rows, C_POOL, generator=g), torch.randn(C_POOL, D_POOL, generator=g)
+    out = torch.empty(rows, D_POOL)
+    return (lambda: torch.mm(a, b, out=out)), 2.0 * rows * C_POOL * D_POOL
 
 
 def run(quick: bool = False, repeats: int | None = None, variant: str = "shared-0") -> dict:
-    """Inference figures (ms, median of interleaved repeats).
+    """Inference figures (ms, median of interleaved repeats) against their GEMM floor.
 
     Args:
         quick: few repeats (a smoke run for tests).
-        repeats: timed rounds (default 30; quick 3).
+        repeats: timed rounds (default 30; quick 2).
         variant: the network.
 
     Returns:
         ``{"infer_ms_per_object": figure, "infer_ms_frame8": figure}``.
     """
     repeats = repeats or (2 if quick else 30)
+    cpu = cpu_features()
     plain = _trained_like(variant)
     fused = fuse_model(_trained_like(variant)).eval()
     folded = fold_for_inference(plain)
@@ -123,62 +140,107 @@ def run(quick: bool = False, repeats: int | None = None, variant: str = "shared-
         ref = plain(*batches[8])
         out = folded(*batches[8])
     max_diff = max(float((a - b).abs().max()) for a, b in zip(out, ref, strict=True))
-    times: dict[str, dict[int, list[float]]] = {k: {1: [], 8: []} for k in impls}
-    with torch.inference_mode():
-        for _ in range(2):
-            for m in impls.values():
-                for b in batches.values():
-                    m(*b)
-        for _ in range(repeats):
-            for name, m in impls.items():
-                for B, b in batches.items():
-                    t0 = time.perf_counter()
-                    m(*b)
-                    times[name][B].append((time.perf_counter() - t0) * 1e3)
-    med = {k: {B: statistics.median(v) for B, v in d.items()} for k, d in times.items()}
-    one_thread = _one_thread_ms({"folded": folded, "plain": plain}, batches, max(2, repeats // 3))
-    gemm = {
-        "rows_256": gemm_rate(256, 128, 1024, repeats=3 if quick else 21)["median_gflops"],
-        "rows_2048": gemm_rate(2048, 128, 1024, repeats=3 if quick else 21)["median_gflops"],
-    }
     flops = {B: forward_flops(plain, B) for B in batches}
-    bound = {1: flops[1] / gemm["rows_256"] / 1e6, 8: flops[8] / gemm["rows_2048"] / 1e6}
+    gemms = {B: _gemm_case(B * N_POINTS) for B in batches}
+
+    def cases(names: tuple[str, ...]) -> dict[str, Any]:
+        c: dict[str, Any] = {}
+        for B, b in batches.items():
+            for name in names:
+                c[f"{name}/{B}"] = partial(impls[name], *b)
+            c[f"gemm/{B}"] = gemms[B][0]
+        return c
+
+    def summary(ms: dict[str, float]) -> dict[str, Any]:
+        gflops = {B: gemms[B][1] / ms[f"gemm/{B}"] / 1e6 for B in batches}
+        floor = {B: flops[B] / gflops[B] / 1e6 for B in batches}
+        return {
+            "ms": ms,
+            "gemm_gflops": {str(B): v for B, v in gflops.items()},
+            "floor_ms": {str(B): v for B, v in floor.items()},
+            "folded_over_floor": {str(B): ms[f"folded/{B}"] / floor[B] for B in batches},
+        }
+
+    threads = torch.get_num_threads()
+    all_t = summary(_interleaved_ms(cases(("folded", "plain", "fused")), repeats))
+    one_t = summary(_interleaved_ms(cases(("folded", "plain")), max(2, repeats), threads=1))
+    bf16: dict[str, Any] | str
+    if cpu["bf16_hardware"]:
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+            out16 = folded(*batches[8])
+        auto = {f"folded_bf16/{B}": partial(_autocast_call, folded, b) for B, b in batches.items()}
+        ms16 = _interleaved_ms({**auto, **cases(("folded",))}, max(2, repeats // 2), threads=1)
+        bf16 = {
+            "one_thread_ms": ms16,
+            "bf16_over_fp32_speed": {
+                str(B): ms16[f"folded/{B}"] / ms16[f"folded_bf16/{B}"] for B in batches
+            },
+            "max_abs_diff_t_m": float((out16.t.float() - out.t).abs().max()),
+            "max_abs_diff_R": float((out16.R.float() - out.R).abs().max()),
+            "note": "bf16 autocast of the folded network: measured only; evaluation runs fp32",
+        }
+    else:
+        bf16 = f"not tried: {cpu['model']} has no avx512_bf16 or AMX"
     detail = {
-        "ms": {k: {str(B): v for B, v in d.items()} for k, d in med.items()},
+        "cpu": describe_cpu(cpu),
+        "threads": threads,
+        "all_threads": all_t,
+        "one_thread": one_t,
         "forward_mflop": {str(B): f / 1e6 for B, f in flops.items()},
-        "gemm_gflops": gemm,
-        "lower_bound_ms_at_gemm_rate": {str(B): v for B, v in bound.items()},
+        "floor": "forward FLOPs at the fp32 rate of (B*256, 128) @ (128, 1024), timed "
+        "interleaved with the networks",
         "folded_vs_plain_max_abs_diff": max_diff,
-        "threads": torch.get_num_threads(),
-        "one_thread_ms": one_thread,
         "repeats": repeats,
         "variant": variant,
-        "bf16": "not tried: this CPU has no bf16 GEMM hardware (bench_train: bf16 GEMM "
-        "slower than fp32)",
+        "bf16": bf16,
     }
 
-    def figure(B: int, target: float, what: str) -> dict[str, Any]:
-        v = med["folded"][B]
+    def figure(B: int, what: str) -> dict[str, Any]:
+        ms = all_t["ms"]
+        v, floor = ms[f"folded/{B}"], all_t["floor_ms"][str(B)]
+        over, over_1 = v / floor, one_t["folded_over_floor"][str(B)]
+        met = bool(over <= TARGET_OVER_FLOOR)
+        if met:
+            why = None
+        elif over_1 <= TARGET_OVER_FLOOR:
+            why = (
+                f"not met with {threads} threads ({over:.2f}x the floor) but met with one "
+                f"({over_1:.2f}x): the threads wait on each other under load"
+            )
+        else:
+            why = (
+                f"{over:.2f}x the floor with {threads} threads, {over_1:.2f}x with one: besides "
+                "the pooled product (the floor), the forward streams the head's 1024 -> 512 "
+                "weights (4 MiB, memory-bound at one object), reduces the (n, 1024) product "
+                "and runs the 64-wide layers, which no GEMM rate covers"
+            )
         return {
             "value": v,
             "unit": "ms",
             "what": what,
-            "reference": {"name": "plain PoseNet, eval mode", "value": med["plain"][B]},
-            "ratio": med["plain"][B] / v,
-            "target": f"<= {target:g} ms (fp32 lower bound here {bound[B]:.2f} ms)",
-            "met": bool(v <= target),
-            "fraction_of_gemm_bound": bound[B] / v,
+            "reference": {"name": "fp32 GEMM floor, same run, interleaved", "value": floor},
+            "ratio": floor / v,
+            "target": f"<= {TARGET_OVER_FLOOR:g}x the floor (fp32, same threads)",
+            "met": met,
+            "note": why,
+            "plain_ms": ms[f"plain/{B}"],
+            "folded_over_floor_one_thread": over_1,
             "detail": detail,
         }
 
     return {
         "infer_ms_per_object": figure(
-            1, TARGET_MS_1, f"{variant} rotation + translation nets, 1 object, n = 256, fp32"
+            1, f"{variant} rotation + translation nets, 1 object, n = 256, fp32, folded"
         ),
         "infer_ms_frame8": figure(
-            8, TARGET_MS_8, f"{variant} rotation + translation nets, 8 objects, n = 256, fp32"
+            8, f"{variant} rotation + translation nets, 8 objects, n = 256, fp32, folded"
         ),
     }
+
+
+def _autocast_call(model: nn.Module, batch: tuple) -> Any:
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        return model(*batch)
 
 
 def main() -> None:

@@ -50,6 +50,7 @@ from cloudpose.models.fused import fuse_model
 from cloudpose.runtime import (
     active_allocator,
     configure_threads,
+    cpu_features,
     preferred_allocator,
     tune_glibc_malloc,
 )
@@ -132,6 +133,109 @@ def make_step(variant: str, impl: str, B: int, n: int, compile_mode: str | None 
     return step
 
 
+def bf16_accuracy(
+    steps: int = 240, batch: int = 32, n: int = N_POINTS, seeds: tuple[int, int] = (1, 2)
+) -> dict[str, Any]:
+    """A short training of shared-0 (cpu recipe) at fp32 and at bf16 from the same seed.
+
+    Segments of the 21 objects synthesized on line (:class:`~cloudpose.data.synth.online.
+    OnlineSynth`, version 2, n points): ``8 * batch`` training segments cycled for ``steps``
+    Adam steps (the same batches in the same order for every run) and ``4 * batch`` held-out
+    ones. Runs: fp32 and bf16 (fused bf16 GEMM + bf16 autocast, as ``train.precision =
+    "bf16"``) from ``seeds[0]``, and fp32 from ``seeds[1]``: the seed-to-seed difference is
+    the yardstick for "equal accuracy". All held-out figures are of the eval-mode network in
+    float32 (as evaluation runs it), so only the training differs.
+
+    Returns:
+        Per run: the training-loss curve (mean of each eighth of the steps), held-out loss,
+        median rotation error (deg, plain geodesic) and median translation error (mm);
+        ``equal_accuracy``: bf16's held-out loss within the seed-to-seed difference of fp32's
+        (at least 2% of it).
+    """
+    import numpy as np
+
+    from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.geometry.rotations import rotmat_geodesic_distance
+
+    cfg = resolve("shared-0", "cpu")
+    synth = OnlineSynth(2, n_points=n)
+
+    def tensors(step: int, size: int) -> tuple[torch.Tensor, ...]:
+        b = synth.batch(0, step, size)
+        return tuple(
+            torch.from_numpy(np.ascontiguousarray(a)) for a in (b.points, b.cls_id, b.R, b.t)
+        )
+
+    train_batches = [tensors(k, batch) for k in range(8)]
+    held = tensors(1000, 4 * batch)
+
+    def loss_of(out, R, t, cls) -> torch.Tensor:
+        return pose_loss(
+            out.R.float(),
+            out.t.float(),
+            R,
+            t,
+            rotation=cfg.loss.rotation,
+            alpha=cfg.loss.alpha,
+            rotvec_pred=out.rot_raw.float(),
+            symmetric=cfg.loss.symmetric,
+            cls_id=cls,
+        ).total
+
+    def one(bf16: bool, seed: int) -> dict[str, Any]:
+        torch.manual_seed(seed)
+        model = build_model(cfg.model)
+        fuse_model(model, bf16=bf16)
+        opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
+        curve: list[float] = []
+        model.train()
+        for k in range(steps):
+            pts, cls, R, t = train_batches[k % len(train_batches)]
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                out = model(pts, cls)
+            loss = loss_of(out, R, t, cls)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            curve.append(float(loss))
+        model.eval()
+        for m in model.modules():
+            if hasattr(m, "bf16"):
+                m.bf16 = False  # evaluation runs the network in float32
+        pts, cls, R, t = held
+        with torch.no_grad():
+            out = model(pts, cls)
+            rot = torch.rad2deg(rotmat_geodesic_distance(out.R.float(), R))
+            trans = (out.t.float() - t).norm(dim=1) * 1e3
+            held_loss = float(loss_of(out, R, t, cls))
+        eighth = max(1, steps // 8)
+        return {
+            "train_loss_curve": [
+                round(float(np.mean(curve[i : i + eighth])), 4) for i in range(0, steps, eighth)
+            ],
+            "heldout_loss": held_loss,
+            "heldout_rot_err_deg_median": float(rot.median()),
+            "heldout_trans_err_mm_median": float(trans.median()),
+        }
+
+    runs = {
+        f"fp32_seed{seeds[0]}": one(False, seeds[0]),
+        f"bf16_seed{seeds[0]}": one(True, seeds[0]),
+        f"fp32_seed{seeds[1]}": one(False, seeds[1]),
+    }
+    f32, b16, f32b = (runs[k]["heldout_loss"] for k in runs)
+    yardstick = max(abs(f32b - f32), 0.02 * abs(f32))
+    return {
+        "runs": runs,
+        "steps": steps,
+        "batch": batch,
+        "n_points": n,
+        "bf16_minus_fp32_heldout_loss": b16 - f32,
+        "seed_to_seed_heldout_loss": f32b - f32,
+        "equal_accuracy": bool(abs(b16 - f32) <= yardstick),
+    }
+
+
 def measure_interleaved(
     cases: dict[str, Any], repeats: int, warmup: int, B: int
 ) -> dict[str, dict[str, float]]:
@@ -164,7 +268,7 @@ def measure_interleaved(
 
 def child(spec: dict[str, Any]) -> dict[str, Any]:
     """One process's measurements (its allocator was fixed when it started)."""
-    configure_threads()
+    configure_threads(spec.get("threads"))
     tuned = tune_glibc_malloc() if spec.get("tune_glibc") else False
     quick = spec["quick"]
     res: dict[str, Any] = {"machine": describe_machine(), "allocator": active_allocator()}
@@ -178,6 +282,8 @@ def child(spec: dict[str, Any]) -> dict[str, Any]:
         cases = {impl: make_step(variant, impl, B, n) for impl in spec["impls"]}
         runs[variant] = measure_interleaved(cases, spec["repeats"], spec["warmup"], B)
     res["train"] = runs
+    if spec.get("bf16_accuracy_steps"):
+        res["bf16_accuracy"] = bf16_accuracy(steps=spec["bf16_accuracy_steps"])
     if spec.get("compile_modes"):
         comp = {}
         for mode in spec["compile_modes"]:
@@ -208,6 +314,77 @@ def _run_child(spec: dict[str, Any], allocator: str) -> dict[str, Any]:
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark child ({allocator}) failed:\n{proc.stderr[-4000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def bf16_figure(
+    spec: dict[str, Any],
+    allocator: str,
+    flop_per_sample: float,
+    bf16_rate: float,
+    fp32_rate: float,
+    quick: bool,
+) -> dict[str, Any]:
+    """bf16 training against fp32 where this CPU has bf16 hardware (avx512_bf16 or AMX).
+
+    One child process times fused fp32 and fused bf16 steps interleaved (ratios within one
+    process: the machine may be shared), one thread and all threads, and trains both briefly
+    from the same seed (:func:`bf16_accuracy`). Elsewhere the figure is skipped, with the CPU
+    named.
+    """
+    cpu = cpu_features()
+    common = {
+        "cpu": cpu["model"],
+        "cpu_flags": cpu["flags"],
+        "bf16_gemm_gflops": bf16_rate / 1e9,
+        "bf16_over_fp32_gemm_rate": bf16_rate / fp32_rate,
+    }
+    if not cpu["bf16_hardware"]:
+        return {
+            "value": None,
+            **common,
+            "skipped": f"not tried: {cpu['model']} has no avx512_bf16 or AMX (flags "
+            f"{' '.join(cpu['flags']) or '-'}), so bfloat16 products are emulated "
+            f"({bf16_rate / fp32_rate:.2f}x the fp32 GEMM rate here)",
+        }
+    spec_bf16 = dict(
+        spec,
+        gemm=False,
+        variants=["shared-0"],
+        impls=["fused", "fused_bf16"],
+        repeats=3 if quick else 9,
+        bf16_accuracy_steps=16 if quick else 240,
+    )
+    res = _run_child(spec_bf16, allocator)
+    r = res["train"]["shared-0"]
+    one = _run_child(dict(spec_bf16, threads=1, bf16_accuracy_steps=0), allocator)
+    r1 = one["train"]["shared-0"]
+    speedup = r["fused_bf16"]["samples_per_s"] / r["fused"]["samples_per_s"]
+    speedup_1 = r1["fused_bf16"]["samples_per_s"] / r1["fused"]["samples_per_s"]
+    acc = res["bf16_accuracy"]
+    faster = speedup > 1.05 and speedup_1 > 1.05
+    keep = faster and acc["equal_accuracy"]
+    return {
+        "value": r["fused_bf16"]["samples_per_s"],
+        **common,
+        "fp32_samples_per_s_same_process": r["fused"]["samples_per_s"],
+        "bf16_over_fp32": speedup,
+        "bf16_over_fp32_one_thread": speedup_1,
+        "fraction_of_bf16_peak": r["fused_bf16"]["samples_per_s"] * flop_per_sample / bf16_rate,
+        "accuracy": acc,
+        "faster": faster,
+        "equal_accuracy": acc["equal_accuracy"],
+        "verdict": (
+            "bf16 is faster at equal accuracy on this CPU: train.precision = 'bf16' is worth "
+            "setting here (no preset sets it)"
+            if keep
+            else "bf16 is "
+            + ("faster" if faster else "not faster (> 5% in both thread counts)")
+            + " and "
+            + ("of equal accuracy" if acc["equal_accuracy"] else "less accurate")
+            + " here: keep fp32"
+        ),
+        "detail": {"all_threads": r, "one_thread": r1},
+    }
 
 
 def run(quick: bool = False, compile: bool = False) -> dict[str, Any]:
@@ -241,23 +418,7 @@ def run(quick: bool = False, compile: bool = False) -> dict[str, Any]:
     peak = main["gemm_fp32"]["peak_gflops"] * 1e9
     bf16_rate = main["gemm_bf16"]["median_gflops"] * 1e9
 
-    bf16: dict[str, Any]
-    if bf16_rate >= 0.8 * peak:
-        spec_bf16 = dict(spec, gemm=False, variants=["shared-0"], impls=["fused", "fused_bf16"])
-        r = _run_child(spec_bf16, fast_alloc)["train"]["shared-0"]["fused_bf16"]
-        bf16 = {
-            "value": r["samples_per_s"],
-            "fraction_of_bf16_peak": r["samples_per_s"] * flops["shared-0"] / bf16_rate,
-            "bf16_gemm_gflops": bf16_rate / 1e9,
-            "detail": r,
-        }
-    else:
-        bf16 = {
-            "value": None,
-            "bf16_gemm_gflops": bf16_rate / 1e9,
-            "skipped": "bf16 GEMM is slower than fp32 on this CPU (no avx512_bf16 / AMX): "
-            "a bf16 step would only be slower",
-        }
+    bf16 = bf16_figure(spec, fast_alloc, flops["shared-0"], bf16_rate, peak, quick)
 
     per_variant = {}
     for v, impls in main["train"].items():

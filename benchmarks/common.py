@@ -11,50 +11,18 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from cloudpose.runtime import active_allocator
-
-INTERESTING_FLAGS = (
-    "avx",
-    "avx2",
-    "fma",
-    "avx512f",
-    "avx512bw",
-    "avx512_vnni",
-    "avx512_bf16",
-    "amx_bf16",
-    "amx_tile",
-)
-"""CPU flags that decide which GEMM kernels (fp32 / bf16) run fast."""
+from cloudpose.runtime import active_allocator, cpu_features
 
 
 def cpu_info() -> dict[str, Any]:
-    """CPU model, the GEMM-relevant flags it has, cores (all and usable by this process)."""
-    model, flags = platform.processor() or platform.machine(), set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            key = key.strip()
-            if key == "model name" and model in ("", platform.machine(), platform.processor()):
-                model = value.strip()
-            elif key == "flags" and not flags:
-                flags = set(value.split())
-    except OSError:
-        pass
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        usable = os.cpu_count()
-    return {
-        "model": model,
-        "flags": [f for f in INTERESTING_FLAGS if f in flags],
-        "cores": os.cpu_count(),
-        "usable_cores": usable,
-    }
+    """CPU model, vendor, the GEMM-relevant flags it has, cores (all and usable by this process),
+    torch's dispatch capability and whether bf16 products have hardware
+    (``cloudpose.runtime.cpu_features``)."""
+    return cpu_features()
 
 
 def describe_machine() -> dict[str, Any]:

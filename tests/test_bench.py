@@ -135,3 +135,46 @@ def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
     assert [i for i, line in enumerate(again) if "fps_ms_20k" in line] == [
         i for i, line in enumerate(merged) if "fps_ms_20k" in line
     ]
+
+
+INTEL_CPUINFO = """processor\t: 0
+vendor_id\t: GenuineIntel
+model name\t: Intel(R) Xeon(R) Processor
+flags\t\t: fpu sse avx avx2 fma avx512f avx512bw avx512_vnni avx512_bf16 amx_bf16 amx_tile
+"""
+AMD_CPUINFO = """processor\t: 0
+vendor_id\t: AuthenticAMD
+model name\t: AMD EPYC
+flags\t\t: fpu sse avx avx2 fma
+"""
+
+
+def test_cpu_features_reads_the_gemm_flags_and_says_them():
+    from cloudpose.runtime import cpu_features, describe_cpu
+
+    intel = cpu_features(INTEL_CPUINFO)
+    assert intel["vendor"] == "GenuineIntel" and intel["model"] == "Intel(R) Xeon(R) Processor"
+    assert intel["bf16_hardware"] and intel["amx"]
+    assert {"avx512f", "avx512_bf16", "amx_bf16", "amx_tile"} <= set(intel["flags"])
+    assert "fpu" not in intel["flags"] and intel["cores"] >= 1
+    amd = cpu_features(AMD_CPUINFO)
+    assert not amd["bf16_hardware"] and not amd["amx"] and "avx512f" not in amd["flags"]
+    assert "AMX bf16" in describe_cpu(intel) and "no bf16 GEMM" in describe_cpu(amd)
+    assert "AMD EPYC" in describe_cpu(amd)
+    # this machine's own view, as every benchmark header writes it
+    here = cpu_features()
+    assert here["torch_capability"] and here["usable_cores"] >= 1
+
+
+def test_merged_figures_name_the_cpu_they_came_from(tmp_path, monkeypatch):
+    fig = {"value": 2.0, "unit": "s", "what": "w", "reference": None}
+    monkeypatch.setattr(run_all, "RUNNERS", {"fps": lambda *_: {"fps_ms_20k": dict(fig)}})
+    run_all.run(["fps"], quick=True, out_dir=tmp_path)
+    run_all.run(["fps"], quick=True, out_dir=tmp_path, merge=True)
+    md = (tmp_path / "benchmarks.md").read_text()
+    from cloudpose.runtime import cpu_features
+
+    model = cpu_features()["model"]
+    assert f"- machine (of every figure not measured apart): {model}" in md
+    line = next(x for x in md.splitlines() if x.startswith("- `fps_ms_20k`"))
+    assert f"on {model}" in line
