@@ -45,9 +45,9 @@ from cloudpose.report.stats import (
 from cloudpose.report.tables import METRIC_LABELS, paper_table
 
 ASYM_LABELS = {
-    "rot_asym_lt_10deg": "Rotation < 10° (asymmetric classes)",
-    "rot_asym_lt_15deg": "Rotation < 15° (asymmetric classes)",
-    "rot_asym_lt_20deg": "Rotation < 20° (asymmetric classes)",
+    "rot_asym_lt_10deg": "rot. err. < 10° (asymmetric classes)",
+    "rot_asym_lt_15deg": "rot. err. < 15° (asymmetric classes)",
+    "rot_asym_lt_20deg": "rot. err. < 20° (asymmetric classes)",
 }
 
 _PREFIX_COLUMNS = {"test": "net_", "test_icp": "icp_"}
