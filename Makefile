@@ -10,7 +10,7 @@ VARIANT ?= shared-0
 SEED ?= 1
 
 .DEFAULT_GOAL := help
-.PHONY: help setup install demo test test-fast lint format variants
+.PHONY: help setup install demo test test-all test-slow lint format variants
 
 help: ## list the targets
 	@if [ -t 1 ]; then c='\033[36m'; r='\033[0m'; else c=; r=; fi; \
@@ -34,11 +34,14 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate (prints its plan first)
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
 
-test: ## the test suite (what .ci/run runs)
+test: ## the tests without the slow-marked ones (~3 min on 2 cores): the everyday loop
+	$(PY) -m pytest -q -n 2 -m "not slow" --durations=10
+
+test-all: ## every test, the slow-marked ones included (what .ci/run runs; ~20 min on 2 cores)
 	$(PY) -m pytest -q -n 2 --durations=15
 
-test-fast: ## the tests without the slow ones
-	$(PY) -m pytest -q -n 2 -m "not slow"
+test-slow: ## only the slow-marked tests (multi-class recipe, Ray with a killed node, resumes, torchrun, ...)
+	$(PY) -m pytest -q -n 2 -m slow --durations=15
 
 lint: ## ruff check and format check
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

@@ -392,8 +392,10 @@ def resolve_claims(
         )
         if not wanted:
             return rounds
-        if len(rounds) > 1 and rounds[-2].wanted == wanted and not any(
-            st.status == "trained" for st in rounds[-2].runs
+        if (
+            len(rounds) > 1
+            and rounds[-2].wanted == wanted
+            and not any(st.status == "trained" for st in rounds[-2].runs)
         ):
             raise RuntimeError(
                 f"claims of {group}/{preset}: the last round trained no run and the same seeds "
