@@ -95,6 +95,10 @@ DeviceOpt = Annotated[
     str, typer.Option(help="auto (CUDA when available, as in training), cpu or cuda.")
 ]
 ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
+FramesOpt = Annotated[
+    str,
+    typer.Option(help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."),
+]
 DryRunOpt = Annotated[
     bool, typer.Option("--dry-run", help="Print the plan (frames, runs, time) and stop.")
 ]
@@ -479,12 +483,7 @@ def evaluate(
     data: Annotated[
         str | None, typer.Option(help="Dataset root to test on, YCB-Video or BOP ycbv layout.")
     ] = None,
-    frames: Annotated[
-        str,
-        typer.Option(
-            help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."
-        ),
-    ] = "keyframe",
+    frames: FramesOpt = "keyframe",
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
     icp_fallback: Annotated[
         bool | None,
@@ -752,12 +751,7 @@ def baseline(
             "gives the segment settings); logged under the data's identity, as evaluate --data."
         ),
     ] = None,
-    frames: Annotated[
-        str,
-        typer.Option(
-            help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."
-        ),
-    ] = "keyframe",
+    frames: FramesOpt = "keyframe",
     set_: Annotated[
         list[str] | None,
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),

@@ -295,14 +295,15 @@ def difference(
         return Difference(
             mean, math.nan, math.nan, n, False, UNRESOLVED, f"{n} seed(s) of {min_seeds} needed"
         )
-    low, high, widened = _widen(mean, low, high, floor_halfwidth(floor, n, level))
     return _judged(
         mean,
         low,
         high,
         n,
         paired,
-        method + ("+floor" if widened else ""),
+        method,
+        floor=floor,
+        level=level,
         expect=expect,
         min_seeds=min_seeds,
         paper=paper,
@@ -310,7 +311,12 @@ def difference(
     )
 
 
-def _judged(mean, low, high, n, paired, method, *, expect, min_seeds, paper, margin) -> Difference:
+def _judged(
+    mean, low, high, n, paired, method, *, floor, level, expect, min_seeds, paper, margin
+) -> Difference:
+    """The interval widened to the pooled floor, and the verdict on it."""
+    low, high, widened = _widen(mean, low, high, floor_halfwidth(floor, n, level))
+    method += "+floor" if widened else ""
     if n < min_seeds:
         return Difference(
             mean, low, high, n, paired, UNRESOLVED, f"{n} seed(s) of {min_seeds} needed", method
@@ -386,14 +392,15 @@ def bootstrap_difference(
         inst = rng.integers(0, n_inst, n_inst)
         draws[r] = float(np.mean(stat(xa[seeds][:, inst]) - stat(xb[seeds][:, inst])))
     low, high = (float(q) for q in np.quantile(draws, [0.5 - level / 2, 0.5 + level / 2]))
-    low, high, widened = _widen(mean, low, high, floor_halfwidth(floor, n_seeds, level))
     return _judged(
         mean,
         low,
         high,
         n_seeds,
         True,
-        "bootstrap" + ("+floor" if widened else ""),
+        "bootstrap",
+        floor=floor,
+        level=level,
         expect=expect,
         min_seeds=min_seeds,
         paper=paper,
