@@ -300,7 +300,7 @@ def render_real_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or f"cloudpose real-report --preset {preset}"
     md, csv = out_dir / "real_frames.md", out_dir / "real_frames.csv"
-    store = f"the MLflow store of {Path(project_dir).resolve()}"
+    store = "the project's MLflow store"
     md.write_text(markdown(report, preset, command, store), encoding="utf-8")
     report.rows.to_csv(csv, index=False, float_format="%.6g")
     return report, [md, csv]
