@@ -192,13 +192,6 @@ def recorded_command(ctx: typer.Context) -> str:
     return shlex.join(parts)
 
 
-def tracking_name(cfg) -> str:
-    """The MLflow run name of ``cfg`` (``+CONFIG`` with overrides), as ``--run`` takes it."""
-    from cloudpose.runs import display_name
-
-    return display_name(cfg)
-
-
 def _config(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):
     from cloudpose.config import resolve
 
@@ -454,6 +447,7 @@ def train(
     """Train one variant (resumes an interrupted run of the same settings)."""
     from cloudpose import distributed
     from cloudpose.pipeline import train_run
+    from cloudpose.runs import display_name
 
     cfg = _config(
         variant, preset, seed, data, set_, epochs=epochs, precision=precision, device=device
@@ -472,7 +466,7 @@ def train(
     with distributed.from_env() as world:
         out = train_run(cfg, group=group, progress=progress, world=world)
     if world.is_main:
-        typer.echo(f"run {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
+        typer.echo(f"run {display_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
         for k, v in sorted(out.metrics.items()):
             typer.echo(f"  {k:<28} {v:.4f}")
 
@@ -673,6 +667,7 @@ def run(
     Prints its plan first: frames to render, whether the run is trained already, time."""
     from cloudpose.ablate import plan_configs
     from cloudpose.pipeline import train_and_evaluate
+    from cloudpose.runs import display_name
 
     cfg = _config(variant, preset, seed, data, set_)
     if group is not None:
@@ -681,7 +676,7 @@ def run(
         check_name("group", group)
     plan = plan_configs(
         [cfg],
-        title=f"main job {tracking_name(cfg)}",
+        title=f"main job {display_name(cfg)}",
         project_dir=Path.cwd(),
         finished="finished before (training skipped, evaluated again)",
     )
@@ -692,7 +687,7 @@ def run(
         _mark_expected(*EXPECTED_WARNINGS[preset])
     result = train_and_evaluate(cfg, group=group, progress=progress)
     out, ev = result.train, result.evaluation
-    typer.echo(f"\nrun {tracking_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
+    typer.echo(f"\nrun {display_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
     typer.echo(f"test set: {ev.source}; without and with ICP refinement:")
     metrics = dict(ev.metrics)
     if result.real is not None:

@@ -94,6 +94,58 @@ def display_name(cfg: Config) -> str:
     )
 
 
+def training_tags(cfg: Config, group: str, data_key: str, run_dir: Path) -> dict[str, str]:
+    """The MLflow tags of a training run: what the reports, the runner and ``--run`` look it up
+    by (variant, group, preset, seed, data, config) and where it came from."""
+    return {
+        "variant": cfg.variant,
+        "group": group,
+        "preset": cfg.preset,
+        "seed": str(cfg.seed),
+        "data": data_key,
+        "config": cfg.fingerprint(),
+        "git_commit": tracking.git_commit(),
+        "run_dir": str(run_dir),
+    }
+
+
+def baseline_name(method: str, preset: str, seed: int, split: str, config: str, own: str) -> str:
+    """The MLflow run name of a classical baseline: ``baseline-{method}/{preset}/seed{S}``, plus
+    ``+{split}-{config[:8]}`` when it is not the test split with the method's current settings
+    (``own``), so runs of other settings or data never share a name."""
+    name = run_name(f"baseline-{method}", preset, seed)
+    if split != "test" or config != own:
+        name += f"+{split}-{config[:8]}"
+    return name
+
+
+def baseline_tags(
+    method: str,
+    group: str,
+    preset: str,
+    seed: int,
+    data_key: str,
+    config: str,
+    *,
+    limit: int | None,
+    split: str,
+) -> dict[str, str]:
+    """The MLflow tags of a baseline run: those of a training run (variant ``baseline-METHOD``,
+    ``config`` its settings' fingerprint) plus ``kind``, ``subsample`` and ``split``."""
+    return {
+        "variant": f"baseline-{method}",
+        "group": group,
+        "preset": preset,
+        "seed": str(seed),
+        "data": data_key,
+        "config": config,
+        "kind": "baseline",
+        "subsample": str(limit or "all"),
+        "split": split,
+        "git_commit": tracking.git_commit(),
+    }
+
+
 def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:
     """Whether ``fingerprint`` is the config that variant/preset/seed (on ``root``) resolves to."""
     from cloudpose.config import resolve

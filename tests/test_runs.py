@@ -118,3 +118,25 @@ def test_a_second_process_of_one_run_waits_for_the_first(tmp_path):
     assert entered.wait(10.0)  # released: it goes on
     worker.join(10.0)
     assert not folder.exists()  # the lock lives beside the folder, which it does not make
+
+
+def test_the_run_record_names_and_tags_training_and_baseline_runs_in_one_place(tmp_path):
+    from cloudpose.config import resolve
+
+    cfg = resolve("shared-0", "smoke", 2)
+    tags = runs.training_tags(cfg, "shared", "d" * 20, tmp_path / "r")
+    assert {k: tags[k] for k in ("variant", "group", "preset", "seed", "data", "config")} == {
+        "variant": "shared-0",
+        "group": "shared",
+        "preset": "smoke",
+        "seed": "2",
+        "data": "d" * 20,
+        "config": cfg.fingerprint(),
+    }
+    b = runs.baseline_tags("fpfh", "baselines", "cpu", 1, "k", "c" * 16, limit=None, split="test")
+    assert b["variant"] == "baseline-fpfh" and b["kind"] == "baseline" and b["subsample"] == "all"
+    own = "c" * 16
+    assert runs.baseline_name("fpfh", "cpu", 1, "test", own, own) == "baseline-fpfh/cpu/seed1"
+    other = runs.baseline_name("fpfh", "cpu", 1, "real", own, own)
+    assert other == "baseline-fpfh/cpu/seed1+real-cccccccc"
+    assert runs.baseline_name("ppf", "cpu", 1, "test", "e" * 16, own).endswith("+test-eeeeeeee")

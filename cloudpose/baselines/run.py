@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from cloudpose import tracking
+from cloudpose import runs, tracking
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import NotRegistered, settings_fingerprint
 from cloudpose.files import atomic_write
@@ -362,21 +362,12 @@ def _log(
 
     client = tracking.setup(project_dir)
     exp = tracking.experiment_id(client, GROUP, project_dir)
-    tags = {
-        "variant": f"baseline-{method}",
-        "group": GROUP,
-        "preset": preset,
-        "seed": str(seed),
-        "data": data_key,
-        "config": settings_fingerprint(settings),
-        "kind": "baseline",
-        "subsample": str(limit or "all"),
-        "split": split,
-        "git_commit": tracking.git_commit(),
-    }
-    name = f"baseline-{method}/{preset}/seed{seed}"
-    if split != "test" or tags["config"] != settings_fingerprint(load_settings(method)):
-        name += f"+{split}-{tags['config'][:8]}"
+    config = settings_fingerprint(settings)
+    tags = runs.baseline_tags(
+        method, GROUP, preset, seed, data_key, config, limit=limit, split=split
+    )
+    own = settings_fingerprint(load_settings(method))
+    name = runs.baseline_name(method, preset, seed, split, config, own)
     run = client.create_run(exp, tags=tags, run_name=name)
     run_id = run.info.run_id
     params = {f"baseline.{k}": v for k, v in settings.values.items()} | data_params
