@@ -351,16 +351,7 @@ def _train(
     run_id = info.get("run_id")
     if world.is_main and run_id is None:
         exp = tracking.experiment_id(client, group, project_dir)
-        tags = {
-            "variant": cfg.variant,
-            "group": group,
-            "preset": cfg.preset,
-            "seed": str(cfg.seed),
-            "data": data_key,
-            "config": cfg.fingerprint(),
-            "git_commit": tracking.git_commit(),
-            "run_dir": str(rdir),
-        }
+        tags = runs.training_tags(cfg, group, data_key, rdir)
         rdir.mkdir(parents=True, exist_ok=True)
         run = client.create_run(exp, tags=tags, run_name=runs.display_name(cfg))
         run_id = run.info.run_id
