@@ -128,27 +128,6 @@ def _group_names() -> str:
     return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else "".join(names)
 
 
-def parse_sets(items: list[str] | None) -> dict[str, dict]:
-    """``["train.epochs=3", "data.classes=['011_banana']"]`` -> ``{"train": {"epochs": 3}, ...}``.
-
-    Values are TOML (numbers, true/false, quoted strings, arrays); a bare word is a string.
-    """
-    import tomllib
-
-    out: dict[str, dict] = {}
-    for item in items or []:
-        key, sep, text = item.partition("=")
-        section, dot, name = key.strip().partition(".")
-        if not sep or not dot or not name:
-            raise ValueError(f"--set {item!r}: expected section.field=value, e.g. train.epochs=3")
-        try:
-            value = tomllib.loads(f"v = {text.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = text.strip()
-        out.setdefault(section, {})[name] = value
-    return out
-
-
 _DEBUG = False
 """``--debug``: bad input raises with its traceback instead of the one-line error."""
 
@@ -193,9 +172,9 @@ def recorded_command(ctx: typer.Context) -> str:
 
 
 def _config(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):
-    from cloudpose.config import resolve
+    from cloudpose.config import parse_overrides, resolve
 
-    overrides: dict = parse_sets(sets)
+    overrides: dict = parse_overrides(sets)
     if data:
         overrides.setdefault("data", {})["root"] = data
     train = {k: v for k, v in train.items() if v is not None}
@@ -763,10 +742,11 @@ def baseline(
     A finished run of the same method, preset, seed, data, settings, split and subsample is
     shown, not computed again (``--rerun`` computes a new one)."""
     from cloudpose.baselines.run import run_baseline
+    from cloudpose.config import parse_overrides
 
     overrides = {
         k: v
-        for section in parse_sets([f"b.{s}" for s in set_ or []]).values()
+        for section in parse_overrides([f"b.{s}" for s in set_ or []]).values()
         for k, v in section.items()
     }
     out = run_baseline(
@@ -838,8 +818,9 @@ def ablate(
     Prints its plan first: frames to render, runs to train and those finished before, time."""
     from cloudpose.ablate import plan_group, resolve_claims, run_group
     from cloudpose.cluster import RayOptions
+    from cloudpose.config import parse_overrides
 
-    overrides = parse_sets(set_) or None
+    overrides = parse_overrides(set_) or None
     plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
     typer.echo(plan.text())
     if dry_run:

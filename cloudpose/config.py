@@ -504,6 +504,28 @@ def _apply(cfg: Config, delta: dict[str, dict[str, Any]]) -> Config:
     return dataclasses.replace(cfg, **changes)
 
 
+def parse_overrides(items: list[str] | None) -> dict[str, dict]:
+    """The ``--set`` grammar: ``["train.epochs=3", "data.classes=['011_banana']"]`` ->
+    ``{"train": {"epochs": 3}, "data": {"classes": ["011_banana"]}}``, for :func:`resolve`.
+
+    Values are TOML (numbers, true/false, quoted strings, arrays); a bare word is a string.
+    """
+    import tomllib
+
+    out: dict[str, dict] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not name:
+            raise ValueError(f"--set {item!r}: expected section.field=value, e.g. train.epochs=3")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out.setdefault(section, {})[name] = value
+    return out
+
+
 def resolve(
     variant: str = "shared-0",
     preset: str = "cpu",

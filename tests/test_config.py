@@ -298,9 +298,9 @@ def test_new_training_fields_are_checked():
 
 
 def test_cli_set_parses_toml_values():
-    from cloudpose.cli import parse_sets
+    from cloudpose.config import parse_overrides
 
-    got = parse_sets(
+    got = parse_overrides(
         [
             "train.epochs=3",
             "model.rotation_input=centred",
@@ -318,7 +318,7 @@ def test_cli_set_parses_toml_values():
     cfg = resolve("shared-0", "smoke", 1, got)
     assert cfg.data.classes == ("011_banana", "025_mug") and cfg.train.epochs == 3
     with pytest.raises(ValueError, match=r"section\.field=value"):
-        parse_sets(["epochs=3"])
+        parse_overrides(["epochs=3"])
 
 
 def test_override_values_must_have_their_fields_type():
