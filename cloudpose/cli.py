@@ -502,11 +502,11 @@ def evaluate(
     progress: ProgressOpt = True,
 ) -> None:
     """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
-    if bop_csv is not None and bop_csv.is_dir():
-        raise ValueError(f"--bop-csv {bop_csv}: is a folder; expected a CSV file to write")
-    if bop_csv is not None and bop_csv.exists() and not force:
-        raise ValueError(f"--bop-csv {bop_csv}: exists; pass --force to overwrite it")
+    from cloudpose.data.bop import check_results_destination, write_evaluation_csv
     from cloudpose.evaluate import evaluate as evaluate_fn
+
+    if bop_csv is not None:
+        check_results_destination(bop_csv, force)
     from cloudpose.evaluate import evaluate_real
     from cloudpose.refine import ICPSettings
 
@@ -525,16 +525,7 @@ def evaluate(
     if show_instances:
         typer.echo(out.table.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
     if bop_csv is not None:
-        from cloudpose.data.bop import check_results_csv, write_results_csv
-
-        method = "icp" if icp else "net"
-        ms = out.metrics[f"{out.name}/net_ms_per_object"]
-        if icp:
-            ms += out.metrics[f"{out.name}/icp_ms_per_object"]
-        n = write_results_csv(out.table, bop_csv, method, seconds_per_object=ms / 1000)
-        problems = check_results_csv(bop_csv)
-        if problems:
-            raise ValueError(f"{bop_csv} fails the BOP format check: {problems[0]}")
+        n, method = write_evaluation_csv(out, bop_csv, icp)
         typer.echo(f"{bop_csv}: {n} poses ({method}) in the BOP results format")
 
 

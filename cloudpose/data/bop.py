@@ -75,11 +75,13 @@ __all__ = [
     "ExportSummary",
     "bop_ids",
     "check_results_csv",
+    "check_results_destination",
     "export_bop",
     "frame_id_of",
     "is_bop_root",
     "model_origin",
     "read_ply_vertices",
+    "write_evaluation_csv",
     "write_results_csv",
 ]
 
@@ -789,6 +791,42 @@ def write_results_csv(
         )
     atomic_text(path, "\n".join(lines) + "\n")
     return len(lines) - 1
+
+
+def check_results_destination(path: str | Path, force: bool = False) -> Path:
+    """``path`` as a place to write a results CSV: not a folder, and not an existing file
+    unless ``force`` (ValueError naming it otherwise); checked before any evaluation."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"--bop-csv {path}: is a folder; expected a CSV file to write")
+    if path.exists() and not force:
+        raise ValueError(f"--bop-csv {path}: exists; pass --force to overwrite it")
+    return path
+
+
+def write_evaluation_csv(evaluation, path: str | Path, icp: bool) -> tuple[int, str]:
+    """An evaluation's poses as a checked BOP results CSV: the ICP-refined poses when ``icp``
+    (else the network's), timed by the evaluation's mean ms per object (network + ICP).
+
+    Args:
+        evaluation: a :class:`cloudpose.evaluate.EvalOutcome` (its ``table``, ``metrics``
+            and ``name``).
+        path: CSV to write.
+        icp: write the poses after ICP.
+
+    Returns:
+        (lines written, the method written: "icp" or "net"). Raises ValueError when the file
+        fails :func:`check_results_csv`.
+    """
+    method = "icp" if icp else "net"
+    ms = evaluation.metrics[f"{evaluation.name}/net_ms_per_object"]
+    if icp:
+        ms += evaluation.metrics[f"{evaluation.name}/icp_ms_per_object"]
+    n = write_results_csv(evaluation.table, path, method, seconds_per_object=ms / 1000)
+    problems = check_results_csv(path)
+    if problems:
+        raise ValueError(f"{path} fails the BOP format check: {problems[0]}")
+    return n, method
 
 
 def check_results_csv(path: str | Path, rotation_tol: float = 1e-4) -> list[str]:
