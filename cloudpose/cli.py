@@ -433,15 +433,9 @@ def train(
     )
     if nproc > 1:
         import shlex
-        import subprocess
-        import sys
 
         args = shlex.split(recorded_command(ctx))[1:]
-        i = args.index("--nproc")
-        del args[i : i + 2]
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
-        cmd += ["--nproc_per_node", str(nproc), "-m", "cloudpose.cli", *args]
-        raise typer.Exit(subprocess.run(cmd, check=False).returncode)
+        raise typer.Exit(distributed.relaunch_under_torchrun(args, nproc))
     with distributed.from_env() as world:
         out = train_run(cfg, group=group, progress=progress, world=world)
     if world.is_main:

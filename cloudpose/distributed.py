@@ -43,6 +43,7 @@ __all__ = [
     "from_env",
     "global_mean",
     "local_batch_stats",
+    "relaunch_under_torchrun",
     "sync_batch_stats",
 ]
 
@@ -164,6 +165,27 @@ def from_env(timeout_min: float = 60.0) -> Iterator[World]:
         )
     finally:
         dist.destroy_process_group()
+
+
+def relaunch_under_torchrun(args: list[str], nproc: int) -> int:
+    """Run ``cloudpose ARGS`` again as ``nproc`` processes of one torchrun (standalone, this
+    machine) and return its exit code; the ``--nproc N`` pair is dropped from ``args``.
+
+    Args:
+        args: the command's arguments after ``cloudpose`` (e.g. ``["train", "--nproc", "2",
+            "--preset", "smoke"]``).
+        nproc: processes to start.
+    """
+    import subprocess
+    import sys
+
+    args = list(args)
+    if "--nproc" in args:
+        i = args.index("--nproc")
+        del args[i : i + 2]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    cmd += ["--nproc_per_node", str(nproc), "-m", "cloudpose.cli", *args]
+    return subprocess.run(cmd, check=False).returncode
 
 
 def all_reduce_sum(t: torch.Tensor, group: Any) -> torch.Tensor:

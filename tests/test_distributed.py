@@ -151,3 +151,24 @@ def test_torchrun_two_processes_follow_one_process(tmp_path, smoke_data, monkeyp
     runs = tracking.find_runs(tracking.setup(two), status=None)
     assert [r.info.status for r in runs] == ["FINISHED"]
     assert read_info(next((two / "runs").glob("shared-1/smoke/seed2-*")))["finished"]
+
+
+def test_nproc_relaunches_the_same_command_under_torchrun(monkeypatch):
+    import subprocess
+
+    from cloudpose.distributed import relaunch_under_torchrun
+
+    seen = {}
+
+    def fake_run(cmd, check):
+        seen["cmd"] = cmd
+        return subprocess.CompletedProcess(cmd, 3)
+
+    monkeypatch.setattr(subprocess, "run", fake_run)
+    args = ["train", "--preset", "smoke", "--nproc", "2", "--seed", "4"]
+    assert relaunch_under_torchrun(args, 2) == 3  # torchrun's exit code is the command's
+    cmd = seen["cmd"]
+    assert cmd[1:5] == ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node"]
+    assert cmd[5] == "2" and cmd[6:8] == ["-m", "cloudpose.cli"]
+    assert cmd[8:] == ["train", "--preset", "smoke", "--seed", "4"]  # --nproc 2 dropped
+    assert args[3] == "--nproc"  # the caller's list is left as it was
