@@ -881,6 +881,21 @@ def ablate_masks(
     )
 
 
+def _serve_until_interrupted(cmd: list[str], env: dict[str, str], what: str) -> None:
+    """Run a server that serves until interrupted (which ends this command too): any return of
+    its own is a failure, said in one line, with its exit code (1 if it gave none)."""
+    import os
+    import subprocess
+
+    code = subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode
+    typer.secho(
+        f"error: the {what} stopped (exit code {code}); its output above says why",
+        fg=typer.colors.RED,
+        err=True,
+    )
+    raise typer.Exit(code if code > 0 else 1)
+
+
 @app.command("mlflow-server")
 def mlflow_server(
     backend: Annotated[
@@ -899,8 +914,6 @@ def mlflow_server(
 ) -> None:
     """An MLflow tracking server (SQL backend, artifacts served through it) for several
     machines; clients set MLFLOW_TRACKING_URI=http://HOST:PORT."""
-    import os
-    import subprocess
 
     from cloudpose.cluster import check_port_free
     from cloudpose.tracking import server_command
@@ -912,15 +925,7 @@ def mlflow_server(
         backend = f"sqlite:///{root / 'mlflow.db'}"
     cmd, env = server_command(backend, artifacts or root / "artifacts", host, port)
     typer.echo(f"MLflow server on http://{host}:{port} (store {backend})")
-    code = subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode
-    # it serves until interrupted (which ends this command too): any return is a failure
-    typer.secho(
-        f"error: the MLflow server on {host}:{port} stopped (exit code {code}); "
-        "its output above says why",
-        fg=typer.colors.RED,
-        err=True,
-    )
-    raise typer.Exit(code if code > 0 else 1)
+    _serve_until_interrupted(cmd, env, f"MLflow server on {host}:{port}")
 
 
 @app.command("mlflow-ui")
@@ -940,7 +945,6 @@ def mlflow_ui(
     the saved view "variants" on every cloudpose experiment (experiment tags), and prints each
     experiment's address."""
     import os
-    import subprocess
 
     from cloudpose import headline, tracking
 
@@ -974,15 +978,9 @@ def mlflow_ui(
         return
     typer.echo(f"MLflow UI on {base} (store {uri}); Ctrl-C ends it")
     cmd = headline.ui_command(uri, host, port)
-    env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
-    code = subprocess.run(cmd, env=env, check=False).returncode
-    typer.secho(
-        f"error: the MLflow UI on {host}:{port} stopped (exit code {code}); its output above "
-        "says why",
-        fg=typer.colors.RED,
-        err=True,
+    _serve_until_interrupted(
+        cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}"
     )
-    raise typer.Exit(code if code > 0 else 1)
 
 
 @app.command()
