@@ -193,3 +193,37 @@ def smoke_project(smoke_run, monkeypatch):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     monkeypatch.chdir(proj)
     return proj, out
+
+
+@pytest.fixture(scope="module")
+def empty_store(tmp_path_factory) -> Path:
+    """An empty, migrated MLflow SQLite store, made once per module (migrating one takes
+    seconds); copy its ``mlflow.db`` into a test's folder."""
+    from cloudpose import tracking
+
+    root = tmp_path_factory.mktemp("template")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
+        mp.chdir(root)
+        tracking.setup(root).search_experiments()
+    return root / "mlflow.db"
+
+
+def cli(*args: str):
+    """``cloudpose ARGS`` in this process (typer's test runner)."""
+    from typer.testing import CliRunner
+
+    from cloudpose.cli import app
+
+    return CliRunner().invoke(app, list(args))
+
+
+def one_line_error(res, *needles: str) -> str:
+    """The error of a failed command: exit 2, one line, no traceback, holding ``needles``."""
+    assert res.exit_code == 2, res.output
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
+    assert "Traceback" not in res.output
+    for n in needles:
+        assert n in lines[0], lines[0]
+    return lines[0]

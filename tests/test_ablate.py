@@ -80,17 +80,6 @@ class Fakes:
         return types.SimpleNamespace(metrics=metrics, run_id=run_id)
 
 
-@pytest.fixture(scope="module")
-def empty_store(tmp_path_factory) -> Path:
-    """An empty, migrated MLflow SQLite store, made once (migrating one takes seconds)."""
-    root = tmp_path_factory.mktemp("template")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
-        mp.chdir(root)
-        tracking.setup(root).search_experiments()
-    return root / "mlflow.db"
-
-
 @pytest.fixture
 def fakes(tmp_path, monkeypatch, empty_store):
     shutil.copy(empty_store, tmp_path / "mlflow.db")

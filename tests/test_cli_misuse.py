@@ -14,10 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from typer.testing import CliRunner
 
 from cloudpose import tracking
-from cloudpose.cli import app
+from tests.conftest import cli, one_line_error
 
 DATA = Path(__file__).parent / "data"
 
@@ -25,21 +24,6 @@ DATA = Path(__file__).parent / "data"
 @pytest.fixture
 def project(smoke_project):
     return smoke_project
-
-
-def cli(*args: str):
-    return CliRunner().invoke(app, list(args))
-
-
-def one_line_error(res, *needles: str) -> str:
-    """The error of a failed command: exit 2, one line on stderr, no traceback."""
-    assert res.exit_code == 2, res.output
-    lines = [line for line in res.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    assert "Traceback" not in res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
-    return lines[0]
 
 
 @pytest.mark.slow

@@ -21,17 +21,6 @@ from cloudpose.config import get_group, groups, groups_of, resolve
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-@pytest.fixture(scope="module")
-def empty_store(tmp_path_factory) -> Path:
-    """An empty, migrated MLflow SQLite store, made once (migrating one takes seconds)."""
-    root = tmp_path_factory.mktemp("template")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
-        mp.chdir(root)
-        tracking.setup(root).search_experiments()
-    return root / "mlflow.db"
-
-
 @pytest.fixture
 def project(tmp_path, monkeypatch, empty_store) -> Path:
     shutil.copy(empty_store, tmp_path / "mlflow.db")

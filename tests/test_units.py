@@ -11,30 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from typer.testing import CliRunner
 
-from cloudpose.cli import app
 from cloudpose.config import resolve
 from cloudpose.data.bop import export_bop
 from cloudpose.data.cache import SegmentSet, prepare, segments_for
 from cloudpose.data.segments import UNIT_CHECK_OFF, UnitWarning
+from tests.conftest import cli, one_line_error
 
 REAL = Path(__file__).parent / "data" / "ycb_real"
 FID = "0000/000001"
-
-
-def cli(*args: str):
-    return CliRunner().invoke(app, list(args))
-
-
-def one_line_error(res, *needles: str) -> str:
-    """The error of a failed command: exit 2, one line, no traceback."""
-    assert res.exit_code == 2, res.output
-    lines = [line for line in res.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
-    return lines[0]
 
 
 def _ycb_copy(dest: Path, depth_divisor: int = 1) -> Path:
