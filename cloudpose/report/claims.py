@@ -205,29 +205,46 @@ class _Measure:
         self.per_instance = per_instance
         self._asym: set[str] | None = None
         self._keys: pd.Index | None = None
+        self._tables: dict[str, pd.DataFrame | None] = {}
+        self._values: dict[tuple[str, str, str], dict[int, np.ndarray]] = {}
+
+    def _table(self, run) -> pd.DataFrame | None:
+        """The run's test instance table sorted by (frame, instance), read and checked once;
+        None when it is missing or covers other instances than the first table read."""
+        if run.run_id not in self._tables:
+            df = run.instances("test")
+            if df is not None and {"frame_id", "instance"} <= set(df.columns):
+                df = df.sort_values(["frame_id", "instance"], kind="stable")
+                keys = pd.Index(df["frame_id"].astype(str) + "#" + df["instance"].astype(str))
+                if self._keys is None:
+                    self._keys = keys
+                elif not keys.equals(self._keys):
+                    df = None
+            else:
+                df = None
+            self._tables[run.run_id] = df
+        return self._tables[run.run_id]
 
     def instance_values(self, variant: str, prefix: str, metric: str) -> dict[int, np.ndarray]:
         """seed -> (N,) per-instance values of ``metric``'s column; {} when any run of
         ``variant`` lacks its table or the tables do not cover the same instances."""
+        key = (variant, prefix, metric)
+        if key not in self._values:
+            self._values[key] = self._instance_values(variant, prefix, metric)
+        return self._values[key]
+
+    def _instance_values(self, variant: str, prefix: str, metric: str) -> dict[int, np.ndarray]:
         spec = _SPECS.get(metric)
         if spec is None or prefix not in _PREFIX_COLUMNS or not self.per_instance:
             return {}
         column = _PREFIX_COLUMNS[prefix] + spec[0]
+        asym = metric.startswith("rot_asym_")
         out = {}
         for r in self.runs.of(variant):
-            df = r.instances("test")
-            need = {column, "frame_id", "instance"} | (
-                {"class"} if metric.startswith("rot_asym_") else set()
-            )
-            if df is None or not need <= set(df.columns):
+            df = self._table(r)
+            if df is None or column not in df or (asym and "class" not in df):
                 return {}
-            df = df.sort_values(["frame_id", "instance"], kind="stable")
-            keys = pd.Index(df["frame_id"].astype(str) + "#" + df["instance"].astype(str))
-            if self._keys is None:
-                self._keys = keys
-            elif not keys.equals(self._keys):
-                return {}
-            if metric.startswith("rot_asym_"):
+            if asym:
                 if self._asym is None:
                     self._asym = _asymmetric_classes()
                 keep = df["class"].isin(self._asym).to_numpy()
