@@ -423,14 +423,3 @@ def auc_of_rows(x: np.ndarray) -> np.ndarray:
     from cloudpose.metrics.summaries import voc_ap_auc
 
     return np.array([voc_ap_auc(row) for row in np.atleast_2d(x)])
-
-
-def verdict(low: float, high: float, expect: int = 1) -> str:
-    """Direction only: supported, contradicted or not resolved (see :func:`classify`)."""
-    if not (np.isfinite(low) and np.isfinite(high)):
-        return UNRESOLVED
-    if low > 0:
-        return SUPPORTED if expect > 0 else CONTRADICTED
-    if high < 0:
-        return SUPPORTED if expect < 0 else CONTRADICTED
-    return UNRESOLVED
