@@ -219,25 +219,37 @@ def symmetries(
             help="Also compare with a BOP ycbv root's models/models_info.json (or that file)."
         ),
     ] = None,
+    table_version: Annotated[
+        int,
+        typer.Option(
+            "--table", help="Table version (a run's loss.symmetry_table): 1 or 2 (module doc)."
+        ),
+    ] = 2,
 ) -> None:
     """Print each class's symmetries as seen in depth (the table the losses and metrics use)."""
     import json
 
     from cloudpose.conventions import resource_path
     from cloudpose.data.ycb import load_classes
-    from cloudpose.geometry.symmetry import SYMMETRY_FILE, build_table, symmetry_from_json
+    from cloudpose.geometry.symmetry import (
+        SYMMETRY_TABLES,
+        build_table,
+        check_table_version,
+        symmetry_from_json,
+    )
 
-    table = build_table(load_classes(resource_path("classes.txt")))
+    path = SYMMETRY_TABLES[check_table_version(table_version, "--table")]
+    table = build_table(load_classes(resource_path("classes.txt")), table_version)
     for name, entry in table["classes"].items():
         typer.echo(f"{name:<24} {symmetry_from_json(entry).describe()}")
     text = json.dumps(table, indent=1) + "\n"
     if write:
-        SYMMETRY_FILE.write_text(text)
-        typer.echo(f"wrote {SYMMETRY_FILE}")
-    elif SYMMETRY_FILE.read_text() != text:
-        raise ValueError(f"{SYMMETRY_FILE} differs from the models' symmetries; run with --write")
+        path.write_text(text)
+        typer.echo(f"wrote {path}")
+    elif not path.is_file() or path.read_text() != text:
+        raise ValueError(f"{path} differs from the models' symmetries; run with --write")
     else:
-        typer.echo(f"{SYMMETRY_FILE} matches")
+        typer.echo(f"{path} matches")
     if bop is not None:
         from cloudpose.geometry.symmetry import bop_symmetry_disagreements
 

@@ -43,8 +43,10 @@ def instance_table(
     estimates: dict[str, Estimates],
     models_by_class: dict[int, np.ndarray],
     class_names: list[str],
+    symmetry_table: int = 1,
 ) -> pd.DataFrame:
-    """Per-instance errors for each method in ``estimates`` (``net``, ``icp``)."""
+    """Per-instance errors for each method in ``estimates`` (``net``, ``icp``); rotation errors
+    modulo symmetry by table ``symmetry_table`` (``loss.symmetry_table``)."""
     miss = ~np.asarray(segs.valid, dtype=bool)
     df = pd.DataFrame(
         {
@@ -75,7 +77,7 @@ def instance_table(
         df[f"{method}_R"] = _number_lists(est.R.reshape(-1, 9), miss)
         df[f"{method}_t"] = _number_lists(est.t, miss)
         df[f"{method}_rot_sym_err_deg"] = rotation_errors_modulo_symmetry(
-            segs.cls_id, segs.R, R_est, class_names, miss
+            segs.cls_id, segs.R, R_est, class_names, miss, table=symmetry_table
         )
     return df
 
@@ -325,7 +327,9 @@ def evaluate(
         t0 = time.monotonic()
         est["icp"], stats = refine_poses(segs, est["net"], models_by_class, icp_settings, progress)
         t_icp = time.monotonic() - t0
-    table = instance_table(segs, est, models_by_class, dataset.classes)
+    table = instance_table(
+        segs, est, models_by_class, dataset.classes, symmetry_table=cfg.loss.symmetry_table
+    )
     if icp:
         table["icp_fitness"] = stats.fitness
         table["icp_inlier_rmse"] = stats.inlier_rmse

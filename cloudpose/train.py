@@ -322,7 +322,7 @@ def _train(
     class_names = list(dataset.classes)
     symmetry = None
     if cfg.loss.symmetric:
-        symmetry = SymmetryTensors(symmetries_for(class_names)).to(device)
+        symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)
     # A fixed sample of training segments: eval- vs train-mode error on the same segments.
     probe = fit.subset(torch.randperm(len(fit), generator=torch.Generator().manual_seed(0))[:512])
 

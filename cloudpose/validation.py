@@ -80,7 +80,9 @@ def validate(
         "trans_lt_1cm": float(np.mean(trans < 0.01)),
     }
     if class_names is not None:
-        sym = rotation_errors_modulo_symmetry(cls_id, R_gt, R_est, class_names)
+        sym = rotation_errors_modulo_symmetry(
+            cls_id, R_gt, R_est, class_names, table=cfg.loss.symmetry_table
+        )
         out.update(
             {
                 "rot_sym_err_median_deg": float(np.median(sym)),

@@ -292,7 +292,9 @@ def run_baseline(
         t0 = time.perf_counter()
         est["icp"], _ = refine_poses(segs, est["net"], models, progress=progress)
         t_icp = time.perf_counter() - t0
-    table = instance_table(segs, est, models, dataset.classes)
+    table = instance_table(
+        segs, est, models, dataset.classes, symmetry_table=cfg.loss.symmetry_table
+    )
     metrics = summary_metrics(table, split)
     if split == "real":
         metrics.update(video_metrics(table, split))
@@ -302,6 +304,7 @@ def run_baseline(
         metrics[f"{split}/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
     metrics[f"{split}/failures"] = float(failures)
     data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
+    data_params["loss.symmetry_table"] = cfg.loss.symmetry_table  # the rotation metric's table
     if data is not None:
         data_params["data.root"] = str(Path(data).resolve())
     run_id = (
