@@ -92,6 +92,7 @@ def pose_loss(
     symmetry: SymmetryTensors | None = None,
     cls_id: torch.Tensor | None = None,
     symmetric: bool = False,
+    symmetry_table: int = 1,
 ) -> LossTerms:
     """The training loss ``alpha * mean(l_t) + mean(l_r)``.
 
@@ -111,8 +112,9 @@ def pose_loss(
             rotation vector of the equivalent ground truth nearest to the prediction
             (:meth:`SymmetryTensors.closest_ground_truth`).
         cls_id: (B,) 1-based class ids, for ``symmetry``.
-        symmetric: ``LossConfig.symmetric``; without ``symmetry``, the packaged table of the
-            21 YCB-Video classes (ids in ``classes.txt`` order).
+        symmetric: ``LossConfig.symmetric``; without ``symmetry``, the packaged table
+            ``symmetry_table`` of the 21 YCB-Video classes (ids in ``classes.txt`` order).
+        symmetry_table: ``LossConfig.symmetry_table``, the packaged table's version.
 
     Returns:
         :class:`LossTerms` of scalars: total, rotation (rad), translation (m).
@@ -123,7 +125,7 @@ def pose_loss(
     if rotation not in ROTATION_LOSSES:
         raise ValueError(f"pose_loss: rotation must be one of {ROTATION_LOSSES}, got {rotation!r}")
     if symmetric and symmetry is None:
-        symmetry = ycb_symmetry_tensors().to(R_pred.device)
+        symmetry = ycb_symmetry_tensors(symmetry_table).to(R_pred.device)
     _check_shape("R_pred", R_pred, (3, 3))
     _check_shape("R_gt", R_gt, (3, 3))
     _check_shape("t_pred", t_pred, (3,))
@@ -164,13 +166,13 @@ def pose_loss(
 
 
 @functools.cache
-def ycb_symmetry_tensors() -> SymmetryTensors:
-    """The packaged symmetry table for the 21 YCB-Video class ids, as loss tensors."""
+def ycb_symmetry_tensors(table: int = 1) -> SymmetryTensors:
+    """The packaged symmetry table ``table`` for the 21 YCB-Video class ids, as loss tensors."""
     from cloudpose.conventions import resource_path
     from cloudpose.data.ycb import load_classes
     from cloudpose.geometry.symmetry import symmetries_for
 
-    return SymmetryTensors(symmetries_for(load_classes(resource_path("classes.txt"))))
+    return SymmetryTensors(symmetries_for(load_classes(resource_path("classes.txt")), table))
 
 
 def _check_shape(name: str, x: torch.Tensor, tail: tuple[int, ...]) -> None:

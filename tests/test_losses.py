@@ -116,6 +116,31 @@ def test_pose_loss_accepts_loss_config_fields():
     torch.testing.assert_close(terms.total, torch.tensor(0.4, dtype=torch.float64))
 
 
+def test_the_loss_modulo_symmetry_follows_the_configured_table():
+    """A pudding box turned by a half turn about one of its in-plane axes: a real symmetry
+    that table 1 misses (nearly pi of loss) and table 2 finds (zero loss)."""
+    from cloudpose.conventions import resource_path
+    from cloudpose.data.ycb import load_classes
+    from cloudpose.geometry.symmetry import load_symmetries
+
+    cls = load_classes(resource_path("classes.txt")).index("008_pudding_box") + 1
+    group = load_symmetries(2)["008_pudding_box"].discrete
+    S = next(G for G in group if G[2, 2] < -0.9)  # a half turn that reverses the model z
+    R_gt = torch.eye(3, dtype=torch.float64)[None]
+    R_pred = torch.from_numpy(S)[None]
+    t = torch.zeros(1, 3, dtype=torch.float64)
+    cls_id = torch.tensor([cls])
+    losses = {
+        table: float(
+            pose_loss(
+                R_pred, t, R_gt, t, symmetric=True, symmetry_table=table, cls_id=cls_id
+            ).rotation
+        )
+        for table in (1, 2)
+    }
+    assert losses[1] > 2.5 and losses[2] < 1e-6, losses
+
+
 def test_pose_loss_errors():
     args = _pose_pair()
     with pytest.raises(ValueError, match=r"one of \('geodesic', 'l2'\).*'cosine'"):
