@@ -227,36 +227,14 @@ def symmetries(
     ] = 2,
 ) -> None:
     """Print each class's symmetries as seen in depth (the table the losses and metrics use)."""
-    import json
+    from cloudpose.geometry.symmetry import bop_disagreements_at, symmetry_from_json, sync_table
 
-    from cloudpose.conventions import resource_path
-    from cloudpose.data.ycb import load_classes
-    from cloudpose.geometry.symmetry import (
-        SYMMETRY_TABLES,
-        build_table,
-        check_table_version,
-        symmetry_from_json,
-    )
-
-    path = SYMMETRY_TABLES[check_table_version(table_version, "--table")]
-    table = build_table(load_classes(resource_path("classes.txt")), table_version)
-    for name, entry in table["classes"].items():
+    synced = sync_table(table_version, write)
+    for name, entry in synced.table["classes"].items():
         typer.echo(f"{name:<24} {symmetry_from_json(entry).describe()}")
-    text = json.dumps(table, indent=1) + "\n"
-    if write:
-        path.write_text(text)
-        typer.echo(f"wrote {path}")
-    elif not path.is_file() or path.read_text() != text:
-        raise ValueError(f"{path} differs from the models' symmetries; run with --write")
-    else:
-        typer.echo(f"{path} matches")
+    typer.echo(f"{'wrote' if write else 'checked'} {synced.path}: matches the models")
     if bop is not None:
-        from cloudpose.geometry.symmetry import bop_symmetry_disagreements
-
-        path = bop / "models" / "models_info.json" if bop.is_dir() else bop
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: BOP models_info.json not found")
-        diffs = bop_symmetry_disagreements(json.loads(path.read_text()), list(table["classes"]))
+        path, diffs = bop_disagreements_at(bop, list(synced.table["classes"]))
         for line in diffs:
             typer.echo(f"differs from BOP: {line}")
         typer.echo(f"{path}: {len(diffs)} classes differ from the table")

@@ -220,13 +220,16 @@ def test_symmetry_cross_check_reports_disagreements():
             "symmetries_discrete": [_flip_x()],
         },  # a can with flip: agrees
         "13": {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]},  # bowl
-        "8": {"symmetries_discrete": [_turn_z(180)]},  # gelatin box: half-turn about z
+        "8": {"symmetries_discrete": [_turn_z(180)]},  # gelatin box: table 2 has 3 half-turns
         "14": {"symmetries_discrete": [_turn_z(180)]},  # mug: none in the table
         "5": {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]},  # can, no flip
         "2": {"symmetries_discrete": [_flip_x()]},  # box: the table has 3 half-turns
     }
     diffs = bop_symmetry_disagreements(info, names)
-    assert len(diffs) == 3, diffs
+    assert len(diffs) == 4, diffs
+    assert any(d.startswith("009_gelatin_box (obj 8): different rotations") for d in diffs)
+    # table 1 turned the gelatin box about z only, as this file does
+    assert len(bop_symmetry_disagreements(info, names, table=1)) == 3
     assert any(d.startswith("025_mug (obj 14): different kind") for d in diffs)
     assert any(d.startswith("006_mustard_bottle (obj 5): different kind") for d in diffs)
     assert any(d.startswith("003_cracker_box (obj 2): different rotations") for d in diffs)
@@ -368,3 +371,31 @@ def test_a_scene_without_ground_truth_is_named_not_left_out(bop_real, tmp_path):
     assert BOPYcbv(root).image_set("keyframe") == [FID]  # the targets name scene 0 only
     shutil.rmtree(bare)
     assert BOPYcbv(root).image_set("all") == [FID]
+
+
+def test_exported_symmetries_map_each_model_onto_itself_in_the_bop_frame():
+    """A symmetry about a centre off the bounding-box centre (the clamp's turn about its
+    centroid) is exported with its translation: the 4x4 maps the BOP-frame model points onto
+    themselves, as BOP's own symmetries do."""
+    from scipy.spatial import cKDTree
+
+    from cloudpose.conventions import resource_path
+    from cloudpose.data.bop import model_origin, models_info
+    from cloudpose.data.ycb import load_classes
+
+    names = load_classes(resource_path("classes.txt"))
+    pick = [names.index(n) + 1 for n in ("051_large_clamp", "008_pudding_box", "011_banana")]
+    models = {c: np.loadtxt(resource_path("models", names[c - 1], "points.xyz")) for c in pick}
+    info = models_info(models, names)
+    for c in pick:
+        V = (models[c] - model_origin(models[c])) * 1000.0  # mm, BOP frame
+        diameter = info[str(c)]["diameter"]
+        assert info[str(c)].get("symmetries_discrete"), names[c - 1]
+        for m in info[str(c)]["symmetries_discrete"]:
+            T = np.asarray(m).reshape(4, 4)
+            d, _ = cKDTree(V).query(V @ T[:3, :3].T + T[:3, 3])
+            assert np.percentile(d, 95) < 0.06 * diameter, names[c - 1]
+            # without the translation the clamp's turn would not map it onto itself
+            if names[c - 1] == "051_large_clamp":
+                d0, _ = cKDTree(V).query(V @ T[:3, :3].T)
+                assert np.percentile(d0, 95) > 2 * np.percentile(d, 95)

@@ -12,7 +12,6 @@ from scipy.spatial.transform import Rotation
 from cloudpose.conventions import resource_path
 from cloudpose.data.ycb import load_classes
 from cloudpose.geometry.symmetry import (
-    SYMMETRY_FILE,
     SYMMETRY_TABLES,
     SymmetryTensors,
     build_table,

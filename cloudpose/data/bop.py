@@ -535,15 +535,22 @@ def _png(path: Path, array: np.ndarray, mode: str | None = None) -> None:
     atomic_write(path, lambda p: img.save(p, format="PNG"))
 
 
+EXPORT_SYMMETRY_TABLE = 2
+"""The symmetry table the exported ``models_info.json`` carries (``cloudpose.geometry.symmetry``)."""
+
+
 def models_info(models: dict[int, np.ndarray], class_names: list[str]) -> dict:
     """BOP ``models_info.json`` of toolbox model points in the BOP frame (module doc): diameter
-    and bounding box in millimetres, and the package's symmetry table as BOP writes symmetries
-    (rotations about the origin, which is the table's centre)."""
+    and bounding box in millimetres, and the package's symmetry table
+    (:data:`EXPORT_SYMMETRY_TABLE`) as BOP writes symmetries: a rotation ``S`` about the table's
+    centre ``c`` is, in the BOP frame centred on the bounding box ``o``, the 4x4 transform with
+    rotation ``S`` and translation ``1000 (I - S)(c - o)`` mm; a continuous axis passes through
+    the offset ``1000 (c - o)`` mm."""
     from scipy.spatial.distance import pdist
 
     from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
 
-    syms = symmetries_for(list(class_names))
+    syms = symmetries_for(list(class_names), EXPORT_SYMMETRY_TABLE)
     info = {}
     for c, pts in sorted(models.items()):
         V = (pts - model_origin(pts)) * 1000.0
@@ -553,13 +560,19 @@ def models_info(models: dict[int, np.ndarray], class_names: list[str]) -> dict:
         entry.update({f"size_{a}": float(hi[i] - lo[i]) for i, a in enumerate("xyz")})
         s = syms[c - 1]
         rots = list(s.discrete[1:])
+        shift = (s.centre - model_origin(pts)) * 1000.0  # (3,) the centre in the BOP frame, mm
         if s.axis is not None:
-            entry["symmetries_continuous"] = [{"axis": s.axis.tolist(), "offset": [0, 0, 0]}]
+            entry["symmetries_continuous"] = [
+                {"axis": s.axis.tolist(), "offset": np.round(shift, 6).tolist()}
+            ]
             if s.flip:
                 rots.append(flip_rotation(s.axis))
         if rots:
             entry["symmetries_discrete"] = [
-                np.round(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]), 12)
+                np.round(
+                    np.block([[R, ((np.eye(3) - R) @ shift)[:, None]], [np.zeros((1, 3)), 1.0]]),
+                    12,
+                )
                 .ravel()
                 .tolist()
                 for R in rots

@@ -57,6 +57,7 @@ import json
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -418,6 +419,34 @@ def build_table(class_names: list[str], version: int = 1) -> dict:
     }
 
 
+class TableSync(NamedTuple):
+    """What :func:`sync_table` did: the packaged file, the table built from the models, and
+    whether it was written (else checked)."""
+
+    path: Path
+    table: dict
+    written: bool
+
+
+def sync_table(version: int, write: bool = False) -> TableSync:
+    """Build table ``version`` from the packaged models and write it to its packaged file, or
+    check that the file holds exactly that (``cloudpose symmetries [--write]``).
+
+    Raises:
+        ValueError: an unknown version, or (checking) a file that differs, naming it.
+    """
+    from cloudpose.data.ycb import load_classes
+
+    path = SYMMETRY_TABLES[check_table_version(version, "--table")]
+    table = build_table(load_classes(resource_path("classes.txt")), version)
+    text = json.dumps(table, indent=1) + "\n"
+    if write:
+        path.write_text(text)
+    elif not path.is_file() or path.read_text() != text:
+        raise ValueError(f"{path} differs from the models' symmetries; run with --write")
+    return TableSync(path, table, write)
+
+
 # ---------------------------------------------------------------------------------------------
 # BOP's symmetries (models_info.json) against the table
 
@@ -466,7 +495,7 @@ def _same_rotations(A: np.ndarray, B: np.ndarray, tol_deg: float) -> bool:
 
 
 def bop_symmetry_disagreements(
-    models_info: dict, class_names: list[str], tol_deg: float = 5.0
+    models_info: dict, class_names: list[str], tol_deg: float = 5.0, table: int = 2
 ) -> list[str]:
     """Where the versioned table and BOP's ``models_info.json`` disagree about symmetries.
 
@@ -475,13 +504,14 @@ def bop_symmetry_disagreements(
             ``class_names[i - 1]`` (BOP ycbv numbers the YCB-Video classes in their order).
         class_names: the dataset's class names.
         tol_deg: rotations (and continuous axes) closer than this are the same.
+        table: the version of the symmetry table to compare.
 
     Returns:
         One line per class whose symmetries differ (kind, axis, flip, or the set of discrete
         rotations), naming both descriptions; empty when they agree. Objects the table does
         not know are reported too.
     """
-    table = load_symmetries()
+    table = load_symmetries(table)
     out = []
     for key in sorted(models_info, key=lambda k: int(k)):
         i = int(key)
@@ -508,6 +538,21 @@ def bop_symmetry_disagreements(
                 f"{_axis_text(ours)}, BOP {theirs.describe()}{_axis_text(theirs)}"
             )
     return out
+
+
+def bop_disagreements_at(
+    bop: Path, class_names: list[str], table: int = 2
+) -> tuple[Path, list[str]]:
+    """:func:`bop_symmetry_disagreements` of a BOP ycbv root's ``models/models_info.json`` (or
+    that file itself) against table ``table``: ``(the file read, one line per class)``.
+
+    Raises:
+        FileNotFoundError: no ``models_info.json`` there.
+    """
+    path = bop / "models" / "models_info.json" if bop.is_dir() else bop
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: BOP models_info.json not found")
+    return path, bop_symmetry_disagreements(json.loads(path.read_text()), class_names, table=table)
 
 
 def _axis_text(s: ClassSymmetry) -> str:
