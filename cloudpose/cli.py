@@ -909,13 +909,9 @@ def mlflow_server(
     from cloudpose.tracking import server_command
 
     check_port_free(host, port)
-    root = Path.cwd() / "mlflow-server"
-    if backend is None:
-        root.mkdir(exist_ok=True)
-        backend = f"sqlite:///{root / 'mlflow.db'}"
-    cmd, env = server_command(backend, artifacts or root / "artifacts", host, port)
-    typer.echo(f"MLflow server on http://{host}:{port} (store {backend})")
-    _serve_until_interrupted(cmd, env, f"MLflow server on {host}:{port}")
+    server = server_command(backend, artifacts, host, port)
+    typer.echo(f"MLflow server on http://{host}:{port} (store {server.backend})")
+    _serve_until_interrupted(server.argv, server.env, f"MLflow server on {host}:{port}")
 
 
 @app.command("mlflow-ui")

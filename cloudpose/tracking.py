@@ -22,7 +22,7 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 EXPERIMENT_PREFIX = "cloudpose-"
 _KEY_BAD = re.compile(r"[^A-Za-z0-9_\-./ ]")
@@ -51,26 +51,52 @@ def tracking_uri(project_dir: Path | None = None) -> str:
     return f"sqlite:///{root / 'mlflow.db'}"
 
 
+SERVER_FOLDER = "mlflow-server"
+"""The folder (in the working directory) of a tracking server's default SQLite store and
+artifacts."""
+
+
+class ServerCommand(NamedTuple):
+    """An ``mlflow server`` invocation: argv, environment variables to add, and its store."""
+
+    argv: list[str]
+    env: dict[str, str]
+    backend: str
+
+
 def server_command(
-    backend: str, artifacts: str | Path, host: str = "127.0.0.1", port: int = 5000, workers: int = 2
-) -> tuple[list[str], dict[str, str]]:
+    backend: str | None = None,
+    artifacts: str | Path | None = None,
+    host: str = "127.0.0.1",
+    port: int = 5000,
+    workers: int = 2,
+    root: Path | None = None,
+) -> ServerCommand:
     """The ``mlflow server`` command line of a tracking server for several machines.
 
     Args:
         backend: where runs, params and metrics are kept: any SQLAlchemy URI
-            (``sqlite:///abs/path.db``, ``postgresql://user:pw@host/db``).
+            (``sqlite:///abs/path.db``, ``postgresql://user:pw@host/db``); default SQLite
+            ``ROOT/mlflow-server/mlflow.db`` (the folder is made).
         artifacts: where artifacts are kept (a folder, or an object-store URI such as
             ``s3://bucket/prefix``); the server serves them (``--serve-artifacts``), so clients
-            need no access to it.
+            need no access to it. Default ``ROOT/mlflow-server/artifacts``.
         host: interface to bind (127.0.0.1: this machine only; 0.0.0.0: every interface).
         port: TCP port.
         workers: server processes.
+        root: where the default store lies; default the working directory.
 
     Returns:
-        argv (this interpreter's MLflow) and the environment variables to add to the server's:
-        MLflow's GenAI job runner off (it starts 8 processes that tracking never uses).
-        Clients then set ``MLFLOW_TRACKING_URI=http://HOST:PORT``.
+        argv (this interpreter's MLflow), the environment variables to add to the server's
+        (MLflow's GenAI job runner off: it starts 8 processes that tracking never uses) and
+        the backend. Clients then set ``MLFLOW_TRACKING_URI=http://HOST:PORT``.
     """
+    folder = (root or Path.cwd()) / SERVER_FOLDER
+    if backend is None:
+        folder.mkdir(parents=True, exist_ok=True)
+        backend = f"sqlite:///{folder / 'mlflow.db'}"
+    if artifacts is None:
+        artifacts = folder / "artifacts"
     if "://" not in backend:
         raise ValueError(
             f"--backend {backend!r}: expected an SQLAlchemy URI such as sqlite:///abs/path.db "
@@ -93,7 +119,7 @@ def server_command(
         "--workers",
         str(workers),
     ]
-    return argv, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    return ServerCommand(argv, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, backend)
 
 
 def is_remote(uri: str) -> bool:

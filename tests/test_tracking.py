@@ -86,3 +86,21 @@ def test_a_group_that_is_not_one_plain_name_is_refused(tmp_path):
     assert not (tmp_path / "mlartifacts").exists()
     for good in ("shared", "my-group_2.1", "G"):
         assert tracking.check_name("group", good) == good
+
+
+def test_server_command_keeps_its_default_store_in_one_folder(tmp_path):
+    from cloudpose.tracking import SERVER_FOLDER, server_command
+
+    server = server_command(root=tmp_path, port=5123)
+    folder = tmp_path / SERVER_FOLDER
+    assert folder.is_dir() and server.backend == f"sqlite:///{folder / 'mlflow.db'}"
+    argv = server.argv
+    assert argv[argv.index("--backend-store-uri") + 1] == server.backend
+    assert argv[argv.index("--artifacts-destination") + 1] == str(folder / "artifacts")
+    assert argv[argv.index("--port") + 1] == "5123"
+    assert server.env == {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    # a given store and artifact root are used as they are, and no folder is made for them
+    other = server_command("postgresql://u:p@db/runs", "s3://bucket/x", root=tmp_path / "elsewhere")
+    assert other.backend == "postgresql://u:p@db/runs" and not (tmp_path / "elsewhere").exists()
+    with pytest.raises(ValueError, match="SQLAlchemy URI"):
+        server_command("runs.db", root=tmp_path)
