@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from cloudpose import runs, runtime, tracking
 from cloudpose.config import Config, groups_of
+from cloudpose.data.batches import Batchable
 from cloudpose.data.dataset import Prepared
 from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
 from cloudpose.files import atomic_write
@@ -72,37 +73,6 @@ def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
         h = int(hashlib.sha1(str(f).encode()).hexdigest()[:8], 16) / 0x1_0000_0000
         held[f] = h < val_fraction
     return np.array([held[f] for f in frame_ids], dtype=bool)
-
-
-@dataclass
-class Batchable:
-    """Training tensors of valid segments: the network's n-point prefix and the targets."""
-
-    points: torch.Tensor  # (M, n, 3) float32, metres
-    cls_id: torch.Tensor  # (M,) int64, 1-based
-    R: torch.Tensor  # (M, 3, 3)
-    t: torch.Tensor  # (M, 3)
-
-    @classmethod
-    def from_segments(cls, segs, n_points: int) -> Batchable:
-        if n_points > segs.points.shape[1]:
-            raise ValueError(
-                f"train.n_points={n_points} exceeds the {segs.points.shape[1]} cached FPS points"
-            )
-        keep = np.asarray(segs.valid, dtype=bool)
-        return cls(
-            points=torch.from_numpy(np.ascontiguousarray(segs.points[keep, :n_points], np.float32)),
-            cls_id=torch.from_numpy(segs.cls_id[keep].astype(np.int64)),
-            R=torch.from_numpy(segs.R[keep].astype(np.float32)),
-            t=torch.from_numpy(segs.t[keep].astype(np.float32)),
-        )
-
-    def __len__(self) -> int:
-        return self.points.shape[0]
-
-    def subset(self, index: torch.Tensor) -> Batchable:
-        """The segments at ``index`` (an index tensor or bool mask)."""
-        return Batchable(self.points[index], self.cls_id[index], self.R[index], self.t[index])
 
 
 def online_synth_kwargs(cfg: Config, train_set) -> dict:

@@ -21,7 +21,7 @@ from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
 
 if TYPE_CHECKING:
-    from cloudpose.train import Batchable
+    from cloudpose.data.batches import Batchable
 
 
 @torch.no_grad()

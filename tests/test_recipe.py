@@ -54,9 +54,9 @@ def _train(proj: Path, *deltas: dict, monkeypatch):
 
 @pytest.mark.slow
 def test_recipe_fits_rotation_and_every_class(small_project, monkeypatch):
+    from cloudpose.data.batches import Batchable
     from cloudpose.data.dataset import ensure_dataset
     from cloudpose.infer import load_checkpoint
-    from cloudpose.train import Batchable
 
     cfg, out = _train(small_project, monkeypatch=monkeypatch)
     assert cfg.model.xyz_scale == 0.03 and cfg.loss.symmetric  # the smoke preset's recipe

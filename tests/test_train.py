@@ -130,7 +130,8 @@ def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
 
 
 def test_class_balanced_sampler_draws_classes_uniformly():
-    from cloudpose.train import Batchable, epoch_order
+    from cloudpose.data.batches import Batchable
+    from cloudpose.train import epoch_order
 
     cls_id = torch.tensor([1] * 900 + [2] * 90 + [3] * 10)
     fit = Batchable(

@@ -20,9 +20,9 @@ def _tiny_batches(n_batches: int, seed: int = 0):
 @pytest.mark.parametrize("kernel", ["plain", "fused"])
 def test_recalibrated_bn_makes_eval_mode_match_train_mode(kernel):
     from cloudpose.config import ModelConfig
+    from cloudpose.data.batches import Batchable
     from cloudpose.models import build_model
     from cloudpose.models.fused import fuse_model
-    from cloudpose.train import Batchable
     from cloudpose.validation import recalibrate_bn
 
     torch.manual_seed(0)
