@@ -165,6 +165,9 @@ class TrainConfig:
         augment_roll_deg: turn each training segment about the camera's optical axis by a
             uniform angle in +-this many degrees (points, R and t alike). Exact for depth
             data: a camera rolled about its optical axis sees the same surface points. 0 = off.
+        augment_depth_noise_mm: move each training point along its viewing ray by a normal
+            draw whose standard deviation is uniform in [0, this] mm, one level per segment
+            (:func:`cloudpose.train.jitter_along_rays`). 0 = off.
         threads: intra-op CPU threads of training (``torch.set_num_threads``), whatever the
             machine has. CPU kernels split their sums by thread (BatchNorm statistics, the
             reduction dimension of a GEMM), so the thread count changes a run's numbers: it is
@@ -183,11 +186,16 @@ class TrainConfig:
     sampler: str = "shuffle"
     lr_schedule: str = "constant"
     augment_roll_deg: float = 0.0
+    augment_depth_noise_mm: float = 0.0
     threads: int = 2
 
     def __post_init__(self) -> None:
         if self.threads < 1:
             raise ValueError(f"train.threads must be >= 1, got {self.threads}")
+        if not self.augment_depth_noise_mm >= 0:
+            raise ValueError(
+                f"train.augment_depth_noise_mm must be >= 0, got {self.augment_depth_noise_mm}"
+            )
         if self.epochs < 1:
             raise ValueError(f"train.epochs must be >= 1, got {self.epochs}")
         if self.n_points < 1:
@@ -394,7 +402,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "segment_streams": "frame",
     },
     "icp": {"fallback": False, "fallback_min_fitness": 0.1},
-    "train": {"threads": 2},
+    "train": {"threads": 2, "augment_depth_noise_mm": 0.0},
     "loss": {"symmetry_table": 1},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
@@ -403,7 +411,8 @@ every run stored before the on-line source existed trained on frames, and on seg
 instances drew from one stream per frame; every run stored before ``loss.symmetry_table``
 existed used symmetry table 1; every run stored before
 the ``icp`` section existed was refined without the guard; every run stored before
-``train.threads`` existed trained on this project's 2-core machines with 2 threads.
+``train.threads`` existed trained on this project's 2-core machines with 2 threads, and
+without depth-noise augmentation.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 

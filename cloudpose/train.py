@@ -150,6 +150,29 @@ def roll_about_optical_axis(
     return points @ Q.mT, Q @ R, (Q @ t[..., None]).squeeze(-1)
 
 
+def jitter_along_rays(
+    points: torch.Tensor, max_sigma_m: float, generator: torch.Generator
+) -> torch.Tensor:
+    """Segments with depth noise of a randomized level: each point moves along its viewing ray
+    by a normal draw whose standard deviation is uniform in ``[0, max_sigma_m]``, one level per
+    segment. Real depth is noisier than a fitted sensor model (and a network trained on one
+    noise level does worse on clean depth than on noisy): training over a range of levels
+    covers both.
+
+    Args:
+        points: (B, n, 3) camera-frame points, metres.
+        max_sigma_m: the largest per-segment standard deviation, metres.
+
+    Returns:
+        (B, n, 3) the moved points (the poses are unchanged: the surface is where it was).
+    """
+    B, n, _ = points.shape
+    sigma = torch.rand(B, 1, generator=generator) * max_sigma_m  # (B, 1)
+    step = torch.randn(B, n, generator=generator) * sigma  # (B, n) metres along each ray
+    ray = points / points.norm(dim=-1, keepdim=True).clamp_min(1e-9)  # (B, n, 3)
+    return points + step.to(points.device, points.dtype)[..., None] * ray
+
+
 def lr_at(cfg: Config, step: int, total: int) -> float:
     """Learning rate of optimiser step ``step`` (0-based) of ``total`` (``train.lr_schedule``)."""
     if cfg.train.lr_schedule == "cosine":
@@ -404,6 +427,9 @@ def _train(
                 pts, R_gt, t_gt = roll_about_optical_axis(
                     pts, R_gt, t_gt, cfg.train.augment_roll_deg, g
                 )
+            if cfg.train.augment_depth_noise_mm > 0:
+                g = torch.Generator().manual_seed(cfg.seed * 7_000_003 + epoch * 100_003 + batch)
+                pts = jitter_along_rays(pts, cfg.train.augment_depth_noise_mm / 1000, g)
             if world.distributed:  # this process's share of the global batch
                 pts, cls_id, R_gt, t_gt = pts[shard], cls_id[shard], R_gt[shard], t_gt[shard]
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):

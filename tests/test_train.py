@@ -202,3 +202,21 @@ def test_run_continues_from_its_logged_checkpoint_on_a_machine_without_its_folde
     again = train_run(cfg, project_dir=proj, progress=False, checkpoint_artifacts=True)
     assert again.run_id == run_id and again.metrics == ref.metrics
     assert (again.run_dir / "model.pt").exists()
+
+
+def test_depth_noise_moves_points_along_their_rays_at_a_level_drawn_per_segment():
+    from cloudpose.train import jitter_along_rays
+
+    rng = torch.Generator().manual_seed(0)
+    pts = torch.randn(64, 200, 3, generator=rng) * 0.03 + torch.tensor([0.1, -0.05, 0.9])
+    out = jitter_along_rays(pts, 0.003, torch.Generator().manual_seed(5))
+    again = jitter_along_rays(pts, 0.003, torch.Generator().manual_seed(5))
+    assert torch.equal(out, again)
+    d = out - pts
+    ray = pts / pts.norm(dim=-1, keepdim=True)
+    along = (d * ray).sum(-1)  # (64, 200)
+    # only along each ray: no component across it
+    torch.testing.assert_close(d, along[..., None] * ray, atol=1e-6, rtol=0)
+    # one level per segment, spread over [0, 3 mm]: some segments barely moved, none beyond
+    level = along.std(dim=1)
+    assert level.max() < 0.0035 and level.min() < 0.0005 and level.max() > 0.0025
