@@ -190,10 +190,11 @@ def paper_claims() -> list[Claim]:
     return claims
 
 
-def _asymmetric_classes() -> set[str]:
+def _asymmetric_classes(table: int) -> set[str]:
+    """The classes without a symmetry in symmetry table ``table``."""
     from cloudpose.geometry.symmetry import load_symmetries
 
-    return {name for name, sym in load_symmetries().items() if sym.kind == "none"}
+    return {name for name, sym in load_symmetries(table).items() if sym.kind == "none"}
 
 
 class _Measure:
@@ -203,7 +204,7 @@ class _Measure:
     def __init__(self, runs: RunSet, per_instance: bool = True):
         self.runs = runs
         self.per_instance = per_instance
-        self._asym: set[str] | None = None
+        self._asym: dict[int, set[str]] = {}  # symmetry table -> its classes without symmetry
         self._keys: pd.Index | None = None
         self._tables: dict[str, pd.DataFrame | None] = {}
         self._values: dict[tuple[str, str, str], dict[int, np.ndarray]] = {}
@@ -244,10 +245,11 @@ class _Measure:
             df = self._table(r)
             if df is None or column not in df or (asym and "class" not in df):
                 return {}
-            if asym:
-                if self._asym is None:
-                    self._asym = _asymmetric_classes()
-                keep = df["class"].isin(self._asym).to_numpy()
+            if asym:  # by the table the run was scored with (loss.symmetry_table)
+                table = int(r.params.get("loss.symmetry_table", 1))
+                if table not in self._asym:
+                    self._asym[table] = _asymmetric_classes(table)
+                keep = df["class"].isin(self._asym[table]).to_numpy()
                 if not keep.any():
                     return {}
                 df = df[keep]
