@@ -33,7 +33,7 @@ if __package__ in (None, ""):
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import resource_path
-from cloudpose.data.models import ModelIndex
+from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.metrics import (
     add_distance,
     add_distance_reference,

@@ -19,7 +19,7 @@ import torch
 from tqdm.auto import tqdm
 
 from cloudpose.config import Config
-from cloudpose.data.models import ModelIndex
+from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.models import build_model
 from cloudpose.models.inference import fold_for_inference
 from cloudpose.refine import ICPSettings, ICPStats, icp_refine

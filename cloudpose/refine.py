@@ -57,8 +57,8 @@ from typing import NamedTuple
 import numpy as np
 
 from cloudpose import kernels
-from cloudpose.data.models import ModelIndex
 from cloudpose.geometry.rigid import umeyama_from_moments
+from cloudpose.kernels.model_index import ModelIndex
 
 
 @dataclass(frozen=True)

@@ -153,7 +153,7 @@ def test_fps_order_equals_the_numpy_loop_with_ties():
 @pytest.mark.parametrize("P", [3, 6, 40])
 def test_icp_on_flat_and_tiny_models_equals_the_pykdtree_loop(P):
     """Models without a 3-D triangulation (flat, few points) use the neighbour lists."""
-    from cloudpose.data.models import ModelIndex
+    from cloudpose.kernels.model_index import ModelIndex
     from cloudpose.refine import icp_refine
 
     rng = np.random.default_rng(P)

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import resource_path
-from cloudpose.data.models import ModelIndex
+from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.metrics import (
     SUMMARY_KEYS,
     accuracy_curve,

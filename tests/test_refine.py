@@ -10,8 +10,8 @@ from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import resource_path
-from cloudpose.data.models import ModelIndex
 from cloudpose.geometry.rigid import correspondence_moments, umeyama_from_moments, umeyama_rigid
+from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.metrics import rotation_error_deg
 from cloudpose.refine import (
     ICPSettings,

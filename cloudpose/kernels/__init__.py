@@ -27,7 +27,7 @@ model has no 3-D triangulation: flat or under 5 points).
 
 Every kernel has a slow twin elsewhere (numpy loop FPS, ten Open3D calls, per-instance KD-tree
 ADS) with tests that they agree. ``backend`` is the one switch between them: callers ask
-``enabled()`` (through ``data.models.ModelIndex`` and ``fps.farthest_order``), never numba
+``enabled()`` (through ``kernels.model_index.ModelIndex`` and ``fps.farthest_order``), never numba
 itself. Compiled code is cached on disk (``cache=True``), so only the first run on a machine
 pays the compilation (a few seconds).
 """

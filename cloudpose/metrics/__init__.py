@@ -13,7 +13,7 @@ infinite and it counts in every denominator, as in the toolbox.
 
 Fast and reference twins: ``add_distance`` / ``adds_distance`` evaluate many instances at once
 (ADS maps the ground-truth-posed points into the estimate's model frame, q = R^T((R x + t) - t^),
-and queries the model's ``data.models.ModelIndex``, built once per model and shared with ICP);
+and queries the model's ``kernels.model_index.ModelIndex``, built once per model and shared with ICP);
 ``add_distance_reference`` / ``adds_distance_reference`` loop over instances and, for ADS, build a KD-tree on every
 estimate as bop_toolkit's ``adi`` does. Tests show they agree.
 

@@ -13,8 +13,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from cloudpose import kernels
-from cloudpose.data.models import ModelIndex
 from cloudpose.geometry.rigid import rotation_error_deg
+from cloudpose.kernels.model_index import ModelIndex
 
 _AD_CHUNK_POINTS = 1 << 15
 _ADS_CHUNK_POINTS = 1 << 18
