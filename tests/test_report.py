@@ -726,3 +726,24 @@ def test_seeds_wanted_grows_only_undecided_wide_claims():
     ]
     assert seeds_wanted(results, cap=10) == {"l2": 10, "quaternion": 7, "shared-0": 10}
     assert seeds_wanted(results, cap=3) == {}  # every variant already has the cap
+
+
+def test_table1_names_the_subsample_a_baseline_ran_on():
+    from cloudpose.report.runs import RunRecord, RunSet
+    from cloudpose.report.tables import table1_overall
+
+    metrics = {
+        f"{p}/{m}": v
+        for p in ("test", "test_icp")
+        for m, v in (("ad_auc", 0.5), ("ads_auc", 0.9), ("ads_lt_1cm", 0.8))
+    }
+
+    def record(variant: str, seed: int, subsample: str = "all") -> RunRecord:
+        return RunRecord(
+            f"{variant}{seed}", variant, seed, "p", "d", "c", 0, {}, metrics, subsample=subsample
+        )
+
+    runs = RunSet("p", "d", [record("shared-0", 1), record("baseline-ppf", 1, "250")])
+    methods = [r[0] for r in table1_overall(runs).rows if r]
+    assert "PPF (Drost) w/o ICP (baseline-ppf, 250 test instances)" in methods
+    assert "Ours w/o ICP (shared-0)" in methods  # the full test set: no size named

@@ -39,6 +39,7 @@ class RunRecord:
     params: dict[str, str]
     metrics: dict[str, float]
     artifact_uri: str = ""
+    subsample: str = "all"  # a baseline run on an evenly spaced subsample: its size (tag)
     client: object = field(repr=False, default=None)
     _cache: dict = field(repr=False, default_factory=dict)
 
@@ -200,6 +201,7 @@ def load_runs(
             params=dict(r.data.params),
             metrics=dict(r.data.metrics),
             artifact_uri=r.info.artifact_uri or "",
+            subsample=tags.get("subsample", "all"),
             client=client,
         )
     if ignored:

@@ -101,9 +101,11 @@ def table1_overall(runs: RunSet) -> Table:
         (BASELINE_LABELS.get(v, v), v) for v in runs.variants if v.startswith("baseline-")
     ]
     for name, variant in methods:
+        sizes = sorted({r.subsample for r in runs.of(variant)} - {"all"})
+        part = f", {'/'.join(sizes)} test instances" if sizes else ""  # a subsample's size
         for label, prefix, icp in (
-            (f"{name} w/o ICP ({variant})", "test", 0),
-            (f"{name} ({variant} + ICP)", "test_icp", 1),
+            (f"{name} w/o ICP ({variant}{part})", "test", 0),
+            (f"{name} ({variant} + ICP{part})", "test_icp", 1),
         ):
             cells = [label, ours_source, "", "✓", "✓" if icp else ""]
             row = {"method": label, "source": ours_source, "icp": icp}
@@ -116,7 +118,8 @@ def table1_overall(runs: RunSet) -> Table:
         "ms/object: the estimate's wall time per object on the machine that ran it (network: "
         "one batched forward; baselines: one registration per segment, after the one-off "
         "per-model preparation, logged as prepare_s), plus ICP in the + ICP rows. Baseline rows (`cloudpose baseline`) use the same test set and the same ICP; a "
-        "segment a baseline cannot register counts as a miss.",
+        "segment a baseline cannot register counts as a miss. A row that names a number of "
+        "test instances ran on that evenly spaced subsample (`cloudpose baseline --limit N`).",
     ]
     return Table(
         "table1_overall",
