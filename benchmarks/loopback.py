@@ -161,9 +161,9 @@ class Loopback:
         answers."""
         (port,) = self.ports(1)
         backend = f"sqlite:///{self.root / 'mlflow.db'}"
-        cmd, env = tracking.server_command(backend, self.root / "artifacts", port=port)
+        server = tracking.server_command(backend, self.root / "artifacts", port=port)
         k = len(self.groups)
-        proc = self.start(cmd, env, wait=False)
+        proc = self.start(server.argv, server.env, wait=False)
         url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and proc.poll() is None:
@@ -171,7 +171,7 @@ class Loopback:
                 if urllib.request.urlopen(f"{url}/health", timeout=2).status == 200:
                     return url
             time.sleep(0.5)
-        log = self.log_path(k, cmd).read_text()[-3000:]
+        log = self.log_path(k, server.argv).read_text()[-3000:]
         raise RuntimeError(f"the MLflow server did not answer on {url}: {log}")
 
     def close(self) -> None:
