@@ -222,7 +222,7 @@ def symmetries(
     table_version: Annotated[
         int,
         typer.Option(
-            "--table", help="Table version (a run's loss.symmetry_table): 1 or 2 (module doc)."
+            "--table", help="Table version (a run's loss.symmetry_table): 1 or 2 (package doc)."
         ),
     ] = 2,
 ) -> None:

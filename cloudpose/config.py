@@ -40,6 +40,9 @@ GENERATOR_VERSIONS = (1, 2)
    of objects resting on another (:data:`~cloudpose.data.synth.scenes.STACK_SHARE`); floating
    rotations from scipy's sampler.
 """
+
+SYMMETRY_TABLE_VERSIONS = (1, 2)
+"""The packaged symmetry tables (``LossConfig.symmetry_table``; ``cloudpose.geometry.symmetry``)."""
 GENERATOR_VERSION = 2
 """The newest generator version (the default)."""
 
@@ -117,7 +120,7 @@ class LossConfig:
         alpha: weight of the translation loss (metres) against the rotation loss (radians).
         symmetric: take the rotation loss modulo each class's symmetries (the smallest loss
             over the equivalent ground truths of ``cloudpose.geometry.symmetry``).
-        symmetry_table: which packaged symmetry table (``cloudpose.geometry.symmetry``, module
+        symmetry_table: which packaged symmetry table (``cloudpose.geometry.symmetry``, package
             doc) the loss modulo symmetry and every rotation error modulo symmetry the run
             logs use, so a run's loss and its metrics agree (a baseline on a preset takes the
             preset's). 1 finds only symmetries about the model axes (it misses the pudding
@@ -135,8 +138,11 @@ class LossConfig:
             raise ValueError(
                 f"loss.rotation must be one of {ROTATION_LOSSES}, got {self.rotation!r}"
             )
-        if self.symmetry_table not in (1, 2):
-            raise ValueError(f"loss.symmetry_table must be 1 or 2, got {self.symmetry_table!r}")
+        if self.symmetry_table not in SYMMETRY_TABLE_VERSIONS:
+            raise ValueError(
+                f"loss.symmetry_table must be one of {SYMMETRY_TABLE_VERSIONS}, "
+                f"got {self.symmetry_table!r}"
+            )
 
 
 @dataclass(frozen=True)

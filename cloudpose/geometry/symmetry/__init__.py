@@ -2,8 +2,9 @@
 
 A depth camera sees only shape, so an object whose shape is invariant under a rotation has
 several ground-truth rotations that no depth image can tell apart. The table lists, per class,
-the rotations ``S`` (model frame, about the centre ``c`` of the model's bounding box) that map
-the model points onto themselves::
+the rotations ``S`` (model frame, about the class's centre ``c``: the centre of the model's
+bounding box, or in table 2 its centroid where that is what the turn fixes) that map the model
+points onto themselves::
 
     x -> S (x - c) + c,     the pose (R, t) then looks like (R S, t + R (c - S c))
 

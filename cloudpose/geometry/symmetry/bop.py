@@ -16,10 +16,10 @@ def symmetry_from_bop(entry: dict, where: str = "models_info.json") -> ClassSymm
 
     BOP lists ``symmetries_discrete`` as row-major 4x4 matrices (16 numbers, translation in
     mm, the identity left out) and ``symmetries_continuous`` as ``{axis, offset}``; a can whose
-    ends look alike has one continuous axis and the discrete flip. The rotations act about
-    BOP's model origin, the centre of the model's bounding box, which is the table's
-    ``centre`` (:func:`cloudpose.data.bop.model_origin`); translations and offsets are left
-    out, as the table's rotation errors leave them out.
+    ends look alike has one continuous axis and the discrete flip. The translations and
+    offsets (where each turn's centre lies relative to BOP's model origin, the bounding-box
+    centre, :func:`cloudpose.data.bop.model_origin`) are left out, as the table's rotation
+    errors leave them out.
 
     Raises:
         ValueError: naming ``where``: a discrete entry that is not 16 numbers forming a

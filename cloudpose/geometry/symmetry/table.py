@@ -12,9 +12,13 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cloudpose.config import SYMMETRY_TABLE_VERSIONS
 from cloudpose.conventions import resource_path
 
-SYMMETRY_TABLES = {1: resource_path("symmetries.json"), 2: resource_path("symmetries-v2.json")}
+SYMMETRY_TABLES = {
+    v: resource_path("symmetries.json" if v == 1 else f"symmetries-v{v}.json")
+    for v in SYMMETRY_TABLE_VERSIONS
+}
 """Table version -> packaged file: class name -> discrete rotations (rotation vectors, degrees),
 continuous axis, flip and centre."""
 
