@@ -298,7 +298,7 @@ def synth(
     from cloudpose.config import DataConfig
 
     if compare_real:
-        from cloudpose.data.synth.compare import compare_real as compare
+        from cloudpose.report.fidelity import compare_real as compare
 
         versions = (synth_version,) if synth_version else (1, 2)
         text = compare(compare_real, versions, compare_frames, seed, recorded_command(ctx))

@@ -1,5 +1,5 @@
 """Synthetic YCB-Video scenes: layout, determinism, resumability, plausibility, noise, generator
-versions (version 1 frozen), stacking, missing depth, the comparison with real frames."""
+versions (version 1 frozen), stacking, missing depth against real frames."""
 
 from __future__ import annotations
 
@@ -16,8 +16,9 @@ from scipy.spatial import ConvexHull
 from cloudpose.config import DataConfig
 from cloudpose.conventions import DEPTH_FACTOR_YCB, IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data import synth
-from cloudpose.data.synth import compare, sensor
-from cloudpose.data.ycb import Frame, YCBVideo
+from cloudpose.data.synth import sensor
+from cloudpose.data.ycb import YCBVideo
+from cloudpose.report import fidelity
 
 DATA = Path(__file__).parent / "data"
 
@@ -443,7 +444,7 @@ def _missing_stats(frames) -> tuple[float, float]:
     for f in frames:
         o = f.label > 0
         obj, miss = obj + o.sum(), miss + (o & (f.depth == 0)).sum()
-        h, p = compare._neighbour_missing(f.depth, f.label)
+        h, p = fidelity._neighbour_missing(f.depth, f.label)
         hits, pairs = hits + h, pairs + p
     return miss / obj, hits / pairs
 
@@ -451,7 +452,7 @@ def _missing_stats(frames) -> tuple[float, float]:
 def test_missing_depth_matches_the_real_frames():
     """Version 2 misses depth inside masks about as often, and in blobs, as the real frames
     (10.7% of the mask pixels of tests/data's two frames; 2-4% for version 1)."""
-    real = compare.read_real_frames([DATA / "ycb_real", DATA / "demo_no_gt"])
+    real = fidelity.read_real_frames([DATA / "ycb_real", DATA / "demo_no_gt"])
     real_share, real_next = _missing_stats(real)
     assert 0.09 < real_share < 0.12 and real_next > 0.8
     v = {
@@ -496,70 +497,3 @@ def test_dropout_model_terms():
     u = sensor.correlated_uniform(np.random.default_rng(0), (480, 640), 4.0)
     assert abs(u.mean() - 0.5) < 0.02 and abs((u < 0.1).mean() - 0.1) < 0.02
     assert np.corrcoef(u[:, 1:].ravel(), u[:, :-1].ravel())[0, 1] > 0.9
-
-
-def test_fit_dropout_recovers_a_known_model():
-    truth = sensor.DropoutModel(0.45, 3.0, 0.15, 0.06, ((2, 0.0), (15, 0.1)), 0.05)
-    rng = np.random.default_rng(0)
-    n = 100_000
-    edge = 1.0 + np.floor(rng.exponential(8.0, n))
-    cos = rng.uniform(0.0, 1.0, n)
-    cls = rng.choice([2, 15], n)
-    missing = rng.random(n) < truth.probability(edge, cos, cls)
-    fit = compare.fit_dropout(compare.PixelSamples(missing, edge, cos, cls))
-    assert abs(fit.edge_rate - 0.45) < 0.03 and abs(fit.edge_scale - 3.0) < 0.3
-    assert abs(fit.graze_cos - 0.15) < 0.02 and abs(fit.graze_width - 0.06) < 0.015
-    assert abs(fit.class_rate(15) - 0.1) < 0.01 and fit.class_rate(2) < 0.01
-
-
-@pytest.mark.slow
-def test_shipped_dropout_is_the_fit_on_the_real_frames():
-    real = compare.read_real_frames([DATA / "ycb_real", DATA / "demo_no_gt"])
-    fit = compare.fit_dropout(compare.object_pixels(real))
-    shipped = sensor.REAL_DROPOUT
-    for name in ("edge_rate", "edge_scale", "graze_cos", "graze_width", "default_rate"):
-        assert getattr(fit, name) == pytest.approx(getattr(shipped, name), abs=2e-3), name
-    for c, r in fit.class_rates:
-        assert r == pytest.approx(shipped.class_rate(c), abs=2e-3), c
-
-
-# --------------------------------------------------------------------------- against real
-
-
-def test_frame_set_stats_on_a_drawn_frame():
-    label = np.zeros((40, 40), np.uint8)
-    label[10:30, 10:30] = 5
-    depth = np.where(label > 0, 1.0, 2.0).astype(np.float32)
-    depth[10, 10:30] = 0.0  # the top row of the mask: 20 of 400 pixels, all on the edge
-    f = Frame("x", depth, label, YCB_INTRINSICS, np.array([5]), None, None)
-    rendered = np.where(label > 0, 1.001, 0.0)
-    s = compare.frame_set_stats([f], [rendered], [np.array([800])])
-    assert s.missing == pytest.approx(20 / 400)
-    assert s.missing_inside == 0 and s.missing_edge == pytest.approx(20 / (400 - 16 * 16))
-    assert s.points == 380 and s.occlusion == pytest.approx(0.5)
-    assert s.noise_std == pytest.approx(0.0, abs=1e-6)
-    # 19 missing pixels have a missing right neighbour; the 20 below them are not missing
-    assert s.missing_next == pytest.approx(19 / 39)
-
-
-@pytest.mark.slow
-def test_compare_real_command(tmp_path):
-    from typer.testing import CliRunner
-
-    from cloudpose.cli import app
-
-    out = tmp_path / "renderer_vs_real.md"
-    args = ["synth", "--compare-real", str(DATA / "ycb_real"), "--compare-real"]
-    args += [str(DATA / "demo_no_gt"), "--compare-frames", "1", "--report", str(out)]
-    res = CliRunner().invoke(app, args)
-    assert res.exit_code == 0, res.output
-    text = out.read_text()
-    assert text.startswith("# Synthetic frames against real ones")
-    assert (
-        "cloudpose synth --compare-real" in text
-        and "| real | synthetic v1 | synthetic v2 |" in text
-    )
-    rows = [r for r in text.splitlines() if r.startswith("| 0000/000001 |")]
-    assert [r.split(" | ")[1] for r in rows] == ["009_gelatin_box", "025_mug", "061_foam_brick"]
-    for r in rows:
-        assert min(float(x) for x in r.split(" | ")[2:4]) >= 0.97  # IoU v1, v2

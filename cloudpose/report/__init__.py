@@ -1,4 +1,5 @@
-"""Reports rendered only from MLflow runs: the paper's tables, the claims, the figures.
+"""Reports: the paper's tables, the claims and the figures, rendered only from MLflow runs; and
+the synthetic frames' fidelity to real ones, measured on frames.
 
 - :mod:`cloudpose.report.runs`: which runs a report is made of.
 - :mod:`cloudpose.report.stats`: mean ± std over seeds, differences with a 95% t-interval.
@@ -8,6 +9,8 @@
 - :mod:`cloudpose.report.plots`: occlusion, accuracy-threshold, training and rotation figures.
 - :mod:`cloudpose.report.segmentation`: shared-0 under each test-time mask source (table, plot).
 - :mod:`cloudpose.report.build`: renders all of it into ``reports/{preset}/`` and MLflow.
+- :mod:`cloudpose.report.fidelity`: synthetic frames against real ones, and the missing-depth
+  fit of the version-2 sensor (``cloudpose synth --compare-real``).
 """
 
 from cloudpose.report.build import ReportResult, render_reports

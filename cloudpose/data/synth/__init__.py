@@ -36,7 +36,7 @@ Pixels without a reading have depth 0.
 Version 2 replaces the dropout on object pixels by :data:`REAL_DROPOUT`, a model fitted to the
 real frames (edges, grazing angles, a rate per class, in blobs), and renders surfaces that keep
 through-holes (:mod:`cloudpose.data.surfaces`, surface version 2). ``cloudpose synth
---compare-real`` (:mod:`~cloudpose.data.synth.compare`) measures both versions against real
+--compare-real`` (:mod:`~cloudpose.report.fidelity`) measures both versions against real
 frames.
 
 Runs on the same root may overlap (e.g. parallel training runs that each ensure the data): a

@@ -142,7 +142,7 @@ class DropoutModel:
     - ``p_class``: a rate per class for dark or specular surfaces (``class_rates``), the
       ``default_rate`` for classes the fit did not see.
 
-    The defaults are :func:`cloudpose.data.synth.compare.fit_dropout` on the two real frames
+    The defaults are :func:`cloudpose.report.fidelity.fit_dropout` on the two real frames
     the repository carries (see that function; ``cloudpose synth --compare-real`` prints the
     fit beside these values).
 
@@ -210,7 +210,7 @@ REAL_DROPOUT = DropoutModel(
     default_rate=0.0269,
     blob_sigma=4.0,
 )
-"""The missing-depth model of the version-2 sensor: :func:`~cloudpose.data.synth.compare.
+"""The missing-depth model of the version-2 sensor: :func:`~cloudpose.report.fidelity.
 fit_dropout` on the two real frames in tests/data (ycb_real, annotated: 009_gelatin_box,
 025_mug, 061_foam_brick; demo_no_gt, unannotated: 003_cracker_box, 005_tomato_soup_can,
 006_mustard_bottle, 011_banana, 035_power_drill), 141,656 object pixels, 10.7% of them without
