@@ -258,6 +258,10 @@ class DataConfig:
             segments. Use it with ``train.augment_roll_deg`` so the uses differ.
         online_workers: with "online", synthesis processes beside training (0 = in the training
             process); changes speed only, never the numbers.
+        online_scenes: with "online" and ``classes``, what the synthesized scenes hold
+            (:data:`cloudpose.data.synth.online.ONLINE_SCENES`): "all", objects of every class,
+            the others as occluders, as in the test frames; "classes", the kept classes only
+            (at least 3), which wastes no scene on segments it drops.
         segment_streams: how a frame's instances draw their FPS start points
             (:data:`cloudpose.data.segments.SEGMENT_STREAMS`): "instance", each from its own
             stream, so a missed or dropped instance changes no other; "frame", one stream per
@@ -280,6 +284,7 @@ class DataConfig:
     online_epoch_segments: int = 4096
     online_reuse: int = 4
     online_workers: int = 1
+    online_scenes: str = "all"
     segment_streams: str = "instance"
 
     def __post_init__(self) -> None:
@@ -291,6 +296,10 @@ class DataConfig:
         if self.train_source not in TRAIN_SOURCES:
             raise ValueError(
                 f"data.train_source={self.train_source!r}: expected one of {TRAIN_SOURCES}"
+            )
+        if self.online_scenes not in ("all", "classes"):
+            raise ValueError(
+                f"data.online_scenes={self.online_scenes!r}: expected 'all' or 'classes'"
             )
         if self.online_epoch_segments < 1 or self.online_reuse < 1 or self.online_workers < 0:
             raise ValueError(
@@ -405,6 +414,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_epoch_segments": 4096,
         "online_reuse": 4,
         "online_workers": 1,
+        "online_scenes": "all",
         "segment_streams": "frame",
     },
     "icp": {"fallback": False, "fallback_min_fitness": 0.1},
@@ -414,7 +424,8 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
 synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
 every run stored before the on-line source existed trained on frames, and on segments whose
-instances drew from one stream per frame; every run stored before ``loss.symmetry_table``
+instances drew from one stream per frame (an on-line run stored before ``data.online_scenes``
+existed drew scenes of every class); every run stored before ``loss.symmetry_table``
 existed used symmetry table 1; every run stored before
 the ``icp`` section existed was refined without the guard; every run stored before
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads, and

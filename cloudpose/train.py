@@ -94,6 +94,7 @@ def online_synth_kwargs(cfg: Config, train_set) -> dict:
         "n_points": cfg.train.n_points,
         "outlier_radius": d.outlier_radius,
         "class_ids": classes,
+        "scenes": d.online_scenes,
     }
 
 

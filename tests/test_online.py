@@ -80,6 +80,30 @@ def test_stream_steps_reuse_each_chunk_and_restart_anywhere():
         OnlineStream(kw, seed=1, batch_size=8, reuse=3, total_steps=4)
 
 
+def test_scenes_of_the_kept_classes_only():
+    """With ``scenes="classes"`` a scene holds only kept classes, so far fewer scenes fill a
+    batch; with "all" the other classes stay as occluders and segments are dropped."""
+    keep = (5, 11, 15)
+    only = OnlineSynth(2, n_points=32, class_ids=keep, scenes="classes")
+    mixed = OnlineSynth(2, n_points=32, class_ids=keep)
+    for step in range(3):
+        scene = only.sample_scene(np.random.default_rng([0, step]))
+        assert set(scene.cls_ids.tolist()) <= set(keep) and len(scene.cls_ids) == 3
+    a, b = only.batch(0, 0, 12), mixed.batch(0, 0, 12)
+    assert set(a.cls_id.tolist()) <= set(keep) and set(b.cls_id.tolist()) <= set(keep)
+    assert a.scenes * 2 < b.scenes, (a.scenes, b.scenes)
+    # every class kept: the scenes of "all", draw for draw
+    every = tuple(range(1, 22))
+    full = OnlineSynth(2, n_points=32, class_ids=every, scenes="classes").batch(0, 1, 8)
+    assert np.array_equal(full.points, OnlineSynth(2, n_points=32).batch(0, 1, 8).points)
+    with pytest.raises(ValueError, match="at least 3 classes"):
+        OnlineSynth(2, class_ids=(5, 11), scenes="classes")
+    with pytest.raises(ValueError, match="on-line scenes"):
+        OnlineSynth(2, scenes="some")
+    with pytest.raises(ValueError, match="online_scenes"):
+        resolve("shared-0", "smoke", overrides={"data": {"online_scenes": "some"}})
+
+
 def test_bad_online_settings_are_refused():
     with pytest.raises(ValueError, match="train_source"):
         resolve("shared-0", "smoke", overrides={"data": {"train_source": "stream"}})
@@ -94,7 +118,13 @@ def test_frames_configs_keep_their_fingerprint():
     before they existed keeps its identity."""
     cfg = resolve("shared-0", "cpu")
     d = cfg.to_dict()
-    for k in ("train_source", "online_epoch_segments", "online_reuse", "online_workers"):
+    for k in (
+        "train_source",
+        "online_epoch_segments",
+        "online_reuse",
+        "online_workers",
+        "online_scenes",
+    ):
         del d["data"][k]
     from cloudpose.config import Config
 

@@ -37,12 +37,21 @@ from cloudpose.config import check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import SegmentWarning, extract_segments
 from cloudpose.data.synth.frames import _generator
-from cloudpose.data.synth.scenes import MIN_VISIBLE_PIXELS, STACK_SHARE, Scene, sample_table_scene
+from cloudpose.data.synth.scenes import (
+    MIN_VISIBLE_PIXELS,
+    N_OBJECTS,
+    STACK_SHARE,
+    Scene,
+    sample_table_scene,
+)
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, background_depth
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
 scenes never repeat a rendered frame's scene."""
+
+ONLINE_SCENES = ("all", "classes")
+"""What on-line scenes hold when training keeps some classes (:class:`OnlineSynth`)."""
 
 REUSE_SPACING = 32
 """Steps between two uses of an on-line segment (:class:`OnlineStream`)."""
@@ -91,8 +100,12 @@ class OnlineSynth:
         noise: apply the version's sensor model.
         n_points: points per segment (FPS prefix; the network's n).
         outlier_radius: the segment path's outlier filter, metres.
-        class_ids: keep segments of these 1-based classes only (None: all); the other objects
-            stay in the scene as occluders.
+        class_ids: keep segments of these 1-based classes only (None: all).
+        scenes: with ``class_ids``, what the scenes hold (:data:`ONLINE_SCENES`): "all", objects
+            of every class, the others staying in the scene as occluders (the scenes of the
+            test frames); "classes", objects of the kept classes only (at least 3 of them), so
+            no scene is drawn for segments it then drops: with 3 of the 21 classes ~5x the
+            segments per second, at the price of occluders of those classes only.
         K, shape: camera intrinsics and image size (YCB-Video's by default).
         nthreads: ray-casting threads (0: every core; a synthesis worker uses 1).
     """
@@ -105,6 +118,7 @@ class OnlineSynth:
         n_points: int = 256,
         outlier_radius: float = 0.2,
         class_ids: tuple[int, ...] | None = None,
+        scenes: str = "all",
         K: np.ndarray = YCB_INTRINSICS,
         shape: tuple[int, int] = IMAGE_SHAPE,
         nthreads: int = 0,
@@ -128,14 +142,27 @@ class OnlineSynth:
                     f"model ids {sorted(known)}"
                 )
         self.class_ids = None if class_ids is None else frozenset(int(c) for c in class_ids)
+        if scenes not in ONLINE_SCENES:
+            raise ValueError(f"on-line scenes {scenes!r}: expected one of {ONLINE_SCENES}")
+        self._models, self._resting = self._gen.models, self._gen.resting
+        if scenes == "classes" and self.class_ids is not None:
+            if len(self.class_ids) < N_OBJECTS[0]:
+                raise ValueError(
+                    f"on-line scenes 'classes' need at least {N_OBJECTS[0]} classes (a table "
+                    f"scene holds {N_OBJECTS[0]}-{N_OBJECTS[1]} distinct objects); got "
+                    f"{sorted(self.class_ids)}"
+                )
+            self._models = {c: self._models[c] for c in sorted(self.class_ids)}
+            self._resting = {c: self._resting[c] for c in sorted(self.class_ids)}
+        self.scenes = scenes
 
     # ------------------------------------------------------------------ one scene
 
     def sample_scene(self, rng: np.random.Generator) -> Scene:
-        """A table scene as the version's frames draw them."""
+        """A table scene as the version's frames draw them (of the kept classes only with
+        ``scenes="classes"``)."""
         stack = 0.0 if self.version == 1 else STACK_SHARE
-        gen = self._gen
-        return sample_table_scene(rng, gen.models, gen.resting, self.K, self.shape, stack)
+        return sample_table_scene(rng, self._models, self._resting, self.K, self.shape, stack)
 
     def window(self, scene: Scene) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
         """(v0, v1, u0, u1) holding every object's projection plus :data:`WINDOW_PAD`, and the

@@ -289,7 +289,8 @@ def sample_table_scene(
 
     Args:
         rng: random generator (the only source of randomness).
-        models: {class id: (P, 3) model points, metres}.
+        models: {class id: (P, 3) model points, metres}: the classes a scene draws from
+            (at least ``N_OBJECTS[0]``; a scene holds at most one object of each class).
         resting: {class id: :class:`RestingPoses`}.
         K: (3, 3) intrinsics.
         shape: (H, W) image size.
@@ -300,8 +301,13 @@ def sample_table_scene(
         The :class:`Scene` (world = table frame, z up, table top at z = 0).
     """
     ids = np.array(sorted(models))
+    if len(ids) < N_OBJECTS[0]:
+        raise ValueError(
+            f"a table scene holds at least {N_OBJECTS[0]} distinct objects; got models of "
+            f"{len(ids)} classes {ids.tolist()}"
+        )
     while True:
-        n = int(rng.integers(N_OBJECTS[0], N_OBJECTS[1] + 1))
+        n = min(int(rng.integers(N_OBJECTS[0], N_OBJECTS[1] + 1)), len(ids))
         cls_ids = rng.choice(ids, size=n, replace=False)
         occupied = np.zeros((2 * _GRID_HALF, 2 * _GRID_HALF), dtype=bool)
         height_map = np.zeros(occupied.shape)
