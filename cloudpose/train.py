@@ -75,10 +75,11 @@ def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
     return np.array([held[f] for f in frame_ids], dtype=bool)
 
 
-def online_synth_kwargs(cfg: Config, train_set) -> dict:
+def online_synth_kwargs(cfg: Config, class_names: list[str]) -> dict:
     """:class:`~cloudpose.data.synth.online.OnlineSynth` arguments of an on-line run: the
-    generator version, noise and segment settings of ``cfg.data``, and its classes (the class
-    ids present in the rendered training set when ``data.classes`` is set)."""
+    generator version, noise and segment settings of ``cfg.data``, and the ids of its
+    ``data.classes`` in ``class_names`` (the dataset's ``classes.txt``), every class when
+    empty."""
     d = cfg.data
     if d.root:
         raise ValueError(
@@ -87,7 +88,7 @@ def online_synth_kwargs(cfg: Config, train_set) -> dict:
         )
     classes = None
     if d.classes:
-        classes = tuple(sorted({int(c) for c in train_set.cls_id}))
+        classes = tuple(sorted(class_names.index(c) + 1 for c in d.classes))
     return {
         "version": d.synth_version,
         "noise": d.noise,
@@ -297,9 +298,11 @@ def _train(
     if info.get("finished") and world.broadcast(final.exists()):
         return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
 
+    dataset = open_dataset(data.root)
+    class_names = list(dataset.classes)
     online = cfg.data.train_source == "online"
     if online:  # the rendered training frames validate; fitting draws fresh segments
-        synth_kwargs = online_synth_kwargs(cfg, train_set)
+        synth_kwargs = online_synth_kwargs(cfg, class_names)
         val = Batchable.from_segments(train_set, cfg.train.n_points)
         fit = online_probe(synth_kwargs, cfg.seed, 256)
     else:
@@ -311,9 +314,7 @@ def _train(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
             f"{cfg.train.batch_size}; render more frames (data.train_frames)"
         )
-    dataset = open_dataset(data.root)
     models_by_class = dataset.models()
-    class_names = list(dataset.classes)
     symmetry = None
     if cfg.loss.symmetric:
         symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)

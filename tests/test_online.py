@@ -1,4 +1,5 @@
-"""The on-line training source: determinism, agreement with rendered frames, resumable runs."""
+"""The on-line training source: determinism, agreement with rendered frames, resumable runs, and
+that it teaches rotation where the frame recipe at the same steps does not."""
 
 from __future__ import annotations
 
@@ -10,12 +11,13 @@ import torch
 
 from cloudpose.config import resolve
 from cloudpose.conventions import YCB_INTRINSICS
+from cloudpose.data.dataset import prepare_data
 from cloudpose.data.segments import extract_segments
 from cloudpose.data.synth.frames import generate_frame
 from cloudpose.data.synth.online import OnlineStream, OnlineSynth
 from cloudpose.data.ycb import Frame
 from cloudpose.pipeline import train_run
-from cloudpose.train import TrainingInterrupted
+from cloudpose.train import TrainingInterrupted, split_frames
 from tests.conftest import make_project
 
 ONLINE = {
@@ -145,3 +147,75 @@ def test_online_run_resumes_bit_exact(tmp_path, smoke_data, monkeypatch):
     resumed = train_run(cfg, project_dir=proj, progress=False)
     assert resumed.metrics == ref.metrics
     assert np.isfinite(ref.metrics["train/loss"])
+
+
+# --------------------------------------------------------------------------- learning
+
+LEARN_CLASSES = ("006_mustard_bottle", "019_pitcher_base", "035_power_drill")
+LEARN = {
+    "data": {
+        "classes": list(LEARN_CLASSES),
+        "train_source": "online",
+        "online_scenes": "classes",
+        "online_reuse": 8,
+        "online_epoch_segments": 1600,
+    },
+    "train": {"epochs": 2, "batch_size": 16, "augment_roll_deg": 15.0, "lr_schedule": "cosine"},
+    "loss": {"symmetry_table": 2},
+}
+"""200 steps of batch 16 on three classes (400 fresh segments, each used 8 times)."""
+LEARN_THRESHOLD_DEG = 48.0
+"""Held-out median rotation error a run must get under; measured on a 2-core Intel Xeon: 40.0
+degrees on line, 56.2 for the frame recipe at the same steps."""
+
+
+def _held_out_rotation_error(checkpoint: Path, n_points: int) -> float:
+    """Median rotation error modulo symmetry (table 2), degrees, of a network on 96 fresh
+    on-line segments of :data:`LEARN_CLASSES` from a seed no run trains on."""
+    from cloudpose.data.layout import open_dataset
+    from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
+    from cloudpose.infer import load_checkpoint
+
+    names = list(open_dataset(Path(__file__).parent / "data" / "ycb_real").classes)
+    ids = tuple(names.index(c) + 1 for c in LEARN_CLASSES)
+    held = OnlineSynth(2, n_points=n_points, class_ids=ids, scenes="classes").batch(999, 0, 96)
+    points, cls_id, R, _ = held.tensors()
+    model, _ = load_checkpoint(checkpoint)
+    with torch.no_grad():
+        out = model(points, cls_id)
+    err = rotation_errors_modulo_symmetry(cls_id.numpy(), R.numpy(), out.R.numpy(), names, table=2)
+    return float(np.median(err))
+
+
+def test_a_small_online_run_learns_rotation(tmp_path, smoke_data, monkeypatch):
+    """On line, 200 steps on three classes without a symmetry that depth shows whole (the
+    mustard bottle's half turn aside) bring the held-out rotation error under
+    :data:`LEARN_THRESHOLD_DEG`; the frame recipe at the same steps on 200 rendered frames (144
+    training segments of these classes) fits its own segments and stays above it on fresh
+    ones (:func:`test_frames_at_the_same_steps_do_not_reach_it`)."""
+    cfg = resolve("shared-0", "smoke", seed=1, overrides=LEARN)
+    out = train_run(
+        cfg, project_dir=make_project(tmp_path / "p", smoke_data, monkeypatch), progress=False
+    )
+    err = _held_out_rotation_error(out.checkpoint, cfg.train.n_points)
+    assert err < LEARN_THRESHOLD_DEG, err
+
+
+@pytest.mark.slow
+def test_frames_at_the_same_steps_do_not_reach_it(tmp_path, monkeypatch):
+    """The frame recipe, same network, classes, batch and steps, on the segments of 200
+    rendered frames (the cpu preset's kind of training set, cut to three classes)."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    frames = {"data": {"classes": list(LEARN_CLASSES), "train_frames": 200, "test_frames": 4}}
+    cfg = resolve("shared-0", "smoke", seed=1, overrides=frames)
+    data = prepare_data(cfg.data, tmp_path, progress=False)
+    fit = (~split_frames(data.train.frame_id, cfg.train.val_fraction)).sum()
+    steps = LEARN["train"]["epochs"] * LEARN["data"]["online_epoch_segments"] // 16
+    train = {**LEARN["train"], "epochs": max(round(steps * 16 / fit), 1)}
+    cfg = resolve(
+        "shared-0", "smoke", seed=1, overrides={**frames, "train": train, "loss": LEARN["loss"]}
+    )
+    out = train_run(cfg, project_dir=tmp_path, data=data, progress=False)
+    assert out.metrics["fit/rot_sym_err_median_deg"] < 20.0  # it fits what it sees ...
+    err = _held_out_rotation_error(out.checkpoint, cfg.train.n_points)
+    assert err > LEARN_THRESHOLD_DEG, err  # ... and does not carry it to fresh segments
