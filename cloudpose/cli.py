@@ -243,7 +243,9 @@ def symmetries(
 @app.command()
 def experiments(
     ctx: typer.Context,
-    group: Annotated[str, typer.Option(help="Group whose MLflow experiment to list.")],
+    group: Annotated[
+        list[str], typer.Option(help="Group whose MLflow experiment to list (repeat for several).")
+    ],
     out: Annotated[
         Path, typer.Option(help="Markdown file to write (the values go beside it as .csv).")
     ],
@@ -251,11 +253,14 @@ def experiments(
         str | None,
         typer.Option(help="List changes relative to this preset (default: each run's own)."),
     ] = None,
+    preset: Annotated[
+        str | None, typer.Option(help="List only the runs of this preset (default: every run).")
+    ] = None,
 ) -> None:
     """An experiment log: every finished run of a group, its overrides and its rotation errors."""
     from cloudpose.report.experiments import write_log
 
-    path = write_log(group, out, recorded_command(ctx), against=against)
+    path = write_log(group, out, recorded_command(ctx), against=against, preset=preset)
     typer.echo(f"wrote {path}")
 
 

@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import pytest
+
 from cloudpose.config import resolve
-from cloudpose.report.experiments import collect, config_changes, experiment_table, write_log
+from cloudpose.report.experiments import (
+    collect,
+    config_changes,
+    experiment_table,
+    steps_per_epoch,
+    write_log,
+)
 
 
 def test_config_changes_lists_overrides_only():
@@ -27,3 +35,27 @@ def test_log_of_a_trained_smoke_run(smoke_run, tmp_path, monkeypatch):
     text = path.read_text()
     assert "| 1 | shared-0/smoke/seed1 | (none) |" in text
     assert (tmp_path / "log.csv").exists()
+
+
+def test_log_of_several_groups_and_one_preset(smoke_run, tmp_path, monkeypatch):
+    proj, _ = smoke_run
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    (exp,) = collect(["shared", "shared"], proj, preset="smoke")  # each run once
+    assert exp.name == "shared-0/smoke/seed1"
+    assert exp.command.endswith("--group shared")
+    assert collect(["shared"], proj, preset="cpu") == []
+    with pytest.raises(ValueError, match="no MLflow experiment for group 'nothing'"):
+        collect(["shared", "nothing"], proj)
+    with pytest.raises(ValueError, match="preset"):
+        collect("shared", proj, preset="cpu' or '1")
+    path = write_log(
+        ["shared"], tmp_path / "log.md", "cloudpose experiments ...", proj, None, "smoke"
+    )
+    assert path.read_text().startswith("# Experiment log: shared (smoke)")
+    assert "real + ICP < 10° mod sym (%)" in path.read_text()
+
+
+def test_steps_of_an_online_epoch():
+    cfg = resolve("shared-0", "cpu-online")
+    assert steps_per_epoch(cfg, {"data.train_segments": "online"}) == 8192 // 32
+    assert steps_per_epoch(resolve("shared-0", "cpu"), {"data.train_segments": "3546"}) == 110

@@ -1,11 +1,14 @@
 """An experiment log from MLflow: one row per run, what it changed and what it reached.
 
 ``cloudpose experiments --group diagnostics --out reports/diagnostics/rotation_experiments.md``
-lists every finished run of a group's experiment in start order: the settings in which its
-config differs from its preset's own config (``--set`` overrides), the Adam steps, the last
-epoch's rotation error on a fixed sample of training segments in train mode (batch statistics)
-and in eval mode (running statistics), the validation and test rotation errors (plain geodesic,
-as the paper reports them, and modulo symmetry), the test ADS AUC, and the minutes it took.
+lists every finished run of a group's experiment (of several groups' with ``--group`` repeated;
+of one preset's with ``--preset``) in start order: the settings in which its config differs
+from its preset's own config (``--set`` overrides), the Adam steps, the last epoch's rotation
+error on a fixed sample of training segments in train mode (batch statistics) and in eval mode
+(running statistics), the validation and test rotation errors (plain geodesic, as the paper
+reports them, and modulo symmetry), the test ADS AUC, the share under 10 degrees modulo
+symmetry with ICP and on the real development frames (``real/``, logged by every run since
+the real-frame check exists), and the minutes it took.
 The runs are the evidence; this file is their index, rewritten from the store each time.
 """
 
@@ -33,6 +36,10 @@ COLUMNS = {
     "test/rot_sym_lt_10deg": "test < 10° mod sym (%)",
     "test/rot_sym_lt_20deg": "test < 20° mod sym (%)",
     "test/ads_auc": "test ADS AUC",
+    "test_icp/rot_sym_lt_10deg": "test + ICP < 10° mod sym (%)",
+    "real/rot_sym_lt_10deg": "real < 10° mod sym (%)",
+    "real_icp/rot_sym_lt_10deg": "real + ICP < 10° mod sym (%)",
+    "real/ads_auc": "real ADS AUC",
     "minutes": "minutes",
 }
 """Log columns: MLflow metric key (or derived field) -> header."""
@@ -56,6 +63,15 @@ def config_changes(cfg: Config, against: str | None = None) -> dict[str, object]
     return {k: v for k, v in cfg.flat().items() if base.get(k) != v}
 
 
+def steps_per_epoch(cfg: Config, params: dict[str, str]) -> int:
+    """Adam steps of one epoch of a run: its fitted segments (MLflow param
+    ``data.train_segments``) over the batch, or ``data.online_epoch_segments`` over the batch
+    for an on-line run."""
+    if cfg.data.train_source == "online":
+        return cfg.data.online_epoch_segments // cfg.train.batch_size
+    return int(params.get("data.train_segments", 0)) // cfg.train.batch_size
+
+
 def _command(cfg: Config, changes: dict[str, object], group: str) -> str:
     own = config_changes(cfg)  # what --set must say under the run's own preset
     sets = " ".join(
@@ -70,23 +86,28 @@ def _command(cfg: Config, changes: dict[str, object], group: str) -> str:
 
 
 def collect(
-    group: str, project_dir: Path | None = None, against: str | None = None
+    group: str | list[str],
+    project_dir: Path | None = None,
+    against: str | None = None,
+    preset: str | None = None,
 ) -> list[Experiment]:
-    """The finished runs of ``group``'s experiment, oldest first (changes: see
-    :func:`config_changes`)."""
+    """The finished runs of the experiments of ``group`` (one name or several), of ``preset``
+    only when given, oldest first (changes: see :func:`config_changes`)."""
     client = tracking.setup(project_dir)
-    exp = client.get_experiment_by_name(tracking.EXPERIMENT_PREFIX + group)
-    if exp is None:
-        raise ValueError(f"no MLflow experiment for group {group!r} in {tracking.tracking_uri()}")
-    runs = client.search_runs(
-        [exp.experiment_id],
-        "attributes.status = 'FINISHED'",
-        order_by=["attributes.start_time ASC"],
-        max_results=1000,
-    )
+    groups = list(dict.fromkeys([group] if isinstance(group, str) else group))
+    ids = []
+    for g in groups:
+        exp = client.get_experiment_by_name(tracking.EXPERIMENT_PREFIX + g)
+        if exp is None:
+            raise ValueError(f"no MLflow experiment for group {g!r} in {tracking.tracking_uri()}")
+        ids.append(exp.experiment_id)
+    where = "attributes.status = 'FINISHED'"
+    if preset is not None:
+        tracking.check_name("preset", preset)
+        where += f" and tags.preset = '{preset}'"
+    runs = client.search_runs(ids, where, order_by=["attributes.start_time ASC"], max_results=1000)
     out = []
     for run in runs:
-        p = run.data.params
         try:
             cfg = Config.from_dict(json.loads(Path(_config_path(client, run)).read_text()))
         except (OSError, ValueError):
@@ -94,15 +115,15 @@ def collect(
         changes = config_changes(cfg, against)
         m = dict(run.data.metrics)
         history = client.get_metric_history(run.info.run_id, "train/loss")
-        n_fit = int(p.get("data.train_segments", 0))
-        m["steps"] = len(history) * (n_fit // cfg.train.batch_size)
+        m["steps"] = len(history) * steps_per_epoch(cfg, run.data.params)
         if run.info.end_time and run.info.start_time:
             m["minutes"] = (run.info.end_time - run.info.start_time) / 60_000
         for k in list(m):
             if k.split("/")[-1].startswith(("rot_lt", "rot_sym_lt")) or k.endswith("ads_auc"):
                 m[k] = 100 * m[k]
         text = ", ".join(f"{k}={v}" for k, v in changes.items()) or "(none)"
-        out.append(Experiment(run.info.run_name, _command(cfg, changes, group), text, m))
+        group_of = groups[ids.index(run.info.experiment_id)]
+        out.append(Experiment(run.info.run_name, _command(cfg, changes, group_of), text, m))
     return out
 
 
@@ -139,20 +160,33 @@ def _markdown(df: pd.DataFrame) -> str:
 
 
 def write_log(
-    group: str, out: Path, command: str, project_dir: Path | None = None, against: str | None = None
+    group: str | list[str],
+    out: Path,
+    command: str,
+    project_dir: Path | None = None,
+    against: str | None = None,
+    preset: str | None = None,
 ) -> Path:
-    """Write the log of ``group`` as Markdown to ``out`` (and the values as CSV beside it)."""
-    experiments = collect(group, project_dir, against)
+    """Write the log of ``group`` (one name or several; runs of ``preset`` only when given) as
+    Markdown to ``out`` (and the values as CSV beside it)."""
+    groups = list(dict.fromkeys([group] if isinstance(group, str) else group))
+    experiments = collect(groups, project_dir, against, preset)
     if not experiments:
-        raise ValueError(f"group {group!r} has no finished run to list")
+        raise ValueError(
+            f"group(s) {', '.join(groups)} have no finished run"
+            + (f" of preset {preset!r}" if preset else "")
+            + " to list"
+        )
     df = experiment_table(experiments)
     out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(out.with_suffix(".csv"), index=False, float_format="%.2f")
     lines = [
-        f"# Experiment log: {group}",
+        f"# Experiment log: {', '.join(groups)}" + (f" ({preset})" if preset else ""),
         "",
-        f"Made by `{command}` from the MLflow runs of the experiment "
-        f"`{tracking.EXPERIMENT_PREFIX + group}`; every row is a run anyone can repeat with the "
+        f"Made by `{command}` from the MLflow runs of the experiment(s) "
+        + ", ".join(f"`{tracking.EXPERIMENT_PREFIX + g}`" for g in groups)
+        + (f" of preset `{preset}`" if preset else "")
+        + "; every row is a run anyone can repeat with the "
         "command listed under the table. 'changes': the settings in which the run differs from "
         f"{'the preset ' + repr(against) if against else 'its own preset'} as registered now. 'train segs': a fixed sample of 512 training segments, "
         "the last epoch, in train mode (batch statistics) and in eval mode (running statistics). "
