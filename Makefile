@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 CLI := $(VENV)/bin/cloudpose
 TORCH_SPEC ?= torch==2.13.0
-PRESET ?= cpu
+PRESET ?= cpu-online
 SEEDS ?= 3
 VARIANT ?= shared-0
 SEED ?= 1

@@ -15,6 +15,8 @@ import click
 import typer
 from typer.core import TyperGroup
 
+from cloudpose.config import DEFAULT_PRESET
+
 
 class _Commands(TyperGroup):
     """Every command with one error handler: bad input is one line on stderr, exit 2.
@@ -372,7 +374,7 @@ def export(
 @app.command()
 def prepare(
     variant: VariantOpt = "shared-0",
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     data: DataOpt = "",
     histogram: Annotated[
         Path | None, typer.Option(help="Also plot the test set's occlusion factors to this PNG.")
@@ -401,7 +403,7 @@ def prepare(
 def train(
     ctx: typer.Context,
     variant: VariantOpt = "shared-0",
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seed: SeedOpt = 1,
     data: DataOpt = "",
     epochs: Annotated[int | None, typer.Option(help="Override the preset's epochs.")] = None,
@@ -563,13 +565,13 @@ def _next_steps(preset: str) -> None:
 
     typer.echo(f"\nWhat this is: {meaning}")
     runs = len(get_group("shared").members) * 3
-    per_run, _ = estimate_run_s(resolve("shared-0", "cpu"))
+    per_run, _ = estimate_run_s(resolve("shared-0", DEFAULT_PRESET))
     typer.echo(
         "Next: `make mlflow-ui` and open http://127.0.0.1:5000 to browse the run; "
-        "`make ablation-shared PRESET=cpu` trains the paper's shared-layer ablation, "
-        f"{runs} runs (every variant x 3 seeds) x ~{per_run / 60:.0f} min = "
+        "`make ablation-shared` trains the paper's shared-layer ablation on the default preset "
+        f"({DEFAULT_PRESET}), {runs} runs (every variant x 3 seeds) x ~{per_run / 60:.0f} min = "
         f"~{runs * per_run / 3600:.1f} h on a 2-core CPU, and renders its tables into "
-        "reports/cpu/; `--dry-run` prints that plan without training."
+        f"reports/{DEFAULT_PRESET}/; `--dry-run` prints that plan without training."
     )
 
 
@@ -613,7 +615,7 @@ def predict(
 @app.command()
 def run(
     variant: VariantOpt = "shared-0",
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seed: SeedOpt = 1,
     data: DataOpt = "",
     progress: ProgressOpt = True,
@@ -686,7 +688,7 @@ def _mark_expected(prefix: str, why: str) -> None:
 @app.command()
 def baseline(
     method: Annotated[str, typer.Option(help="fpfh (FPFH + RANSAC) or ppf (point-pair features).")],
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seed: SeedOpt = 1,
     limit: Annotated[
         int | None, typer.Option(help="An evenly spaced subsample of this many test instances.")
@@ -760,7 +762,7 @@ def baseline(
 @app.command()
 def ablate(
     group: Annotated[str, typer.Option(help=f"Ablation group: {_group_names()}.")],
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seeds: Annotated[int, typer.Option(help="Seeds 1..S per variant.")] = 3,
     keep_going: Annotated[
         bool, typer.Option("--keep-going/--stop-on-failure", help="Go on after a failed run.")
@@ -847,7 +849,7 @@ def ablate(
 @app.command("ablate-masks")
 def ablate_masks(
     ctx: typer.Context,
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seeds: Annotated[int, typer.Option(help="Seeds 1..S of shared-0.")] = 3,
     progress: ProgressOpt = True,
     dry_run: DryRunOpt = False,
@@ -985,7 +987,7 @@ def report(
         ),
     ] = None,
     all_groups: Annotated[bool, typer.Option("--all", help="Every group (the default).")] = False,
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     data: Annotated[
         str | None, typer.Option(help="Data fingerprint to report; default the most used.")
     ] = None,
@@ -1015,7 +1017,7 @@ def report(
 @app.command("real-report")
 def real_report(
     ctx: typer.Context,
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seeds: Annotated[
         int, typer.Option(help="Network seeds 1..S expected (more found are shown too).")
     ] = 3,
@@ -1077,7 +1079,7 @@ def curves(
 @app.command("occlusion-report")
 def occlusion_report(
     ctx: typer.Context,
-    preset: PresetOpt = "cpu",
+    preset: PresetOpt = DEFAULT_PRESET,
     seeds: Annotated[int, typer.Option(help="Seeds 1..S.")] = 3,
     group: Annotated[
         str | None, typer.Option(help="Also plot this group's variants (shared-0 alone if unset).")

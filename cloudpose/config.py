@@ -28,6 +28,11 @@ LR_SCHEDULES = ("constant", "cosine")
 TRAIN_SOURCES = ("frames", "online")
 KERNELS = ("fused", "plain")
 
+DEFAULT_PRESET = "cpu-online"
+"""The preset a command trains and reports when none is named: on-line synthesis, symmetry
+table 2 and depth-noise augmentation, ~15 min a run on a 2-core CPU
+(``ablations/presets.toml``; ``reports/diagnostics/online_training.md`` says why)."""
+
 GENERATOR_VERSIONS = (1, 2)
 """The generators frames can be made with (``DataConfig.synth_version``; stored in
 ``synth.json``). A version's frames never change; a change that alters frames is a new version.
@@ -565,7 +570,7 @@ def parse_overrides(items: list[str] | None) -> dict[str, dict]:
 
 def resolve(
     variant: str = "shared-0",
-    preset: str = "cpu",
+    preset: str = DEFAULT_PRESET,
     seed: int = 1,
     overrides: dict[str, dict[str, Any]] | None = None,
 ) -> Config:

@@ -37,6 +37,7 @@ from tqdm.auto import tqdm
 from cloudpose import runs, tracking
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import NotRegistered, settings_fingerprint
+from cloudpose.config import DEFAULT_PRESET
 from cloudpose.files import atomic_write
 
 GROUP = "baselines"
@@ -173,7 +174,7 @@ class _Progress:
 
 def run_baseline(
     method: str,
-    preset: str = "cpu",
+    preset: str = DEFAULT_PRESET,
     seed: int = 1,
     *,
     project_dir: Path | None = None,
