@@ -146,6 +146,52 @@ def baseline_tags(
     }
 
 
+def report_tags(
+    group: str, preset: str, command: str, data: str, seeds, commits, note: str
+) -> dict[str, str]:
+    """The MLflow tags of a report run ``report/{group}/{preset}``: ``kind=report``, what it was
+    made from, and its summary ``note`` (no ``variant``/``preset`` tags, so run look-ups by
+    those never find it)."""
+    return {
+        "kind": "report",
+        "report_group": group,
+        "report_preset": preset,
+        "command": command,
+        "data": data,
+        "seeds": ",".join(map(str, seeds)),
+        "git_commit": ",".join(commits),
+        "mlflow.note.content": note,
+    }
+
+
+PARAMS_PER_BATCH = 100
+"""MLflow's limit of params in one ``log_batch`` request."""
+
+
+def create_run_record(
+    client,
+    experiment_id: str,
+    name: str,
+    tags: dict[str, str],
+    params: dict[str, Any] | None = None,
+    config: dict[str, Any] | None = None,
+) -> str:
+    """Create the MLflow run of a record and return its id: its name and tags (as
+    :func:`training_tags`, :func:`baseline_tags` or :func:`report_tags` make them), its params
+    (flattened as MLflow stores them, :func:`cloudpose.tracking.flat_params`) and, for a trained
+    network, its full config as the artifact ``config.json`` (what reports and ``--run``
+    rebuild a run's config from)."""
+    from mlflow.entities import Param
+
+    run_id = client.create_run(experiment_id, tags=tags, run_name=name).info.run_id
+    flat = [Param(k, v) for k, v in tracking.flat_params(params or {}).items()]
+    for i in range(0, len(flat), PARAMS_PER_BATCH):
+        client.log_batch(run_id, params=flat[i : i + PARAMS_PER_BATCH])
+    if config is not None:
+        client.log_text(run_id, json.dumps(config, indent=2), "config.json")
+    return run_id
+
+
 def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:
     """Whether ``fingerprint`` is the config that variant/preset/seed (on ``root``) resolves to."""
     from cloudpose.config import resolve

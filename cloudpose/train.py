@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import math
 import time
 import warnings
@@ -348,21 +347,16 @@ def _train(
         exp = tracking.experiment_id(client, group, project_dir)
         tags = runs.training_tags(cfg, group, data_key, rdir)
         rdir.mkdir(parents=True, exist_ok=True)
-        run = client.create_run(exp, tags=tags, run_name=runs.display_name(cfg))
-        run_id = run.info.run_id
-        params = tracking.flat_params(cfg.flat())
-        params.update(
-            {
-                "model.parameters": str(count_parameters(model)),
-                "data.fingerprint": data_key,
-                "data.train_segments": "online" if online else str(len(fit)),
-                "data.val_segments": str(len(val)),
-                "device": str(device),
-            }
+        params = cfg.flat() | {
+            "model.parameters": count_parameters(model),
+            "data.fingerprint": data_key,
+            "data.train_segments": "online" if online else len(fit),
+            "data.val_segments": len(val),
+            "device": device,
+        }
+        run_id = runs.create_run_record(
+            client, exp, runs.display_name(cfg), tags, params, cfg.to_dict()
         )
-        for k, v in params.items():
-            client.log_param(run_id, k, v)
-        client.log_text(run_id, json.dumps(cfg.to_dict(), indent=2), "config.json")
         info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
         runs.write_info(rdir, info)
     elif world.is_main:

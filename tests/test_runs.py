@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from cloudpose import runs, tracking
-from cloudpose.config import resolve
+from cloudpose.config import Config, resolve
 
 
 def test_names_and_folders_follow_config_and_data():
@@ -140,3 +140,27 @@ def test_the_run_record_names_and_tags_training_and_baseline_runs_in_one_place(t
     other = runs.baseline_name("fpfh", "cpu", 1, "real", own, own)
     assert other == "baseline-fpfh/cpu/seed1+real-cccccccc"
     assert runs.baseline_name("ppf", "cpu", 1, "test", "e" * 16, own).endswith("+test-eeeeeeee")
+    r = runs.report_tags("shared", "cpu", "cloudpose report", "k", (1, 2), ("abc",), "note")
+    assert r["kind"] == "report" and r["seeds"] == "1,2" and "variant" not in r
+
+
+def test_a_run_record_holds_its_params_and_config(tmp_path, monkeypatch):
+    """Params beyond MLflow's 100 per request all arrive; the config is ``config.json``."""
+    import json
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    client = tracking.setup(tmp_path)
+    exp = tracking.experiment_id(client, "shared", tmp_path)
+    cfg = resolve("shared-0", "smoke", 1)
+    params = {f"p.{i}": i for i in range(250)} | {"device": "cpu"}
+    tags = runs.training_tags(cfg, "shared", "k" * 16, tmp_path / "r")
+    run_id = runs.create_run_record(
+        client, exp, "shared-0/smoke/seed1", tags, params, cfg.to_dict()
+    )
+    run = client.get_run(run_id)
+    assert len(run.data.params) == 251 and run.data.params["p.249"] == "249"
+    assert (
+        run.info.run_name == "shared-0/smoke/seed1" and run.data.tags["config"] == cfg.fingerprint()
+    )
+    local = tracking.local_artifact(run.info.artifact_uri, "config.json")
+    assert Config.from_dict(json.loads(Path(local).read_text())) == cfg

@@ -360,8 +360,6 @@ def _log(
     project_dir,
     described="",
 ) -> str:
-    from mlflow.entities import Param
-
     from cloudpose.evaluate import log_evaluation
 
     client = tracking.setup(project_dir)
@@ -372,10 +370,8 @@ def _log(
     )
     own = settings_fingerprint(load_settings(method))
     name = runs.baseline_name(method, preset, seed, split, config, own)
-    run = client.create_run(exp, tags=tags, run_name=name)
-    run_id = run.info.run_id
     params = {f"baseline.{k}": v for k, v in settings.values.items()} | data_params
-    client.log_batch(run_id, params=[Param(k, v) for k, v in tracking.flat_params(params).items()])
+    run_id = runs.create_run_record(client, exp, name, tags, params)
     log_evaluation(client, run_id, split, table, metrics)
     if described:  # a user's data, tagged as an evaluation of it is
         client.set_tag(run_id, f"eval/{split}/data", data_key)

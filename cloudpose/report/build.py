@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
+from cloudpose import runs as run_records
 from cloudpose import tracking
 from cloudpose.config import get_group, groups
 from cloudpose.report import plots, segmentation
@@ -343,25 +344,18 @@ def log_report_run(
         _remove_local_artifacts(r.info.artifact_uri)
         client.delete_run(r.info.run_id)
     note = _summary_note(group, preset, files, prov)
-    tags = {
-        "kind": "report",
-        "report_group": group,
-        "report_preset": preset,
-        "command": prov.command,
-        "data": prov.data,
-        "seeds": ",".join(map(str, prov.seeds)),
-        "git_commit": ",".join(prov.commits),
-        "mlflow.note.content": note,
-    }
+    tags = run_records.report_tags(
+        group, preset, prov.command, prov.data, prov.seeds, prov.commits, note
+    )
     # The experiment's description is the first thing its page shows: the group's table, so
     # the numbers that matter are there without choosing any column.
     client.set_experiment_tag(exp, "mlflow.note.content", note)
-    run = client.create_run(exp, tags=tags, run_name=name)
+    run_id = run_records.create_run_record(client, exp, name, tags)
     for p in sorted(set(files)):
         if p.exists():
-            client.log_artifact(run.info.run_id, str(p))
-    client.set_terminated(run.info.run_id, "FINISHED")
-    return run.info.run_id
+            client.log_artifact(run_id, str(p))
+    client.set_terminated(run_id, "FINISHED")
+    return run_id
 
 
 def _summary_note(group: str, preset: str, files: list[Path], prov: Provenance) -> str:
