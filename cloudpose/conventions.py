@@ -8,7 +8,8 @@
 - Camera frame: OpenCV pinhole, x right, y down, z forward; pixel (u, v) = (column, row),
   ``u = fx * x / z + cx``, ``v = fy * y / z + cy``.
 - Class ids are 1-based as in YCB-Video label images and ``cls_indexes`` (0 = background);
-  one-hot network inputs use ``class_id - 1``.
+  one-hot network inputs use ``class_id - 1``: class id i is line i of a ``classes.txt``
+  (:func:`load_classes`; the package's own list: :func:`packaged_classes`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,30 @@ IMAGE_SHAPE = (480, 640)
 def resource_path(*parts: str) -> Path:
     """Path of a file shipped inside the package (model points, class list, paper tables)."""
     return Path(str(resources.files("cloudpose").joinpath("resources", *parts)))
+
+
+def load_classes(path: str | Path) -> list[str]:
+    """Read a ``classes.txt``: one class name per line, line i -> class id i + 1.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: it holds no class name, or a name twice.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: class list not found (expected classes.txt)")
+    names = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    if not names:
+        raise ValueError(f"{path}: class list is empty (expected one class name per line)")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"{path}: class names listed twice: {dup}")
+    return names
+
+
+def packaged_classes() -> list[str]:
+    """The 21 YCB-Video class names the package ships models of, in class-id order."""
+    return load_classes(resource_path("classes.txt"))
 
 
 def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -168,11 +168,10 @@ def pose_loss(
 @functools.cache
 def ycb_symmetry_tensors(table: int = 1) -> SymmetryTensors:
     """The packaged symmetry table ``table`` for the 21 YCB-Video class ids, as loss tensors."""
-    from cloudpose.conventions import resource_path
-    from cloudpose.data.ycb import load_classes
+    from cloudpose.conventions import packaged_classes
     from cloudpose.geometry.symmetry import symmetries_for
 
-    return SymmetryTensors(symmetries_for(load_classes(resource_path("classes.txt")), table))
+    return SymmetryTensors(symmetries_for(packaged_classes(), table))
 
 
 def _check_shape(name: str, x: torch.Tensor, tail: tuple[int, ...]) -> None:

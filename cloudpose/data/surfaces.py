@@ -21,14 +21,14 @@ import open3d as o3d
 from pykdtree.kdtree import KDTree
 from scipy import ndimage
 
-from cloudpose.conventions import resource_path
+from cloudpose.conventions import packaged_classes, resource_path
 
 
 def load_packaged_models() -> dict[int, np.ndarray]:
     """The 21 packaged YCB-Video model point sets: {class id 1..21: (P, 3) float64 metres}."""
-    from cloudpose.data.ycb import load_classes, load_model_points
+    from cloudpose.data.ycb import load_model_points
 
-    names = load_classes(resource_path("classes.txt"))
+    names = packaged_classes()
     return {
         i + 1: load_model_points(resource_path("models", n, "points.xyz"))
         for i, n in enumerate(names)

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.io
 from PIL import Image, UnidentifiedImageError
 
-from cloudpose.conventions import DEPTH_FACTOR_YCB, resource_path
+from cloudpose.conventions import DEPTH_FACTOR_YCB, load_classes, resource_path
 from cloudpose.files import atomic_write
 
 ROTATION_TOL = 1e-3
@@ -76,25 +76,6 @@ class Frame:
 
 
 # --------------------------------------------------------------------------- small files
-
-
-def load_classes(path: str | Path) -> list[str]:
-    """Read a ``classes.txt``: one class name per line, line i -> class id i + 1.
-
-    Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: it holds no class name, or a name twice.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: class list not found (expected classes.txt)")
-    names = [line.strip() for line in path.read_text().splitlines() if line.strip()]
-    if not names:
-        raise ValueError(f"{path}: class list is empty (expected one class name per line)")
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ValueError(f"{path}: class names listed twice: {dup}")
-    return names
 
 
 def load_model_points(path: str | Path) -> np.ndarray:

@@ -427,13 +427,12 @@ def compare_real(
         command: the command line that made the report (written at its top).
     """
     from cloudpose.config import check_synth_version
-    from cloudpose.conventions import resource_path
+    from cloudpose.conventions import packaged_classes
     from cloudpose.data.render import Renderer
     from cloudpose.data.synth.sensor import REAL_DROPOUT
-    from cloudpose.data.ycb import load_classes
 
     versions = [check_synth_version(v) for v in versions]
-    names = load_classes(resource_path("classes.txt"))
+    names = packaged_classes()
     real_frames = read_real_frames(real)
     renderers = {v: Renderer(surface_version=v) for v in versions}
     newest = renderers[max(versions)]

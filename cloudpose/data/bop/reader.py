@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cloudpose.conventions import resource_path
+from cloudpose.conventions import packaged_classes, resource_path
 from cloudpose.data.bop.format import (
     DEPTH_SCALE,
     SPLIT_DIRS,
@@ -50,7 +50,7 @@ class BOPYcbv(ModelPointSets):
         self.root = Path(root)
         if not self.root.is_dir():
             raise FileNotFoundError(f"{self.root}: dataset root not found")
-        self.classes: list[str] = load_classes(resource_path("classes.txt"))
+        self.classes: list[str] = packaged_classes()
         self.models_root = Path(models_root) if models_root else resource_path("models")
         if not self.models_root.is_dir():
             raise FileNotFoundError(f"{self.models_root}: models folder not found")

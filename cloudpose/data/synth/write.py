@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cloudpose.config import GENERATOR_VERSION, check_synth_version
-from cloudpose.conventions import YCB_INTRINSICS, resource_path
+from cloudpose.conventions import YCB_INTRINSICS, packaged_classes, resource_path
 from cloudpose.data.synth.frames import (
     SynthFrame,
     _Generator,
@@ -131,9 +131,8 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, ve
     _clean_staging(root)
     atomic_text(info, json.dumps(settings, indent=2) + "\n")
     shutil.copyfile(resource_path("classes.txt"), root / "classes.txt")
-    from cloudpose.data.ycb import load_classes
 
-    for name in load_classes(resource_path("classes.txt")):
+    for name in packaged_classes():
         dst = root / "models" / name / "points.xyz"
         if not dst.is_file():
             dst.parent.mkdir(parents=True, exist_ok=True)

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cloudpose.config import SYMMETRY_TABLE_VERSIONS
-from cloudpose.conventions import resource_path
+from cloudpose.conventions import packaged_classes, resource_path
 
 SYMMETRY_TABLES = {
     v: resource_path("symmetries.json" if v == 1 else f"symmetries-v{v}.json")
@@ -245,10 +245,8 @@ def sync_table(version: int, write: bool = False) -> TableSync:
     Raises:
         ValueError: an unknown version, or (checking) a file that differs, naming it.
     """
-    from cloudpose.data.ycb import load_classes
-
     path = SYMMETRY_TABLES[check_table_version(version, "--table")]
-    table = build_table(load_classes(resource_path("classes.txt")), version)
+    table = build_table(packaged_classes(), version)
     text = json.dumps(table, indent=1) + "\n"
     if write:
         path.write_text(text)
