@@ -24,10 +24,21 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cloudpose import tracking
-from cloudpose.cluster import EXECUTORS, RayOptions, check_cluster, import_ray
+from cloudpose import pipeline, tracking
+from cloudpose.cluster import EXECUTORS, RayOptions, RaySweep, check_cluster, import_ray
 from cloudpose.config import Config, get_group, resolve
-from cloudpose.runs import TEST_KEY, finished_run, run_name
+from cloudpose.data import dataset
+from cloudpose.data.dataset import data_fingerprint, dataset_root, synthetic_root
+from cloudpose.data.mask_sources import get_mask_source
+from cloudpose.data.synth.frames import frame_id
+from cloudpose.data.synth.write import _frame_done
+from cloudpose.evaluate import evaluate
+from cloudpose.report import render_reports, segmentation
+from cloudpose.report.build import default_out_dir
+from cloudpose.report.claims import evaluate_claims, paper_claims, seeds_wanted
+from cloudpose.report.runs import load_runs
+from cloudpose.report.stats import UNRESOLVED
+from cloudpose.runs import TEST_KEY, finished_run, run_has_config, run_name
 
 
 @dataclass(frozen=True)
@@ -120,9 +131,6 @@ def ensure_runs(
     Returns:
         One status per (variant, seed), in order.
     """
-    from cloudpose import pipeline
-    from cloudpose.data import dataset
-
     if executor not in EXECUTORS:
         raise ValueError(f"executor {executor!r}: expected one of {', '.join(EXECUTORS)}")
     if executor == "ray":
@@ -180,8 +188,6 @@ def ensure_runs(
 
     sweep = None
     if executor == "ray" and pending:
-        from cloudpose.cluster import RaySweep
-
         tracking.experiment_id(client, group, project_dir)  # made here, not by racing tasks
         sweep = RaySweep(ray or RayOptions(), project_dir, group)
     try:
@@ -298,8 +304,6 @@ def run_group(
         group, preset, statuses, log=project_dir / "runs" / f"ablate-{group}-{preset}.log"
     )
     if report:
-        from cloudpose.report import render_reports
-
         result.report = render_reports(
             preset, [group], project_dir=project_dir, command=command, out_dir=out_dir
         )
@@ -358,10 +362,6 @@ def resolve_claims(
     Returns:
         One :class:`ResolveRound` per measurement, the last one with nothing wanted or capped.
     """
-    from cloudpose.report.claims import evaluate_claims, paper_claims, seeds_wanted
-    from cloudpose.report.runs import load_runs
-    from cloudpose.report.stats import UNRESOLVED
-
     if max_seeds < 1 or step < 1:
         raise ValueError(f"max_seeds and step must be >= 1, got {max_seeds} and {step}")
     members = set(get_group(group).members)
@@ -432,8 +432,6 @@ def occlusion_report(
     store lacks are trained and evaluated first; without, a missing run raises
     :class:`MissingRuns` naming them.
     """
-    from cloudpose.report import render_reports
-
     project_dir = (project_dir or Path.cwd()).resolve()
     variants = list(get_group(group).members) if group else ["shared-0"]
     if not train_missing:
@@ -527,10 +525,6 @@ def mask_ablation(
         echo: where progress lines go (default: print).
         out_dir: the reports' folder (default :func:`cloudpose.report.build.default_out_dir`).
     """
-    from cloudpose.data.mask_sources import get_mask_source
-    from cloudpose.evaluate import evaluate
-    from cloudpose.report import segmentation
-
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))
     sources = list(segmentation.SOURCES if sources is None else sources)
@@ -592,8 +586,6 @@ def mask_ablation(
             )
     result = MaskAblationResult(preset, statuses, evaluations, log=log_path)
     if report:
-        from cloudpose.report import render_reports
-
         result.report = render_reports(
             preset, [segmentation.GROUP], project_dir=project_dir, command=command, out_dir=out_dir
         )
@@ -795,10 +787,6 @@ def _measured_run_s(client, preset: str, variants: list[str]) -> tuple[float, in
 def _frames_to_render(cfg: Config, project_dir: Path) -> tuple[str, int, int, bool]:
     """(root, frames to render, frames needed, whether its image sets list what ``cfg``
     asks for) of ``cfg``'s synthetic data; a real root needs no rendering."""
-    from cloudpose.data.dataset import dataset_root, synthetic_root
-    from cloudpose.data.synth.frames import frame_id
-    from cloudpose.data.synth.write import _frame_done
-
     d = cfg.data
     if d.root:
         return str(dataset_root(d, project_dir)), 0, 0, True
@@ -852,8 +840,6 @@ def plan_configs(
         project_dir: folder of ``data/`` and the default MLflow store (cwd).
         finished: what happens to a finished run, in words.
     """
-    from cloudpose.data.dataset import data_fingerprint
-
     project_dir = (project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)
     plan = Plan(title, finished=finished)
@@ -897,8 +883,6 @@ def plan_configs(
 def finished_run_any_data(client, cfg: Config):
     """The newest finished, evaluated run of exactly ``cfg`` on any data, or None (what a
     report, which reads MLflow only, can use)."""
-    from cloudpose.runs import run_has_config
-
     for r in tracking.find_runs(client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed):
         if TEST_KEY in r.data.metrics and run_has_config(r, cfg):
             return r
@@ -916,8 +900,6 @@ def plan_group(
     out_dir: Path | None = None,
 ) -> Plan:
     """The plan of :func:`run_group`: the group's runs, then its reports."""
-    from cloudpose.report.build import default_out_dir
-
     project_dir = (project_dir or Path.cwd()).resolve()
     g = get_group(group)
     plan = plan_runs(
@@ -944,9 +926,6 @@ def plan_masks(
 ) -> Plan:
     """The plan of :func:`mask_ablation`: the shared-0 runs, then one evaluation per seed and
     mask source that is not logged yet (each ~ a run's evaluation)."""
-    from cloudpose.report import segmentation
-    from cloudpose.report.build import default_out_dir
-
     project_dir = (project_dir or Path.cwd()).resolve()
     sources = list(segmentation.SOURCES if sources is None else sources)
     plan = plan_runs(

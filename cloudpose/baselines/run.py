@@ -37,8 +37,22 @@ from tqdm.auto import tqdm
 from cloudpose import runs, tracking
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import NotRegistered, settings_fingerprint
-from cloudpose.config import DEFAULT_PRESET
+from cloudpose.config import DEFAULT_PRESET, resolve
+from cloudpose.data.cache import cache_key, segments_for
+from cloudpose.data.dataset import only_classes, prepare_data
+from cloudpose.data.layout import describe_split, open_dataset
+from cloudpose.evaluate import (
+    evaluation_name,
+    instance_table,
+    log_evaluation,
+    real_dev_root,
+    summary_metrics,
+    video_metrics,
+)
 from cloudpose.files import atomic_write
+from cloudpose.infer import Estimates, refine_poses
+from cloudpose.runs import run_folder
+from cloudpose.train import split_frames
 
 GROUP = "baselines"
 SAVE_EVERY_S = 60.0
@@ -90,8 +104,6 @@ class BaselineCall:
         """Where this run keeps its partial estimates: ``progress.npz`` in the run folder of
         variant ``baseline-{method}`` (:func:`cloudpose.runs.run_folder`), one subfolder per
         other split or subsample."""
-        from cloudpose.runs import run_folder
-
         folder = run_folder(
             f"baseline-{self.method}",
             self.preset,
@@ -206,11 +218,6 @@ def run_baseline(
         raise ValueError(f"--split {split!r}: expected one of {', '.join(SPLITS)}")
     if data is not None and split != "test":
         raise ValueError(f"--split {split} and --data: give one (--data tests on that folder)")
-    from cloudpose.config import resolve
-    from cloudpose.data.dataset import prepare_data
-    from cloudpose.data.layout import open_dataset
-    from cloudpose.evaluate import instance_table, summary_metrics, video_metrics
-    from cloudpose.infer import Estimates, refine_poses
 
     project_dir = (project_dir or Path.cwd()).resolve()
     settings = load_settings(method).with_overrides(overrides)
@@ -226,16 +233,11 @@ def run_baseline(
         if split == "test":
             pool = prepared.test
         elif split == "real":
-            from cloudpose.data.cache import segments_for
-            from cloudpose.evaluate import real_dev_root
-
             real = real_dev_root()
             cache_dir = project_dir / "data" / "cache"
             pool = segments_for(real, "all", cfg.data, cache_dir=cache_dir, progress=progress)
             dataset = open_dataset(real)
         else:
-            from cloudpose.train import split_frames
-
             val = split_frames(prepared.train.frame_id, cfg.train.val_fraction)
             pool = prepared.train.subset(val)
     models = dataset.models()
@@ -333,11 +335,6 @@ def run_baseline(
 def _user_data(data, frames: str, cfg, project_dir: Path, progress: bool):
     """(segments, content key, metric prefix, frame list in words) of ``frames`` of the
     dataset root ``data``, named and cached as ``cloudpose evaluate --data`` does."""
-    from cloudpose.data.cache import cache_key, segments_for
-    from cloudpose.data.dataset import only_classes
-    from cloudpose.data.layout import describe_split
-    from cloudpose.evaluate import evaluation_name
-
     cache_dir = project_dir / "data" / "cache"
     key = cache_key(data, frames, cfg, memo_dir=cache_dir)
     segs = only_classes(
@@ -360,8 +357,6 @@ def _log(
     project_dir,
     described="",
 ) -> str:
-    from cloudpose.evaluate import log_evaluation
-
     client = tracking.setup(project_dir)
     exp = tracking.experiment_id(client, GROUP, project_dir)
     config = settings_fingerprint(settings)
