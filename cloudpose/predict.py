@@ -12,7 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+from cloudpose import tracking
 from cloudpose.conventions import YCB_INTRINSICS, transform_points
+from cloudpose.data.cache import SegmentSet
+from cloudpose.data.segments import check_depth_scale, extract_segments
+from cloudpose.data.ycb import YCBVideo, read_frame
+from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
+from cloudpose.refine import ICPSettings
+from cloudpose.runs import resolve_run
 
 
 @dataclass(frozen=True)
@@ -62,10 +69,6 @@ def parse_intrinsics(text: str | None) -> np.ndarray:
 
 def load_model_for(checkpoint: str, device: str = "auto"):
     """(model, config) from a ``model.pt``, a run folder, an MLflow run id or a run name."""
-    from cloudpose import tracking
-    from cloudpose.infer import load_checkpoint
-    from cloudpose.runs import resolve_run
-
     path = Path(checkpoint)
     if path.is_file():
         return load_checkpoint(path, device)
@@ -93,10 +96,6 @@ def predict(
         ValueError: besides bad files, depth that looks like another unit than
             ``depth_factor`` says (:func:`cloudpose.data.segments.check_depth_scale`).
     """
-    from cloudpose.data.segments import check_depth_scale, extract_segments
-    from cloudpose.data.ycb import YCBVideo, read_frame
-    from cloudpose.infer import estimate_poses, refine_poses
-
     model, cfg = load_model_for(checkpoint, device)
     K = None if meta is not None else parse_intrinsics(intrinsics)
     frame = read_frame(
@@ -115,7 +114,6 @@ def predict(
         rng=np.random.default_rng(seed),
         with_gt=False,
     )
-    from cloudpose.data.cache import SegmentSet
 
     segs = SegmentSet.from_segments(segs)
     dataset = YCBVideo(Path(depth).parent)  # packaged classes and models unless the folder has them
@@ -131,8 +129,6 @@ def predict(
     est = estimate_poses(model, segs, cfg.train.n_points, device=next(model.buffers()).device)
     fitness = np.full(len(segs), np.nan)
     if icp:
-        from cloudpose.refine import ICPSettings
-
         est, stats = refine_poses(segs, est, models_by_class, ICPSettings.from_config(cfg.icp))
         fitness = stats.fitness
     poses = []

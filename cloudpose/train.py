@@ -40,6 +40,8 @@ from cloudpose import runs, runtime, tracking
 from cloudpose.config import Config, groups_of
 from cloudpose.data.batches import Batchable
 from cloudpose.data.dataset import Prepared
+from cloudpose.data.layout import open_dataset
+from cloudpose.data.synth.online import OnlineStream, OnlineSynth
 from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
@@ -101,8 +103,6 @@ def online_synth_kwargs(cfg: Config, class_names: list[str]) -> dict:
 def online_probe(synth_kwargs: dict, seed: int, n: int) -> Batchable:
     """``n`` segments drawn as the run's first step draws them (its first chunk is trained on):
     the ``fit/`` probe of an on-line run."""
-    from cloudpose.data.synth.online import OnlineSynth
-
     b = OnlineSynth(**synth_kwargs).batch(seed, 0, n)
     return Batchable(*b.tensors())
 
@@ -275,8 +275,6 @@ def _train(
     checkpoint_artifacts: bool | None,
 ) -> TrainOutcome:
     """:func:`train` with the run folder's lock held (rank 0)."""
-    from cloudpose.data.layout import open_dataset
-
     device = world.device(runtime.pick_device(cfg.train.device))
     if not world.distributed:
         # the thread count changes the numbers (training BatchNorm and GEMM reductions split
@@ -394,8 +392,6 @@ def _train(
     total_steps = cfg.train.epochs * n_batches
     stream = None
     if online and epoch < cfg.train.epochs:
-        from cloudpose.data.synth.online import OnlineStream
-
         stream = OnlineStream(
             synth_kwargs,
             cfg.seed,

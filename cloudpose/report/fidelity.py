@@ -29,9 +29,19 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from cloudpose.conventions import YCB_INTRINSICS
-from cloudpose.data.synth.sensor import DropoutModel, edge_distance, incidence_cosine
-from cloudpose.data.ycb import Frame
+from cloudpose.config import check_synth_version
+from cloudpose.conventions import YCB_INTRINSICS, packaged_classes
+from cloudpose.data.render import Renderer
+from cloudpose.data.synth.frames import _generator, generate_frame
+from cloudpose.data.synth.sensor import (
+    REAL_DROPOUT,
+    DropoutModel,
+    add_sensor_noise,
+    add_sensor_noise_v2,
+    edge_distance,
+    incidence_cosine,
+)
+from cloudpose.data.ycb import Frame, YCBVideo, read_frame
 
 __all__ = [
     "FrameSetStats",
@@ -60,8 +70,6 @@ def read_real_frames(paths: Sequence[str | Path]) -> list[Frame]:
     Raises:
         FileNotFoundError: a path that is neither.
     """
-    from cloudpose.data.ycb import YCBVideo, read_frame
-
     frames = []
     for p in map(Path, paths):
         if (p / "depth.png").is_file() and (p / "label.png").is_file():
@@ -126,8 +134,6 @@ def object_pixels(frames: Sequence[Frame], renderer=None) -> PixelSamples:
             over the packaged models, version-2 surfaces).
     """
     if renderer is None:
-        from cloudpose.data.render import Renderer
-
         renderer = Renderer(surface_version=2)
     parts = []
     for f in frames:
@@ -353,8 +359,6 @@ def object_fidelity(
         names: class names, index = class id - 1.
         seed: seed of the sensor noise.
     """
-    from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2
-
     rows = []
     for f in frames:
         if f.poses is None:
@@ -387,8 +391,6 @@ def object_fidelity(
 
 
 def _synthetic_frames(version: int, n: int, seed: int) -> tuple[list[Frame], list, list, float]:
-    from cloudpose.data.synth.frames import _generator, generate_frame
-
     gen = _generator(version)
     frames, rendered, alone, stacked, total = [], [], [], 0, 0
     for i in range(n):
@@ -426,11 +428,6 @@ def compare_real(
         seed: synthetic scene seed.
         command: the command line that made the report (written at its top).
     """
-    from cloudpose.config import check_synth_version
-    from cloudpose.conventions import packaged_classes
-    from cloudpose.data.render import Renderer
-    from cloudpose.data.synth.sensor import REAL_DROPOUT
-
     versions = [check_synth_version(v) for v in versions]
     names = packaged_classes()
     real_frames = read_real_frames(real)

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.ticker import MaxNLocator
 
+from cloudpose.metrics import accuracy_curve, occlusion_bin_index, occlusion_bins
 from cloudpose.report.formats import Provenance
 
 OCCLUSION_EDGES = np.linspace(0.0, 1.0, 11)
@@ -75,8 +76,6 @@ def occlusion_accuracy(table: pd.DataFrame, method: str = "net") -> tuple[np.nda
         (:func:`cloudpose.metrics.occlusion_bins`: unknown occlusion left out, 1.0 in the last
         bin, misses count as failures).
     """
-    from cloudpose.metrics import occlusion_bins
-
     col = f"{method}_ads"
     if col not in table or "occlusion" not in table:
         raise ValueError(f"instance table lacks column 'occlusion' or {col!r}; has {list(table)}")
@@ -160,8 +159,6 @@ def plot_occlusion(series: Sequence[Series], path: Path, prov: Provenance, title
 
 def accuracy_curves(tables: Sequence[pd.DataFrame], column: str, thresholds_m: np.ndarray):
     """Per-seed accuracy (fraction, misses count as failures) at each threshold; (S, T)."""
-    from cloudpose.metrics import accuracy_curve
-
     return np.array([accuracy_curve(t[column].to_numpy(float), thresholds_m) for t in tables])
 
 
@@ -312,8 +309,6 @@ def occlusion_histogram(segments, path: str | Path | None = None, title: str = "
     Returns:
         (10,) int64 counts for [0, 10%), ..., [90%, 100%] (the last bin includes 100%).
     """
-    from cloudpose.metrics import occlusion_bin_index
-
     index, n_bins = occlusion_bin_index(segments.occlusion, width=OCCLUSION_EDGES[1])
     counts = np.bincount(index[index >= 0], minlength=n_bins)
     edges = OCCLUSION_EDGES

@@ -13,8 +13,9 @@ import math
 import numpy as np
 import pandas as pd
 
-from cloudpose.config import get_group
+from cloudpose.config import get_group, resolve
 from cloudpose.conventions import resource_path
+from cloudpose.models import build_model, count_parameters
 from cloudpose.report.formats import Table
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import format_mean_std, mean_std
@@ -263,9 +264,6 @@ def _ablation_rows(
 def _count_parameters(variant: str) -> int | None:
     """Parameter count of ``variant`` built from the registry (when no run logged it)."""
     try:
-        from cloudpose.config import resolve
-        from cloudpose.models import build_model, count_parameters
-
         return int(count_parameters(build_model(resolve(variant, "paper").model)))
     except Exception:
         return None

@@ -19,7 +19,12 @@ from cloudpose.data.bop.format import (
     model_origin,
     write_ply,
 )
+from cloudpose.data.render import Renderer
+from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
+from cloudpose.data.segments import ALONE_SURFACE_VERSION, SegmentWarning, extract_segments
+from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import atomic_text, atomic_write
+from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
 
 
 @dataclass(frozen=True)
@@ -58,8 +63,6 @@ def models_info(models: dict[int, np.ndarray], class_names: list[str]) -> dict:
     rotation ``S`` and translation ``1000 (I - S)(c - o)`` mm; a continuous axis passes through
     the offset ``1000 (c - o)`` mm."""
     from scipy.spatial.distance import pdist
-
-    from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
 
     syms = symmetries_for(list(class_names), EXPORT_SYMMETRY_TABLE)
     info = {}
@@ -101,9 +104,6 @@ def check_export_units(src, frame_ids: list[str], models: dict[int, np.ndarray])
     export is about to write, on :data:`EXPORT_UNIT_FRAMES` frames of each scene, before any file
     is written: depth in another unit than the source says stops the export in one line."""
     import warnings
-
-    from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
-    from cloudpose.data.segments import SegmentWarning, extract_segments
 
     by_scene: dict[str, list[str]] = {}
     for fid in frame_ids:
@@ -152,10 +152,6 @@ def export_bop(
             ``factor_depth`` (:func:`check_export_units`).
     """
     from tqdm import tqdm
-
-    from cloudpose.data.render import Renderer
-    from cloudpose.data.segments import ALONE_SURFACE_VERSION
-    from cloudpose.data.ycb import YCBVideo
 
     src = YCBVideo(source)
     out = Path(out)
