@@ -34,7 +34,7 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate (prints its plan first)
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
 
-test: ## the tests without the slow-marked ones (~3 min on 2 cores): the everyday loop
+test: ## the tests without the slow-marked ones (~4 min on 2 cores): the everyday loop
 	$(PY) -m pytest -q -n 2 -m "not slow" --durations=10
 
 test-all: ## every test, the slow-marked ones included (what .ci/run runs; ~20 min on 2 cores)
