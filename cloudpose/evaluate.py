@@ -21,11 +21,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import runs, tracking
-from cloudpose.data.dataset import Prepared
+from cloudpose import runs, runtime, tracking
+from cloudpose.conventions import resource_path
+from cloudpose.data.cache import cache_key, segments_for
+from cloudpose.data.dataset import Prepared, only_classes, prepare_data
+from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.infer import Estimates, estimate_poses, refine_poses
+from cloudpose.headline import headline
+from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
 from cloudpose.refine import ICPSettings
 from cloudpose.runs import resolve_run
@@ -129,8 +133,6 @@ def real_dev_root() -> Path:
     """The 61 real YCB-Video frames with ground truth that ship in the package (frames
     000001-000020 of training videos 0000-0002 and 0003/000138; 14 classes, 4 scenes), in the
     YCB-Video layout: the sim-to-real check of every run. Test videos are not among them."""
-    from cloudpose.conventions import resource_path
-
     return resource_path("real_dev")
 
 
@@ -259,19 +261,12 @@ def evaluate(
         ValueError: no instance to evaluate; a ``name`` that :func:`check_evaluation_name`
             refuses; ``name`` already holding an evaluation of other data in this run.
     """
-    from cloudpose.data.cache import cache_key, segments_for
-    from cloudpose.data.dataset import only_classes, prepare_data
-    from cloudpose.data.layout import describe_split, open_dataset
-    from cloudpose.infer import load_checkpoint
-
     if name is not None:
         check_evaluation_name(name, data)
     project_dir = (project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)
     run_id, ckpt = resolve_run(client, run)
     model, cfg = load_checkpoint(ckpt, device)
-    from cloudpose import runtime
-
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
     device = next(model.buffers()).device
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
@@ -355,8 +350,6 @@ def log_evaluation(
     """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.csv``
     (what the reports read) and the finite metrics; on the run's own test set
     (:data:`OWN_TEST`) also its headline metrics (:data:`cloudpose.headline.HEADLINE`)."""
-    from cloudpose.headline import headline
-
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "instances.csv"
         table.to_csv(path, index=False)
