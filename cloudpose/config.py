@@ -26,6 +26,8 @@ ROTATION_INPUTS = ("raw", "centred")
 SAMPLERS = ("shuffle", "class_balanced")
 LR_SCHEDULES = ("constant", "cosine")
 TRAIN_SOURCES = ("frames", "online")
+ONLINE_SCENES = ("all", "classes")
+"""What on-line scenes hold when training keeps some classes (``DataConfig.online_scenes``)."""
 KERNELS = ("fused", "plain")
 
 DEFAULT_PRESET = "cpu-online"
@@ -264,7 +266,7 @@ class DataConfig:
         online_workers: with "online", synthesis processes beside training (0 = in the training
             process); changes speed only, never the numbers.
         online_scenes: with "online" and ``classes``, what the synthesized scenes hold
-            (:data:`cloudpose.data.synth.online.ONLINE_SCENES`): "all", objects of every class,
+            (:data:`ONLINE_SCENES`): "all", objects of every class,
             the others as occluders, as in the test frames; "classes", the kept classes only
             (at least 3), which wastes no scene on segments it drops.
         segment_streams: how a frame's instances draw their FPS start points
@@ -302,9 +304,9 @@ class DataConfig:
             raise ValueError(
                 f"data.train_source={self.train_source!r}: expected one of {TRAIN_SOURCES}"
             )
-        if self.online_scenes not in ("all", "classes"):
+        if self.online_scenes not in ONLINE_SCENES:
             raise ValueError(
-                f"data.online_scenes={self.online_scenes!r}: expected 'all' or 'classes'"
+                f"data.online_scenes={self.online_scenes!r}: expected one of {ONLINE_SCENES}"
             )
         if self.online_epoch_segments < 1 or self.online_reuse < 1 or self.online_workers < 0:
             raise ValueError(

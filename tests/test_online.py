@@ -172,11 +172,11 @@ degrees on line, 56.2 for the frame recipe at the same steps."""
 def _held_out_rotation_error(checkpoint: Path, n_points: int) -> float:
     """Median rotation error modulo symmetry (table 2), degrees, of a network on 96 fresh
     on-line segments of :data:`LEARN_CLASSES` from a seed no run trains on."""
-    from cloudpose.data.layout import open_dataset
+    from cloudpose.conventions import packaged_classes
     from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
     from cloudpose.infer import load_checkpoint
 
-    names = list(open_dataset(Path(__file__).parent / "data" / "ycb_real").classes)
+    names = packaged_classes()
     ids = tuple(names.index(c) + 1 for c in LEARN_CLASSES)
     held = OnlineSynth(2, n_points=n_points, class_ids=ids, scenes="classes").batch(999, 0, 96)
     points, cls_id, R, _ = held.tensors()

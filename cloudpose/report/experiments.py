@@ -85,6 +85,11 @@ def _command(cfg: Config, changes: dict[str, object], group: str) -> str:
     ).strip()
 
 
+def _group_names(group: str | list[str]) -> list[str]:
+    """One group name or several, as a list without repeats (in the order given)."""
+    return list(dict.fromkeys([group] if isinstance(group, str) else group))
+
+
 def collect(
     group: str | list[str],
     project_dir: Path | None = None,
@@ -94,7 +99,7 @@ def collect(
     """The finished runs of the experiments of ``group`` (one name or several), of ``preset``
     only when given, oldest first (changes: see :func:`config_changes`)."""
     client = tracking.setup(project_dir)
-    groups = list(dict.fromkeys([group] if isinstance(group, str) else group))
+    groups = _group_names(group)
     ids = []
     for g in groups:
         exp = client.get_experiment_by_name(tracking.EXPERIMENT_PREFIX + g)
@@ -169,7 +174,7 @@ def write_log(
 ) -> Path:
     """Write the log of ``group`` (one name or several; runs of ``preset`` only when given) as
     Markdown to ``out`` (and the values as CSV beside it)."""
-    groups = list(dict.fromkeys([group] if isinstance(group, str) else group))
+    groups = _group_names(group)
     experiments = collect(groups, project_dir, against, preset)
     if not experiments:
         raise ValueError(

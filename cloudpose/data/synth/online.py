@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cloudpose.config import check_synth_version
+from cloudpose.config import ONLINE_SCENES, check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import SegmentWarning, extract_segments
 from cloudpose.data.synth.frames import _generator
@@ -49,9 +49,6 @@ from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, b
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
 scenes never repeat a rendered frame's scene."""
-
-ONLINE_SCENES = ("all", "classes")
-"""What on-line scenes hold when training keeps some classes (:class:`OnlineSynth`)."""
 
 REUSE_SPACING = 32
 """Steps between two uses of an on-line segment (:class:`OnlineStream`)."""
@@ -101,11 +98,12 @@ class OnlineSynth:
         n_points: points per segment (FPS prefix; the network's n).
         outlier_radius: the segment path's outlier filter, metres.
         class_ids: keep segments of these 1-based classes only (None: all).
-        scenes: with ``class_ids``, what the scenes hold (:data:`ONLINE_SCENES`): "all", objects
-            of every class, the others staying in the scene as occluders (the scenes of the
-            test frames); "classes", objects of the kept classes only (at least 3 of them), so
-            no scene is drawn for segments it then drops: with 3 of the 21 classes ~5x the
-            segments per second, at the price of occluders of those classes only.
+        scenes: with ``class_ids``, what the scenes hold
+            (:data:`~cloudpose.config.ONLINE_SCENES`): "all", objects of every class, the others
+            staying in the scene as occluders (the scenes of the test frames); "classes",
+            objects of the kept classes only (at least 3 of them), so no scene is drawn for
+            segments it then drops: with 3 of the 21 classes ~5x the segments per second, at
+            the price of occluders of those classes only.
         K, shape: camera intrinsics and image size (YCB-Video's by default).
         nthreads: ray-casting threads (0: every core; a synthesis worker uses 1).
     """
@@ -154,7 +152,6 @@ class OnlineSynth:
                 )
             self._models = {c: self._models[c] for c in sorted(self.class_ids)}
             self._resting = {c: self._resting[c] for c in sorted(self.class_ids)}
-        self.scenes = scenes
 
     # ------------------------------------------------------------------ one scene
 
