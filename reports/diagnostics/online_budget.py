@@ -24,7 +24,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import pandas as pd
 
-BATCH, REUSE = 32, 8  # the cpu-online preset's train.batch_size and data.online_reuse
+from cloudpose.config import resolve
+
+_PRESET = resolve("shared-0", "cpu-online")
+BATCH, REUSE = _PRESET.train.batch_size, _PRESET.data.online_reuse
 KEPT = ("train.epochs", "data.online_reuse", "model.width")
 
 
