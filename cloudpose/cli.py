@@ -560,8 +560,8 @@ def _next_steps(preset: str) -> None:
     meaning = {
         "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing.",
     }.get(preset, f"preset {preset!r}: {presets().get(preset, '')}")
-    from cloudpose.ablate import estimate_run_s
     from cloudpose.config import get_group, resolve
+    from cloudpose.plan import estimate_run_s
 
     typer.echo(f"\nWhat this is: {meaning}")
     runs = len(get_group("shared").members) * 3
@@ -626,8 +626,8 @@ def run(
     """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP.
 
     Prints its plan first: frames to render, whether the run is trained already, time."""
-    from cloudpose.ablate import plan_configs
     from cloudpose.pipeline import train_and_evaluate
+    from cloudpose.plan import plan_configs
     from cloudpose.runs import display_name
 
     cfg = _config(variant, preset, seed, data, set_)
@@ -798,9 +798,10 @@ def ablate(
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report.
 
     Prints its plan first: frames to render, runs to train and those finished before, time."""
-    from cloudpose.ablate import plan_group, resolve_claims, run_group
+    from cloudpose.ablate import resolve_claims, run_group
     from cloudpose.cluster import RayOptions
     from cloudpose.config import parse_overrides
+    from cloudpose.plan import plan_group
 
     overrides = parse_overrides(set_) or None
     plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
@@ -861,7 +862,8 @@ def ablate_masks(
     are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
     in reports/PRESET/ and the MLflow run report/masks/PRESET. Prints its plan first.
     """
-    from cloudpose.ablate import mask_ablation, plan_masks
+    from cloudpose.ablate_masks import mask_ablation
+    from cloudpose.plan import plan_masks
 
     typer.echo(plan_masks(preset, seeds, Path.cwd(), out_dir=out).text())
     if dry_run:
@@ -1100,9 +1102,9 @@ def occlusion_report(
 
     Renders from the runs in MLflow only: with a run missing it names the runs and the command
     that trains them, and exits 1."""
-    from cloudpose.ablate import estimate_run_s, missing_report_runs, plan_runs
     from cloudpose.ablate import occlusion_report as occlusion_fn
     from cloudpose.config import get_group, resolve
+    from cloudpose.plan import estimate_run_s, missing_report_runs, plan_runs
 
     variants = list(get_group(group).members) if group else ["shared-0"]
     if train_missing:

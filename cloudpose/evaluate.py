@@ -23,8 +23,8 @@ import pandas as pd
 
 from cloudpose import runs, runtime, tracking
 from cloudpose.conventions import resource_path
-from cloudpose.data.cache import cache_key, segments_for
-from cloudpose.data.dataset import Prepared, only_classes, prepare_data
+from cloudpose.data.cache import segments_for
+from cloudpose.data.dataset import Prepared, folder_segments, only_classes, prepare_data
 from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
@@ -273,13 +273,13 @@ def evaluate(
     seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
     if data is None:
         own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
-        segs, dataset = own.test, open_dataset(own.root)
-        split = describe_split(own.root, "test")
+        segs, dataset = own.test, own.dataset
+        split = describe_split(dataset, "test")
         data_label = f"the run's own test set, {split} in {dataset.root}"
         if masks:  # the same frames, segmented otherwise (cached beside the run's own)
             segs = only_classes(
                 segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir, progress=progress),
-                own.root,
+                dataset,
                 cfg.data.classes,
             )
             data_label += f" with {masks} masks"
@@ -287,16 +287,11 @@ def evaluate(
         data_key = segs.key
     else:
         dataset = open_dataset(data)
-        data_key = cache_key(data, frames, seg_cfg, memo_dir=project_dir / "data" / "cache")
-        cache_dir = project_dir / "data" / "cache"
-        segs = only_classes(
-            segments_for(dataset, frames, seg_cfg, cache_dir=cache_dir, progress=progress),
-            data,
-            cfg.data.classes,
-        )
+        segs = folder_segments(dataset, frames, seg_cfg, project_dir, progress)
+        data_key = segs.key
         label = f"-{mask_source_label(masks)}" if masks else ""
         name = name or tracking.metric_key(evaluation_name(data, frames, data_key) + label)
-        split = describe_split(data, frames)
+        split = describe_split(dataset, frames)
         data_label = f"{split} in {Path(data).resolve()}"
     if icp_settings is None:
         icp_settings = ICPSettings.from_config(cfg.icp)

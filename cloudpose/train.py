@@ -40,7 +40,6 @@ from cloudpose import runs, runtime, tracking
 from cloudpose.config import Config, groups_of
 from cloudpose.data.batches import Batchable
 from cloudpose.data.dataset import Prepared
-from cloudpose.data.layout import open_dataset
 from cloudpose.data.synth.online import OnlineStream, OnlineSynth
 from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
 from cloudpose.files import atomic_write
@@ -295,7 +294,7 @@ def _train(
     if info.get("finished") and world.broadcast(final.exists()):
         return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
 
-    dataset = open_dataset(data.root)
+    dataset = data.dataset
     class_names = list(dataset.classes)
     online = cfg.data.train_source == "online"
     if online:  # the rendered training frames validate; fitting draws fresh segments

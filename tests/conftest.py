@@ -152,12 +152,12 @@ def smoke_data(tmp_path_factory) -> Path:
     """``data/`` folder holding the smoke preset's synthetic set and its segment caches."""
     from cloudpose.config import resolve
     from cloudpose.data.cache import segments_for
-    from cloudpose.data.dataset import ensure_dataset
+    from cloudpose.data.dataset import prepare_data
     from cloudpose.evaluate import real_dev_root
 
     root = tmp_path_factory.mktemp("smoke-data")
     cfg = resolve("shared-0", "smoke").data
-    ensure_dataset(cfg, project_dir=root, progress=False)
+    prepare_data(cfg, project_dir=root, progress=False)
     # the real development frames' segments, which every run's evaluation reads
     segments_for(real_dev_root(), "all", cfg, cache_dir=root / "data" / "cache", progress=False)
     return root / "data"

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from cloudpose import ablate, runs, tracking
+from cloudpose.config import resolve
 
 
 class Fakes:
@@ -208,11 +209,26 @@ def test_eta_from_earlier_runs(fakes, tmp_path):
     assert "2 run(s) left" in first and "unknown" not in first
 
 
-def test_seed_list():
-    assert ablate.seed_list(3) == [1, 2, 3]
-    assert ablate.seed_list([3, 1, 3]) == [1, 3]
-    with pytest.raises(ValueError, match="seeds"):
-        ablate.seed_list(0)
+@pytest.mark.parametrize("resume_first", [False, True])
+def test_a_resumed_run_does_not_set_the_estimate(fakes, tmp_path, monkeypatch, resume_first):
+    """A run resumed from its checkpoint takes a fraction of a run: the time left is estimated
+    from whole runs only (each fake run takes 100 s of a fake clock here)."""
+    import time as real_time
+
+    ticks = iter(range(0, 10_000, 100))
+    clock = types.SimpleNamespace(monotonic=lambda: next(ticks), strftime=real_time.strftime)
+    monkeypatch.setattr(ablate, "time", clock)
+    if resume_first:
+        cfg = resolve("shared-0", "smoke", 1)
+        last = runs.run_dir(cfg, fakes.fingerprint, tmp_path.resolve()) / "last.pt"
+        last.parent.mkdir(parents=True)
+        last.write_bytes(b"")
+    lines = [line for line in _run(tmp_path)[1] if "training + evaluation" in line]
+    assert "3 run(s) left" in lines[1]
+    if resume_first:  # no earlier run in the store either: nothing to estimate from yet
+        assert lines[1].endswith("estimated unknown to go")
+    else:
+        assert lines[1].endswith("estimated 5m00s to go")  # 100 s a run, from the first
 
 
 def test_unknown_group_lists_valid_ones(tmp_path):

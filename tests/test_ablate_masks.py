@@ -151,7 +151,7 @@ def test_report_all_without_mask_evaluations_has_no_masks_table(tmp_path, monkey
 
 
 def test_an_unknown_mask_source_fails_before_training(tmp_path):
-    from cloudpose.ablate import mask_ablation
+    from cloudpose.ablate_masks import mask_ablation
 
     with pytest.raises(ValueError, match="degraded-medium"):
         mask_ablation(PRESET, 1, tmp_path, False, sources=["gt", "degraded-typo"])
@@ -165,7 +165,7 @@ def test_ablate_masks_on_smoke_trains_once_then_skips(tmp_path, smoke_data, monk
     from typer.testing import CliRunner
 
     from cloudpose import tracking
-    from cloudpose.ablate import mask_ablation
+    from cloudpose.ablate_masks import mask_ablation
     from cloudpose.cli import app
 
     proj = make_project(tmp_path / "proj", smoke_data, monkeypatch)

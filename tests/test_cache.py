@@ -129,13 +129,14 @@ def test_prepare_and_keys(project, tmp_path):
     assert np.array_equal(s3.points, s.points[first])
 
 
-def test_ensure_dataset_synthetic(project):
-    train, test = dataset.ensure_dataset(CFG, project, workers=1, progress=False)
+def test_prepare_data_synthetic(project):
+    prep = dataset.prepare_data(CFG, project, workers=1, progress=False)
+    train, test = prep.train, prep.test
     assert set(train.frame_id.tolist()) == {"0000/000001", "0000/000002"}
     assert set(test.frame_id.tolist()) == {"1000/000001"}
     assert train.points.shape[1] == 64
     fp = dataset.data_fingerprint(CFG, project)
-    assert fp == dataset.data_fingerprint(CFG, project) and len(fp) == 16
+    assert fp == prep.key and len(fp) == 16
     assert dataset.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
     assert dataset.synthetic_root(CFG, project).name == "synth-seed0-v2"
     assert dataset.dataset_root(CFG, project) == dataset.synthetic_root(CFG, project)
@@ -143,7 +144,7 @@ def test_ensure_dataset_synthetic(project):
     assert dataset.synthetic_root(cfg2, project).name == "synth-seed2-uniform-nonoise-v2"
 
 
-def test_ensure_dataset_real_root(tmp_path):
+def test_prepare_data_real_root(tmp_path):
     """A real root is read, never written: alone pixels are rendered, caches go elsewhere."""
     root = tmp_path / "ycb"
     shutil.copytree(REAL / "data", root / "data")
@@ -153,7 +154,8 @@ def test_ensure_dataset_real_root(tmp_path):
     (root / "keyframe.txt").write_text("0000/000001\n")
     before = sorted(p.relative_to(root) for p in root.rglob("*"))
     cfg = DataConfig(root=str(root), n_fps=128)
-    train, test = dataset.ensure_dataset(cfg, tmp_path / "proj", workers=1, progress=False)
+    prep = dataset.prepare_data(cfg, tmp_path / "proj", workers=1, progress=False)
+    train, test = prep.train, prep.test
     assert sorted(p.relative_to(root) for p in root.rglob("*")) == before
     assert len(train) == 3 and train.cls_id.tolist() == [8, 14, 21]
     assert np.array_equal(train.points, test.points)
@@ -167,7 +169,7 @@ def test_ensure_dataset_real_root(tmp_path):
     assert np.array_equal(every.points, train.points)
     assert not (root / "cache").exists()
     with pytest.raises(FileNotFoundError, match=r"data\.root"):
-        dataset.ensure_dataset(DataConfig(root=str(tmp_path / "nope")), tmp_path, progress=False)
+        dataset.prepare_data(DataConfig(root=str(tmp_path / "nope")), tmp_path, progress=False)
 
 
 def test_occlusion_histogram(tmp_path):

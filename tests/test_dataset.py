@@ -12,7 +12,7 @@ from cloudpose.config import DataConfig, resolve
 from cloudpose.data.dataset import (
     data_fingerprint,
     dataset_root,
-    ensure_dataset,
+    folder_segments,
     only_classes,
     prepare_data,
     synthetic_root,
@@ -53,8 +53,8 @@ def test_prepare_data_reads_the_rendered_set_and_keys_it(project):
     assert len(prep.train) > 0 and len(prep.test) > 0
     assert set(np.char.partition(prep.test.frame_id.astype(str), "/")[:, 0]) <= {"1000"}
     assert prep.key == data_fingerprint(cfg, project) and len(prep.key) == 16
-    train, test = ensure_dataset(cfg, project, progress=False)
-    assert (train.key, test.key) == (prep.train.key, prep.test.key)
+    again = prepare_data(cfg, project, progress=False)
+    assert (again.train.key, again.test.key, again.key) == (prep.train.key, prep.test.key, prep.key)
     # another segment setting is other data, with another key
     assert data_fingerprint(dataclasses.replace(cfg, n_fps=cfg.n_fps // 2), project) != prep.key
 
@@ -70,5 +70,38 @@ def test_only_classes_keeps_the_named_classes(project):
     with pytest.raises(ValueError, match="unknown classes"):
         only_classes(prep.test, prep.root, ("999_not_a_class",))
     narrowed = dataclasses.replace(cfg, classes=(names[cls - 1],))
-    _, test = ensure_dataset(narrowed, project, progress=False)
+    test = prepare_data(narrowed, project, progress=False).test
     assert set(test.cls_id.tolist()) == {cls}
+
+
+def test_prepare_data_opens_the_dataset_once_and_passes_it_on(project, monkeypatch):
+    import cloudpose.data.dataset as dataset_module
+    import cloudpose.data.layout as layout
+
+    opened = []
+    real_open = layout.open_dataset
+
+    def counting(root):
+        opened.append(Path(root))
+        return real_open(root)
+
+    monkeypatch.setattr(layout, "open_dataset", counting)
+    monkeypatch.setattr(dataset_module, "open_dataset", counting)
+    import cloudpose.data.cache as cache_module
+
+    monkeypatch.setattr(cache_module, "open_dataset", counting)
+    cfg = dataclasses.replace(resolve("shared-0", "smoke").data, classes=("006_mustard_bottle",))
+    prep = prepare_data(cfg, project, progress=False)
+    assert opened == [prep.root]
+    assert prep.dataset.root == prep.root and "006_mustard_bottle" in prep.dataset.classes
+
+
+def test_folder_segments_are_of_the_configured_classes_and_cached_under_the_project(tmp_path):
+    cfg = DataConfig(n_fps=64)
+    every = folder_segments(REAL, "all", cfg, tmp_path, progress=False)
+    assert len(every) == 3 and len(every.key) == 20
+    assert list((tmp_path / "data" / "cache").glob("*.npz"))
+    names = open_dataset(REAL).classes
+    one = names[int(every.cls_id[0]) - 1]
+    few = folder_segments(REAL, "all", dataclasses.replace(cfg, classes=(one,)), tmp_path, False)
+    assert few.cls_id.tolist() == [int(every.cls_id[0])] and few.key == every.key

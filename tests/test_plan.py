@@ -15,6 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cloudpose import ablate, tracking
+from cloudpose import plan as plans
 from cloudpose.cli import app
 from cloudpose.config import get_group, groups, groups_of, resolve
 
@@ -48,7 +49,7 @@ def _finished_run(project: Path, variant: str, preset: str, seed: int) -> str:
 
 
 def test_plan_counts_frames_runs_and_time(project):
-    plan = ablate.plan_group("shared", "cpu", 3, project)
+    plan = plans.plan_group("shared", "cpu", 3, project)
     n = len(get_group("shared").members) * 3
     assert len(plan.runs) == n and len(plan.to_train) == n
     assert plan.frames == {"data/synth-seed0": (950, 950)}  # 800 train + 150 test frames
@@ -62,16 +63,16 @@ def test_plan_counts_frames_runs_and_time(project):
 
 def test_plan_time_comes_from_the_store_when_it_has_runs(project):
     _finished_run(project, "shared-0", "smoke", 1)
-    plan = ablate.plan_runs(["shared-0"], "smoke", [1, 2], title="t", project_dir=project)
+    plan = plans.plan_runs(["shared-0"], "smoke", [1, 2], title="t", project_dir=project)
     assert "median wall time of 1 finished smoke run" in plan.per_run_source
     # the data is not rendered: the run on other data is only mentioned, not skipped
     assert len(plan.to_train) == 2 and plan.matched_elsewhere == 1
 
 
 def test_estimate_grows_with_the_preset():
-    smoke, _ = ablate.estimate_run_s(resolve("shared-0", "smoke"))
-    cpu, _ = ablate.estimate_run_s(resolve("shared-0", "cpu"))
-    paper, _ = ablate.estimate_run_s(resolve("shared-0", "paper"))
+    smoke, _ = plans.estimate_run_s(resolve("shared-0", "smoke"))
+    cpu, _ = plans.estimate_run_s(resolve("shared-0", "cpu"))
+    paper, _ = plans.estimate_run_s(resolve("shared-0", "paper"))
     assert smoke < 90 and smoke < cpu < paper
 
 
@@ -113,7 +114,7 @@ def test_occlusion_report_never_trains_without_asking(project, monkeypatch):
     assert "--train-missing" in res.output and "make occlusion-runs" in res.output
     assert not (project / "data").exists()
     _finished_run(project, "shared-0", "smoke", 1)
-    assert ablate.missing_report_runs(["shared-0"], "smoke", 2, project) == ["shared-0/smoke/seed2"]
+    assert plans.missing_report_runs(["shared-0"], "smoke", 2, project) == ["shared-0/smoke/seed2"]
     with pytest.raises(ablate.MissingRuns, match="seed2"):
         ablate.occlusion_report("smoke", 2, project)
     res = CliRunner().invoke(
@@ -206,3 +207,10 @@ def test_reports_of_uncommitted_presets_stay_out_of_committed_reports(tmp_path):
     subprocess.run([*git, "commit", "-qm", "reports"], cwd=tmp_path, check=True)
     assert default_out_dir(tmp_path, "cpu") == tmp_path / "reports" / "cpu"
     assert default_out_dir(tmp_path, "smoke") == tmp_path / "runs" / "reports" / "smoke"
+
+
+def test_seed_list():
+    assert plans.seed_list(3) == [1, 2, 3]
+    assert plans.seed_list([3, 1, 3]) == [1, 3]
+    with pytest.raises(ValueError, match="seeds"):
+        plans.seed_list(0)

@@ -31,10 +31,10 @@ LITERAL = {
 
 @pytest.fixture
 def small_project(tmp_path) -> Path:
-    from cloudpose.data.dataset import ensure_dataset
+    from cloudpose.data.dataset import prepare_data
 
     proj = tmp_path / "recipe"
-    ensure_dataset(resolve("shared-0", "smoke", 1, SMALL).data, project_dir=proj, progress=False)
+    prepare_data(resolve("shared-0", "smoke", 1, SMALL).data, project_dir=proj, progress=False)
     return proj
 
 
@@ -55,7 +55,7 @@ def _train(proj: Path, *deltas: dict, monkeypatch):
 @pytest.mark.slow
 def test_recipe_fits_rotation_and_every_class(small_project, monkeypatch):
     from cloudpose.data.batches import Batchable
-    from cloudpose.data.dataset import ensure_dataset
+    from cloudpose.data.dataset import prepare_data
     from cloudpose.infer import load_checkpoint
 
     cfg, out = _train(small_project, monkeypatch=monkeypatch)
@@ -67,7 +67,7 @@ def test_recipe_fits_rotation_and_every_class(small_project, monkeypatch):
     assert abs(m["fit/rot_err_median_deg"] - m["fit/rot_err_median_deg_batchstats"]) < 15.0, m
 
     # every class fits its own training segments (no class stuck at a constant output)
-    train_set, _ = ensure_dataset(cfg.data, project_dir=small_project, progress=False)
+    train_set = prepare_data(cfg.data, project_dir=small_project, progress=False).train
     data = Batchable.from_segments(train_set, cfg.train.n_points)
     model, _ = load_checkpoint(out.checkpoint)
     with torch.no_grad():

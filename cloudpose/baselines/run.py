@@ -38,8 +38,8 @@ from cloudpose import runs, tracking
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import NotRegistered, settings_fingerprint
 from cloudpose.config import DEFAULT_PRESET, resolve
-from cloudpose.data.cache import cache_key, segments_for
-from cloudpose.data.dataset import only_classes, prepare_data
+from cloudpose.data.cache import segments_for
+from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.evaluate import (
     evaluation_name,
@@ -224,19 +224,21 @@ def run_baseline(
     cfg = resolve("shared-0", preset, seed)
     described = ""
     if data is not None:
-        pool, data_key, split, described = _user_data(data, frames, cfg.data, project_dir, progress)
         dataset = open_dataset(data)
+        pool = folder_segments(dataset, frames, cfg.data, project_dir, progress)
+        data_key = pool.key
+        split = evaluation_name(data, frames, data_key)
+        described = describe_split(dataset, frames)
     else:
         prepared = prepare_data(cfg.data, project_dir, progress=progress)
         data_key = prepared.key
-        dataset = open_dataset(prepared.root)
+        dataset = prepared.dataset
         if split == "test":
             pool = prepared.test
         elif split == "real":
-            real = real_dev_root()
+            dataset = open_dataset(real_dev_root())
             cache_dir = project_dir / "data" / "cache"
-            pool = segments_for(real, "all", cfg.data, cache_dir=cache_dir, progress=progress)
-            dataset = open_dataset(real)
+            pool = segments_for(dataset, "all", cfg.data, cache_dir=cache_dir, progress=progress)
         else:
             val = split_frames(prepared.train.frame_id, cfg.train.val_fraction)
             pool = prepared.train.subset(val)
@@ -330,17 +332,6 @@ def run_baseline(
     )
     state.remove()
     return BaselineOutcome(table, metrics, run_id, failures, name=split, split=described)
-
-
-def _user_data(data, frames: str, cfg, project_dir: Path, progress: bool):
-    """(segments, content key, metric prefix, frame list in words) of ``frames`` of the
-    dataset root ``data``, named and cached as ``cloudpose evaluate --data`` does."""
-    cache_dir = project_dir / "data" / "cache"
-    key = cache_key(data, frames, cfg, memo_dir=cache_dir)
-    segs = only_classes(
-        segments_for(data, frames, cfg, cache_dir=cache_dir, progress=progress), data, cfg.classes
-    )
-    return segs, key, evaluation_name(data, frames, key), describe_split(data, frames)
 
 
 def _log(

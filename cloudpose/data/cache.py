@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cloudpose.data.layout import open_dataset
+from cloudpose.data.layout import Dataset, as_dataset, open_dataset
 from cloudpose.data.mask_sources import get_mask_source
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, Segment, SegmentWarning, extract_segments
@@ -56,15 +56,14 @@ instances draws from its own stream of it (:func:`~cloudpose.data.segments.insta
 # --------------------------------------------------------------------------- keys
 
 
-def _split_frames(root: Path, split: str) -> list[str]:
+def _split_frames(ds: Dataset, split: str) -> list[str]:
     """Frame ids of a split of either layout (:mod:`cloudpose.data.layout`): "train" ->
     image_sets/train.txt (BOP: train_real/); "test" or "keyframe" -> keyframe.txt (BOP: the
     BOP19 test targets); "all" -> every frame; else image_sets/SPLIT.txt."""
-    ds = open_dataset(root)
     name = "keyframe" if split in ("test", "keyframe") else split
     frames = ds.image_set(name)
     if not frames:
-        raise ValueError(f"{root}: the frame list {name!r} (split {split!r}) is empty")
+        raise ValueError(f"{ds.root}: the frame list {name!r} (split {split!r}) is empty")
     return frames
 
 
@@ -80,7 +79,7 @@ def _settings(cfg: DataConfig) -> dict:
 
 
 def cache_key(
-    root: str | Path, split: str, cfg: DataConfig, memo_dir: str | Path | None = None
+    dataset: str | Path | Dataset, split: str, cfg: DataConfig, memo_dir: str | Path | None = None
 ) -> str:
     """Key of a split's segments: hash of frame ids, the *content* of each frame's files and of
     the model files, and the segment settings (20 hex digits).
@@ -90,9 +89,9 @@ def cache_key(
     size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
     so a large dataset is read once, not on every command.
     """
-    root = Path(root)
-    ds = open_dataset(root)
-    frames = _split_frames(root, split)
+    ds = as_dataset(dataset)
+    root = ds.root
+    frames = _split_frames(ds, split)
     mask_files = getattr(get_mask_source(cfg.segmentation), "content_files", None)
     files: list[Path] = []
     for fid in frames:
@@ -211,15 +210,17 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
     return segs, sum(issubclass(w.category, SegmentWarning) for w in caught)
 
 
-def _run(jobs: list, root: str, workers: int):
-    """Results of :func:`_extract` over ``jobs`` in order, in this process or a spawn pool."""
+def _run(jobs: list, ds: Dataset, workers: int):
+    """Results of :func:`_extract` over ``jobs`` in order, in this process (reading ``ds``) or
+    a spawn pool (each process opens the folder again: a dataset is not sent between them)."""
     if workers <= 1:
-        _init_worker(root)
+        _worker.clear()
+        _worker["ds"] = ds
         yield from map(_extract, jobs)
         return
     import multiprocessing as mp
 
-    with mp.get_context("spawn").Pool(workers, _init_worker, (root,)) as pool:
+    with mp.get_context("spawn").Pool(workers, _init_worker, (str(ds.root),)) as pool:
         yield from pool.imap(_extract, jobs, chunksize=4)
 
 
@@ -235,15 +236,17 @@ def _stored_unit_stats(path: Path, models_by_class: dict[int, np.ndarray]) -> di
     return unit_stats(SegmentSet.load(path), models_by_class)
 
 
-def cache_path(root: str | Path, split: str, cfg: DataConfig, cache_dir: str | Path) -> Path:
+def cache_path(
+    dataset: str | Path | Dataset, split: str, cfg: DataConfig, cache_dir: str | Path
+) -> Path:
     """Where the segments of ``split`` live: ``cache_dir/ROOTNAME-SPLIT-KEY.npz``."""
-    root = Path(root)
-    key = cache_key(root, split, cfg, memo_dir=cache_dir)
-    return Path(cache_dir) / f"{root.resolve().name}-{split}-{key}.npz"
+    ds = as_dataset(dataset)
+    key = cache_key(ds, split, cfg, memo_dir=cache_dir)
+    return Path(cache_dir) / f"{ds.root.resolve().name}-{split}-{key}.npz"
 
 
 def prepare(
-    root: str | Path,
+    dataset: str | Path | Dataset,
     split: str,
     cfg: DataConfig,
     cache_dir: str | Path | None = None,
@@ -253,7 +256,7 @@ def prepare(
     """Extract and cache the segments of a split (skipped when its keyed cache exists).
 
     Args:
-        root: dataset root in either layout (:mod:`cloudpose.data.layout`).
+        dataset: an opened dataset or its root, in either layout (:mod:`cloudpose.data.layout`).
         split: "train" (image_sets/train.txt), "test" or "keyframe" (keyframe.txt; BOP: the
             BOP19 test targets), "all" (every frame) or another image set name.
         cfg: segment settings (n_fps, outlier_radius, segmentation).
@@ -268,14 +271,14 @@ def prepare(
         ValueError: a scene's segments look like depth in another unit (:func:`check_units`;
             the cache is written all the same, and checked again on every use).
     """
-    root = Path(root)
+    ds = as_dataset(dataset)
+    root = ds.root
     settings = _settings(cfg)
-    path = cache_path(root, split, cfg, cache_dir or root / "cache")
-    ds = open_dataset(root)
+    path = cache_path(ds, split, cfg, cache_dir or root / "cache")
     if path.is_file():
         check_units(ds, _stored_unit_stats(path, ds.models()))
         return path
-    frames = _split_frames(root, split)
+    frames = _split_frames(ds, split)
     jobs = [(fid, settings) for fid in frames]
     workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
     from tqdm import tqdm
@@ -283,7 +286,7 @@ def prepare(
     segments: list[Segment] = []
     n_bad = 0
     with tqdm(total=len(jobs), desc=f"prepare {split}", unit="frame", disable=not progress) as bar:
-        for segs, bad in _run(jobs, str(root), workers):
+        for segs, bad in _run(jobs, ds, workers):
             segments.extend(segs)
             n_bad += bad
             bar.update()
@@ -306,7 +309,7 @@ def prepare(
 
 
 def segments_for(
-    dataset,
+    dataset: str | Path | Dataset,
     frames: str = "keyframe",
     cfg: DataConfig | None = None,
     cache_dir: str | Path | None = None,
@@ -327,8 +330,7 @@ def segments_for(
     """
     from cloudpose.config import DataConfig
 
-    root = Path(dataset if isinstance(dataset, (str, Path)) else dataset.root)
     cfg = cfg or DataConfig()
     cache_dir = Path(cache_dir) if cache_dir else Path.cwd() / "data" / "cache"
-    path = prepare(root, frames, cfg, cache_dir, workers=workers, progress=progress)
+    path = prepare(dataset, frames, cfg, cache_dir, workers=workers, progress=progress)
     return SegmentSet.load(path)

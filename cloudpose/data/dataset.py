@@ -2,13 +2,15 @@
 
 - :func:`dataset_root`: ``DataConfig.root``, or the synthetic default under the project folder
   (:func:`synthetic_root`, one folder per synthesis setting).
-- :func:`ensure_dataset`: the (train, test) segments of a config; the synthetic default is
-  rendered or completed first (resumable), a real root is only read (its caches go to
-  ``project_dir/data/cache``).
+- :func:`prepare_data`: the (train, test) segments of a config as one :class:`Prepared`, what
+  ``train`` and ``evaluate`` receive from the pipeline (:mod:`cloudpose.pipeline`). The
+  synthetic default is rendered or completed first (resumable), a real root is only read (its
+  caches go to ``project_dir/data/cache``); the dataset is opened once and the object passed
+  on to the caches, the class filter and the stages.
 - :func:`data_fingerprint`: one content key for the train and test data and their settings
-  (MLflow tag ``data``, part of a run's identity).
-- :func:`prepare_data`: all of the above as one :class:`Prepared`, what ``train`` and
-  ``evaluate`` receive from the pipeline (:mod:`cloudpose.pipeline`).
+  (MLflow tag ``data``, part of a run's identity), without preparing anything.
+- :func:`folder_segments`: the segments of a frame list of any other dataset folder (the
+  ``--data`` of ``evaluate`` and ``baseline``), cached under the project.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cloudpose.data.cache import SegmentSet, cache_key, prepare
+from cloudpose.data.cache import SegmentSet, cache_key, prepare, segments_for
+from cloudpose.data.layout import Dataset, as_dataset, open_dataset
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -29,7 +32,7 @@ __all__ = [
     "Prepared",
     "data_fingerprint",
     "dataset_root",
-    "ensure_dataset",
+    "folder_segments",
     "only_classes",
     "prepare_data",
     "synthetic_root",
@@ -44,7 +47,7 @@ class Prepared:
         train, test: the segments of the training set (image_sets/train.txt) and of the test
             set (keyframe.txt).
         key: :func:`data_fingerprint` of both.
-        root: the dataset root (models and class names are read from it).
+        dataset: the opened dataset (models, class names and frames are read from it).
         cache_dir: where its segment caches are (other segment settings of the same frames
             go there too).
     """
@@ -52,18 +55,58 @@ class Prepared:
     train: SegmentSet
     test: SegmentSet
     key: str
-    root: Path
+    dataset: Dataset
     cache_dir: Path
+
+    @property
+    def root(self) -> Path:
+        """The dataset root."""
+        return self.dataset.root
 
 
 def prepare_data(
-    cfg: DataConfig, project_dir: str | Path | None = None, progress: bool = True
+    cfg: DataConfig,
+    project_dir: str | Path | None = None,
+    workers: int | None = None,
+    progress: bool = True,
 ) -> Prepared:
-    """The data of ``cfg``, made on first use (:func:`ensure_dataset`), with its key."""
+    """The (train, test) segments that ``cfg`` asks for, made on first use, with their key.
+
+    With ``cfg.root == ""`` the synthetic default (:func:`synthetic_root`) is rendered or
+    completed to ``cfg.train_frames`` / ``cfg.test_frames`` (resumable); a real root is never
+    written to (its caches go to ``project_dir/data/cache``). Train = image_sets/train.txt,
+    test = keyframe.txt; both of the classes ``cfg.classes`` only (every class when empty).
+    """
     project_dir = Path(project_dir or Path.cwd())
-    train, test = ensure_dataset(cfg, project_dir=project_dir, progress=progress)
     root, cache_dir = _dataset_root(cfg, project_dir)
-    return Prepared(train, test, data_fingerprint(cfg, project_dir), root, cache_dir)
+    if cfg.root == "":
+        from cloudpose.data.synth import synthesize
+
+        synthesize(
+            root,
+            cfg.train_frames,
+            cfg.test_frames,
+            seed=cfg.synth_seed,
+            noise=cfg.noise,
+            uniform_rotation=cfg.uniform_rotation,
+            workers=workers,
+            progress=progress,
+            version=cfg.synth_version,
+        )
+    ds = open_dataset(root)
+    train, test = (
+        only_classes(
+            SegmentSet.load(prepare(ds, split, cfg, cache_dir, workers=workers, progress=progress)),
+            ds,
+            cfg.classes,
+        )
+        for split in ("train", "test")
+    )
+    return Prepared(train, test, _fingerprint(train.key, test.key), ds, cache_dir)
+
+
+def _fingerprint(train_key: str, test_key: str) -> str:
+    return hashlib.sha256(f"{train_key}+{test_key}".encode()).hexdigest()[:16]
 
 
 def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:
@@ -100,43 +143,9 @@ def dataset_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path
     return _dataset_root(cfg, Path(project_dir or Path.cwd()))[0]
 
 
-def ensure_dataset(
-    cfg: DataConfig,
-    project_dir: str | Path | None = None,
-    workers: int | None = None,
-    progress: bool = True,
-) -> tuple[SegmentSet, SegmentSet]:
-    """The (train, test) segments that ``cfg`` asks for, made on first use.
-
-    With ``cfg.root == ""`` the synthetic default (:func:`synthetic_root`) is rendered or
-    completed to ``cfg.train_frames`` / ``cfg.test_frames`` (resumable); a real root is never
-    written to (its caches go to ``project_dir/data/cache``). Train = image_sets/train.txt,
-    test = keyframe.txt.
-    """
-    project_dir = Path(project_dir or Path.cwd())
-    root, cache_dir = _dataset_root(cfg, project_dir)
-    if cfg.root == "":
-        from cloudpose.data.synth import synthesize
-
-        synthesize(
-            root,
-            cfg.train_frames,
-            cfg.test_frames,
-            seed=cfg.synth_seed,
-            noise=cfg.noise,
-            uniform_rotation=cfg.uniform_rotation,
-            workers=workers,
-            progress=progress,
-            version=cfg.synth_version,
-        )
-    sets = []
-    for split in ("train", "test"):
-        path = prepare(root, split, cfg, cache_dir, workers=workers, progress=progress)
-        sets.append(only_classes(SegmentSet.load(path), root, cfg.classes))
-    return sets[0], sets[1]
-
-
-def only_classes(segs: SegmentSet, root: str | Path, classes: tuple[str, ...]) -> SegmentSet:
+def only_classes(
+    segs: SegmentSet, dataset: str | Path | Dataset, classes: tuple[str, ...]
+) -> SegmentSet:
     """The segments of the named classes (``DataConfig.classes``); all of them when empty.
 
     Raises:
@@ -144,22 +153,35 @@ def only_classes(segs: SegmentSet, root: str | Path, classes: tuple[str, ...]) -
     """
     if not classes:
         return segs
-    from cloudpose.data.layout import open_dataset
-
-    names = open_dataset(root).classes
+    ds = as_dataset(dataset)
+    names = ds.classes
     unknown = [c for c in classes if c not in names]
     if unknown:
-        raise ValueError(f"data.classes: unknown classes {unknown}; {root} has {names}")
+        raise ValueError(f"data.classes: unknown classes {unknown}; {ds.root} has {names}")
     ids = [names.index(c) + 1 for c in classes]
     return segs.subset(np.isin(segs.cls_id, ids))
 
 
-def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> str:
-    """One key for the train and test data and settings (for MLflow params); 16 hex digits.
+def folder_segments(
+    dataset: str | Path | Dataset,
+    frames: str,
+    cfg: DataConfig,
+    project_dir: str | Path | None = None,
+    progress: bool = True,
+) -> SegmentSet:
+    """The segments of the frame list ``frames`` of a dataset folder other than a run's own
+    (``--data``), with ``cfg``'s segment settings and of its classes, cached in
+    ``project_dir/data/cache`` (the folder is only read); ``.key`` is their cache key."""
+    ds = as_dataset(dataset)
+    cache_dir = Path(project_dir or Path.cwd()) / "data" / "cache"
+    segs = segments_for(ds, frames, cfg, cache_dir=cache_dir, progress=progress)
+    return only_classes(segs, ds, cfg.classes)
 
-    Needs the data to exist (call after :func:`ensure_dataset`).
-    """
+
+def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> str:
+    """One key for the train and test data and settings (for MLflow params); 16 hex digits:
+    :attr:`Prepared.key`, computed without preparing (the data must exist)."""
     project_dir = Path(project_dir or Path.cwd())
     root, cache_dir = _dataset_root(cfg, project_dir)
-    keys = [cache_key(root, split, cfg, memo_dir=cache_dir) for split in ("train", "test")]
-    return hashlib.sha256("+".join(keys).encode()).hexdigest()[:16]
+    ds = open_dataset(root)
+    return _fingerprint(*(cache_key(ds, s, cfg, memo_dir=cache_dir) for s in ("train", "test")))

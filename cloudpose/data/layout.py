@@ -17,7 +17,11 @@ from pathlib import Path
 from cloudpose.data.bop import BOPYcbv, is_bop_root
 from cloudpose.data.ycb import YCBVideo
 
-__all__ = ["describe_split", "detect_layout", "open_dataset"]
+__all__ = ["Dataset", "as_dataset", "describe_split", "detect_layout", "open_dataset"]
+
+Dataset = YCBVideo | BOPYcbv
+"""An opened dataset of either layout: what the data stages read frames, models and frame
+lists from (open a folder once with :func:`open_dataset` and pass the object on)."""
 
 
 def detect_layout(root: str | Path) -> str:
@@ -51,20 +55,25 @@ def open_dataset(root: str | Path) -> YCBVideo | BOPYcbv:
     return YCBVideo(root)
 
 
-def describe_split(root: str | Path, frames: str) -> str:
-    """The frame list ``frames`` of ``root`` in words, with its size: ``YCB-Video keyframe
+def as_dataset(data: str | Path | Dataset) -> Dataset:
+    """``data`` itself when it is an opened dataset, else :func:`open_dataset` of the folder."""
+    return data if isinstance(data, (YCBVideo, BOPYcbv)) else open_dataset(data)
+
+
+def describe_split(data: str | Path | Dataset, frames: str) -> str:
+    """The frame list ``frames`` of ``data`` (a folder or an opened dataset) in words, with its size: ``YCB-Video keyframe
     (2949 frames)``, ``BOP19 ycbv test targets (900 images)``, ``synthetic YCB-Video-layout
     keyframe (150 frames)``. Every evaluation names its data this way (printed and in
     MLflow), so results of different frame lists are not mixed up."""
-    ds = open_dataset(root)
+    ds = as_dataset(data)
     name = "keyframe" if frames == "test" else frames
     n = len(ds.image_set(name))
-    if detect_layout(root) == "bop":
+    if isinstance(ds, BOPYcbv):
         what = {
             "keyframe": "BOP19 ycbv test targets",
             "all": "BOP ycbv test",
             "train": "BOP ycbv train_real",
         }.get(name, f"BOP ycbv {name}")
         return f"{what} ({n} images)"
-    kind = "synthetic YCB-Video-layout" if (Path(root) / "synth.json").is_file() else "YCB-Video"
+    kind = "synthetic YCB-Video-layout" if (ds.root / "synth.json").is_file() else "YCB-Video"
     return f"{kind} {name} ({n} frames)"

@@ -28,7 +28,6 @@ from scipy.spatial.transform import Rotation
 from cloudpose import tracking
 from cloudpose.config import resolve
 from cloudpose.data.dataset import prepare_data
-from cloudpose.data.layout import open_dataset
 from cloudpose.infer import estimate_poses, load_checkpoint
 
 CLASSES = (
@@ -65,7 +64,7 @@ def main() -> None:
     data = prepare_data(
         resolve("shared-0", args.preset, args.seed).data, Path.cwd(), progress=False
     )
-    dataset = open_dataset(data.root)
+    dataset = data.dataset
     models, classes, segs = dataset.models(), dataset.classes, data.test
     est = estimate_poses(model, segs, cfg.train.n_points)
     base = {
