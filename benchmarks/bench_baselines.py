@@ -6,7 +6,7 @@ object's model points (drill, mustard bottle, pitcher, scissors) at random poses
 1 mm noise, about as many points as a cpu-preset segment. Each baseline's
 ``estimate(points, cls_id)`` (``cloudpose.baselines``; models trained once beforehand, their
 training time reported apart) is timed beside the network's estimate of the same object:
-shared-0's folded forward (``cloudpose.models.inference``, n = 256, one thread) plus the
+shared-0's folded forward (``cloudpose.models.folded``, n = 256, one thread) plus the
 paper's ICP (``cloudpose.refine.icp_refine``), which is what a network row of Table I costs.
 The rotation error of each baseline's estimates is reported too, so a fast wrong answer shows.
 
@@ -37,7 +37,7 @@ from cloudpose.data.surfaces import load_packaged_models
 from cloudpose.data.ycb import load_classes
 from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.metrics import rotation_error_deg
-from cloudpose.models.inference import fold_for_inference
+from cloudpose.models.folded import fold_for_inference
 from cloudpose.refine import icp_refine
 
 CLASSES = ("035_power_drill", "006_mustard_bottle", "019_pitcher_base", "037_scissors")

@@ -3,7 +3,7 @@
 Both networks of ``shared-0`` (paper widths, n = 256 points, float32, eval mode) on 1 object and
 on a frame of 8 objects, in the same process and interleaved:
 
-- ``folded``: ``cloudpose.models.inference.fold_for_inference`` (every BatchNorm folded into its
+- ``folded``: ``cloudpose.models.folded.fold_for_inference`` (every BatchNorm folded into its
   Linear, one-hot as a class bias, max before bias/ReLU, both branches batched), the path
   ``evaluate`` and ``predict`` use;
 - ``plain``: the PoseNet as built (eval mode, ``torch.inference_mode``), the reference;
@@ -41,8 +41,8 @@ if __package__ in (None, ""):
 from benchmarks.common import quick_main
 from cloudpose.config import resolve
 from cloudpose.models import build_model
+from cloudpose.models.folded import fold_for_inference
 from cloudpose.models.fused import fuse_model
-from cloudpose.models.inference import fold_for_inference
 from cloudpose.runtime import cpu_features, describe_cpu
 
 N_POINTS = 256

@@ -28,6 +28,9 @@ LR_SCHEDULES = ("constant", "cosine")
 TRAIN_SOURCES = ("frames", "online")
 ONLINE_SCENES = ("all", "classes")
 """What on-line scenes hold when training keeps some classes (``DataConfig.online_scenes``)."""
+ONLINE_SCENE_MIN_CLASSES = 3
+"""Classes on-line scenes of the kept classes only need: a table scene holds at least this many
+distinct objects (the scene sampler's ``N_OBJECTS[0]``, :mod:`cloudpose.data.synth.scenes`)."""
 KERNELS = ("fused", "plain")
 
 DEFAULT_PRESET = "cpu-online"
@@ -307,6 +310,13 @@ class DataConfig:
         if self.online_scenes not in ONLINE_SCENES:
             raise ValueError(
                 f"data.online_scenes={self.online_scenes!r}: expected one of {ONLINE_SCENES}"
+            )
+        few = 0 < len(self.classes) < ONLINE_SCENE_MIN_CLASSES
+        if self.train_source == "online" and self.online_scenes == "classes" and few:
+            raise ValueError(
+                f"data.online_scenes='classes' needs at least {ONLINE_SCENE_MIN_CLASSES} classes "
+                f"(a table scene holds {ONLINE_SCENE_MIN_CLASSES} or more distinct objects); "
+                f"data.classes has {list(self.classes)}: add classes or use 'all'"
             )
         if self.online_epoch_segments < 1 or self.online_reuse < 1 or self.online_workers < 0:
             raise ValueError(

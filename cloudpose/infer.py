@@ -2,7 +2,7 @@
 
 :func:`load_checkpoint` reads a ``model.pt`` / ``last.pt`` (tensors and plain data only: any
 other pickle is refused) and returns the network folded for inference (every BatchNorm folded
-into its layer; ``cloudpose.models.inference``). :func:`forward_in_batches` is the one batched
+into its layer; ``cloudpose.models.folded``). :func:`forward_in_batches` is the one batched
 forward of the package, used by evaluation (:func:`estimate_poses`) and by training's
 validation; :func:`refine_poses` runs the paper's ICP on the estimates.
 """
@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from cloudpose.config import Config
 from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.models import build_model
-from cloudpose.models.inference import fold_for_inference
+from cloudpose.models.folded import fold_for_inference
 from cloudpose.refine import ICPSettings, ICPStats, icp_refine
 from cloudpose.runtime import pick_device
 
@@ -155,5 +155,5 @@ def load_checkpoint(
         raise ValueError(f"{path}: the weights do not fit its config's network ({exc})") from exc
     model.eval()
     # Inference only: every BatchNorm folded into its layer, both networks as one batched
-    # product (same outputs as eval mode to ~1e-7 in float32; cloudpose.models.inference).
+    # product (same outputs as eval mode to ~1e-7 in float32; cloudpose.models.folded).
     return fold_for_inference(model), cfg

@@ -14,8 +14,8 @@ from cloudpose.geometry import random_rotmat
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
 from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
+from cloudpose.models.folded import fold_for_inference
 from cloudpose.models.fused import fuse_model
-from cloudpose.models.inference import fold_for_inference
 
 pytestmark = pytest.mark.gpu
 

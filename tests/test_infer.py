@@ -17,7 +17,7 @@ from cloudpose.infer import (
     refine_poses,
 )
 from cloudpose.models import build_model
-from cloudpose.models.inference import FoldedPoseNet
+from cloudpose.models.folded import FoldedPoseNet
 
 
 def _trained_like(variant: str = "shared-0"):

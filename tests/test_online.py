@@ -106,6 +106,22 @@ def test_scenes_of_the_kept_classes_only():
         resolve("shared-0", "smoke", overrides={"data": {"online_scenes": "some"}})
 
 
+def test_a_config_with_too_few_classes_for_its_scenes_is_refused_when_made():
+    """The config says it, not the first training step: scenes of 2 classes cannot be drawn."""
+    from cloudpose.config import ONLINE_SCENE_MIN_CLASSES
+    from cloudpose.data.synth.scenes import N_OBJECTS
+
+    assert ONLINE_SCENE_MIN_CLASSES == N_OBJECTS[0]
+    two = ("006_mustard_bottle", "011_banana")
+    data = {"train_source": "online", "online_scenes": "classes", "classes": two}
+    with pytest.raises(ValueError, match=r"at least 3 classes.*011_banana"):
+        resolve("shared-0", "smoke", overrides={"data": data})
+    # with every class's scenes, or three classes, or frames, it is a config
+    resolve("shared-0", "smoke", overrides={"data": {**data, "online_scenes": "all"}})
+    resolve("shared-0", "smoke", overrides={"data": {**data, "classes": (*two, "035_power_drill")}})
+    resolve("shared-0", "smoke", overrides={"data": {**data, "train_source": "frames"}})
+
+
 def test_bad_online_settings_are_refused():
     with pytest.raises(ValueError, match="train_source"):
         resolve("shared-0", "smoke", overrides={"data": {"train_source": "stream"}})

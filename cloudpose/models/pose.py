@@ -117,7 +117,7 @@ class PoseBranches(Protocol):
 
 def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
     """The forward pass of a pose network: the one used in training (:class:`PoseNet`) and
-    at inference (:class:`~cloudpose.models.inference.FoldedPoseNet`).
+    at inference (:class:`~cloudpose.models.folded.FoldedPoseNet`).
 
     The points are centred on their mean mu; the translation branch (and a trunk) sees the
     centred points, the rotation branch of layout "pair" the centred or the raw points

@@ -1,4 +1,4 @@
-"""Inference-only pose networks: every BatchNorm folded into its Linear (inference speed).
+"""Pose networks for inference: every BatchNorm folded into its Linear (inference speed).
 
 In eval mode a BatchNorm is an affine map per channel, ``z = a * (y - mean) + beta`` with
 ``a = gamma / sqrt(running_var + eps)``, so ``BN(x W^T + b) = x (a W)^T + a (b - mean) + beta``:
@@ -19,7 +19,7 @@ R and t from the outputs); only its layers run differently, with
   per layer (``torch.baddbmm`` over a leading dimension of 2), halving the op count that
   dominates the cost of a single object.
 
-Outputs equal the unfolded eval-mode network's up to float rounding (tests/test_inference.py:
+Outputs equal the unfolded eval-mode network's up to float rounding (tests/test_folded.py:
 float64 to ~1e-12, float32 to ~1e-5). The folded network has no training mode and no gradients
 (its forward runs under ``torch.inference_mode``); fold again after changing the weights.
 """

@@ -1,0 +1,181 @@
+"""The ``cloudpose`` Typer app: its error handling, help layout, shared options and helpers.
+
+The commands register on :data:`app` in the modules of this package (:mod:`cloudpose.cli`
+imports them in the order ``--help`` lists them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import click
+import typer
+from typer.core import TyperGroup
+
+
+class _Commands(TyperGroup):
+    """Every command with one error handler: bad input is one line on stderr, exit 2.
+
+    The library raises ``ValueError`` / ``FileNotFoundError`` naming the file, field or name
+    and what was expected (:class:`~cloudpose.tracking.StoreError` for a store that cannot be
+    opened, ``ConnectionError`` for a service such as Ray that cannot be reached);
+    ``cloudpose --debug ...`` shows the traceback instead.
+    """
+
+    def invoke(self, ctx: click.Context):
+        from cloudpose.tracking import StoreError
+
+        try:
+            return super().invoke(ctx)
+        except (ValueError, FileNotFoundError, ConnectionError, StoreError) as exc:
+            if _DEBUG:
+                raise
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(2) from None
+
+    def get_command(self, ctx: click.Context, cmd_name: str):
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is not None:
+            _help_layout(cmd, ctx)
+        return cmd
+
+    def format_help(self, ctx: click.Context, formatter) -> None:
+        _help_layout(self, ctx)
+        return super().format_help(ctx, formatter)
+
+
+PIPED_HELP_WIDTH = 120
+"""Columns of ``--help`` when the output is not a terminal and COLUMNS is unset (rich's
+default there, 80, leaves the help column so narrow that it cuts words with an ellipsis)."""
+
+
+def _help_layout(cmd, ctx: click.Context) -> None:
+    """Help as it reads in a terminal, also when piped; flags shown without a value type.
+
+    Typer shows every option's type, flags too (``--debug <bool>``), as if a flag took a
+    value; a flag gets an empty metavar here, so its help shows none.
+    """
+    import os
+    import sys
+
+    from typer import rich_utils
+
+    if rich_utils.MAX_WIDTH is None and "COLUMNS" not in os.environ and not sys.stdout.isatty():
+        rich_utils.MAX_WIDTH = PIPED_HELP_WIDTH
+    for p in cmd.get_params(ctx):
+        if getattr(p, "is_flag", False) and p.metavar is None:
+            p.metavar = ""
+
+
+app = typer.Typer(
+    cls=_Commands,
+    help="Depth-only 6D pose regression on point clouds (Gao et al., ICRA 2020): "
+    "synthetic data, training, ICP, evaluation and the paper's ablations.",
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+)
+
+VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
+PresetOpt = Annotated[
+    str,
+    typer.Option(help="Preset (`cloudpose presets` lists them; ablations/presets.toml)."),
+]
+SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
+DataOpt = Annotated[
+    str,
+    typer.Option(
+        "--data", help="Dataset root, YCB-Video or BOP ycbv layout; empty = the synthetic default."
+    ),
+]
+DeviceOpt = Annotated[
+    str, typer.Option(help="auto (CUDA when available, as in training), cpu or cuda.")
+]
+ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars.")]
+FramesOpt = Annotated[
+    str,
+    typer.Option(help="With --data: keyframe (BOP: the BOP19 test targets), all, or an image set."),
+]
+DryRunOpt = Annotated[
+    bool, typer.Option("--dry-run", help="Print the plan (frames, runs, time) and stop.")
+]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="Reports folder; default reports/PRESET, or runs/reports/PRESET in a checkout that "
+        "commits no reports of PRESET."
+    ),
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Override one config field, section.field=value (TOML value; repeatable), "
+        "e.g. --set model.rotation_input=centred --set train.epochs=3. An override is another "
+        "config: its own run folder and MLflow run.",
+    ),
+]
+
+
+def group_names() -> str:
+    """The registered ablation groups, for help texts: ``shared, rotation, loss or symmetry``."""
+    from cloudpose.config import groups
+
+    names = list(groups())
+    return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else "".join(names)
+
+
+_DEBUG = False
+"""``--debug``: bad input raises with its traceback instead of the one-line error."""
+
+
+@app.callback()
+def _main(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="Show the traceback of an error (default: one line).")
+    ] = False,
+) -> None:
+    global _DEBUG
+    _DEBUG = debug
+    import warnings
+
+    # "warning: message", without the source line that Python prints beneath it
+    warnings.formatwarning = lambda message, *args, **kwargs: f"warning: {message}\n"
+    from cloudpose import runtime
+
+    runtime.reexec_with_allocator()
+    runtime.configure_threads()
+
+
+def recorded_command(ctx: typer.Context) -> str:
+    """The running command as the user gave it (the options they set, in a canonical order):
+    the provenance line written beside a report or figure. Read from the command's context, so
+    it is the same however the command was started (console script, ``python -m``, a test)."""
+    import shlex
+
+    parts = ["cloudpose", *ctx.command_path.split()[1:]]
+    for p in ctx.command.params:
+        value = ctx.params.get(p.name)
+        source = ctx.get_parameter_source(p.name)
+        given = source is not None and source.name != "DEFAULT"
+        if p.param_type_name != "option" or value is None or not given:
+            continue
+        if p.is_flag:
+            parts.append(p.opts[0] if value else (p.secondary_opts or p.opts)[0])
+            continue
+        for v in value if p.multiple else [value]:
+            parts += [p.opts[0], str(v)]
+    return shlex.join(parts)
+
+
+def config_of(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):
+    from cloudpose.config import parse_overrides, resolve
+
+    overrides: dict = parse_overrides(sets)
+    if data:
+        overrides.setdefault("data", {})["root"] = data
+    train = {k: v for k, v in train.items() if v is not None}
+    if train:
+        overrides.setdefault("train", {}).update(train)
+    return resolve(variant, preset, seed, overrides or None)

@@ -1,0 +1,152 @@
+"""Commands that make and prepare data: render a synthetic set, export it as BOP, cache segments."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cloudpose.cli.app import (
+    DataOpt,
+    PresetOpt,
+    ProgressOpt,
+    VariantOpt,
+    app,
+    config_of,
+    recorded_command,
+)
+from cloudpose.config import DEFAULT_PRESET
+
+
+@app.command()
+def synth(
+    ctx: typer.Context,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Output root (YCB-Video layout); default data/synth-seedS[-vV]."),
+    ] = None,
+    train_frames: Annotated[int, typer.Option(help="Training frames.")] = 800,
+    test_frames: Annotated[int, typer.Option(help="Test frames, listed in keyframe.txt.")] = 150,
+    seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
+    noise: Annotated[bool, typer.Option("--noise/--no-noise", help="Depth-sensor noise.")] = True,
+    uniform_rotation: Annotated[
+        bool, typer.Option("--uniform-rotation/--table", help="Objects in full SO(3).")
+    ] = False,
+    synth_version: Annotated[
+        int | None,
+        typer.Option(help="Generator version (data.synth_version); default the newest."),
+    ] = None,
+    compare_real: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="Render nothing; compare synthetic frames of versions 1 and 2 with these real "
+            "frames (YCB-Video roots or depth.png + label.png folders; repeatable)."
+        ),
+    ] = None,
+    compare_frames: Annotated[
+        int, typer.Option(help="Synthetic test frames per version in --compare-real.")
+    ] = 20,
+    report: Annotated[
+        Path | None, typer.Option(help="Write the --compare-real table here (Markdown).")
+    ] = None,
+    workers: Annotated[int | None, typer.Option(help="Processes (default: all cores).")] = None,
+    progress: ProgressOpt = True,
+) -> None:
+    """Render a synthetic YCB-Video-layout dataset from the 21 real model point sets (resumable),
+    or with --compare-real measure it against real frames."""
+    from cloudpose.config import DataConfig
+
+    if compare_real:
+        from cloudpose.report.fidelity import compare_real as compare
+
+        versions = (synth_version,) if synth_version else (1, 2)
+        text = compare(compare_real, versions, compare_frames, seed, recorded_command(ctx))
+        if report is not None:
+            from cloudpose.files import atomic_text
+
+            atomic_text(report, text)
+            typer.echo(f"wrote {report}")
+        else:
+            typer.echo(text)
+        return
+    from cloudpose.data.dataset import synthetic_root
+    from cloudpose.data.synth import synthesize
+
+    version = {} if synth_version is None else {"synth_version": synth_version}
+    cfg = DataConfig(synth_seed=seed, noise=noise, uniform_rotation=uniform_rotation, **version)
+    out = out or synthetic_root(cfg, Path.cwd())
+    s = synthesize(
+        out,
+        train_frames,
+        test_frames,
+        seed=seed,
+        noise=noise,
+        uniform_rotation=uniform_rotation,
+        workers=workers,
+        progress=progress,
+        version=cfg.synth_version,
+    )
+    typer.echo(
+        f"{out}: {s.frames_written} frames written, {s.frames_skipped} already there, "
+        f"{s.seconds:.1f} s"
+    )
+
+
+@app.command()
+def export(
+    data: Annotated[
+        Path, typer.Option(help="YCB-Video-layout root to export (real or synthetic).")
+    ],
+    out: Annotated[Path, typer.Option(help="New folder for the exported dataset.")],
+    format_: Annotated[
+        str, typer.Option("--format", help="Target layout: bop (BOP ycbv).")
+    ] = "bop",
+    frames: Annotated[
+        str, typer.Option(help="Frames written to test/: keyframe, all, or an image set.")
+    ] = "keyframe",
+    train: Annotated[
+        bool, typer.Option("--train/--no-train", help="Also write image_sets/train.txt frames.")
+    ] = False,
+    progress: ProgressOpt = True,
+) -> None:
+    """Write a YCB-Video-layout dataset in the BOP ycbv layout (reads back to the same segments)."""
+    if format_ != "bop":
+        raise ValueError(f"--format {format_!r}: expected bop")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: is a file; expected a new (or empty) folder")
+    from cloudpose.data.bop import export_bop
+
+    s = export_bop(data, out, frames=frames, train=train, progress=progress)
+    typer.echo(
+        f"{s.root}: {s.frames} frames, {s.instances} instances, {s.targets} BOP19 targets "
+        "(BOP ycbv layout)"
+    )
+
+
+@app.command()
+def prepare(
+    variant: VariantOpt = "shared-0",
+    preset: PresetOpt = DEFAULT_PRESET,
+    data: DataOpt = "",
+    histogram: Annotated[
+        Path | None, typer.Option(help="Also plot the test set's occlusion factors to this PNG.")
+    ] = None,
+    progress: ProgressOpt = True,
+) -> None:
+    """Synthesize (if needed) and cache the segments of a preset's train and test sets."""
+    from cloudpose.data.dataset import prepare_data
+
+    cfg = config_of(variant, preset, 1, data)
+    prepared = prepare_data(cfg.data, Path.cwd(), progress=progress)
+    train_set, test_set = prepared.train, prepared.test
+    typer.echo(f"train: {len(train_set)} segments, test: {len(test_set)} segments")
+    if histogram is not None:
+        from cloudpose.report.plots import occlusion_histogram
+
+        title = (
+            f"Occlusion factors of the {preset}-preset test set: {len(test_set)} instances\n"
+            f"(cloudpose prepare --preset {preset} --histogram ...; data {prepared.key[:10]})"
+        )
+        counts = occlusion_histogram(test_set, histogram, title)
+        typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")

@@ -1,0 +1,109 @@
+"""Commands that serve MLflow: a tracking server for several machines, the UI over the local store."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from cloudpose.cli.app import (
+    app,
+)
+
+
+def _serve_until_interrupted(cmd: list[str], env: dict[str, str], what: str) -> None:
+    """Run a server that serves until interrupted (which ends this command too): any return of
+    its own is a failure, said in one line, with its exit code (1 if it gave none)."""
+    import os
+    import subprocess
+
+    code = subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode
+    typer.secho(
+        f"error: the {what} stopped (exit code {code}); its output above says why",
+        fg=typer.colors.RED,
+        err=True,
+    )
+    raise typer.Exit(code if code > 0 else 1)
+
+
+@app.command("mlflow-server")
+def mlflow_server(
+    backend: Annotated[
+        str | None,
+        typer.Option(
+            help="SQL store of runs (any SQLAlchemy URI); default SQLite ./mlflow-server/mlflow.db."
+        ),
+    ] = None,
+    artifacts: Annotated[
+        str | None, typer.Option(help="Artifact root; default ./mlflow-server/artifacts.")
+    ] = None,
+    host: Annotated[str, typer.Option(help="Interface to bind (0.0.0.0 for a cluster).")] = (
+        "127.0.0.1"
+    ),
+    port: Annotated[int, typer.Option(help="TCP port.")] = 5000,
+) -> None:
+    """An MLflow tracking server (SQL backend, artifacts served through it) for several
+    machines; clients set MLFLOW_TRACKING_URI=http://HOST:PORT."""
+
+    from cloudpose.cluster import check_port_free
+    from cloudpose.tracking import server_command
+
+    check_port_free(host, port)
+    server = server_command(backend, artifacts, host, port)
+    typer.echo(f"MLflow server on http://{host}:{port} (store {server.backend})")
+    _serve_until_interrupted(server.argv, server.env, f"MLflow server on {host}:{port}")
+
+
+@app.command("mlflow-ui")
+def mlflow_ui(
+    backend: Annotated[
+        str | None,
+        typer.Option(help="Store to browse; default MLFLOW_TRACKING_URI, else ./mlflow.db."),
+    ] = None,
+    host: Annotated[str, typer.Option(help="Interface to bind.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port.")] = 5000,
+    serve: Annotated[
+        bool, typer.Option("--serve/--no-serve", help="Start the UI (else only prepare and print).")
+    ] = True,
+) -> None:
+    """The MLflow UI, opening on each experiment's runs grouped by variant with the headline
+    metrics averaged over seeds. First logs the headline metrics of runs stored without them and
+    the saved view "variants" on every cloudpose experiment (experiment tags), and prints each
+    experiment's address."""
+    import os
+
+    from cloudpose import headline, tracking
+
+    if backend:
+        os.environ["MLFLOW_TRACKING_URI"] = backend
+    uri = tracking.tracking_uri()
+    remote = tracking.is_remote(uri)
+    if serve and not remote:
+        from cloudpose.cluster import check_port_free
+
+        check_port_free(host, port)
+    base = uri.rstrip("/") if remote else f"http://{host}:{port}"
+    prepared = headline.prepare_ui(tracking.setup())
+    backfilled = sum(p.backfilled for p in prepared)
+    if backfilled:
+        keys = ", ".join(headline.HEADLINE)
+        typer.echo(f"headline metrics ({keys}) logged now for {backfilled} runs stored before them")
+    shown = [p for p in prepared if p.runs]
+    if shown:
+        typer.echo(
+            "Runs grouped by variant, headline metrics averaged over seeds (view "
+            f'"{headline.VIEW_NAME}"):'
+        )
+        width = max(len(p.name) for p in shown)
+        for p in shown:
+            url = headline.view_url(base, p.experiment_id)
+            typer.echo(f"  {p.name:<{width}}  {p.runs:>3} runs  {url}")
+    else:
+        typer.echo(f"no cloudpose run in {uri} yet")
+    if not serve or remote:
+        return
+    typer.echo(f"MLflow UI on {base} (store {uri}); Ctrl-C ends it")
+    cmd = headline.ui_command(uri, host, port)
+    _serve_until_interrupted(
+        cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}"
+    )

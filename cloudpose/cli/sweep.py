@@ -1,0 +1,141 @@
+"""Commands of the ablation suite: a group over seeds (until its claims are decided), the mask ablation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cloudpose.cli.app import (
+    DryRunOpt,
+    OutOpt,
+    PresetOpt,
+    ProgressOpt,
+    SetOpt,
+    app,
+    group_names,
+    recorded_command,
+)
+from cloudpose.config import DEFAULT_PRESET
+
+
+@app.command()
+def ablate(
+    group: Annotated[str, typer.Option(help=f"Ablation group: {group_names()}.")],
+    preset: PresetOpt = DEFAULT_PRESET,
+    seeds: Annotated[int, typer.Option(help="Seeds 1..S per variant.")] = 3,
+    keep_going: Annotated[
+        bool, typer.Option("--keep-going/--stop-on-failure", help="Go on after a failed run.")
+    ] = False,
+    progress: ProgressOpt = True,
+    set_: SetOpt = None,
+    executor: Annotated[
+        str, typer.Option(help="local (here, one run after another) or ray (a task per run).")
+    ] = "local",
+    address: Annotated[
+        str | None,
+        typer.Option(help="Ray cluster address; default $RAY_ADDRESS, else Ray on this machine."),
+    ] = None,
+    cpus_per_run: Annotated[float, typer.Option(help="Ray: CPUs (and threads) per run.")] = 1.0,
+    gpus_per_run: Annotated[float, typer.Option(help="Ray: GPUs per run.")] = 0.0,
+    connect_timeout: Annotated[
+        float, typer.Option(help="Ray: seconds to wait for --address to answer.")
+    ] = 30.0,
+    dry_run: DryRunOpt = False,
+    out: OutOpt = None,
+    until_resolved: Annotated[
+        bool,
+        typer.Option(
+            "--until-resolved",
+            help="Then add seeds to the variants of the group's undecided claims until each "
+            "is decided or at --max-seeds (claims.md names the rule).",
+        ),
+    ] = False,
+    max_seeds: Annotated[
+        int, typer.Option(help="With --until-resolved: the cap on seeds per variant.")
+    ] = 10,
+) -> None:
+    """Train + evaluate every variant of a group over seeds (finished runs skipped), then report.
+
+    Prints its plan first: frames to render, runs to train and those finished before, time."""
+    from cloudpose.ablate import resolve_claims, run_group
+    from cloudpose.cluster import RayOptions
+    from cloudpose.config import parse_overrides
+    from cloudpose.plan import plan_group
+
+    overrides = parse_overrides(set_) or None
+    plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
+    typer.echo(plan.text())
+    if dry_run:
+        return
+    ray = RayOptions(address, cpus_per_run, gpus_per_run, connect_timeout_s=connect_timeout)
+    if until_resolved and max_seeds < seeds:
+        raise typer.BadParameter(f"--max-seeds {max_seeds} is below --seeds {seeds}")
+    res = run_group(
+        group,
+        preset,
+        seeds,
+        Path.cwd(),
+        progress,
+        keep_going=keep_going,
+        overrides=overrides,
+        executor=executor,
+        ray=ray,
+        out_dir=out,
+        report=not until_resolved,
+    )
+    if until_resolved:
+        from cloudpose.report import render_reports
+
+        resolve_claims(
+            group,
+            preset,
+            Path.cwd(),
+            max_seeds=max_seeds,
+            overrides=overrides,
+            progress=progress,
+            keep_going=keep_going,
+            executor=executor,
+            ray=ray,
+        )
+        res.report = render_reports(preset, [group], project_dir=Path.cwd(), out_dir=out)
+    counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
+    typer.echo(
+        f"{group}/{preset}: "
+        + ", ".join(f"{n} {s}" for s, n in counts.items())
+        + f"; reports in {res.report.out_dir}; log {res.log}"
+    )
+
+
+@app.command("ablate-masks")
+def ablate_masks(
+    ctx: typer.Context,
+    preset: PresetOpt = DEFAULT_PRESET,
+    seeds: Annotated[int, typer.Option(help="Seeds 1..S of shared-0.")] = 3,
+    progress: ProgressOpt = True,
+    dry_run: DryRunOpt = False,
+    out: OutOpt = None,
+) -> None:
+    """Segmentation quality: shared-0 (trained on ground truth) under each test mask source.
+
+    Sources gt and degraded-mild|medium|strong, with and without ICP. Missing shared-0 seeds
+    are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
+    in reports/PRESET/ and the MLflow run report/masks/PRESET. Prints its plan first.
+    """
+    from cloudpose.ablate_masks import mask_ablation
+    from cloudpose.plan import plan_masks
+
+    typer.echo(plan_masks(preset, seeds, Path.cwd(), out_dir=out).text())
+    if dry_run:
+        return
+    res = mask_ablation(
+        preset, seeds, Path.cwd(), progress, command=recorded_command(ctx), out_dir=out
+    )
+    trained = sum(r.status == "trained" for r in res.runs)
+    done = sum(e.status == "evaluated" for e in res.evaluations)
+    typer.echo(
+        f"masks/{preset}: shared-0 {trained} trained, {len(res.runs) - trained} found; "
+        f"{done} evaluations made, {len(res.evaluations) - done} logged before; "
+        f"reports in {res.report.out_dir}; log {res.log}"
+    )
