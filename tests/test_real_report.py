@@ -121,7 +121,11 @@ def test_real_report_per_video_and_pooled(tmp_path):
     exp = tracking.experiment_id(client, "shared", tmp_path)
     _log(client, exp, tags, f"shared-0/{PRESET}/seed3", {})  # trained, never on real frames
     report, files = render_real_report(PRESET, tmp_path, command="cloudpose real-report", seeds=4)
-    assert [f.name for f in files] == ["real_frames.md", "real_frames.csv"]
+    assert [f.name for f in files] == [
+        "real_frames.md",
+        "real_frames.csv",
+        "real_frames_vs_fpfh.csv",
+    ]
     assert all(f.parent == tmp_path / "reports" / PRESET for f in files)
     rows = pd.read_csv(files[1], dtype={"video": str})
     assert report.seeds == {"shared-0": [1, 2], "fpfh": [1]}
@@ -169,3 +173,47 @@ def test_real_report_per_video_and_pooled(tmp_path):
     assert f"`cloudpose run --variant shared-0 --preset {PRESET} --seed 4`" in text
     assert f"`cloudpose baseline --method ppf --preset {PRESET} --split real`" in text
     assert "--method ppf" in md and "--method fpfh" not in text
+    # the paired comparison with FPFH: one row per metric and ICP setting, over 2 object poses
+    vs = pd.read_csv(files[2])
+    assert len(vs) == 6 and set(vs["poses"]) == {2} and set(vs["instances"]) == {10}
+    assert "The network against FPFH + RANSAC, paired" in md
+
+
+def _poses(successes: dict[str, list[bool]]) -> pd.DataFrame:
+    """An instance table with one object pose per key (``VIDEO/CLASS``), rotation errors of 1
+    (success) or 50 deg per instance, the same for ICP."""
+    rows = []
+    for pose, ok in successes.items():
+        video, cls = pose.split("/")
+        for i, good in enumerate(ok):
+            err = 1.0 if good else 50.0
+            rows.append(
+                {
+                    "frame_id": f"{video}/{i:06d}",
+                    "instance": cls,
+                    "class": cls,
+                    "net_rot_sym_err_deg": err,
+                    "icp_rot_sym_err_deg": err,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def test_versus_baseline_resamples_object_poses_not_instances():
+    from cloudpose.report.real import versus_baseline
+
+    poses = ["0000/a", "0000/b", "0001/c", "0001/d"]
+    base = _poses({p: [False] * 10 for p in poses})
+    # ahead on every pose: the interval excludes 0
+    better = _poses({p: [True] * 5 + [False] * 5 for p in poses})
+    r = versus_baseline([better], base, "rot_sym_lt_10deg", "net", replicates=500)
+    assert r["diff"] == pytest.approx(0.5) and r["low"] > 0 and r["poses"] == 4
+    # ahead on one pose only (10 of 40 instances): resampling instances would call that a
+    # difference; over 4 poses, a replicate without that pose is common, so the interval holds 0
+    one = _poses({p: [p == "0000/a"] * 10 for p in poses})
+    r = versus_baseline([one], base, "rot_sym_lt_10deg", "icp", replicates=500)
+    assert r["diff"] == pytest.approx(0.25) and r["low"] == 0.0 and r["high"] > 0.25
+    # the network's rows are matched to the baseline's by instance, not by order; seeds averaged
+    shuffled = better.sample(frac=1.0, random_state=0)
+    r2 = versus_baseline([shuffled, one], base, "rot_sym_lt_10deg", "net", replicates=200)
+    assert r2["diff"] == pytest.approx((0.5 + 0.25) / 2)
