@@ -59,7 +59,9 @@ def test_online_and_frame_segments_of_one_scene_agree():
     assert [s.cls_id for s in got] == [s.cls_id for s in ref] and len(got) >= 3
     for a, b in zip(got, ref, strict=True):
         assert a.count == b.count
-        np.testing.assert_allclose(a.points, b.points, atol=1e-6)
+        # rays cast in each model frame (on line) against meshes moved into the camera frame
+        # (frames): the same hits, to float32 rounding of ~1 m distances (a few micrometres)
+        np.testing.assert_allclose(a.points, b.points, atol=1e-5)
         np.testing.assert_array_equal(a.R, b.R)
 
 

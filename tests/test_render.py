@@ -132,6 +132,32 @@ def test_visible_and_alone_pixels(renderer):
     assert out.visible_pixels[0] < alone[0]  # the mug is partly hidden by the gelatin box
 
 
+def test_instanced_render_is_the_render_in_a_window(renderer):
+    """Each object cast in its model frame through its own window: the labels and depth of
+    the one-scene render, to float rounding, over the box asked for."""
+    K, shape, cls, P = small_scene()
+    full = renderer.render(K, shape, cls, P)
+    wins = np.array([renderer._window(K, shape, c, p) for c, p in zip(cls, P, strict=True)])
+    H, W = shape
+    box = (
+        max(int(wins[:, 0].min()) - 3, 0),
+        min(int(wins[:, 1].max()) + 3, H),
+        max(int(wins[:, 2].min()) - 3, 0),
+        min(int(wins[:, 3].max()) + 3, W),
+    )
+    out = renderer.render_instanced(K, shape, cls, P, wins, box)
+    v0, v1, u0, u1 = box
+    ref_label, ref_depth = full.label[v0:v1, u0:u1], full.depth[v0:v1, u0:u1]
+    assert out.label.shape == ref_label.shape
+    assert (out.label != ref_label).sum() <= 2  # a grazing ray may flip at a silhouette
+    both = (out.label == ref_label) & (ref_label > 0)
+    assert both.sum() > 200
+    np.testing.assert_allclose(out.depth[both], ref_depth[both], atol=1e-5)
+    np.testing.assert_array_equal(out.visible_pixels, [(out.label == c).sum() for c in cls])
+    with pytest.raises(ValueError, match="not inside"):
+        renderer.render_instanced(K, shape, cls, P, wins, (v0 + 10, v1, u0, u1))
+
+
 def test_alone_pixels_at_the_image_border_and_behind_the_camera(renderer):
     K, shape = YCB_INTRINSICS, (480, 640)
     cls = np.array([2, 5, 13, 17])

@@ -166,6 +166,76 @@ def test_noise_statistics_on_a_plane_and_an_edge():
     assert mixed.mean() > 0.02
 
 
+def _two_objects_on_a_slope(shape=(90, 120)):
+    """Clean depth and labels: a sloped background and two objects, one a tilted slab in
+    front of a box, touching it and the image border."""
+    H, W = shape
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    depth = 1.2 + 0.002 * v  # the table, sloping away
+    label = np.zeros(shape, np.uint8)
+    box = (v >= 20) & (v < 60) & (u >= 30) & (u < 70)
+    slab = (v >= 40) & (v < 90) & (u >= 60) & (u < 110) & ~((v < 45) & (u < 65))
+    depth = np.where(box, 0.9 + 0.0005 * u, depth)
+    depth = np.where(slab, 0.8 + 0.001 * v - 0.0007 * u, depth)
+    label[box], label[slab] = 5, 11
+    return depth, label
+
+
+def test_object_pixel_geometry_is_the_image_functions_at_object_pixels():
+    """Jump and incidence cosine of object pixels: kernel and numpy twin agree, equal
+    incidence_cosine and the edge jump of the whole-image readings, and need the background
+    only on the ring around the objects."""
+    from cloudpose.kernels import disabled
+
+    depth, label = _two_objects_on_a_slope()
+    K = np.array([[300.0, 0, 60], [0, 300.0, 45], [0, 0, 1]])
+    v, u = np.nonzero(label > 0)
+    pad, lpad = np.pad(depth, 1), np.pad(label, 1)
+    jump, cos = sensor.object_pixel_geometry(pad, lpad, v, u, K)
+    with disabled():
+        jump2, cos2 = sensor.object_pixel_geometry(pad, lpad, v, u, K)
+    assert np.allclose(jump, jump2, atol=1e-12) and np.allclose(cos, cos2, atol=1e-9)
+    assert np.allclose(cos, sensor.incidence_cosine(depth, K, label)[v, u], atol=1e-9)
+    assert (cos < 1).any() and (cos == 1).any()  # tilted faces, and borders and edges
+    nbs = np.stack(
+        [pad[v, u + 1], pad[v + 2, u + 1], pad[v + 1, u], pad[v + 1, u + 2]], axis=-1
+    )  # up, down, left, right
+    diff = np.where(nbs > 0, nbs - depth[v, u][:, None], 0.0)
+    expect = diff[np.arange(len(v)), np.abs(diff).argmax(axis=-1)]
+    assert np.array_equal(jump, expect) and (np.abs(jump) > 0.02).any()
+    ring = sensor.object_ring(label)
+    sparse = np.where((label > 0) | ring, depth, 0.0)
+    j3, c3 = sensor.object_pixel_geometry(np.pad(sparse, 1), lpad, v, u, K)
+    assert np.array_equal(j3, jump) and np.array_equal(c3, cos)
+
+
+def test_object_pixel_noise_is_the_version_2_law():
+    """Readings of object pixels only: on each object pixel the same law as the whole-image
+    version-2 sensor (mean, spread, missing share on the inside and at the edges), nothing on
+    the background."""
+    depth, label = _two_objects_on_a_slope()
+    K = np.array([[300.0, 0, 60], [0, 300.0, 45], [0, 0, 1]])
+    obj = label > 0
+    edge = sensor.edge_distance(label) <= 2
+    sparse = np.where(obj | sensor.object_ring(label), depth, 0.0)
+    full, part = [], []
+    for k in range(60):
+        full.append(sensor.add_sensor_noise_v2(depth, label, K, np.random.default_rng([1, k])))
+        part.append(
+            sensor.add_sensor_noise_v2_objects(sparse, label, K, np.random.default_rng([2, k]))
+        )
+    full, part = np.stack(full), np.stack(part)
+    assert (part[:, ~obj] == 0).all()
+    for where in (obj & ~edge, obj & edge):
+        a, b = full[:, where], part[:, where]
+        assert abs((a == 0).mean() - (b == 0).mean()) < 0.02, ((a == 0).mean(), (b == 0).mean())
+        ra = (a - depth[where])[a > 0]
+        rb = (b - depth[where])[b > 0]
+        # inside: noise about the surface; at edges: flying pixels pull the mean off it
+        assert abs(ra.mean() - rb.mean()) < 3e-4 + 0.1 * abs(ra.mean())
+        assert abs(ra.std() - rb.std()) < 0.1 * ra.std()
+
+
 # --------------------------------------------------------------------------- frames on disk
 
 

@@ -338,3 +338,166 @@ def add_sensor_noise_v2(
     missing = np.where(obj, correlated_uniform(rng, noisy.shape, dropout.blob_sigma) < p, drop)
     noisy[missing] = 0.0
     return noisy
+
+
+# --------------------------------------------------------------------------- object pixels only
+
+
+def background_depth_at(
+    K: np.ndarray,
+    v: np.ndarray,
+    u: np.ndarray,
+    world_to_camera: np.ndarray,
+    planes: Sequence[Plane],
+) -> np.ndarray:
+    """:func:`background_depth` at the pixels ``(v, u)`` only: (m,) float64 metres, 0 where
+    no patch is hit within :data:`MAX_RANGE`."""
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64)
+    rays = pix @ np.linalg.inv(K).T  # (m, 3), z = 1
+    Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
+    out = np.full(len(rays), np.inf)
+    for pl in planes:
+        n_c = Rc @ pl.normal
+        p_c = Rc @ pl.point + tc
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = (p_c @ n_c) / (rays @ n_c)
+        hit = np.isfinite(z) & (z > 0)
+        if pl.axes is not None:
+            local = np.abs((rays * z[:, None] - p_c) @ (pl.axes @ Rc.T).T)  # (m, 2)
+            hit &= (local <= pl.half_extent).all(axis=-1)
+        out = np.where(hit & (z < out), z, out)
+    out[~np.isfinite(out) | (out > MAX_RANGE)] = 0.0
+    return out
+
+
+def object_ring(label: np.ndarray) -> np.ndarray:
+    """(h, w) bool: background pixels (label 0) with an object pixel among their 4-neighbours,
+    the only background whose depth an object pixel's readings depend on (the jump of a
+    depth edge)."""
+    obj = np.asarray(label) > 0
+    near = np.zeros_like(obj)
+    near[1:] |= obj[:-1]
+    near[:-1] |= obj[1:]
+    near[:, 1:] |= obj[:, :-1]
+    near[:, :-1] |= obj[:, 1:]
+    return near & ~obj
+
+
+def add_sensor_noise_v2_objects(
+    depth: np.ndarray,
+    label: np.ndarray,
+    K: np.ndarray,
+    rng: np.random.Generator,
+    model: NoiseModel = NoiseModel(),
+    dropout: DropoutModel | None = None,
+) -> np.ndarray:
+    """:func:`add_sensor_noise_v2` on the object pixels only: the same model, computed and
+    drawn where a segment can take a point (background pixels come back 0).
+
+    Each object pixel's reading is a draw from the same law as there: Gaussian axial noise
+    growing with depth, flying pixels and the edge test against the clean 4-neighbours (so
+    ``depth`` needs the background only on :func:`object_ring`), disparity quantisation, and
+    missing depth from the fitted :class:`DropoutModel` (edge distance, incidence cosine and
+    class rate, thresholded by the same spatially correlated field over the whole image). What
+    differs is how many numbers are drawn: none for background pixels, so for one generator
+    the object readings are other draws than :func:`add_sensor_noise_v2` makes. On-line
+    synthesis uses it (most of a scene's window is background; its noise feeds no segment).
+
+    Args:
+        depth: (H, W) clean depth, metres, 0 = no surface (needed on object pixels and their
+            ring).
+        label: (H, W) class ids (0 = background).
+        K: (3, 3) intrinsics.
+        rng: random generator.
+        model: noise parameters.
+        dropout: missing-depth model of object pixels (default :data:`REAL_DROPOUT`).
+
+    Returns:
+        (H, W) float64 noisy depth on object pixels, metres, 0 = no reading or background.
+    """
+    dropout = REAL_DROPOUT if dropout is None else dropout
+    z_all = np.asarray(depth, dtype=np.float64)
+    lab = np.asarray(label)
+    H, W = z_all.shape
+    out = np.zeros((H, W))
+    v, u = np.nonzero(lab > 0)
+    if len(v) == 0:
+        return out
+    pad = np.pad(z_all, 1)
+    lpad = np.pad(lab, 1)
+    z = z_all[v, u]
+    valid = z > 0
+    jump, cos = object_pixel_geometry(pad, lpad, v, u, K)
+    edge = np.abs(jump) > model.edge_jump
+    m = len(z)
+    noisy = z + rng.standard_normal(m) * (model.sigma0 + model.sigma2 * (z - 0.4) ** 2)
+    u_edge = rng.random(m)
+    mix = rng.random(m)
+    flying = edge & (u_edge < model.edge_flying)
+    noisy = np.where(flying, noisy + mix * jump, noisy)
+    disparity = model.focal_baseline / np.where(valid, noisy, 1.0)
+    disparity = np.maximum(np.round(disparity / model.subpixel), 1.0) * model.subpixel
+    noisy = model.focal_baseline / disparity
+    noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
+    c = lab[v, u]
+    p = dropout.probability(edge_distance(lab)[v, u], cos, c)
+    field = correlated_uniform(rng, (H, W), dropout.blob_sigma)[v, u]
+    noisy[field < p] = 0.0
+    out[v, u] = noisy
+    return out
+
+
+def object_pixel_geometry(
+    pad: np.ndarray, lpad: np.ndarray, v: np.ndarray, u: np.ndarray, K: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The depth jump and incidence cosine of the object pixels ``(v, u)``.
+
+    ``pad`` and ``lpad`` are the (H, W) clean depth and label images padded by one pixel of 0.
+    The jump is :func:`add_sensor_noise`'s: the signed difference to the 4-neighbour (up, down,
+    left, right; the first on ties) that differs most, over neighbours with depth (0 when the
+    pixel has none). The cosine is :func:`incidence_cosine` with the label: 1 on the image
+    border and where a 4-neighbour has no depth or another label. The compiled kernel
+    (:func:`cloudpose.kernels.sensor.object_pixel_geometry_kernel`) where the kernels are
+    enabled, else numpy.
+
+    Returns:
+        (m,) float64 jumps, metres, and (m,) float64 cosines in [0, 1].
+    """
+    from cloudpose.kernels.backend import enabled
+
+    Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
+    v = np.asarray(v, dtype=np.int64)
+    u = np.asarray(u, dtype=np.int64)
+    if enabled():
+        from cloudpose.kernels.sensor import object_pixel_geometry_kernel
+
+        return object_pixel_geometry_kernel(pad, lpad, v, u, Kinv)
+    H, W = pad.shape[0] - 2, pad.shape[1] - 2
+    vp, up = v + 1, u + 1
+    z = pad[vp, up]
+    nb = np.stack([pad[vp - 1, up], pad[vp + 1, up], pad[vp, up - 1], pad[vp, up + 1]], axis=-1)
+    nvalid = nb > 0
+    diff = np.where(nvalid & (z > 0)[:, None], nb - z[:, None], 0.0)
+    k = np.abs(diff).argmax(axis=-1)
+    jump = np.take_along_axis(diff, k[:, None], axis=-1)[:, 0]
+
+    def point(dv: int, du: int) -> np.ndarray:
+        pix = np.stack([u + du, v + dv, np.ones_like(u)], axis=-1).astype(np.float64)
+        return (pix @ Kinv.T) * pad[vp + dv, up + du][:, None]
+
+    gx = point(0, 1) - point(0, -1)
+    gy = point(1, 0) - point(-1, 0)
+    c = lpad[vp, up]
+    inner = (v >= 1) & (v <= H - 2) & (u >= 1) & (u <= W - 2)
+    same = (
+        (lpad[vp, up + 1] == c)
+        & (lpad[vp, up - 1] == c)
+        & (lpad[vp + 1, up] == c)
+        & (lpad[vp - 1, up] == c)
+    )
+    ok = inner & nvalid.all(axis=-1) & same
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64) @ Kinv.T
+    n = np.cross(gx, gy)
+    norm = np.linalg.norm(n, axis=-1) * np.linalg.norm(rays, axis=-1)
+    cos = np.abs((n * rays).sum(axis=-1)) / np.where(norm > 0, norm, 1.0)
+    return jump, np.where(ok & (norm > 0), np.clip(cos, 0.0, 1.0), 1.0)
