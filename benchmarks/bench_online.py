@@ -1,7 +1,8 @@
 """On-line synthesis against the rate training consumes segments (``online_supply_ratio``).
 
-Measured in one run, on the same cores, at the ``online`` preset's settings (generator
-version, batch size, n and ``online_reuse`` read from the preset):
+Measured in one run, on the same cores, at the default preset's settings
+(:data:`cloudpose.config.DEFAULT_PRESET`; generator version, batch size, n and
+``online_reuse`` read from the preset):
 
 - training: segments/s of shared-0 fused training steps at batch 32 on ready tensors
   (all threads);
@@ -10,7 +11,10 @@ version, batch size, n and ``online_reuse`` read from the preset):
 - the frame path it replaces: segments/s of ``generate_frame`` + ``extract_segments`` (the
   rendered-frame route to the same segments, one process);
 - the on-line training loop end to end: steps/s of ``OnlineStream`` with one synthesis worker
-  feeding the same training step, i.e. what a run of the preset gets here.
+  feeding the same training step, i.e. what a run of the preset gets here;
+- where a scene's time goes: milliseconds per stage of ``OnlineSynth`` (scene sampling, the
+  objects' windows, the ray cast, the background ring, the sensor, the segment path), one
+  thread.
 
 The figure is the supply ratio ``synthesis x reuse / consumption``: >= 2 means synthesis never
 stalls training. ``reuse`` = 1 is reported beside it (every segment used once).
@@ -32,9 +36,9 @@ if __package__ in (None, ""):
 
 from benchmarks.bench_train import make_step
 from benchmarks.common import quick_main
-from cloudpose.config import resolve
+from cloudpose.config import DEFAULT_PRESET, resolve
 
-_ONLINE = resolve("shared-0", "online")
+_ONLINE = resolve("shared-0", DEFAULT_PRESET)
 BATCH, N_POINTS = _ONLINE.train.batch_size, _ONLINE.train.n_points
 REUSE, VERSION = _ONLINE.data.online_reuse, _ONLINE.data.synth_version
 
@@ -49,6 +53,58 @@ def _synthesis_rate(batches: int) -> dict:
         scenes += synth.batch(0, step, BATCH).scenes
     dt = time.perf_counter() - t0
     return {"segments_per_s": batches * BATCH / dt, "ms_per_scene": 1000 * dt / scenes}
+
+
+def _scene_parts(scenes: int) -> dict:
+    """Milliseconds a scene spends in each stage of ``OnlineSynth`` (one process, warm)."""
+    import warnings
+
+    from cloudpose.data.segments import SegmentWarning, extract_segments
+    from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.data.synth.sensor import (
+        add_sensor_noise_v2_objects,
+        background_depth_at,
+        object_ring,
+    )
+    from cloudpose.data.ycb import Frame
+
+    synth = OnlineSynth(VERSION, n_points=N_POINTS, nthreads=1)
+    synth.batch(0, 10_001, BATCH)  # warm-up: surfaces, kernels, the classes' BVHs
+    parts = dict.fromkeys(("scene", "windows", "ray_cast", "background", "sensor", "segments"), 0.0)
+    for k in range(scenes):
+        rng = np.random.default_rng([0, 99, k])
+        t = time.perf_counter()
+        scene = synth.sample_scene(rng)
+        parts["scene"] += time.perf_counter() - t
+        t = time.perf_counter()
+        found = synth.windows(scene)
+        parts["windows"] += time.perf_counter() - t
+        if found is None:
+            continue
+        wins, (v0, v1, u0, u1) = found
+        t = time.perf_counter()
+        r = synth._gen.renderer.render_instanced(
+            synth.K, synth.shape, scene.cls_ids, scene.poses(), wins, (v0, v1, u0, u1), 1
+        )
+        parts["ray_cast"] += time.perf_counter() - t
+        Kw = synth.K.copy()
+        Kw[0, 2] -= u0
+        Kw[1, 2] -= v0
+        t = time.perf_counter()
+        clean = np.where(r.label > 0, r.depth.astype(np.float64), 0.0)
+        rv, ru = np.nonzero(object_ring(r.label))
+        clean[rv, ru] = background_depth_at(Kw, rv, ru, scene.world_to_camera, scene.background)
+        parts["background"] += time.perf_counter() - t
+        t = time.perf_counter()
+        depth = add_sensor_noise_v2_objects(clean, r.label, Kw, rng)
+        parts["sensor"] += time.perf_counter() - t
+        t = time.perf_counter()
+        frame = Frame("x", depth.astype(np.float32), r.label, Kw, scene.cls_ids, None, None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SegmentWarning)
+            extract_segments(frame, n_fps=N_POINTS, rng=rng, with_gt=False)
+        parts["segments"] += time.perf_counter() - t
+    return {f"{k}_ms": 1000 * v / scenes for k, v in parts.items()}
 
 
 def _frame_rate(frames: int) -> dict:
@@ -103,6 +159,7 @@ def run(quick: bool = False) -> dict:
     synth = _synthesis_rate(n)
     frames = _frame_rate(2 if quick else 8)
     stream = _stream_rate(4 if quick else 60)
+    parts = _scene_parts(3 if quick else 40)
     threads = torch.get_num_threads()
     ratio = synth["segments_per_s"] * REUSE / train["segments_per_s"]
     return {
@@ -126,6 +183,7 @@ def run(quick: bool = False) -> dict:
                 "online_vs_frame_path": synth["segments_per_s"] / frames["segments_per_s"],
                 "stream_steps_per_s": stream["steps_per_s"],
                 "stream_vs_training_alone": stream["segments_per_s"] / train["segments_per_s"],
+                "scene_parts_ms": parts,
             },
         }
     }

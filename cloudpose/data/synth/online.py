@@ -65,6 +65,11 @@ scenes never repeat a rendered frame's scene."""
 REUSE_SPACING = 32
 """Steps between two uses of an on-line segment (:class:`OnlineStream`)."""
 
+PREFETCH_CHUNKS = 64
+"""Chunks each synthesis worker may make ahead of training: enough to keep synthesizing through
+an epoch's validation (~10 s here, ~140 scenes at reuse 4), when training takes none; a few
+megabytes at most."""
+
 WINDOW_PAD = 8
 """Pixels added around the objects' window: the edge, grazing and blob terms of the sensor
 model see the background just outside an object as in a whole frame."""
@@ -379,7 +384,7 @@ class OnlineStream:
             batch_size=None,
             sampler=range(self.step, len(chunks)),
             num_workers=int(workers),
-            prefetch_factor=8 if workers > 0 else None,
+            prefetch_factor=PREFETCH_CHUNKS if workers > 0 else None,
             worker_init_fn=_worker_init if workers > 0 else None,
             multiprocessing_context="fork" if workers > 0 else None,
         )
