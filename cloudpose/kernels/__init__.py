@@ -1,5 +1,5 @@
 """Compiled (numba) kernels for the point-cloud hot loops: exact FPS, bounded nearest neighbours,
-the ICP loop and ADS, one algorithm per module.
+the ICP loop and ADS, one algorithm per module; and one per-pixel pass of the depth sensor.
 
 Three hot loops of the pipeline do per-point work that numpy can only express as many small
 calls, so they run here as compiled loops:
@@ -20,6 +20,10 @@ calls, so they run here as compiled loops:
   Delaunay graph from the point's own model point or the previous point's neighbour. A point
   whose Delaunay neighbours are all farther from the query than itself has the query in its
   Voronoi cell: the walk's end is the exact nearest point.
+
+One more serves synthesis: ``sensor.object_pixel_geometry_kernel``, the depth jump and
+incidence cosine of every object pixel of an on-line scene in one pass (the version-2 sensor,
+:func:`cloudpose.data.synth.sensor.object_pixel_geometry`).
 
 The structures they share: ``kdtree`` (a k-d tree of arrays and its bounded search) and
 ``graph`` (a model's k-d tree with its Delaunay graph, or each point's nearest points where a
