@@ -112,17 +112,25 @@ def _readings(
     k = np.abs(diff).argmax(axis=-1)
     jump = np.take_along_axis(diff, k[..., None], axis=-1)[..., 0]
     edge = np.abs(jump) > model.edge_jump
-    noisy = z + rng.standard_normal((H, W)) * (model.sigma0 + model.sigma2 * (z - 0.4) ** 2)
+    normal = rng.standard_normal((H, W))
     u_edge = rng.random((H, W))
-    mix = rng.random((H, W))
+    noisy = _noisy(z, valid, jump, edge, normal, u_edge, rng.random((H, W)), model)
+    drop = (edge & (u_edge > 1.0 - model.edge_dropout)) | (rng.random((H, W)) < model.dropout)
+    noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
+    return noisy, drop
+
+
+def _noisy(z, valid, jump, edge, normal, u_edge, mix, model: NoiseModel) -> np.ndarray:
+    """Readings from clean depth ``z`` (any shape) and the draws of one pixel each: Gaussian
+    axial noise growing with depth (``normal``), a flying pixel on a depth edge mixed towards
+    the neighbour across it (``u_edge`` < ``edge_flying``, by the share ``mix``), and the
+    disparity quantisation."""
+    noisy = z + normal * (model.sigma0 + model.sigma2 * (z - 0.4) ** 2)
     flying = edge & (u_edge < model.edge_flying)
     noisy = np.where(flying, noisy + mix * jump, noisy)
     disparity = model.focal_baseline / np.where(valid, noisy, 1.0)
     disparity = np.maximum(np.round(disparity / model.subpixel), 1.0) * model.subpixel
-    noisy = model.focal_baseline / disparity
-    drop = (edge & (u_edge > 1.0 - model.edge_dropout)) | (rng.random((H, W)) < model.dropout)
-    noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
-    return noisy, drop
+    return model.focal_baseline / disparity
 
 
 # --------------------------------------------------------------------------- missing depth
@@ -430,14 +438,9 @@ def add_sensor_noise_v2_objects(
     jump, cos = object_pixel_geometry(pad, lpad, v, u, K)
     edge = np.abs(jump) > model.edge_jump
     m = len(z)
-    noisy = z + rng.standard_normal(m) * (model.sigma0 + model.sigma2 * (z - 0.4) ** 2)
+    normal = rng.standard_normal(m)
     u_edge = rng.random(m)
-    mix = rng.random(m)
-    flying = edge & (u_edge < model.edge_flying)
-    noisy = np.where(flying, noisy + mix * jump, noisy)
-    disparity = model.focal_baseline / np.where(valid, noisy, 1.0)
-    disparity = np.maximum(np.round(disparity / model.subpixel), 1.0) * model.subpixel
-    noisy = model.focal_baseline / disparity
+    noisy = _noisy(z, valid, jump, edge, normal, u_edge, rng.random(m), model)
     noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
     c = lab[v, u]
     p = dropout.probability(edge_distance(lab)[v, u], cos, c)
