@@ -68,6 +68,20 @@ def _check_inputs(K, shape, cls_ids, poses):
     return K, (int(shape[0]), int(shape[1])), cls_ids, poses
 
 
+def _check_labels(cls_ids: np.ndarray) -> None:
+    if cls_ids.size and (cls_ids.min() < 0 or cls_ids.max() > 255):
+        raise ValueError(f"cls_ids {cls_ids.tolist()} do not fit a uint8 label image")
+
+
+def _rendering(cls_ids: np.ndarray, depth: np.ndarray, index: np.ndarray) -> Rendering:
+    """The :class:`Rendering` of depth and the index of the instance each pixel hits first
+    (-1 = none)."""
+    lut = np.concatenate([cls_ids, [0]]).astype(np.uint8)
+    label = lut[index]  # index -1 picks the appended background 0
+    visible = np.bincount(index[index >= 0], minlength=len(cls_ids)).astype(np.int64)
+    return Rendering(depth, label, visible)
+
+
 class Renderer:
     """Renders depth and labels of posed objects (surfaces built from model points).
 
@@ -126,10 +140,8 @@ class Renderer:
             self._rays[key] = camera_rays(K, shape)
         return self._rays[key]
 
-    def _cast(self, K, shape, cls_ids, poses, window=None, mask=None, nthreads=0):
-        """Cast one ray per pixel (of ``window`` = (v0, v1, u0, u1) if given; of the pixels
-        where ``mask``, an (h, w) bool over the window, if given: the others get no hit), with
-        ``nthreads`` threads (0: Open3D's default, every core).
+    def _cast(self, K, shape, cls_ids, poses, window=None):
+        """Cast one ray per pixel (of ``window`` = (v0, v1, u0, u1) if given).
 
         Returns:
             depth (h, w) float32 metres (0 = no hit) and index (h, w) int64 of the instance
@@ -146,19 +158,10 @@ class Renderer:
         if window is not None:
             v0, v1, u0, u1 = window
             d = d[v0:v1, u0:u1]
-        if mask is not None:
-            dm = d[mask]
-            rays = np.concatenate([np.zeros_like(dm), dm], axis=-1)  # (m, 6)
-            t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)), nthreads=nthreads)
-            t_hit = np.full(mask.shape, np.inf, dtype=np.float32)
-            gids = np.zeros(mask.shape, dtype=np.int64)
-            t_hit[mask] = t["t_hit"].numpy()
-            gids[mask] = t["geometry_ids"].numpy()
-        else:
-            rays = np.concatenate([np.zeros_like(d), d], axis=-1)  # (h, w, 6) origin, direction
-            t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
-            t_hit = t["t_hit"].numpy()
-            gids = t["geometry_ids"].numpy().astype(np.int64)
+        rays = np.concatenate([np.zeros_like(d), d], axis=-1)  # (h, w, 6) origin, direction
+        t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+        t_hit = t["t_hit"].numpy()
+        gids = t["geometry_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t_hit)
         depth = np.where(hit, t_hit * d[..., 2], 0.0).astype(np.float32)
         lut = np.full(max(gid_to_inst, default=0) + 1, -1, dtype=np.int64)
@@ -168,9 +171,7 @@ class Renderer:
         index[hit] = lut[gids[hit]]
         return depth, index
 
-    def render(
-        self, K, shape: tuple[int, int], cls_ids, poses, window=None, mask=None, nthreads=0
-    ) -> Rendering:
+    def render(self, K, shape: tuple[int, int], cls_ids, poses) -> Rendering:
         """Render depth and labels of objects at their poses.
 
         Args:
@@ -178,23 +179,14 @@ class Renderer:
             shape: (H, W) image size.
             cls_ids: (N,) class ids (keys of ``models``).
             poses: (N, 3, 4) object->camera ``[R | t]``, metres.
-            window: (v0, v1, u0, u1): render only these pixels of the (H, W) image (the same
-                rays, so the same values as there); None = the whole image.
-            mask: (h, w) bool over the window: cast rays only where True (elsewhere no hit).
-            nthreads: ray-casting threads (0: Open3D's default, every core).
 
         Returns:
             :class:`Rendering`: depth (metres of the nearest surface), label (its class id) and
-            per-instance visible pixel counts, over the window.
+            per-instance visible pixel counts.
         """
         K, shape, cls_ids, poses = _check_inputs(K, shape, cls_ids, poses)
-        if cls_ids.size and (cls_ids.min() < 0 or cls_ids.max() > 255):
-            raise ValueError(f"cls_ids {cls_ids.tolist()} do not fit a uint8 label image")
-        depth, index = self._cast(K, shape, cls_ids, poses, window, mask, nthreads)
-        lut = np.concatenate([cls_ids, [0]]).astype(np.uint8)
-        label = lut[index]  # index -1 picks the appended background 0
-        visible = np.bincount(index[index >= 0], minlength=len(cls_ids)).astype(np.int64)
-        return Rendering(depth, label, visible)
+        _check_labels(cls_ids)
+        return _rendering(cls_ids, *self._cast(K, shape, cls_ids, poses))
 
     def _class_scene(self, c: int) -> o3d.t.geometry.RaycastingScene:
         """A ray-casting scene of class ``c``'s mesh in its model frame, built once (its BVH
@@ -229,6 +221,7 @@ class Renderer:
             :class:`Rendering` over the output window.
         """
         K, shape, cls_ids, poses = _check_inputs(K, shape, cls_ids, poses)
+        _check_labels(cls_ids)
         windows = np.asarray(windows, dtype=np.int64).reshape(-1, 4)
         ov, ov1, ou, ou1 = (int(x) for x in box)
         d_all = self._unit_rays(K, shape)
@@ -252,11 +245,7 @@ class Renderer:
             index[sub] = np.where(closer, i, index[sub])
         found = np.isfinite(best)
         d_out = d_all[ov : ov + best.shape[0], ou : ou + best.shape[1], 2]
-        depth = np.where(found, best * d_out, 0.0).astype(np.float32)
-        lut = np.concatenate([cls_ids, [0]]).astype(np.uint8)
-        label = lut[index]
-        visible = np.bincount(index[index >= 0], minlength=len(cls_ids)).astype(np.int64)
-        return Rendering(depth, label, visible)
+        return _rendering(cls_ids, np.where(found, best * d_out, 0.0).astype(np.float32), index)
 
     def _window(self, K, shape, c, P):
         """Pixel window (v0, v1, u0, u1) that holds the projection of the posed mesh, or None

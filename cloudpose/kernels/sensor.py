@@ -16,6 +16,12 @@ __all__ = ["object_pixel_geometry_kernel"]
 
 
 @njit(cache=True)
+def _ray(Kinv, s, x, y):  # pragma: no cover - compiled
+    """Component ``s`` of ``Kinv @ (x, y, 1)``."""
+    return Kinv[s, 0] * x + Kinv[s, 1] * y + Kinv[s, 2]
+
+
+@njit(cache=True)
 def object_pixel_geometry_kernel(pad, lpad, v, u, Kinv):  # pragma: no cover - compiled
     """``(jump, cos)`` of the object pixels ``(v, u)`` of a depth image padded by one pixel
     of 0 (``pad``, float64) and its label image padded alike (``lpad``): see the twin."""
@@ -48,24 +54,23 @@ def object_pixel_geometry_kernel(pad, lpad, v, u, Kinv):  # pragma: no cover - c
         jump[i] = best
         if not (all_valid and same and 1 <= v[i] <= H - 2 and 1 <= u[i] <= W - 2):
             continue
-        # back-projected neighbours (rays with z = 1, times depth): central differences
-        g = np.zeros((2, 3))
-        for a in range(4):  # right, left, down, up
-            ddu = 1 if a == 0 else (-1 if a == 1 else 0)
-            ddv = 1 if a == 2 else (-1 if a == 3 else 0)
-            sign = 1.0 if a % 2 == 0 else -1.0
-            row = 0 if a < 2 else 1
-            x = float(u[i] + ddu)
-            y = float(v[i] + ddv)
-            zz = pad[vp + ddv, up + ddu]
-            for s in range(3):
-                g[row, s] += sign * (Kinv[s, 0] * x + Kinv[s, 1] * y + Kinv[s, 2]) * zz
-        n0 = g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]
-        n1 = g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]
-        n2 = g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
-        r0 = Kinv[0, 0] * u[i] + Kinv[0, 1] * v[i] + Kinv[0, 2]
-        r1 = Kinv[1, 0] * u[i] + Kinv[1, 1] * v[i] + Kinv[1, 2]
-        r2 = Kinv[2, 0] * u[i] + Kinv[2, 1] * v[i] + Kinv[2, 2]
+        # central differences of the back-projected neighbours (rays with z = 1, times depth)
+        x = float(u[i])
+        y = float(v[i])
+        zr, zl = pad[vp, up + 1], pad[vp, up - 1]
+        zd, zu = pad[vp + 1, up], pad[vp - 1, up]
+        gx0 = _ray(Kinv, 0, x + 1, y) * zr - _ray(Kinv, 0, x - 1, y) * zl
+        gx1 = _ray(Kinv, 1, x + 1, y) * zr - _ray(Kinv, 1, x - 1, y) * zl
+        gx2 = _ray(Kinv, 2, x + 1, y) * zr - _ray(Kinv, 2, x - 1, y) * zl
+        gy0 = _ray(Kinv, 0, x, y + 1) * zd - _ray(Kinv, 0, x, y - 1) * zu
+        gy1 = _ray(Kinv, 1, x, y + 1) * zd - _ray(Kinv, 1, x, y - 1) * zu
+        gy2 = _ray(Kinv, 2, x, y + 1) * zd - _ray(Kinv, 2, x, y - 1) * zu
+        n0 = gx1 * gy2 - gx2 * gy1
+        n1 = gx2 * gy0 - gx0 * gy2
+        n2 = gx0 * gy1 - gx1 * gy0
+        r0 = _ray(Kinv, 0, x, y)
+        r1 = _ray(Kinv, 1, x, y)
+        r2 = _ray(Kinv, 2, x, y)
         norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
         if norm > 0:
             cos[i] = min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)

@@ -304,7 +304,7 @@ def versus_baseline(
 
 def comparison(evaluations: list[Evaluation], reference: str = REFERENCE) -> pd.DataFrame:
     """:func:`versus_baseline` for every metric, without and with ICP: the network's seeds
-    against the reference baseline's newest seed; empty when either is missing."""
+    against the reference baseline's lowest seed; empty when either is missing."""
     nets = [ev.table for ev in evaluations if ev.method == NETWORK and ev.name == REAL]
     refs = [ev for ev in evaluations if ev.method == reference and ev.name == REAL]
     if not nets or not refs:

@@ -30,8 +30,16 @@ def background_depth(
     H, W = shape
     v, u = np.mgrid[0:H, 0:W].astype(np.float64)
     rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # (H, W, 3), z = 1
+    return _plane_depth(rays, world_to_camera, planes)
+
+
+def _plane_depth(
+    rays: np.ndarray, world_to_camera: np.ndarray, planes: Sequence[Plane]
+) -> np.ndarray:
+    """Depth (z) of the nearest background plane patch along rays (..., 3) with z = 1; 0 where
+    none is hit within :data:`MAX_RANGE`."""
     Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
-    out = np.full(shape, np.inf)
+    out = np.full(rays.shape[:-1], np.inf)
     for pl in planes:
         n_c = Rc @ pl.normal
         p_c = Rc @ pl.point + tc
@@ -40,9 +48,9 @@ def background_depth(
             z = (p_c @ n_c) / denom
         hit = np.isfinite(z) & (z > 0)
         if pl.axes is not None:
-            x_c = rays * z[..., None] - p_c  # (H, W, 3) from the patch centre, camera frame
+            x_c = rays * z[..., None] - p_c  # (..., 3) from the patch centre, camera frame
             ax_c = pl.axes @ Rc.T  # (2, 3)
-            local = np.abs(x_c @ ax_c.T)  # (H, W, 2)
+            local = np.abs(x_c @ ax_c.T)  # (..., 2)
             hit &= (local <= pl.half_extent).all(axis=-1)
         out = np.where(hit & (z < out), z, out)
     out[~np.isfinite(out) | (out > MAX_RANGE)] = 0.0
@@ -361,21 +369,7 @@ def background_depth_at(
     """:func:`background_depth` at the pixels ``(v, u)`` only: (m,) float64 metres, 0 where
     no patch is hit within :data:`MAX_RANGE`."""
     pix = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64)
-    rays = pix @ np.linalg.inv(K).T  # (m, 3), z = 1
-    Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
-    out = np.full(len(rays), np.inf)
-    for pl in planes:
-        n_c = Rc @ pl.normal
-        p_c = Rc @ pl.point + tc
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = (p_c @ n_c) / (rays @ n_c)
-        hit = np.isfinite(z) & (z > 0)
-        if pl.axes is not None:
-            local = np.abs((rays * z[:, None] - p_c) @ (pl.axes @ Rc.T).T)  # (m, 2)
-            hit &= (local <= pl.half_extent).all(axis=-1)
-        out = np.where(hit & (z < out), z, out)
-    out[~np.isfinite(out) | (out > MAX_RANGE)] = 0.0
-    return out
+    return _plane_depth(pix @ np.linalg.inv(K).T, world_to_camera, planes)
 
 
 def object_ring(label: np.ndarray) -> np.ndarray:
