@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
+import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -40,7 +41,8 @@ from cloudpose import runs, runtime, tracking
 from cloudpose.config import Config, groups_of
 from cloudpose.data.batches import Batchable
 from cloudpose.data.dataset import Prepared
-from cloudpose.data.synth.online import OnlineStream, OnlineSynth
+from cloudpose.data.synth.online import REUSE_SPACING, OnlineChunks, OnlineStream
+from cloudpose.data.synth.store import STORE_DIR
 from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
@@ -99,11 +101,44 @@ def online_synth_kwargs(cfg: Config, class_names: list[str]) -> dict:
     }
 
 
-def online_probe(synth_kwargs: dict, seed: int, n: int) -> Batchable:
+ONLINE_STORE_ENV = "CLOUDPOSE_ONLINE_STORE"
+"""Environment variable: ``0`` keeps on-line runs from reading or writing the project's chunk
+store (:mod:`cloudpose.data.synth.store`); a path puts the store there. Unset: the project's
+``data/cache/online``."""
+
+
+def online_store_root(project_dir: str | Path) -> Path | None:
+    """Where on-line runs of ``project_dir`` keep their chunks (:data:`ONLINE_STORE_ENV`)."""
+    value = os.environ.get(ONLINE_STORE_ENV, "").strip()
+    if value == "0":
+        return None
+    return Path(value) if value else Path(project_dir).joinpath(*STORE_DIR)
+
+
+def online_epoch_steps(cfg: Config) -> int:
+    """Optimiser steps of an on-line run's epoch (``data.online_epoch_segments``)."""
+    return max(cfg.data.online_epoch_segments // cfg.train.batch_size, 1)
+
+
+def online_chunks(cfg: Config, class_names: list[str]) -> tuple[dict, int, int]:
+    """``(synth_kwargs, chunk_size, n_chunks)`` of an on-line run: the chunks its
+    :class:`~cloudpose.data.synth.online.OnlineStream` draws, the same for every variant that
+    shares its ``data`` section, ``train.n_points``, ``train.batch_size`` and epochs."""
+    reuse = cfg.data.online_reuse
+    span = (reuse - 1) * REUSE_SPACING
+    return (
+        online_synth_kwargs(cfg, class_names),
+        cfg.train.batch_size // reuse,
+        cfg.train.epochs * online_epoch_steps(cfg) + span,
+    )
+
+
+def online_probe(
+    synth_kwargs: dict, seed: int, n: int, store: str | Path | None = None
+) -> Batchable:
     """``n`` segments drawn as the run's first step draws them (its first chunk is trained on):
-    the ``fit/`` probe of an on-line run."""
-    b = OnlineSynth(**synth_kwargs).batch(seed, 0, n)
-    return Batchable(*b.tensors())
+    the ``fit/`` probe of an on-line run (read from, or kept in, the chunk store ``store``)."""
+    return Batchable(*OnlineChunks(synth_kwargs, seed, n, 1, store)[0])
 
 
 def epoch_order(fit: Batchable, sampler: str, seed: int, epoch: int, n: int) -> torch.Tensor:
@@ -300,7 +335,7 @@ def _train(
     if online:  # the rendered training frames validate; fitting draws fresh segments
         synth_kwargs = online_synth_kwargs(cfg, class_names)
         val = Batchable.from_segments(train_set, cfg.train.n_points)
-        fit = online_probe(synth_kwargs, cfg.seed, 256)
+        fit = online_probe(synth_kwargs, cfg.seed, 256, online_store_root(project_dir))
     else:
         held = split_frames(train_set.frame_id, cfg.train.val_fraction)
         fit = Batchable.from_segments(train_set.subset(~held), cfg.train.n_points)
@@ -374,7 +409,7 @@ def _train(
 
     bs = cfg.train.batch_size
     if online:
-        n_batches = max(cfg.data.online_epoch_segments // bs, 1)
+        n_batches = online_epoch_steps(cfg)
     else:
         n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
     steps_here, t_ckpt = 0, time.monotonic()
@@ -399,6 +434,7 @@ def _train(
             total_steps,
             start=epoch * n_batches + batch,
             workers=cfg.data.online_workers,
+            store=online_store_root(project_dir),
         )
     while epoch < cfg.train.epochs:
         t_epoch = time.monotonic()

@@ -11,12 +11,13 @@ from cloudpose.cli.app import (
     DataOpt,
     PresetOpt,
     ProgressOpt,
+    SetOpt,
     VariantOpt,
     app,
     config_of,
     recorded_command,
 )
-from cloudpose.config import DEFAULT_PRESET
+from cloudpose.config import DEFAULT_PRESET, Config
 
 
 @app.command()
@@ -132,15 +133,28 @@ def prepare(
     histogram: Annotated[
         Path | None, typer.Option(help="Also plot the test set's occlusion factors to this PNG.")
     ] = None,
+    set_: SetOpt = None,
+    seeds: Annotated[
+        int,
+        typer.Option(
+            help="On-line presets: also synthesize the training chunks of seeds 1..S into the "
+            "project's chunk store, which every variant of the preset then reads."
+        ),
+    ] = 0,
+    workers: Annotated[
+        int | None, typer.Option(help="Synthesis processes for --seeds (default: all cores).")
+    ] = None,
     progress: ProgressOpt = True,
 ) -> None:
     """Synthesize (if needed) and cache the segments of a preset's train and test sets."""
     from cloudpose.data.dataset import prepare_data
 
-    cfg = config_of(variant, preset, 1, data)
+    cfg = config_of(variant, preset, 1, data, set_)
     prepared = prepare_data(cfg.data, Path.cwd(), progress=progress)
     train_set, test_set = prepared.train, prepared.test
     typer.echo(f"train: {len(train_set)} segments, test: {len(test_set)} segments")
+    if seeds > 0:
+        _store_seeds(cfg, list(prepared.dataset.classes), seeds, workers, progress)
     if histogram is not None:
         from cloudpose.report.plots import occlusion_histogram
 
@@ -150,3 +164,25 @@ def prepare(
         )
         counts = occlusion_histogram(test_set, histogram, title)
         typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")
+
+
+def _store_seeds(cfg: Config, class_names: list[str], seeds: int, workers: int | None, progress: bool):
+    from cloudpose.data.synth.online import store_chunks
+    from cloudpose.data.synth.store import ChunkStore
+    from cloudpose.train import ONLINE_STORE_ENV, online_chunks, online_store_root
+
+    if cfg.data.train_source != "online":
+        raise ValueError(
+            f"--seeds: preset {cfg.preset!r} trains on rendered frames (data.train_source="
+            f"{cfg.data.train_source!r}); only an on-line preset has chunks to store"
+        )
+    root = online_store_root(Path.cwd())
+    if root is None:
+        raise ValueError(f"--seeds: the chunk store is switched off ({ONLINE_STORE_ENV}=0)")
+    synth_kwargs, chunk_size, n_chunks = online_chunks(cfg, class_names)
+    for seed in range(1, seeds + 1):
+        made = store_chunks(synth_kwargs, seed, chunk_size, n_chunks, root, workers, progress)
+        typer.echo(f"seed {seed}: {n_chunks} chunks of {chunk_size} segments ({made} made)")
+    folder = ChunkStore(root, synth_kwargs, chunk_size).folder
+    size = sum(f.stat().st_size for f in folder.rglob("*.npz"))
+    typer.echo(f"chunk store: {folder} ({size / 2**20:.0f} MiB)")

@@ -33,8 +33,10 @@ process (:class:`OnlineStream` has worker processes make them ahead of the train
 
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -57,6 +59,7 @@ from cloudpose.data.synth.sensor import (
     background_depth_at,
     object_ring,
 )
+from cloudpose.data.synth.store import ChunkStore
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -300,24 +303,39 @@ class OnlineChunks(torch.utils.data.Dataset):
         seed: the run's seed.
         chunk_size: segments per chunk.
         n_chunks: chunks in the run.
+        store: a :class:`~cloudpose.data.synth.store.ChunkStore` root: a chunk stored there is
+            read instead of made, and a chunk made is stored (None: neither).
     """
 
-    def __init__(self, synth_kwargs: dict, seed: int, chunk_size: int, n_chunks: int) -> None:
+    def __init__(
+        self,
+        synth_kwargs: dict,
+        seed: int,
+        chunk_size: int,
+        n_chunks: int,
+        store: str | Path | None = None,
+    ) -> None:
         self.synth_kwargs = dict(synth_kwargs)
         self.seed = int(seed)
         self.chunk_size = int(chunk_size)
         self.n_chunks = int(n_chunks)
+        self.store = None if store is None else ChunkStore(store, synth_kwargs, chunk_size)
         self._synth: OnlineSynth | None = None
 
     def __len__(self) -> int:
         return self.n_chunks
 
     def __getitem__(self, j: int) -> tuple[torch.Tensor, ...]:
+        if self.store is not None and (got := self.store.load(self.seed, j)) is not None:
+            return got
         if self._synth is None:
             info = torch.utils.data.get_worker_info()
             threads = {"nthreads": 1} if info is not None else {}
             self._synth = OnlineSynth(**{**self.synth_kwargs, **threads})
-        return self._synth.batch(self.seed, int(j), self.chunk_size).tensors()
+        chunk = self._synth.batch(self.seed, int(j), self.chunk_size).tensors()
+        if self.store is not None:
+            self.store.save(self.seed, j, chunk)
+        return chunk
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_synth": None}
@@ -355,6 +373,8 @@ class OnlineStream:
         workers: synthesis processes (0: in the training process); while the stream is open,
             this process trains with ``torch.get_num_threads() - workers`` threads (at least 1).
         spacing: steps between two uses of a segment (D).
+        store: root of a :class:`~cloudpose.data.synth.store.ChunkStore` to read chunks from
+            and keep them in (speed only: the same batches; None: synthesize every chunk).
     """
 
     def __init__(
@@ -367,6 +387,7 @@ class OnlineStream:
         start: int = 0,
         workers: int = 1,
         spacing: int = REUSE_SPACING,
+        store: str | Path | None = None,
     ) -> None:
         if reuse < 1 or batch_size % reuse:
             raise ValueError(
@@ -378,7 +399,7 @@ class OnlineStream:
         self.spacing = int(spacing)
         self.step = int(start)
         span = (self.reuse - 1) * self.spacing
-        chunks = OnlineChunks(synth_kwargs, seed, batch_size // reuse, total_steps + span)
+        chunks = OnlineChunks(synth_kwargs, seed, batch_size // reuse, total_steps + span, store)
         self._loader = torch.utils.data.DataLoader(
             chunks,
             batch_size=None,
@@ -412,3 +433,37 @@ class OnlineStream:
         self._it = None
         self._loader = None
         torch.set_num_threads(self._threads)
+
+
+def store_chunks(
+    synth_kwargs: dict,
+    seed: int,
+    chunk_size: int,
+    n_chunks: int,
+    store: str | Path,
+    workers: int | None = None,
+    progress: bool = True,
+) -> int:
+    """Make and keep the chunks ``0 .. n_chunks - 1`` of ``seed`` that ``store`` lacks, in
+    ``workers`` processes (default: every core), so that runs of this seed read them
+    (:mod:`cloudpose.data.synth.store`). Returns how many were made."""
+    from tqdm.auto import tqdm
+
+    chunks = OnlineChunks(synth_kwargs, seed, chunk_size, n_chunks, store)
+    assert chunks.store is not None
+    missing = [j for j in range(n_chunks) if not chunks.store.path(seed, j).is_file()]
+    if workers is None:
+        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+    loader = torch.utils.data.DataLoader(
+        chunks,
+        batch_size=None,
+        sampler=missing,
+        num_workers=int(workers),
+        worker_init_fn=_worker_init if workers > 0 else None,
+        multiprocessing_context="fork" if workers > 0 else None,
+    )
+    for _ in tqdm(
+        loader, total=len(missing), disable=not progress, desc=f"seed {seed}", unit="chunk"
+    ):
+        pass
+    return len(missing)

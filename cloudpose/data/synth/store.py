@@ -1,0 +1,167 @@
+"""On-line chunks kept on disk: synthesized once per seed, trained on by every variant.
+
+Chunk ``j`` of an on-line run (:class:`~cloudpose.data.synth.online.OnlineChunks`) is a pure
+function of the synthesis settings, the seed, the chunk size and ``j``. The variants of a
+preset share all of these (they differ in the network and the loss), so at one seed they train
+on the same segments, and synthesis, not the training step, sets a run's pace on a small
+machine (~180 ms a chunk of 8 segments against ~120 ms a training step, one core each). A
+:class:`ChunkStore` keeps each chunk as it is made; a later run of the same seed reads it
+instead of synthesizing it again. What a run trains on is unchanged to the bit: a stored chunk
+holds the synthesized float32 tensors themselves, and the training process keeps the threads
+it has without the store (tested).
+
+The key of a store folder covers everything a chunk depends on: the :class:`OnlineSynth`
+arguments, the chunk size, the source of the modules that make it (``cloudpose/data``,
+``cloudpose/kernels``, ``cloudpose/geometry``, ``conventions.py``), the packaged model points
+and surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
+synthesizes afresh into a new folder; nothing stale is read. What the key does not cover: the
+CPU. Compiled kernels can round differently on another instruction set, as synthesis without a
+store would; a store carried to another machine gives that machine's runs the chunks of the
+machine that made them.
+
+Layout: ``ROOT/KEY/settings.json`` (the key's parts, readable) and
+``ROOT/KEY/seed-S/chunk-JJJJJJ.npz`` (points, cls_id, R, t; ~26 kB at 8 segments of 256 points:
+~110 MB for the 4,224 chunks of a 4,096-step run). Writes are atomic (a temporary file renamed),
+so processes that make the same chunk at once, or a run killed mid-write, leave whole files; an
+unreadable file is synthesized again and replaced. Delete a folder to reclaim its space.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.metadata
+import json
+import os
+import warnings
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cloudpose.conventions import resource_path
+
+STORE_DIR = ("data", "cache", "online")
+"""Where a project keeps its store, under the project folder."""
+
+_SOURCE_PARTS = ("data", "kernels", "geometry", "conventions.py")
+"""The package's modules that make a chunk (folders are read recursively)."""
+
+_RESOURCE_PARTS = ("models", "meshes", "classes.txt")
+"""The packaged data a chunk is made from: model points, surfaces, class list."""
+
+_LIBRARIES = ("numpy", "scipy", "open3d", "numba", "torch")
+
+_FIELDS = ("points", "cls_id", "R", "t")
+
+Chunk = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _digest_files(paths: list[Path], base: Path) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for p in sorted(paths):
+        h.update(str(p.relative_to(base)).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _files_under(base: Path, parts: tuple[str, ...], suffix: str | None) -> list[Path]:
+    out: list[Path] = []
+    for part in parts:
+        p = base / part
+        if p.is_dir():
+            out += [
+                f for f in p.rglob("*") if f.is_file() and (suffix is None or f.suffix == suffix)
+            ]
+        elif p.is_file():
+            out.append(p)
+    return out
+
+
+@functools.cache
+def code_digest() -> str:
+    """Digest of what makes a chunk besides its arguments: the package's synthesis source, its
+    packaged models and surfaces, and the numeric libraries' versions (32 hex digits)."""
+    package = Path(__file__).resolve().parents[2]
+    resources = resource_path()
+    h = hashlib.blake2b(digest_size=16)
+    h.update(_digest_files(_files_under(package, _SOURCE_PARTS, ".py"), package).encode())
+    h.update(_digest_files(_files_under(resources, _RESOURCE_PARTS, None), resources).encode())
+    for lib in _LIBRARIES:
+        try:
+            h.update(f"{lib}={importlib.metadata.version(lib)};".encode())
+        except importlib.metadata.PackageNotFoundError:
+            h.update(f"{lib}=-;".encode())
+    return h.hexdigest()
+
+
+def store_settings(synth_kwargs: dict, chunk_size: int) -> dict:
+    """The parts of a store's key, as written to its ``settings.json``."""
+    kwargs = {
+        k: (sorted(int(c) for c in v) if k == "class_ids" and v is not None else v)
+        for k, v in synth_kwargs.items()
+        if k != "nthreads"  # speed only
+    }
+    return {"synth": kwargs, "chunk_size": int(chunk_size), "code": code_digest()}
+
+
+class ChunkStore:
+    """The stored chunks of one synthesis setting and chunk size, for any seed.
+
+    Args:
+        root: the store's root folder (a project's is ``data/cache/online``).
+        synth_kwargs: :class:`~cloudpose.data.synth.online.OnlineSynth` arguments.
+        chunk_size: segments per chunk.
+    """
+
+    def __init__(self, root: str | Path, synth_kwargs: dict, chunk_size: int) -> None:
+        self.settings = store_settings(synth_kwargs, chunk_size)
+        text = json.dumps(self.settings, sort_keys=True)
+        self.key = hashlib.sha256(text.encode()).hexdigest()[:20]
+        self.folder = Path(root) / self.key
+
+    def path(self, seed: int, j: int) -> Path:
+        """File of chunk ``j`` of seed ``seed``."""
+        return self.folder / f"seed-{int(seed)}" / f"chunk-{int(j):06d}.npz"
+
+    def load(self, seed: int, j: int) -> Chunk | None:
+        """Chunk ``j`` of ``seed`` as ``(points, cls_id, R, t)``, None if not stored (or not
+        readable: it is then made again)."""
+        path = self.path(seed, j)
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path) as z:
+                return tuple(torch.from_numpy(z[k]) for k in _FIELDS)  # type: ignore[return-value]
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+            warnings.warn(
+                f"{path}: unreadable stored chunk ({e}); synthesizing it again", stacklevel=2
+            )
+            return None
+
+    def save(self, seed: int, j: int, chunk: Chunk) -> None:
+        """Keep chunk ``j`` of ``seed`` (atomic: written to a temporary file, then renamed)."""
+        path = self.path(seed, j)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        settings = self.folder / "settings.json"
+        if not settings.is_file():
+            _atomic_write(settings, json.dumps(self.settings, indent=1, sort_keys=True).encode())
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            np.savez(f, **{k: v.numpy() for k, v in zip(_FIELDS, chunk, strict=True)})
+        os.replace(tmp, path)
+
+    def stored(self, seed: int, n_chunks: int) -> int:
+        """How many of chunks ``0 .. n_chunks - 1`` of ``seed`` are stored."""
+        folder = self.folder / f"seed-{int(seed)}"
+        if not folder.is_dir():
+            return 0
+        names = {p.name for p in folder.glob("chunk-*.npz")}
+        return sum(f"chunk-{j:06d}.npz" in names for j in range(n_chunks))
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)

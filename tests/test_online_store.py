@@ -1,0 +1,159 @@
+"""The on-line chunk store: chunks read back to the bit, keyed by all they depend on, written
+atomically, and runs that read them train the numbers of runs that synthesize."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cloudpose.config import resolve
+from cloudpose.data.synth import store as store_module
+from cloudpose.data.synth.online import OnlineChunks, OnlineStream, OnlineSynth, store_chunks
+from cloudpose.data.synth.store import ChunkStore, store_settings
+from cloudpose.pipeline import train_run
+from cloudpose.train import ONLINE_STORE_ENV, online_chunks, online_store_root
+from tests.conftest import make_project
+
+KW = {"version": 2, "n_points": 32}
+
+
+def test_a_stored_chunk_reads_back_to_the_bit(tmp_path):
+    chunk = OnlineSynth(**KW).batch(3, 5, 4).tensors()
+    store = ChunkStore(tmp_path, KW, 4)
+    assert store.load(3, 5) is None
+    store.save(3, 5, chunk)
+    got = store.load(3, 5)
+    assert got is not None
+    for a, b in zip(got, chunk, strict=True):
+        assert a.dtype == b.dtype and torch.equal(a, b)
+    assert (store.folder / "settings.json").is_file()
+    assert not list(store.folder.rglob("*.tmp"))  # written under another name, then renamed
+    assert store.stored(3, 8) == 1 and store.stored(4, 8) == 0
+
+
+def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
+    base = ChunkStore(tmp_path, KW, 4).key
+    assert ChunkStore(tmp_path, {**KW, "nthreads": 1}, 4).key == base  # speed only
+    assert ChunkStore(tmp_path, {**KW, "n_points": 64}, 4).key != base
+    assert ChunkStore(tmp_path, {**KW, "class_ids": (3, 1, 2)}, 4).key == (
+        ChunkStore(tmp_path, {**KW, "class_ids": (1, 2, 3)}, 4).key
+    )
+    assert ChunkStore(tmp_path, KW, 8).key != base
+    # the synthesis code: another source digest is another folder
+    monkeypatch.setattr(store_module, "code_digest", lambda: "0" * 32)
+    assert ChunkStore(tmp_path, KW, 4).key != base
+    assert store_settings(KW, 4)["code"] == "0" * 32
+
+
+def test_code_digest_follows_the_source_bytes(tmp_path):
+    (tmp_path / "a").mkdir()
+    f = tmp_path / "a" / "m.py"
+    f.write_text("x = 1\n")
+    files = lambda: store_module._files_under(tmp_path, ("a",), ".py")  # noqa: E731
+    before = store_module._digest_files(files(), tmp_path)
+    f.write_text("x = 2\n")
+    assert store_module._digest_files(files(), tmp_path) != before
+    assert len(store_module.code_digest()) == 32
+
+
+def test_an_unreadable_chunk_is_made_again(tmp_path):
+    chunks = OnlineChunks(KW, 1, 4, 3, store=tmp_path)
+    ref = chunks[2]
+    path = chunks.store.path(1, 2)
+    path.write_bytes(b"not a zip")
+    with pytest.warns(UserWarning, match="unreadable stored chunk"):
+        again = OnlineChunks(KW, 1, 4, 3, store=tmp_path)[2]
+    for a, b in zip(again, ref, strict=True):
+        assert torch.equal(a, b)
+    assert chunks.store.load(1, 2) is not None  # replaced by a whole file
+
+
+def test_a_stream_reads_stored_chunks_and_yields_the_same_batches(tmp_path, monkeypatch):
+    args = {"seed": 1, "batch_size": 8, "reuse": 2, "total_steps": 4, "spacing": 2}
+    ref = OnlineStream(KW, workers=0, **args)
+    want = [ref.next() for _ in range(4)]
+    made = store_chunks(KW, 1, 4, 4 + 2, tmp_path, workers=0, progress=False)
+    assert made == 6
+    assert store_chunks(KW, 1, 4, 4 + 2, tmp_path, workers=0, progress=False) == 0
+
+    def no_synthesis(*a, **k):
+        raise AssertionError("a stored chunk was synthesized again")
+
+    monkeypatch.setattr(OnlineSynth, "batch", no_synthesis)
+    for workers in (0, 1):
+        stream = OnlineStream(KW, workers=workers, store=tmp_path, **args)
+        for w in want:
+            for a, b in zip(stream.next(), w, strict=True):
+                assert torch.equal(a, b)
+        stream.close()
+
+
+def test_store_root_follows_the_environment(tmp_path, monkeypatch):
+    monkeypatch.delenv(ONLINE_STORE_ENV, raising=False)
+    assert online_store_root(tmp_path) == tmp_path / "data" / "cache" / "online"
+    monkeypatch.setenv(ONLINE_STORE_ENV, "0")
+    assert online_store_root(tmp_path) is None
+    monkeypatch.setenv(ONLINE_STORE_ENV, str(tmp_path / "elsewhere"))
+    assert online_store_root(tmp_path) == tmp_path / "elsewhere"
+
+
+def test_variants_of_a_preset_share_their_chunks():
+    names = [f"c{i}" for i in range(21)]
+    got = [online_chunks(resolve(v, "cpu-online"), names) for v in ("shared-0", "shared-all", "l2")]
+    assert got[0] == got[1] == got[2]
+    _, chunk_size, n_chunks = got[0]
+    assert chunk_size == 8 and n_chunks > 4096  # the default: batch 32, each segment in 4 steps
+
+
+@pytest.mark.slow
+def test_a_run_that_reads_the_store_trains_the_same_numbers(tmp_path, smoke_data, monkeypatch):
+    overrides = {
+        "data": {"train_source": "online", "online_epoch_segments": 64, "online_reuse": 4},
+        "train": {"augment_roll_deg": 15.0},
+    }
+    cfg = resolve("shared-0", "smoke", seed=2, overrides=overrides)
+    monkeypatch.setenv(ONLINE_STORE_ENV, "0")
+    plain = train_run(cfg, project_dir=make_project(tmp_path / "plain", smoke_data, monkeypatch))
+    store = tmp_path / "store"
+    monkeypatch.setenv(ONLINE_STORE_ENV, str(store))
+    filling = train_run(cfg, project_dir=make_project(tmp_path / "a", smoke_data, monkeypatch))
+    assert any(store.rglob("chunk-*.npz"))
+    monkeypatch.setattr(OnlineSynth, "batch", lambda *a, **k: pytest.fail("synthesized again"))
+    reading = train_run(cfg, project_dir=make_project(tmp_path / "b", smoke_data, monkeypatch))
+    assert filling.metrics == plain.metrics
+    assert reading.metrics == plain.metrics
+    w = [torch.load(r.checkpoint, weights_only=True)["model"] for r in (plain, reading)]
+    for k in w[0]:
+        assert torch.equal(w[0][k], w[1][k]), k
+    assert np.isfinite(plain.metrics["train/loss"])
+
+
+def test_prepare_fills_the_store_for_seeds(tmp_path, smoke_data, monkeypatch):
+    from typer.testing import CliRunner
+
+    from cloudpose.cli import app
+
+    project = make_project(tmp_path / "p", smoke_data, monkeypatch)
+    monkeypatch.chdir(project)
+    monkeypatch.delenv(ONLINE_STORE_ENV, raising=False)
+    base = ["prepare", "--preset", "smoke", "--no-progress", "--workers", "0"]
+    online = [
+        "--set", 'data.train_source="online"', "--set", "data.online_epoch_segments=16",
+        "--set", "data.online_reuse=1", "--set", "train.epochs=1", "--set", "train.batch_size=8",
+    ]  # fmt: skip
+    res = CliRunner().invoke(app, [*base, *online, "--seeds", "2"])
+    assert res.exit_code == 0, res.output
+    cfg = resolve("shared-0", "smoke", seed=1, overrides={
+        "data": {"train_source": "online", "online_epoch_segments": 16, "online_reuse": 1},
+        "train": {"epochs": 1, "batch_size": 8},
+    })  # fmt: skip
+    from cloudpose.conventions import packaged_classes
+
+    kw, size, n = online_chunks(cfg, packaged_classes())
+    assert (size, n) == (8, 2)  # 2 steps, each segment used once
+    store = ChunkStore(online_store_root(project), kw, size)
+    assert store.stored(1, n) == n and store.stored(2, n) == n and store.stored(3, n) == 0
+    assert f"seed 2: {n} chunks of {size} segments ({n} made)" in res.output
+    res = CliRunner().invoke(app, [*base, "--seeds", "1"])
+    assert res.exit_code != 0 and "only an on-line preset" in res.output
