@@ -166,7 +166,9 @@ def prepare(
         typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")
 
 
-def _store_seeds(cfg: Config, class_names: list[str], seeds: int, workers: int | None, progress: bool):
+def _store_seeds(
+    cfg: Config, class_names: list[str], seeds: int, workers: int | None, progress: bool
+):
     from cloudpose.data.synth.online import store_chunks
     from cloudpose.data.synth.store import ChunkStore
     from cloudpose.train import ONLINE_STORE_ENV, online_chunks, online_store_root
