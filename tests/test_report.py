@@ -581,6 +581,15 @@ def test_claims_verdicts(rendered):
     n_ci = int(np.isfinite(df["ci_low_pp"]).sum())
     assert 0 < n_ci < len(df)
     assert f"{n_ci} intervals at 95% each" in md and f"about {0.05 * n_ci:.1f} of them" in md
+    # at a glance: one row per claim, each cell the verdict of that claim's row in claims.csv
+    glance = md.split("## At a glance")[1].split("\n## ")[0]
+    rows = [r for r in glance.splitlines() if r.startswith("| ") and "---" not in r][1:]
+    assert len(rows) == df.groupby(["topic", "claim"]).ngroups
+    shared1 = next(r for r in rows if r.startswith("| separate (none) beats shared 1 |"))
+    want = df[df["claim"] == "separate (none) beats shared 1"].iloc[0]
+    cells = [c.strip() for c in shared1.strip("|").split("|")][1:]
+    assert cells[0].replace("*", "").startswith(want["verdict"].split(" than")[0])
+    assert f"[{want['paper_diff_pp']:+.1f}]" in cells[0]
 
 
 def test_asymmetric_column_counts_only_classes_without_symmetry(rendered):
@@ -747,3 +756,24 @@ def test_table1_names_the_subsample_a_baseline_ran_on():
     methods = [r[0] for r in table1_overall(runs).rows if r]
     assert "PPF (Drost) w/o ICP (baseline-ppf, 250 test instances)" in methods
     assert "Ours w/o ICP (shared-0)" in methods  # the full test set: no size named
+
+
+def test_the_verdict_table_of_a_readme_is_replaced_between_its_markers(rendered, tmp_path):
+    from cloudpose.report.claims import update_verdicts_block
+    from cloudpose.report.formats import Provenance
+
+    _, _, result = rendered
+    prov = Provenance.of(result.runs, COMMAND, "abc")
+    readme = tmp_path / "README.md"
+    readme.write_text(
+        f"# Prose\n\n<!-- verdicts {PRESET} -->\nold\n<!-- /verdicts {PRESET} -->\nafter\n"
+    )
+    update_verdicts_block(readme, PRESET, result.claims, prov)
+    text = readme.read_text()
+    assert text.startswith("# Prose\n\n") and text.endswith("\nafter\n") and "old" not in text
+    assert "| separate (none) beats shared 1 |" in text and COMMAND in text
+    update_verdicts_block(readme, PRESET, result.claims, prov)  # idempotent
+    assert readme.read_text() == text
+    readme.write_text("no markers\n")
+    with pytest.raises(ValueError, match=f"<!-- verdicts {PRESET} -->"):
+        update_verdicts_block(readme, PRESET, result.claims, prov)

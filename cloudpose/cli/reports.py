@@ -37,6 +37,13 @@ def report(
         bool, typer.Option("--mlflow/--no-mlflow", help="Also log the reports to MLflow.")
     ] = True,
     out: OutOpt = None,
+    readme: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also replace the preset's verdict table in this file: the lines between "
+            "'<!-- verdicts PRESET -->' and '<!-- /verdicts PRESET -->' (reports/README.md)."
+        ),
+    ] = None,
 ) -> None:
     """Render the tables, claims and figures of a preset from existing MLflow runs only."""
     from cloudpose.report import render_reports
@@ -52,6 +59,7 @@ def report(
         log_mlflow=mlflow,
         command=recorded_command(ctx),
         out_dir=out,
+        readme=readme,
     )
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 

@@ -28,7 +28,13 @@ from cloudpose import runs as run_records
 from cloudpose import tracking
 from cloudpose.config import get_group, groups
 from cloudpose.report import plots, segmentation
-from cloudpose.report.claims import ClaimResult, claims_frame, claims_markdown, evaluate_claims
+from cloudpose.report.claims import (
+    ClaimResult,
+    claims_frame,
+    claims_markdown,
+    evaluate_claims,
+    update_verdicts_block,
+)
 from cloudpose.report.formats import Provenance
 from cloudpose.report.runs import RunSet, load_runs
 from cloudpose.report.tables import (
@@ -88,6 +94,7 @@ def render_reports(
     data: str | None = None,
     log_mlflow: bool = True,
     client=None,
+    readme: Path | None = None,
 ) -> ReportResult:
     """Render the reports of ``group_names`` (default: every group) from MLflow runs.
 
@@ -104,9 +111,13 @@ def render_reports(
         command: the command named in every file; default this process's command line.
         data: data fingerprint to report; default the one most runs were trained on.
         log_mlflow: also log the files to a ``report/{group}/{preset}`` run per group.
+        readme: also replace the preset's verdict table in this hand-written file
+            (:func:`~cloudpose.report.claims.update_verdicts_block`).
         client: an ``MlflowClient`` (default: the project's store).
     """
     project_dir = (project_dir or Path.cwd()).resolve()
+    if readme is not None and not readme.is_file():
+        raise ValueError(f"--readme {readme}: no such file")
     client = client or tracking.setup(project_dir)
     names = [*groups(), segmentation.GROUP] if group_names is None else list(group_names)
     for g in names:
@@ -136,6 +147,8 @@ def render_reports(
     )
     (out_dir / "claims.csv").write_text(claims_csv, encoding="utf-8")
     written["overall"] += [out_dir / "claims.md", out_dir / "claims.csv"]
+    if readme is not None:
+        update_verdicts_block(readme, preset, results, prov_all)
 
     for g in names:
         if g == segmentation.GROUP:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -29,9 +30,14 @@ from cloudpose.report.formats import Provenance
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import (
     AUC_MARGIN,
+    CONTRADICTED,
+    EQUIVALENT,
+    LARGER,
     MIN_SEEDS,
     NO_POOL,
     OUTCOMES,
+    SMALLER,
+    SUPPORTED,
     THRESHOLD_MARGIN,
     UNRESOLVED,
     Difference,
@@ -399,6 +405,7 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
             f"no claimed difference real, about {0.05 * n_ci:.1f} of them would still exclude "
             "0 by chance, so a lone verdict among many unresolved rows is weak evidence.",
         ]
+    lines += ["", "## At a glance", "", *claims_matrix(results)]
     topic = None
     for r in results:
         c, d = r.claim, r.diff
@@ -423,6 +430,78 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
             f"{_pp(c.paper / 100)} | {_pp(d.mean)} | {ci} | {floor} | {seeds} | {verdict} |"
         )
     return "\n".join(lines) + "\n"
+
+
+_GLANCE = {
+    SUPPORTED: "**supported**",
+    LARGER: "**larger**",
+    SMALLER: "**smaller**",
+    EQUIVALENT: "**equivalent**",
+    CONTRADICTED: "**contradicted**",
+    UNRESOLVED: "not resolved",
+}
+
+
+def claims_matrix(results: list[ClaimResult]) -> list[str]:
+    """Markdown lines: one row per claim, one column per metric, each cell the verdict (the
+    paper's difference in brackets where it has one); a cell is empty where the claim does not
+    take that metric."""
+    metrics = list(dict.fromkeys(r.claim.metric for r in results))
+    rows: dict[tuple[str, str], dict[str, ClaimResult]] = {}
+    for r in results:
+        rows.setdefault((r.claim.topic, r.claim.statement), {})[r.claim.metric] = r
+    lines = [
+        "Verdict per claim and metric (the paper's difference in brackets, pp; *smaller* / "
+        "*larger*: our interval excludes the paper's size; the rows below give each interval).",
+        "",
+        "| claim | " + " | ".join(_label(m) for m in metrics) + " |",
+        "|---|" + "---|" * len(metrics),
+    ]
+    for (_, statement), cells in rows.items():
+        out = []
+        for m in metrics:
+            r = cells.get(m)
+            if r is None:
+                out.append("")
+                continue
+            paper = f" [{_pp(r.claim.paper / 100)}]" if math.isfinite(r.claim.paper) else ""
+            out.append(_GLANCE[r.diff.verdict] + paper)
+        lines.append(f"| {statement} | " + " | ".join(out) + " |")
+    return lines
+
+
+def update_verdicts_block(readme: Path, preset: str, results: list[ClaimResult], prov) -> None:
+    """Replace the verdict table of ``preset`` in a hand-written ``readme`` with
+    :func:`claims_matrix` of ``results``: the lines between ``<!-- verdicts PRESET -->`` and
+    ``<!-- /verdicts PRESET -->``, so the prose around it is a person's and the table the
+    runs'.
+
+    Raises:
+        ValueError: ``readme`` lacks either marker (naming both).
+    """
+    begin, end = f"<!-- verdicts {preset} -->", f"<!-- /verdicts {preset} -->"
+    text = readme.read_text(encoding="utf-8")
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise ValueError(
+            f"{readme}: expected one line {begin!r} and, after it, one line {end!r} around "
+            "the verdict table to replace"
+        )
+    head, rest = text.split(begin)
+    _, tail = rest.split(end)
+    counts = {v: 0 for v in OUTCOMES}
+    for r in results:
+        counts[r.diff.verdict] += 1
+    summary = "; ".join(f"{v}: {n}" for v, n in counts.items() if n)
+    block = [
+        begin,
+        f"_{prov.line()}_",
+        "",
+        f"{summary} (of {len(results)} rows).",
+        "",
+        *claims_matrix(results),
+        end,
+    ]
+    readme.write_text(head + "\n".join(block) + tail, encoding="utf-8")
 
 
 def seeds_wanted(results: list[ClaimResult], cap: int = 10) -> dict[str, int]:
