@@ -11,7 +11,9 @@ Measured in one run, on the same cores, at the default preset's settings
 - the frame path it replaces: segments/s of ``generate_frame`` + ``extract_segments`` (the
   rendered-frame route to the same segments, one process);
 - the on-line training loop end to end: steps/s of ``OnlineStream`` with one synthesis worker
-  feeding the same training step, i.e. what a run of the preset gets here;
+  feeding the same training step, i.e. what a run of the preset gets here, and the same loop
+  reading every chunk from the chunk store (:mod:`cloudpose.data.synth.store`), i.e. what every
+  later run of the seed gets;
 - where a scene's time goes: milliseconds per stage of ``OnlineSynth`` (scene sampling, the
   objects' windows, the ray cast, the background ring, the sensor, the segment path), one
   thread.
@@ -135,21 +137,32 @@ def _train_rate(steps: int) -> dict:
 
 
 def _stream_rate(steps: int) -> dict:
-    """Steps/s of the on-line loop: one worker synthesizes, this process trains."""
+    """Steps/s of the on-line loop: one worker synthesizes, this process trains; then the
+    same steps again with every chunk read from a chunk store the first pass filled (what
+    the runs of a seed after its first get)."""
+    import tempfile
+
     from cloudpose.data.synth.online import OnlineStream
 
     step = make_step("shared-0", "fused", BATCH, N_POINTS)
     synth_kwargs = {"version": VERSION, "n_points": N_POINTS}
-    stream = OnlineStream(synth_kwargs, 0, BATCH, REUSE, steps + 8)
-    for _ in range(4):
-        stream.next()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        stream.next()
-        step()  # the step's own tensors: the same work as on the streamed ones
-    dt = time.perf_counter() - t0
-    stream.close()
-    return {"steps_per_s": steps / dt, "segments_per_s": steps * BATCH / dt}
+    rates = []
+    with tempfile.TemporaryDirectory() as store:
+        for _ in range(2):
+            stream = OnlineStream(synth_kwargs, 0, BATCH, REUSE, steps + 8, store=store)
+            for _ in range(4):
+                stream.next()
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                stream.next()
+                step()  # the step's own tensors: the same work as on the streamed ones
+            rates.append(steps / (time.perf_counter() - t0))
+            stream.close()
+    return {
+        "steps_per_s": rates[0],
+        "segments_per_s": rates[0] * BATCH,
+        "stored_steps_per_s": rates[1],
+    }
 
 
 def run(quick: bool = False) -> dict:
@@ -183,6 +196,9 @@ def run(quick: bool = False) -> dict:
                 "online_vs_frame_path": synth["segments_per_s"] / frames["segments_per_s"],
                 "stream_steps_per_s": stream["steps_per_s"],
                 "stream_vs_training_alone": stream["segments_per_s"] / train["segments_per_s"],
+                "stream_from_store_steps_per_s": stream["stored_steps_per_s"],
+                "stream_from_store_vs_synthesizing": stream["stored_steps_per_s"]
+                / stream["steps_per_s"],
                 "scene_parts_ms": parts,
             },
         }
