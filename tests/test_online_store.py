@@ -157,3 +157,13 @@ def test_prepare_fills_the_store_for_seeds(tmp_path, smoke_data, monkeypatch):
     assert f"seed 2: {n} chunks of {size} segments ({n} made)" in res.output
     res = CliRunner().invoke(app, [*base, "--seeds", "1"])
     assert res.exit_code != 0 and "only an on-line preset" in res.output
+
+
+def test_a_chunk_that_cannot_be_written_warns_and_training_goes_on(tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("a file where the store's folder would go")
+    chunks = OnlineChunks(KW, 1, 4, 2, store=blocked)
+    with pytest.warns(UserWarning, match="chunk not stored"):
+        got = chunks[0]
+    for a, b in zip(got, OnlineSynth(**KW).batch(1, 0, 4).tensors(), strict=True):
+        assert torch.equal(a, b)

@@ -28,6 +28,7 @@ unreadable file is synthesized again and replaced. Delete a folder to reclaim it
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import importlib.metadata
@@ -143,14 +144,20 @@ class ChunkStore:
     def save(self, seed: int, j: int, chunk: Chunk) -> None:
         """Keep chunk ``j`` of ``seed`` (atomic: written to a temporary file, then renamed)."""
         path = self.path(seed, j)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        settings = self.folder / "settings.json"
-        if not settings.is_file():
-            _atomic_write(settings, json.dumps(self.settings, indent=1, sort_keys=True).encode())
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as f:
-            np.savez(f, **{k: v.numpy() for k, v in zip(_FIELDS, chunk, strict=True)})
-        os.replace(tmp, path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            settings = self.folder / "settings.json"
+            if not settings.is_file():
+                text = json.dumps(self.settings, indent=1, sort_keys=True)
+                _atomic_write(settings, text.encode())
+            with open(tmp, "wb") as f:
+                np.savez(f, **{k: v.numpy() for k, v in zip(_FIELDS, chunk, strict=True)})
+            os.replace(tmp, path)
+        except OSError as e:  # a full disk slows later runs; it must not stop this one
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            warnings.warn(f"{path}: chunk not stored ({e})", stacklevel=2)
 
     def stored(self, seed: int, n_chunks: int) -> int:
         """How many of chunks ``0 .. n_chunks - 1`` of ``seed`` are stored."""
