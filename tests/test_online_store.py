@@ -3,6 +3,8 @@ atomically, and runs that read them train the numbers of runs that synthesize.""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -46,15 +48,27 @@ def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
     assert store_settings(KW, 4)["code"] == "0" * 32
 
 
-def test_code_digest_follows_the_source_bytes(tmp_path):
+def test_code_digest_follows_the_code_not_its_prose(tmp_path):
     (tmp_path / "a").mkdir()
     f = tmp_path / "a" / "m.py"
-    f.write_text("x = 1\n")
-    files = lambda: store_module._files_under(tmp_path, ("a",), ".py")  # noqa: E731
-    before = store_module._digest_files(files(), tmp_path)
-    f.write_text("x = 2\n")
-    assert store_module._digest_files(files(), tmp_path) != before
+
+    def digest(text: str) -> str:
+        f.write_text(text)
+        return store_module._digest_files([f], tmp_path, code=True)
+
+    base = digest('"""Module."""\n\ndef g(x):\n    """Twice x."""\n    return 2 * x\n')
+    # prose: docstrings, comments, blank lines, formatting
+    assert (
+        digest('"""Other words."""\ndef g(x):  # why\n    """Doubled."""\n    return 2*x\n') == base
+    )
+    assert digest("def g(x):\n    return 2 * x\n") == base
+    assert digest("def g(x):\n    return 3 * x\n") != base  # code
+    assert digest('def g(x):\n    return "2 * x"\n') != base  # a string that is not a docstring
     assert len(store_module.code_digest()) == 32
+    sources = store_module._synthesis_sources(Path(store_module.__file__).resolve().parents[2])
+    names = {p.name for p in sources}
+    assert {"online.py", "sensor.py", "render.py", "segments.py"} <= names
+    assert "store.py" not in names
 
 
 def test_an_unreadable_chunk_is_made_again(tmp_path):

@@ -11,9 +11,10 @@ holds the synthesized float32 tensors themselves, and the training process keeps
 it has without the store (tested).
 
 The key of a store folder covers everything a chunk depends on: the :class:`OnlineSynth`
-arguments, the chunk size, the source of the modules that make it (``cloudpose/data``,
-``cloudpose/kernels``, ``cloudpose/geometry``, ``conventions.py``), the packaged model points
-and surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
+arguments, the chunk size, the code of the modules that could make it (``cloudpose/data``,
+``cloudpose/kernels``, ``cloudpose/geometry``, ``conventions.py``, this module aside; as syntax
+trees, so an edit of a docstring or comment keeps the key), the packaged model points and
+surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
 synthesizes afresh into a new folder; nothing stale is read. What the key does not cover: the
 CPU. Compiled kernels can round differently on another instruction set, as synthesis without a
 store would; a store carried to another machine gives that machine's runs the chunks of the
@@ -28,6 +29,7 @@ unreadable file is synthesized again and replaced. Delete a folder to reclaim it
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import functools
 import hashlib
@@ -47,7 +49,8 @@ STORE_DIR = ("data", "cache", "online")
 """Where a project keeps its store, under the project folder."""
 
 _SOURCE_PARTS = ("data", "kernels", "geometry", "conventions.py")
-"""The package's modules that make a chunk (folders are read recursively)."""
+"""The package's modules that make a chunk (folders are read recursively): all of them, not only
+the ones a chunk is known to use, so that no edit that changes chunks keeps a key."""
 
 _RESOURCE_PARTS = ("models", "meshes", "classes.txt")
 """The packaged data a chunk is made from: model points, surfaces, class list."""
@@ -59,11 +62,28 @@ _FIELDS = ("points", "cls_id", "R", "t")
 Chunk = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
-def _digest_files(paths: list[Path], base: Path) -> str:
+def _code_of(path: Path) -> bytes:
+    """A module's code without its docstrings and comments (its syntax tree, dumped): edits
+    of the prose keep a store's key, edits of the code change it."""
+    tree = ast.parse(path.read_bytes(), filename=str(path))
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (
+            isinstance(body, list)
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree).encode()
+
+
+def _digest_files(paths: list[Path], base: Path, code: bool = False) -> str:
     h = hashlib.blake2b(digest_size=16)
     for p in sorted(paths):
         h.update(str(p.relative_to(base)).encode())
-        h.update(p.read_bytes())
+        h.update(_code_of(p) if code else p.read_bytes())
     return h.hexdigest()
 
 
@@ -80,6 +100,13 @@ def _files_under(base: Path, parts: tuple[str, ...], suffix: str | None) -> list
     return out
 
 
+def _synthesis_sources(package: Path) -> list[Path]:
+    """The modules that make a chunk: :data:`_SOURCE_PARTS`, less this one (it keeps chunks;
+    it does not make them)."""
+    this = Path(__file__).resolve()
+    return [p for p in _files_under(package, _SOURCE_PARTS, ".py") if p.resolve() != this]
+
+
 @functools.cache
 def code_digest() -> str:
     """Digest of what makes a chunk besides its arguments: the package's synthesis source, its
@@ -87,7 +114,7 @@ def code_digest() -> str:
     package = Path(__file__).resolve().parents[2]
     resources = resource_path()
     h = hashlib.blake2b(digest_size=16)
-    h.update(_digest_files(_files_under(package, _SOURCE_PARTS, ".py"), package).encode())
+    h.update(_digest_files(_synthesis_sources(package), package, code=True).encode())
     h.update(_digest_files(_files_under(resources, _RESOURCE_PARTS, None), resources).encode())
     for lib in _LIBRARIES:
         try:
