@@ -42,7 +42,7 @@ from cloudpose.config import Config, groups_of
 from cloudpose.data.batches import Batchable
 from cloudpose.data.dataset import Prepared
 from cloudpose.data.synth.online import REUSE_SPACING, OnlineChunks, OnlineStream
-from cloudpose.data.synth.store import STORE_DIR
+from cloudpose.data.synth.store import STORE_DIR, code_digest
 from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
@@ -383,6 +383,9 @@ def _train(
             "model.parameters": count_parameters(model),
             "data.fingerprint": data_key,
             "data.train_segments": "online" if online else len(fit),
+            # on line, the segments are made by code: runs of one seed are like for like only
+            # when their synthesis code agrees (the chunk store's key holds it too)
+            **({"data.online_code": code_digest()} if online else {}),
             "data.val_segments": len(val),
             "device": device,
         }

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from cloudpose import tracking
 from cloudpose.config import resolve
 from cloudpose.data.synth import store as store_module
 from cloudpose.data.synth.online import OnlineChunks, OnlineStream, OnlineSynth, store_chunks
@@ -134,7 +135,10 @@ def test_a_run_that_reads_the_store_trains_the_same_numbers(tmp_path, smoke_data
     filling = train_run(cfg, project_dir=make_project(tmp_path / "a", smoke_data, monkeypatch))
     assert any(store.rglob("chunk-*.npz"))
     monkeypatch.setattr(OnlineSynth, "batch", lambda *a, **k: pytest.fail("synthesized again"))
-    reading = train_run(cfg, project_dir=make_project(tmp_path / "b", smoke_data, monkeypatch))
+    project_b = make_project(tmp_path / "b", smoke_data, monkeypatch)
+    reading = train_run(cfg, project_dir=project_b)
+    params = tracking.setup(project_b).get_run(reading.run_id).data.params
+    assert params["data.online_code"] == store_module.code_digest()  # what made its segments
     assert filling.metrics == plain.metrics
     assert reading.metrics == plain.metrics
     w = [torch.load(r.checkpoint, weights_only=True)["model"] for r in (plain, reading)]
