@@ -4,7 +4,8 @@ Chunk ``j`` of an on-line run (:class:`~cloudpose.data.synth.online.OnlineChunks
 function of the synthesis settings, the seed, the chunk size and ``j``. The variants of a
 preset share all of these (they differ in the network and the loss), so at one seed they train
 on the same segments, and synthesis, not the training step, sets a run's pace on a small
-machine (~180 ms a chunk of 8 segments against ~120 ms a training step, one core each). A
+machine (on a 2-core Xeon: ~180 ms a chunk of 8 segments against ~120 ms a training step of
+batch 32, one core each). A
 :class:`ChunkStore` keeps each chunk as it is made; a later run of the same seed reads it
 instead of synthesizing it again. What a run trains on is unchanged to the bit: a stored chunk
 holds the synthesized float32 tensors themselves, and the training process keeps the threads
@@ -22,7 +23,7 @@ machine that made them.
 
 Layout: ``ROOT/KEY/settings.json`` (the key's parts, readable) and
 ``ROOT/KEY/seed-S/chunk-JJJJJJ.npz`` (points, cls_id, R, t; ~26 kB at 8 segments of 256 points:
-~110 MB for the 4,224 chunks of a 4,096-step run). Writes are atomic (a temporary file renamed),
+~110 MB for the 4,192 chunks of the default's 4,096 steps). Writes are atomic (a temporary file renamed),
 so processes that make the same chunk at once, or a run killed mid-write, leave whole files; an
 unreadable file is synthesized again and replaced. Delete a folder to reclaim its space.
 """
