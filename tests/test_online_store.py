@@ -31,7 +31,7 @@ def test_a_stored_chunk_reads_back_to_the_bit(tmp_path):
     for a, b in zip(got, chunk, strict=True):
         assert a.dtype == b.dtype and torch.equal(a, b)
     assert (store.folder / "settings.json").is_file()
-    assert not list(store.folder.rglob("*.tmp"))  # written under another name, then renamed
+    assert not list(store.folder.rglob(".*"))  # written under a temporary name, then renamed
     assert store.stored(3, 8) == 1 and store.stored(4, 8) == 0
 
 

@@ -352,11 +352,17 @@ def _label(metric: str) -> str:
     return ASYM_LABELS.get(metric) or METRIC_LABELS.get(metric, metric)
 
 
-def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
-    """claims.md: the rule, a count per outcome, then per topic one row per metric."""
+def _outcome_counts(results: list[ClaimResult]) -> str:
+    """``"supported: 3; not resolved: 9"``: how many rows have each outcome, in
+    :data:`OUTCOMES` order, outcomes without a row left out."""
     counts = {v: 0 for v in OUTCOMES}
     for r in results:
-        counts[r.diff.verdict] = counts.get(r.diff.verdict, 0) + 1
+        counts[r.diff.verdict] += 1
+    return "; ".join(f"{v}: {n}" for v, n in counts.items() if n)
+
+
+def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
+    """claims.md: the rule, a count per outcome, then per topic one row per metric."""
     with_paper = [r for r in results if math.isfinite(r.claim.paper)]
     lines = [
         "# The paper's claims, measured over seeds",
@@ -392,9 +398,7 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
         "- **contradicted**: the interval is below 0;",
         f"- **not resolved**: none of these, or fewer than {MIN_SEEDS} seeds (reason given).",
         "",
-        "Summary: "
-        + "; ".join(f"{v}: {n}" for v, n in counts.items() if n)
-        + f" (of {len(results)}; "
+        f"Summary: {_outcome_counts(results)} (of {len(results)}; "
         f"{len(with_paper)} rows have a paper figure).",
     ]
     n_ci = sum(math.isfinite(r.diff.low) for r in results)
@@ -470,7 +474,9 @@ def claims_matrix(results: list[ClaimResult]) -> list[str]:
     return lines
 
 
-def update_verdicts_block(readme: Path, preset: str, results: list[ClaimResult], prov) -> None:
+def update_verdicts_block(
+    readme: Path, preset: str, results: list[ClaimResult], prov: Provenance
+) -> None:
     """Replace the verdict table of ``preset`` in a hand-written ``readme`` with
     :func:`claims_matrix` of ``results``: the lines between ``<!-- verdicts PRESET -->`` and
     ``<!-- /verdicts PRESET -->``, so the prose around it is a person's and the table the
@@ -488,15 +494,11 @@ def update_verdicts_block(readme: Path, preset: str, results: list[ClaimResult],
         )
     head, rest = text.split(begin)
     _, tail = rest.split(end)
-    counts = {v: 0 for v in OUTCOMES}
-    for r in results:
-        counts[r.diff.verdict] += 1
-    summary = "; ".join(f"{v}: {n}" for v, n in counts.items() if n)
     block = [
         begin,
         f"_{prov.line()}_",
         "",
-        f"{summary} (of {len(results)} rows).",
+        f"{_outcome_counts(results)} (of {len(results)} rows).",
         "",
         *claims_matrix(results),
         end,

@@ -31,12 +31,10 @@ unreadable file is synthesized again and replaced. Delete a folder to reclaim it
 from __future__ import annotations
 
 import ast
-import contextlib
 import functools
 import hashlib
 import importlib.metadata
 import json
-import os
 import warnings
 import zipfile
 from pathlib import Path
@@ -45,6 +43,7 @@ import numpy as np
 import torch
 
 from cloudpose.conventions import resource_path
+from cloudpose.files import atomic_text, atomic_write
 
 STORE_DIR = ("data", "cache", "online")
 """Where a project keeps its store, under the project folder."""
@@ -172,19 +171,13 @@ class ChunkStore:
     def save(self, seed: int, j: int, chunk: Chunk) -> None:
         """Keep chunk ``j`` of ``seed`` (atomic: written to a temporary file, then renamed)."""
         path = self.path(seed, j)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        arrays = {k: v.numpy() for k, v in zip(_FIELDS, chunk, strict=True)}
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
             settings = self.folder / "settings.json"
             if not settings.is_file():
-                text = json.dumps(self.settings, indent=1, sort_keys=True)
-                _atomic_write(settings, text.encode())
-            with open(tmp, "wb") as f:
-                np.savez(f, **{k: v.numpy() for k, v in zip(_FIELDS, chunk, strict=True)})
-            os.replace(tmp, path)
+                atomic_text(settings, json.dumps(self.settings, indent=1, sort_keys=True))
+            atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
         except OSError as e:  # a full disk slows later runs; it must not stop this one
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
             warnings.warn(f"{path}: chunk not stored ({e})", stacklevel=2)
 
     def stored(self, seed: int, n_chunks: int) -> int:
@@ -195,8 +188,3 @@ class ChunkStore:
         names = {p.name for p in folder.glob("chunk-*.npz")}
         return sum(f"chunk-{j:06d}.npz" in names for j in range(n_chunks))
 
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
