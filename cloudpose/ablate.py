@@ -30,7 +30,7 @@ from cloudpose.plan import format_seconds, missing_report_runs, seed_list
 from cloudpose.report import render_reports
 from cloudpose.report.claims import evaluate_claims, paper_claims, seeds_wanted
 from cloudpose.report.runs import load_runs
-from cloudpose.report.stats import UNRESOLVED
+from cloudpose.report.stats import MAX_SEEDS, UNRESOLVED
 from cloudpose.runs import TEST_KEY, finished_run, run_dir, run_name
 
 
@@ -288,10 +288,6 @@ def run_group(
     return result
 
 
-MAX_SEEDS = 10
-"""Default cap on the seeds :func:`resolve_claims` adds to a variant."""
-
-
 @dataclass
 class ResolveRound:
     """One round of :func:`resolve_claims`: the seeds it asked for and what the claims said."""
@@ -319,10 +315,10 @@ def resolve_claims(
     Each round measures the paper's claims whose two sides are both members of ``group``
     (:func:`cloudpose.report.claims.evaluate_claims` on the preset's runs), asks
     :func:`cloudpose.report.claims.seeds_wanted` which variants need more seeds for a claim that
-    is "not resolved" with an interval wider than twice its margin, trains at most ``step`` more
-    seeds of each through :func:`ensure_runs` (finished runs skipped, the same executors), and
-    measures again. It stops when no claim wants seeds, or every variant that wants them has
-    ``max_seeds``.
+    is "not resolved" but would be decided at some count up to the cap if its mean stayed,
+    trains at most ``step`` more seeds of each through :func:`ensure_runs` (finished runs
+    skipped, the same executors), and measures again. It stops when no claim wants seeds, or
+    every variant that wants them has ``max_seeds``.
 
     Args:
         group: ablation group whose claims to decide.
@@ -365,7 +361,7 @@ def resolve_claims(
             + (
                 "more seeds for " + ", ".join(f"{v} -> {n}" for v, n in wanted.items())
                 if wanted
-                else f"no variant needs more seeds (cap {max_seeds})"
+                else f"more seeds (cap {max_seeds}) would decide no other claim"
             )
         )
         if not wanted:

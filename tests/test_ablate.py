@@ -283,7 +283,7 @@ def _noisy_evaluate(fakes, gap: float, spread: float):
     return evaluate
 
 
-def test_resolve_claims_adds_seeds_until_the_cap(fakes, tmp_path, monkeypatch):
+def test_resolve_claims_trains_no_seed_that_could_not_decide(fakes, tmp_path, monkeypatch):
     import cloudpose.evaluate
 
     monkeypatch.setattr(cloudpose.evaluate, "evaluate", _noisy_evaluate(fakes, 0.0, 0.05))
@@ -292,10 +292,24 @@ def test_resolve_claims_adds_seeds_until_the_cap(fakes, tmp_path, monkeypatch):
     rounds = ablate.resolve_claims(
         "loss", "smoke", tmp_path, max_seeds=5, step=2, echo=lines.append, progress=False
     )
-    # no real difference, seed noise of 5 pp against a 2 pp margin: grows 2 -> 4 -> 5, then capped
-    assert [r.wanted for r in rounds] == [{"l2": 4, "shared-0": 4}, {"l2": 5, "shared-0": 5}, {}]
-    assert sorted(set(fakes.trained)) == [(v, s) for v in ("l2", "shared-0") for s in range(1, 6)]
-    assert "no variant needs more seeds (cap 5)" in lines[-1]
+    # no real difference, seed noise of 5 pp against a 2 pp margin: the third seed, then the
+    # interval at 5 seeds would still hold 0 and reach past the margin, so no more
+    assert [r.wanted for r in rounds] == [{"l2": 3, "shared-0": 3}, {}]
+    assert sorted(set(fakes.trained)) == [(v, s) for v in ("l2", "shared-0") for s in range(1, 4)]
+    assert "more seeds (cap 5) would decide no other claim" in lines[-1]
+
+
+def test_resolve_claims_adds_seeds_up_to_the_count_that_decides(fakes, tmp_path, monkeypatch):
+    import cloudpose.evaluate
+
+    # geodesic 2 pp ahead of L2 with 1 pp seed noise: undecided at 3 seeds, decided later
+    monkeypatch.setattr(cloudpose.evaluate, "evaluate", _noisy_evaluate(fakes, 0.02, 0.01))
+    _run(tmp_path, seeds=3)
+    rounds = ablate.resolve_claims(
+        "loss", "smoke", tmp_path, max_seeds=10, step=1, echo=lambda s: None, progress=False
+    )
+    assert rounds[-1].wanted == {} and rounds[-1].unresolved < rounds[0].unresolved
+    assert 3 < max(s for _, s in fakes.trained) <= 10
 
 
 def test_resolve_claims_stops_when_the_claim_is_decided(fakes, tmp_path, monkeypatch):

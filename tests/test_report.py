@@ -717,24 +717,75 @@ def test_outlier_classes_flags_a_class_far_below_the_rest():
     assert outlier_classes({"a": 1.0, "b": float("nan")}) == {}
 
 
-def test_seeds_wanted_grows_only_undecided_wide_claims():
+def test_seeds_to_decide_projects_the_interval_at_the_same_mean():
+    def undecided(mean, low, high, n=3):
+        return stats.Difference(mean, low, high, n, True, stats.UNRESOLVED)
+
+    # above 0 once the lower side (0.04 below the mean) shrinks below 0.03: 3 / 0.75^2 -> 6
+    assert stats.seeds_to_decide(undecided(0.03, -0.01, 0.07)) == 6
+    # halfway between 0 and the paper's +2 pp, 4 pp either side: only ~48 seeds would decide
+    assert stats.seeds_to_decide(undecided(0.01, -0.03, 0.05), paper=0.02, margin=0.02) is None
+    # equivalence inside +-2 pp: 0.05 * sqrt(3 / n) < 0.02 from n = 19; the pooled floor
+    # (SD 5 pp, 20 dof) stays wider than the margin up to 25 seeds
+    wide = undecided(0.0, -0.05, 0.05)
+    assert stats.seeds_to_decide(wide, margin=0.02, cap=25) == 19
+    assert stats.seeds_to_decide(wide, margin=0.02, cap=25, floor=stats.Pooled(0.05, 20)) is None
+    assert stats.seeds_to_decide(wide, margin=0.02) is None  # the default cap is 10
+    # too few seeds to project from: the minimum; decided: what it has
+    assert stats.seeds_to_decide(undecided(0.03, -0.01, 0.07, n=2)) == stats.MIN_SEEDS
+    done = stats.Difference(0.05, 0.02, 0.08, 4, True, stats.SUPPORTED)
+    assert stats.seeds_to_decide(done) == 4
+
+
+def test_seeds_wanted_asks_only_for_seeds_that_would_decide():
     from cloudpose.report.claims import Claim, ClaimResult, seeds_wanted
 
-    def result(other, metric, low, high, verdict, n=3):
-        claim = Claim("t", "s", ("shared-0", "test"), (other, "test"), metric, math.nan)
-        return ClaimResult(claim, stats.Difference(0.0, low, high, n, True, verdict))
+    def result(other, metric, mean, low, high, verdict=stats.UNRESOLVED, n=3, paper=math.nan):
+        claim = Claim("t", "s", ("shared-0", "test"), (other, "test"), metric, paper)
+        return ClaimResult(claim, stats.Difference(mean, low, high, n, True, verdict))
 
     results = [
-        # 8 pp wide against a 2 pp margin: 3 * (8 / 4)^2 = 12 seeds, capped at 10
-        result("l2", "rot_lt_10deg", -0.04, 0.04, stats.UNRESOLVED),
-        # 3 pp wide against a 1 pp margin: 3 * (3 / 2)^2 = 6.75 -> 7
-        result("quaternion", "ads_auc", -0.01, 0.02, stats.UNRESOLVED),
-        # decided or narrow: no more seeds
-        result("shared-1", "ads_auc", 0.01, 0.03, stats.SUPPORTED),
-        result("shared-2", "ads_auc", -0.009, 0.009, stats.UNRESOLVED),
+        # decided above 0 at 6 seeds if the mean holds
+        result("l2", "rot_lt_10deg", 0.03, -0.01, 0.07),
+        # between 0 and the paper's +2 pp (given in pp): no count up to 10 decides it
+        result("quaternion", "rot_lt_10deg", 0.01, -0.03, 0.05, paper=2.0),
+        # decided: no more seeds
+        result("shared-1", "ads_auc", 0.02, 0.01, 0.03, stats.SUPPORTED),
+        # two seeds: the third first
+        result("shared-2", "ads_auc", 0.0, -0.05, 0.05, n=2),
     ]
-    assert seeds_wanted(results, cap=10) == {"l2": 10, "quaternion": 7, "shared-0": 10}
-    assert seeds_wanted(results, cap=3) == {}  # every variant already has the cap
+    assert seeds_wanted(results, cap=10) == {"l2": 6, "shared-0": 6, "shared-2": 3}
+    assert seeds_wanted(results, cap=3) == {"shared-2": 3}  # 6 seeds are past the cap
+
+
+def test_claims_md_says_whether_more_seeds_would_decide_an_open_row():
+    from cloudpose.report.claims import Claim, ClaimResult, claims_frame, claims_markdown
+    from cloudpose.report.formats import Provenance
+
+    def result(metric, mean, low, high, n=3, paper=1.0):
+        claim = Claim(
+            "Topic", f"claim {metric}", ("shared-0", "test"), ("l2", "test"), metric, paper
+        )
+        return ClaimResult(claim, stats.Difference(mean, low, high, n, True, stats.UNRESOLVED))
+
+    results = [
+        result("rot_lt_10deg", 0.03, -0.01, 0.07),  # above 0 at 6 seeds
+        result("rot_lt_20deg", 0.01, -0.03, 0.05, paper=2.0),  # between 0 and +2 pp for good
+        result("ads_auc", 0.0, -0.05, 0.05, n=2),  # the third seed first
+    ]
+    md = claims_markdown(results, Provenance("cmd", "p", "d", (1, 2, 3), ("abc",)))
+    # the per-topic rows (claim, metric, paper, ours, interval, floor, seeds, verdict) after
+    # their header
+    rows = [r for r in md.splitlines() if r.startswith("| claim ") and r.count("|") == 9][1:]
+    assert "6 seeds would decide it" in rows[0]
+    assert "no count up to 10 seeds would decide it" in rows[1]
+    assert "would decide" not in rows[2]  # two seeds: nothing to project from
+    assert (
+        "Of the 3 not-resolved rows with a paper figure, 1 would stay so at 10 seeds at their "
+        "present means, 1 could be decided by more seeds, and 1 have fewer than 3 seeds yet."
+    ) in md
+    to_decide = claims_frame(results)["seeds_to_decide"].tolist()  # claims.csv: blank if none
+    assert to_decide[0] == 6 and math.isnan(to_decide[1]) and math.isnan(to_decide[2])
 
 
 def test_table1_names_the_subsample_a_baseline_ran_on():

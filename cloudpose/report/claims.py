@@ -33,6 +33,7 @@ from cloudpose.report.stats import (
     CONTRADICTED,
     EQUIVALENT,
     LARGER,
+    MAX_SEEDS,
     MIN_SEEDS,
     NO_POOL,
     OUTCOMES,
@@ -48,6 +49,7 @@ from cloudpose.report.stats import (
     floor_halfwidth,
     margin_for,
     pooled_sd,
+    seeds_to_decide,
     share_below,
 )
 from cloudpose.report.tables import METRIC_LABELS, paper_table
@@ -342,6 +344,7 @@ def claims_frame(results: list[ClaimResult]) -> pd.DataFrame:
                 "margin_pp": 100 * margin_for(r.claim.metric),
                 "verdict": r.diff.verdict,
                 "why": r.diff.why,
+                "seeds_to_decide": decide_at(r) if r.diff.n >= MIN_SEEDS else None,
             }
             for r in results
         ]
@@ -398,9 +401,28 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
         "- **contradicted**: the interval is below 0;",
         f"- **not resolved**: none of these, or fewer than {MIN_SEEDS} seeds (reason given).",
         "",
+        f"**Seeds where they decide.** `cloudpose ablate --group G --until-resolved` adds "
+        f"seeds (at most 2 a round, up to {MAX_SEEDS} a variant) to the variants of every "
+        "claim that is not resolved but would be at some count up to the cap if its mean "
+        "stayed: the interval narrowed as 1/sqrt(seeds), never below the floor at that count. "
+        "A not-resolved row says which: *N seeds would decide it*, or *no count up to "
+        f"{MAX_SEEDS} would* (the mean sits between 0 and the paper's size, or the floor at "
+        f"{MAX_SEEDS} seeds is wider than the margin), for which more seeds are not trained.",
+        "",
         f"Summary: {_outcome_counts(results)} (of {len(results)}; "
         f"{len(with_paper)} rows have a paper figure).",
     ]
+    open_rows = [r for r in with_paper if r.diff.verdict == UNRESOLVED]
+    if open_rows:
+        young = sum(r.diff.n < MIN_SEEDS for r in open_rows)
+        hopeless = sum(r.diff.n >= MIN_SEEDS and decide_at(r) is None for r in open_rows)
+        lines += [
+            "",
+            f"Of the {len(open_rows)} not-resolved rows with a paper figure, {hopeless} would "
+            f"stay so at {MAX_SEEDS} seeds at their present means, "
+            f"{len(open_rows) - hopeless - young} could be decided by more seeds"
+            + (f", and {young} have fewer than {MIN_SEEDS} seeds yet." if young else "."),
+        ]
     n_ci = sum(math.isfinite(r.diff.low) for r in results)
     if n_ci:
         lines += [
@@ -427,8 +449,16 @@ def claims_markdown(results: list[ClaimResult], prov: Provenance) -> str:
         seeds = f"{d.n}" + ("" if d.paired or d.n < 2 else " (unpaired)")
         floor = f"±{100 * floor_halfwidth(r.floor, d.n):.2f}" if d.n >= 2 and r.floor.dof else "–"
         verdict = f"**{d.verdict}**" if d.verdict != UNRESOLVED else d.verdict
-        if d.why:
-            verdict += f" ({d.why})"
+        why = [d.why] if d.why else []
+        if d.verdict == UNRESOLVED and d.n >= MIN_SEEDS:
+            at = decide_at(r)
+            why.append(
+                f"no count up to {MAX_SEEDS} seeds would decide it"
+                if at is None
+                else f"{at} seeds would decide it"
+            )
+        if why:
+            verdict += f" ({'; '.join(why)})"
         lines.append(
             f"| {c.statement} | {_label(c.metric)} | "
             f"{_pp(c.paper / 100)} | {_pp(d.mean)} | {ci} | {floor} | {seeds} | {verdict} |"
@@ -506,16 +536,31 @@ def update_verdicts_block(
     readme.write_text(head + "\n".join(block) + tail, encoding="utf-8")
 
 
-def seeds_wanted(results: list[ClaimResult], cap: int = 10) -> dict[str, int]:
+def decide_at(r: ClaimResult, cap: int = MAX_SEEDS) -> int | None:
+    """Seeds at which the claim of ``r`` would be decided if its mean stayed
+    (:func:`~cloudpose.report.stats.seeds_to_decide`); None when no count up to ``cap``
+    would."""
+    return seeds_to_decide(
+        r.diff,
+        floor=r.floor,
+        cap=cap,
+        expect=1,
+        paper=r.claim.paper / 100,
+        margin=margin_for(r.claim.metric),
+    )
+
+
+def seeds_wanted(results: list[ClaimResult], cap: int = MAX_SEEDS) -> dict[str, int]:
     """Seeds each variant needs next so that the claims it takes part in can be decided.
 
-    A claim asks for more seeds while its verdict is "not resolved" and its interval is wider
-    than twice the metric's margin (an interval narrower than the margin either way decides
-    equivalence or a direction). The interval narrows as 1/sqrt(seeds), so the estimate is
-    ``ceil(n * (width / (2 margin))**2)``, at least n + 1 and at most ``cap``.
+    A claim that is "not resolved" asks for the seeds at which its interval, narrowed as
+    1/sqrt(seeds) about the same mean and never below the pooled floor, would decide it
+    (:func:`decide_at`); one that no count up to ``cap`` would decide asks for none: training
+    seeds for it spends runs that cannot change its verdict. Baseline claims never ask (their
+    seeds do not train).
 
     Returns:
-        variant -> seeds wanted (only variants that want more than they have, below ``cap``).
+        variant -> seeds wanted (only variants that want more than they have).
     """
     want: dict[str, int] = {}
     have: dict[str, int] = {}
@@ -525,12 +570,9 @@ def seeds_wanted(results: list[ClaimResult], cap: int = 10) -> dict[str, int]:
             have[v] = max(have.get(v, 0), d.n)
         if d.verdict != UNRESOLVED or d.n == 0 or c.favoured[0].startswith("baseline-"):
             continue  # decided, or a metric no run has: more seeds cannot help
-        width, m = d.high - d.low, margin_for(c.metric)
-        if math.isfinite(width) and width <= 2 * m:
+        need = decide_at(r, cap)
+        if need is None:
             continue
-        n = max(d.n, 1)
-        scale = (width / (2 * m)) ** 2 if math.isfinite(width) else 2.0
-        need = min(cap, max(n + 1, math.ceil(n * scale)))
         for v in {c.favoured[0], c.other[0]}:
             want[v] = max(want.get(v, 0), need)
     return {v: n for v, n in sorted(want.items()) if n > have.get(v, 0)}

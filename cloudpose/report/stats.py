@@ -64,6 +64,9 @@ def margin_for(metric: str) -> float:
 MIN_SEEDS = 3
 """Fewest seeds (paired: seeds both sides have) on which a claim gets a verdict."""
 
+MAX_SEEDS = 10
+"""The most seeds a sweep trains of a variant to decide a claim (``--max-seeds``)."""
+
 
 class MeanStd(NamedTuple):
     """Mean and sample standard deviation (ddof = 1; NaN for one value) of n values."""
@@ -327,6 +330,54 @@ def _judged(
         return Difference(mean, low, high, n, paired, UNRESOLVED, why, method)
     result, why = classify(low, high, expect, paper, margin)
     return Difference(mean, low, high, n, paired, result, why, method)
+
+
+def seeds_to_decide(
+    d: Difference,
+    *,
+    floor: Pooled = NO_POOL,
+    cap: int = MAX_SEEDS,
+    level: float = 0.95,
+    expect: int = 1,
+    paper: float = math.nan,
+    margin: float = math.nan,
+    min_seeds: int = MIN_SEEDS,
+) -> int | None:
+    """The fewest seeds at which the undecided difference ``d`` would get a verdict, if its mean
+    stayed where it is; None when no count up to ``cap`` would.
+
+    The projection keeps the mean and narrows each side of the interval as 1/sqrt(seeds), never
+    below the pooled floor at that count (:func:`floor_halfwidth`), then asks :func:`classify`.
+    It is optimistic where the test set's own chance makes much of the width (more seeds do
+    not shrink that part), so it may ask for seeds that then do not decide; what it saves are
+    the claims that no number of seeds up to the cap could decide: a mean halfway between 0
+    and the paper's size with a spread that keeps both inside, or an equivalence margin below
+    the floor at the cap.
+
+    Returns:
+        ``d.n`` when ``d`` is decided; for fewer than ``min_seeds`` seeds, ``min_seeds`` (no
+        interval to project from yet, capped at ``cap``); else the count in ``(d.n, cap]`` or
+        None.
+    """
+    if d.verdict != UNRESOLVED:
+        return d.n
+    if d.n < min_seeds:
+        return min(min_seeds, cap) if cap > d.n else None
+    if not (np.isfinite(d.low) and np.isfinite(d.high)):
+        return None
+    if not d.high - d.low > 1e-9 * max(1.0, abs(d.mean)):
+        return None  # every seed gives the same difference: more seeds give it again
+    for n in range(d.n + 1, cap + 1):
+        shrink = math.sqrt(d.n / n)
+        low, high, _ = _widen(
+            d.mean,
+            d.mean - (d.mean - d.low) * shrink,
+            d.mean + (d.high - d.mean) * shrink,
+            floor_halfwidth(floor, n, level),
+        )
+        if classify(low, high, expect, paper, margin)[0] != UNRESOLVED:
+            return n
+    return None
 
 
 def bootstrap_difference(
