@@ -17,9 +17,10 @@ from typer.core import TyperGroup
 class _Commands(TyperGroup):
     """Every command with one error handler: bad input is one line on stderr, exit 2.
 
-    The library raises ``ValueError`` / ``FileNotFoundError`` naming the file, field or name
-    and what was expected (:class:`~cloudpose.tracking.StoreError` for a store that cannot be
-    opened, ``ConnectionError`` for a service such as Ray that cannot be reached);
+    The library raises ``ValueError`` / ``FileNotFoundError`` / ``FileExistsError`` naming the
+    file, field or name and what was expected (:class:`~cloudpose.tracking.StoreError` for a
+    store that cannot be opened, ``ConnectionError`` for a service such as Ray that cannot be
+    reached);
     ``cloudpose --debug ...`` shows the traceback instead.
     """
 
@@ -28,7 +29,7 @@ class _Commands(TyperGroup):
 
         try:
             return super().invoke(ctx)
-        except (ValueError, FileNotFoundError, ConnectionError, StoreError) as exc:
+        except (ValueError, FileNotFoundError, FileExistsError, ConnectionError, StoreError) as exc:
             if _DEBUG:
                 raise
             message = " ".join(str(exc).split()) or type(exc).__name__

@@ -1,7 +1,9 @@
-"""Commands that serve MLflow: a tracking server for several machines, the UI over the local store."""
+"""Commands that serve MLflow (a tracking server for several machines, the UI over the local
+store) and move a store: packed into one file beside the reports, unpacked anywhere."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -107,3 +109,37 @@ def mlflow_ui(
     _serve_until_interrupted(
         cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}"
     )
+
+
+@app.command("store-pack")
+def store_pack(
+    out: Annotated[Path, typer.Argument(help="The archive to write (.tar.xz).")],
+    checkpoint: Annotated[
+        list[str] | None,
+        typer.Option(help="Run (id or name) whose checkpoints (*.pt) to pack (repeatable)."),
+    ] = None,
+) -> None:
+    """Pack this folder's MLflow store (mlflow.db and mlartifacts/) into one .tar.xz with
+    artifact addresses relative to the folder; checkpoints only of the runs named."""
+    from cloudpose.store_archive import pack_store
+
+    s = pack_store(Path.cwd(), out, checkpoint or [])
+    typer.echo(
+        f"{out}: {s.runs} runs, {s.files} artifact files ({s.checkpoints_kept} checkpoints "
+        f"packed, {s.checkpoints_left_out} left out), {s.bytes / 1e6:.1f} MB"
+    )
+
+
+@app.command("store-unpack")
+def store_unpack(
+    archive: Annotated[Path, typer.Argument(help="A packed store (.tar.xz).")],
+    into: Annotated[
+        Path, typer.Option(help="Folder to hold the store (must not hold an mlflow.db).")
+    ] = Path("."),
+) -> None:
+    """Unpack a store packed by store-pack (or by hand) and point its artifacts to this folder:
+    then report, mlflow-ui and ablate work there on its runs."""
+    from cloudpose.store_archive import unpack_store
+
+    n = unpack_store(archive, into)
+    typer.echo(f"{into / 'mlflow.db'}: {n} runs; artifacts under {into / 'mlartifacts'}")
