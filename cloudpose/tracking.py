@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import shlex
@@ -214,8 +215,13 @@ def command_line() -> str:
     return shlex.join([prog, *argv[1:]])
 
 
+@functools.cache
 def git_commit(repo: Path | None = None) -> str:
-    """Short commit of the code, ``+dirty`` when the tree has changes; "unknown" outside git."""
+    """Short commit of the code, ``+dirty`` when the tree has changes; "unknown" outside git.
+
+    Asked once per process: a process runs the code it imported when it started, so a long
+    sweep process stamps every run with the tree as it was then, not with later commits or
+    edits of the checkout that it never loads."""
     cwd = repo or Path(__file__).resolve().parent
     try:
         sha = subprocess.run(

@@ -104,3 +104,16 @@ def test_server_command_keeps_its_default_store_in_one_folder(tmp_path):
     assert other.backend == "postgresql://u:p@db/runs" and not (tmp_path / "elsewhere").exists()
     with pytest.raises(ValueError, match="SQLAlchemy URI"):
         server_command("runs.db", root=tmp_path)
+
+
+def test_git_commit_is_the_tree_when_the_process_first_asked(tmp_path):
+    """A sweep process trains with the code it imported: later commits do not restamp it."""
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "a")
+    first = tracking.git_commit(tmp_path)
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "b")
+    assert first != "unknown" and tracking.git_commit(tmp_path) == first
