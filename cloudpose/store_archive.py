@@ -23,11 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cloudpose.files import atomic_write
-
-ARTIFACTS = "mlartifacts"
-"""The artifact folder of a project's store (beside ``mlflow.db``)."""
-
-DB = "mlflow.db"
+from cloudpose.tracking import ARTIFACT_DIR, STORE_DB
 
 CHECKPOINT_SUFFIX = ".pt"
 """Files left out of a packed store but for the runs named to keep them."""
@@ -47,16 +43,16 @@ class PackSummary:
 
 def _relative(uri: str) -> str | None:
     """``mlartifacts/...`` of an address under some project's artifact folder, else None."""
-    marker = f"/{ARTIFACTS}/"
-    text = uri if uri.startswith(f"{ARTIFACTS}/") else None
-    if text is None and marker in uri:
-        text = uri[uri.index(marker) + 1 :]
-    return text
+    if uri.startswith(f"{ARTIFACT_DIR}/"):
+        return uri
+    i = uri.find(f"/{ARTIFACT_DIR}/")
+    return uri[i + 1 :] if i >= 0 else None
 
 
 def _rewrite(db: Path, to: Callable[[str], str]) -> int:
-    """Replace each run's artifact address and each experiment's artifact location ``u`` under
-    an artifact folder by ``to(relative)``; returns how many runs the store holds."""
+    """Replace each run's artifact address and each experiment's artifact location that lies
+    under an artifact folder by ``to(its relative form)``; returns how many runs the store
+    holds."""
     con = sqlite3.connect(db)
     try:
         with con:
@@ -109,11 +105,11 @@ def pack_store(project_dir: Path, out: Path, checkpoints: Sequence[str] = ()) ->
             files are packed; every other run's are left out.
     """
     project_dir = Path(project_dir)
-    db = project_dir / DB
+    db = project_dir / STORE_DB
     if not db.is_file():
-        raise FileNotFoundError(f"{db}: no MLflow store to pack (expected a project's {DB})")
+        raise FileNotFoundError(f"{db}: no MLflow store to pack (expected a project's {STORE_DB})")
     with tempfile.TemporaryDirectory() as tmp:
-        copy = Path(tmp) / DB
+        copy = Path(tmp) / STORE_DB
         src = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
         dst = sqlite3.connect(copy)
         try:
@@ -124,12 +120,12 @@ def pack_store(project_dir: Path, out: Path, checkpoints: Sequence[str] = ()) ->
         keep = _run_ids(copy, list(checkpoints))
         runs = _rewrite(copy, lambda rel: rel)
         files = kept = left = 0
-        root = project_dir / ARTIFACTS
+        root = project_dir / ARTIFACT_DIR
 
         def write(path: Path) -> None:
             nonlocal files, kept, left
             with tarfile.open(path, "w:xz", preset=6) as tar:
-                tar.add(copy, arcname=DB)
+                tar.add(copy, arcname=STORE_DB)
                 for f in sorted(root.rglob("*")) if root.is_dir() else []:
                     if not f.is_file():
                         continue
@@ -159,26 +155,29 @@ def unpack_store(archive: Path, into: Path) -> int:
         The number of runs in the store.
     """
     archive, into = Path(archive), Path(into)
-    if (into / DB).exists():
+    if (into / STORE_DB).exists():
         raise FileExistsError(
-            f"{into / DB} exists: unpack into a folder without a store (this one's runs would be "
+            f"{into / STORE_DB} exists: unpack into a folder without a store (this one's runs would be "
             "replaced)"
         )
     with tarfile.open(archive, "r:*") as tar:
-        members = []
+        members, has_db = [], False
         for m in tar.getmembers():
             name = m.name.removeprefix("./")
             if name in ("", "."):
                 continue
-            if name != DB and name.split("/")[0] != ARTIFACTS:
+            if name != STORE_DB and name.split("/")[0] != ARTIFACT_DIR:
                 raise ValueError(
-                    f"{archive}: member {m.name!r} is neither {DB} nor under {ARTIFACTS}/ "
+                    f"{archive}: member {m.name!r} is neither {STORE_DB} nor under {ARTIFACT_DIR}/ "
                     "(not a packed cloudpose store)"
                 )
+            has_db |= name == STORE_DB
             members.append(m)
-        if not any(m.name.removeprefix("./") == DB for m in members):
-            raise ValueError(f"{archive}: no {DB} in the archive (not a packed cloudpose store)")
+        if not has_db:
+            raise ValueError(
+                f"{archive}: no {STORE_DB} in the archive (not a packed cloudpose store)"
+            )
         into.mkdir(parents=True, exist_ok=True)
         tar.extractall(into, members=members, filter="data")
-    base = (into.resolve() / ARTIFACTS).as_uri()
-    return _rewrite(into / DB, lambda rel: base + rel.removeprefix(ARTIFACTS))
+    base = (into.resolve() / ARTIFACT_DIR).as_uri()
+    return _rewrite(into / STORE_DB, lambda rel: base + rel.removeprefix(ARTIFACT_DIR))

@@ -43,13 +43,20 @@ def check_name(what: str, name: str) -> str:
     return name
 
 
+STORE_DB = "mlflow.db"
+"""A project's SQLite store of runs, in the project folder."""
+
+ARTIFACT_DIR = "mlartifacts"
+"""A project's artifact folder, beside :data:`STORE_DB` (one subfolder per group)."""
+
+
 def tracking_uri(project_dir: Path | None = None) -> str:
     """``MLFLOW_TRACKING_URI`` if set, else SQLite ``mlflow.db`` in ``project_dir`` (cwd)."""
     env = os.environ.get("MLFLOW_TRACKING_URI")
     if env:
         return env
     root = (project_dir or Path.cwd()).resolve()
-    return f"sqlite:///{root / 'mlflow.db'}"
+    return f"sqlite:///{root / STORE_DB}"
 
 
 SERVER_FOLDER = "mlflow-server"
@@ -95,7 +102,7 @@ def server_command(
     folder = (root or Path.cwd()) / SERVER_FOLDER
     if backend is None:
         folder.mkdir(parents=True, exist_ok=True)
-        backend = f"sqlite:///{folder / 'mlflow.db'}"
+        backend = f"sqlite:///{folder / STORE_DB}"
     if artifacts is None:
         artifacts = folder / "artifacts"
     if "://" not in backend:
@@ -193,7 +200,7 @@ def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
         return exp.experiment_id
     location = None
     if not os.environ.get("MLFLOW_TRACKING_URI"):
-        location = ((project_dir or Path.cwd()).resolve() / "mlartifacts" / group).as_uri()
+        location = ((project_dir or Path.cwd()).resolve() / ARTIFACT_DIR / group).as_uri()
     try:
         return client.create_experiment(name, artifact_location=location, tags={"group": group})
     except MlflowException:
@@ -275,6 +282,13 @@ def find_runs(
     return list(
         client.search_runs(exps, " and ".join(clauses), order_by=["attributes.start_time DESC"])
     )
+
+
+def newest_run_named(client, name: str) -> Any | None:
+    """The newest finished run whose MLflow run name is ``name`` (e.g.
+    ``shared-0/cpu-online/seed1``), or None."""
+    runs = [r for r in find_runs(client) if r.data.tags.get("mlflow.runName") == name]
+    return runs[0] if runs else None  # find_runs: newest first
 
 
 def local_artifact(uri: str, rel: str) -> Path | None:

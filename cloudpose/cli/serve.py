@@ -140,6 +140,7 @@ def store_unpack(
     """Unpack a store packed by store-pack (or by hand) and point its artifacts to this folder:
     then report, mlflow-ui and ablate work there on its runs."""
     from cloudpose.store_archive import unpack_store
+    from cloudpose.tracking import ARTIFACT_DIR, STORE_DB
 
     n = unpack_store(archive, into)
-    typer.echo(f"{into / 'mlflow.db'}: {n} runs; artifacts under {into / 'mlartifacts'}")
+    typer.echo(f"{into / STORE_DB}: {n} runs; artifacts under {into / ARTIFACT_DIR}")

@@ -43,10 +43,9 @@ STAGES = {"net": "without ICP", "icp": "with ICP"}
 
 def instances(client, name: str) -> pd.DataFrame:
     """``eval/test/instances.csv`` of the newest finished run named ``name``."""
-    runs = [r for r in tracking.find_runs(client) if r.data.tags.get("mlflow.runName") == name]
-    if not runs:
+    run = tracking.newest_run_named(client, name)
+    if run is None:
         raise SystemExit(f"no finished run named {name!r} in the MLflow store of {Path.cwd()}")
-    run = max(runs, key=lambda r: r.info.start_time)
     return tracking.read_csv_artifact(client, run, "eval/test/instances.csv")
 
 

@@ -110,10 +110,9 @@ def network_errors(names: list[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
     client = tracking.setup(Path.cwd())
     tables: dict[str, list[pd.DataFrame]] = {"real": [], "test": []}
     for name in names:
-        runs = [r for r in tracking.find_runs(client) if r.data.tags.get("mlflow.runName") == name]
-        if not runs:
+        run = tracking.newest_run_named(client, name)
+        if run is None:
             raise SystemExit(f"no run named {name!r} in the MLflow store of {Path.cwd()}")
-        run = max(runs, key=lambda r: r.info.start_time)
         for split, out in tables.items():
             out.append(tracking.read_csv_artifact(client, run, f"eval/{split}/instances.csv"))
 
