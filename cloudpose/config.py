@@ -327,6 +327,11 @@ class DataConfig:
         check_synth_version(self.synth_version)
 
 
+START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}
+"""Number of ICP starts -> the rotation group (scipy's name) whose elements turn the estimate
+(:func:`cloudpose.refine.start_rotations`)."""
+
+
 @dataclass(frozen=True)
 class ICPConfig:
     """The guard on ICP refinement after the network (docs/design.md "Refinement" is the schedule,
@@ -337,16 +342,29 @@ class ICPConfig:
             the last correspondence radius) is below ``fallback_min_fitness``. Off = the paper.
         fallback_min_fitness: the guard's threshold, 0..1
             (reports/diagnostics/icp_fallback.md measures it).
+        starts: ICP from the estimate only (1, the paper) or also from it turned by each
+            element of a rotation group (12, 24, 60), keeping the best fit
+            (:mod:`cloudpose.refine`; reports/diagnostics/multi_start_icp.md measures it).
+        start_margin: share of points by which another start's fitness must beat the
+            estimate's own (0..1).
     """
 
     fallback: bool = False
     fallback_min_fitness: float = 0.1
+    starts: int = 1
+    start_margin: float = 0.02
 
     def __post_init__(self) -> None:
         if not 0 <= self.fallback_min_fitness <= 1:
             raise ValueError(
                 f"icp.fallback_min_fitness must be in [0, 1], got {self.fallback_min_fitness!r}"
             )
+        if self.starts not in START_GROUPS:
+            raise ValueError(
+                f"icp.starts must be one of {sorted(START_GROUPS)}, got {self.starts!r}"
+            )
+        if not 0 <= self.start_margin <= 1:
+            raise ValueError(f"icp.start_margin must be in [0, 1], got {self.start_margin!r}")
 
 
 @dataclass(frozen=True)
@@ -434,7 +452,12 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_scenes": "all",
         "segment_streams": "frame",
     },
-    "icp": {"fallback": False, "fallback_min_fitness": 0.1},
+    "icp": {
+        "fallback": False,
+        "fallback_min_fitness": 0.1,
+        "starts": 1,
+        "start_margin": 0.02,
+    },
     "train": {"threads": 2, "augment_depth_noise_mm": 0.0},
     "loss": {"symmetry_table": 1},
 }
@@ -444,7 +467,8 @@ every run stored before the on-line source existed trained on frames, and on seg
 instances drew from one stream per frame (an on-line run stored before ``data.online_scenes``
 existed drew scenes of every class); every run stored before ``loss.symmetry_table``
 existed used symmetry table 1; every run stored before
-the ``icp`` section existed was refined without the guard; every run stored before
+the ``icp`` section existed was refined without the guard, and every run stored before
+``icp.starts`` existed from the estimate only; every run stored before
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads, and
 without depth-noise augmentation.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that

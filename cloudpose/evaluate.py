@@ -17,6 +17,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -219,6 +220,18 @@ def check_evaluation_name(name: str, data: str | Path | None) -> str:
     return name
 
 
+def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
+    """How ``settings`` differ from a run's own ICP, as an evaluation name's suffix:
+    ``fallback`` / ``nofallback`` where the guard differs, ``starts24`` where the starts do
+    (joined by ``-``); ``other`` for any other difference."""
+    parts = []
+    if (settings.fallback, settings.min_fitness) != (own.fallback, own.min_fitness):
+        parts.append("fallback" if settings.fallback else "nofallback")
+    if (settings.starts, settings.start_margin) != (own.starts, own.start_margin):
+        parts.append(f"starts{settings.starts}")
+    return "-".join(parts) or "other"
+
+
 def evaluate(
     run: str,
     *,
@@ -226,7 +239,7 @@ def evaluate(
     frames: str = "keyframe",
     name: str | None = None,
     icp: bool = True,
-    icp_settings: ICPSettings | None = None,
+    icp_overrides: dict[str, Any] | None = None,
     project_dir: Path | None = None,
     progress: bool = True,
     log: bool = True,
@@ -245,9 +258,10 @@ def evaluate(
         name: metric prefix; default :data:`OWN_TEST` for the run's own test set, else
             :func:`evaluation_name` (a name of the user's: :func:`check_evaluation_name`).
         icp: also evaluate after ICP refinement.
-        icp_settings: the ICP schedule and guard; default the run's (``cfg.icp``). Other
-            settings name the evaluation ``{name}-fallback`` (guard on) or
-            ``{name}-nofallback`` (off), so they never replace the run's own ICP results.
+        icp_overrides: fields of :class:`~cloudpose.refine.ICPSettings` to change from the
+            run's own (``cfg.icp``), e.g. ``{"starts": 24}``. Other settings than the run's
+            name the evaluation ``{name}-{icp_label(...)}`` (``test-fallback``,
+            ``real-starts24``), so they never replace the run's own ICP results.
         log: log the table and metrics to the run in MLflow.
         device: where the network runs ("auto": CUDA when available, as in training).
         own_data: the run's own data, prepared (the pipeline passes what it trained on);
@@ -293,10 +307,10 @@ def evaluate(
         name = name or tracking.metric_key(evaluation_name(data, frames, data_key) + label)
         split = describe_split(dataset, frames)
         data_label = f"{split} in {Path(data).resolve()}"
-    if icp_settings is None:
-        icp_settings = ICPSettings.from_config(cfg.icp)
-    elif icp and icp_settings != ICPSettings.from_config(cfg.icp):
-        name = tracking.metric_key(f"{name}-{'' if icp_settings.fallback else 'no'}fallback")
+    own_icp = ICPSettings.from_config(cfg.icp)
+    icp_settings = dataclasses.replace(own_icp, **(icp_overrides or {}))
+    if icp and icp_settings != own_icp:
+        name = tracking.metric_key(f"{name}-{icp_label(icp_settings, own_icp)}")
     if len(segs) == 0:
         raise ValueError(
             f"no instance to evaluate in {data_label} (no annotated object in its frames"

@@ -49,16 +49,33 @@ a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fo
 from __future__ import annotations
 
 import contextlib
+import functools
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from cloudpose import kernels
+from cloudpose.config import START_GROUPS
 from cloudpose.geometry.rigid import umeyama_from_moments
 from cloudpose.kernels.model_index import ModelIndex
+
+
+@functools.cache
+def start_rotations(starts: int) -> np.ndarray:
+    """(starts, 3, 3) rotations ICP starts from, applied in the model frame; the identity first."""
+    if starts not in START_GROUPS:
+        raise ValueError(f"starts: expected one of {sorted(START_GROUPS)}, got {starts!r}")
+    if starts == 1:
+        return np.eye(3)[None]
+    group = Rotation.create_group(START_GROUPS[starts]).as_matrix()
+    identity = np.isclose(group, np.eye(3), atol=1e-9).all(axis=(1, 2))
+    out = np.concatenate([np.eye(3)[None], group[~identity]])
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True)
@@ -73,6 +90,10 @@ class ICPSettings:
             ``min_fitness`` (the paper has no such guard).
         min_fitness: with ``fallback``, the least share of observed points within the last
             radius for the refined pose to be kept (0..1).
+        starts: rotations of the estimate ICP starts from, keeping the best fit: 1 (the
+            estimate only, the paper), 12, 24 or 60 (:data:`START_GROUPS`; module doc).
+        start_margin: share of observed points by which another start's fitness must exceed
+            the estimate's own to replace it (0..1).
     """
 
     iterations: int = 10
@@ -80,6 +101,8 @@ class ICPSettings:
     shrink: float = 0.9
     fallback: bool = False
     min_fitness: float = 0.1
+    starts: int = 1
+    start_margin: float = 0.02
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_fitness <= 1:
@@ -92,12 +115,25 @@ class ICPSettings:
             )
         if not 0 < self.shrink <= 1:
             raise ValueError(f"ICPSettings.shrink: expected in (0, 1], got {self.shrink}")
+        if self.starts not in START_GROUPS:
+            raise ValueError(
+                f"ICPSettings.starts: expected one of {sorted(START_GROUPS)}, got {self.starts!r}"
+            )
+        if not 0 <= self.start_margin <= 1:
+            raise ValueError(
+                f"ICPSettings.start_margin: expected in [0, 1], got {self.start_margin}"
+            )
 
     @classmethod
     def from_config(cls, icp) -> ICPSettings:
         """The schedule with the guard of a run's ``icp`` config section
         (:class:`cloudpose.config.ICPConfig`)."""
-        return cls(fallback=icp.fallback, min_fitness=icp.fallback_min_fitness)
+        return cls(
+            fallback=icp.fallback,
+            min_fitness=icp.fallback_min_fitness,
+            starts=icp.starts,
+            start_margin=icp.start_margin,
+        )
 
     def radii(self) -> list[float]:
         """Maximum correspondence distance of each iteration, metres (repeated multiplication,
@@ -241,22 +277,52 @@ def icp_refine(
         return _degenerate(R_init, t_init, f"{len(observed)} observed points, need >= 3")
     index = _index_of(model_points)
     if index.compiled is not None:  # compiled: no BLAS or OpenMP threads to hold back
-        sol = _icp_model_frame(observed, index, R_init, t_init, settings.radii())
+        sol = _refine_starts(observed, index, R_init, t_init, settings)
     else:
         with _single_threaded():
-            sol = _icp_model_frame(observed, index, R_init, t_init, settings.radii())
+            sol = _refine_starts(observed, index, R_init, t_init, settings)
     return _guard(sol, R_init, t_init, settings)
 
 
-def _icp_model_frame(
-    observed: np.ndarray, index: ModelIndex, R_init: np.ndarray, t_init: np.ndarray, radii
+def _refine_starts(
+    observed: np.ndarray,
+    index: ModelIndex,
+    R_init: np.ndarray,
+    t_init: np.ndarray,
+    settings: ICPSettings,
 ) -> ICPSolution:
+    """ICP from the estimate and, with ``settings.starts`` > 1, from each turned start; the best
+    fit (the estimate's own unless another beats it by more than ``start_margin``)."""
+    radii = settings.radii()
+    best = _icp_model_frame(observed, index, R_init, t_init, radii)
+    if settings.starts == 1:
+        return best
+    to_beat = best.fitness + settings.start_margin
+    for D in start_rotations(settings.starts)[1:]:
+        sol = _icp_model_frame(observed, index, R_init @ D, t_init, radii, quiet=True)
+        if sol is not None and sol.fitness > to_beat:
+            best, to_beat = sol, sol.fitness
+    return best
+
+
+def _icp_model_frame(
+    observed: np.ndarray,
+    index: ModelIndex,
+    R_init: np.ndarray,
+    t_init: np.ndarray,
+    radii,
+    quiet: bool = False,
+) -> ICPSolution | None:
+    """One refinement in the model frame; with ``quiet``, None instead of the warned initial
+    pose when no model point lies within the first radius."""
     N = len(observed)
     if index.compiled is not None and np.isfinite(observed).all():
         T_acc, n_inl, sum_d2 = kernels.icp_model_frame(
             index.compiled, (observed - t_init) @ R_init, np.asarray(radii, dtype=np.float64)
         )
         if n_inl < 0:
+            if quiet:
+                return None
             return _degenerate(R_init, t_init, f"no model point within {radii[0]} m")
         R = R_init @ T_acc[:3, :3].T
         t = t_init - R @ T_acc[:3, 3]
@@ -271,6 +337,8 @@ def _icp_model_frame(
         matched = np.take(model_h, idx, axis=0)  # (N, 4); zero rows for "no neighbour"
         S = matched.T @ cur  # (4, 4) moments of the correspondences
         if i == 0 and S[3, 3] == 0:
+            if quiet:
+                return None
             return _degenerate(R_init, t_init, f"no model point within {r} m")
         T_u = umeyama_from_moments(S)
         cur = cur @ T_u.T
@@ -320,7 +388,6 @@ def icp_refine_batch(
     if t_init.shape != (M, 3):
         raise ValueError(f"t_init: expected shape ({M}, 3), got {t_init.shape}")
     out = []
-    radii = settings.radii()
     with _single_threaded():
         for i in range(M):
             obs = _check_points(f"observed[{i}]", observed[i])
@@ -330,7 +397,7 @@ def icp_refine_batch(
                 )
                 continue
             index = _index_of(model_points[i])
-            sol = _icp_model_frame(obs, index, R_init[i], t_init[i], radii)
+            sol = _refine_starts(obs, index, R_init[i], t_init[i], settings)
             out.append(_guard(sol, R_init[i], t_init[i], settings))
     return out
 
@@ -354,6 +421,10 @@ def icp_refine_open3d(
     """
     import open3d as o3d
 
+    if settings.starts != 1:
+        raise ValueError(
+            f"icp_refine_open3d refines from the estimate only (starts=1), got {settings.starts}"
+        )
     reg = o3d.pipelines.registration
     observed = _check_points("observed", observed)
     model_points = _check_points("model_points", model_points)

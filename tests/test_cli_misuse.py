@@ -275,6 +275,12 @@ def test_evaluation_names_that_collide_are_refused(name, needles):
     one_line_error(res, *needles)
 
 
+def test_icp_starts_outside_the_rotation_groups_are_refused():
+    res = cli("evaluate", "--run", "any", "--icp-starts", "6")
+    one_line_error(res, "--icp-starts 6: expected one of 1, 12, 24, 60")
+    assert list(Path.cwd().iterdir()) == []
+
+
 def test_an_existing_bop_csv_is_not_overwritten(tmp_path):
     mine = tmp_path / "mine.csv"
     mine.write_text("my results\n")

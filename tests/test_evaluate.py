@@ -11,7 +11,6 @@ from cloudpose.evaluate import evaluate
 from cloudpose.metrics import SUMMARY_KEYS
 
 DATA = Path(__file__).parent / "data"
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture
@@ -19,6 +18,7 @@ def project(smoke_project):
     return smoke_project
 
 
+@pytest.mark.slow
 def test_evaluate_own_test_set_logs_table_and_metrics(project):
     proj, out = project
     ev = evaluate(str(out.run_dir), project_dir=proj, progress=False)
@@ -43,6 +43,7 @@ def test_evaluate_own_test_set_logs_table_and_metrics(project):
     assert arts == ["eval/test/instances.csv"]
 
 
+@pytest.mark.slow
 def test_evaluate_on_the_real_ycb_frame(project):
     proj, out = project
     ev = evaluate(
@@ -60,3 +61,35 @@ def test_evaluate_on_the_real_ycb_frame(project):
     # The mug is partly hidden by the foam brick in this frame (docs/design.md occlusion factor).
     occ = dict(zip(df["class"], df["occlusion"], strict=True))
     assert occ["025_mug"] > 0.1 and occ["009_gelatin_box"] < 0.05
+
+
+@pytest.mark.slow
+def test_other_icp_settings_log_beside_the_runs_own(project):
+    """``icp_overrides`` evaluates under its own name: the network's estimates are the same,
+    and from 12 starts each object's fit is at least the one-start fit."""
+    proj, out = project
+    own = evaluate(str(out.run_dir), project_dir=proj, progress=False, log=False)
+    many = evaluate(
+        str(out.run_dir),
+        project_dir=proj,
+        progress=False,
+        icp_overrides={"starts": 12},
+        log=False,
+    )
+    assert (own.name, many.name) == ("test", "test-starts12")
+    np.testing.assert_array_equal(many.table["net_ads"], own.table["net_ads"])
+    fit, fit_own = many.table["icp_fitness"], own.table["icp_fitness"]
+    ok = fit_own.notna()
+    assert (fit[ok] >= fit_own[ok]).all()
+
+
+def test_icp_label_names_how_settings_differ():
+    from cloudpose.evaluate import icp_label
+    from cloudpose.refine import ICPSettings
+
+    own = ICPSettings()
+    assert icp_label(ICPSettings(fallback=True), own) == "fallback"
+    assert icp_label(own, ICPSettings(fallback=True)) == "nofallback"
+    assert icp_label(ICPSettings(starts=24), own) == "starts24"
+    assert icp_label(ICPSettings(fallback=True, starts=60), own) == "fallback-starts60"
+    assert icp_label(ICPSettings(iterations=3), own) == "other"

@@ -19,6 +19,7 @@ from cloudpose.refine import (
     icp_refine,
     icp_refine_batch,
     icp_refine_open3d,
+    start_rotations,
 )
 
 MODELS = ("025_mug", "003_cracker_box", "024_bowl", "002_master_chef_can", "037_scissors")
@@ -184,7 +185,15 @@ def test_settings_schedule_and_validation():
     radii = ICPSettings().radii()
     assert len(radii) == 10
     np.testing.assert_allclose(radii, 0.01 * 0.9 ** np.arange(10), rtol=1e-14)
-    for bad in (dict(iterations=0), dict(max_distance=0.0), dict(shrink=0.0), dict(shrink=1.5)):
+    bad_settings = (
+        dict(iterations=0),
+        dict(max_distance=0.0),
+        dict(shrink=0.0),
+        dict(shrink=1.5),
+        dict(starts=25),
+        dict(start_margin=-0.1),
+    )
+    for bad in bad_settings:
         with pytest.raises(ValueError, match="ICPSettings"):
             ICPSettings(**bad)
 
@@ -330,6 +339,76 @@ def test_icp_config_section_keeps_stored_runs_identity():
     assert ICPSettings.from_config(on.icp) == ICPSettings(fallback=True, min_fitness=0.1)
     for preset in ("paper", "cpu-paper"):
         assert not resolve("shared-0", preset, 1).icp.fallback
+
+
+@pytest.mark.parametrize("n", [1, 12, 24, 60])
+def test_start_rotations_are_a_rotation_group_with_the_identity_first(n):
+    D = start_rotations(n)
+    assert D.shape == (n, 3, 3)
+    np.testing.assert_array_equal(D[0], np.eye(3))
+    np.testing.assert_allclose(
+        np.einsum("nij,nkj->nik", D, D), np.broadcast_to(np.eye(3), D.shape), atol=1e-12
+    )
+    # closed under composition, every element distinct: the group itself
+    prod = np.einsum("aij,bjk->abik", D, D).reshape(-1, 1, 9)
+    assert (np.abs(prod - D.reshape(1, n, 9)).max(axis=2) < 1e-9).any(axis=1).all()
+    assert len(np.unique(np.round(D.reshape(n, 9), 6), axis=0)) == n
+
+
+def test_several_starts_recover_an_estimate_turned_beyond_icps_reach():
+    """An estimate a quarter turn off an asymmetric object: ICP from it alone stays in the
+    wrong basin; from the octahedral group's 24 starts the best fit is the true pose."""
+    model = load_model("035_power_drill")
+    rng = np.random.default_rng(5)
+    obs, _, _, R, t = visible_case(rng, model)
+    turn = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    R0, t0 = R @ turn, t + np.array([0.002, -0.001, 0.002])
+    one = icp_refine(obs, model, R0, t0)
+    assert rotation_error_deg(one.R[None], R[None])[0] > 45
+    many = icp_refine(obs, model, R0, t0, ICPSettings(starts=24))
+    assert rotation_error_deg(many.R[None], R[None])[0] < 2
+    assert many.fitness > one.fitness + 0.02
+    batch = icp_refine_batch([obs], [model], R0[None], t0[None], ICPSettings(starts=24))
+    assert_same(batch[0], many, tol=0)
+    with pytest.raises(ValueError, match="starts=1"):
+        icp_refine_open3d(obs, model, R0, t0, ICPSettings(starts=24))
+
+
+def test_several_starts_keep_the_estimate_where_fits_tie():
+    """On a can, turns about its axis fit equally well: the estimate's own refinement stays
+    (the margin), so a symmetric object's pose is the network's, not the first tied start's."""
+    model = load_model("002_master_chef_can")
+    rng = np.random.default_rng(6)
+    obs, R0, t0, _, _ = visible_case(rng, model, deg=2.0, mm=2.0)
+    one = icp_refine(obs, model, R0, t0)
+    assert_same(icp_refine(obs, model, R0, t0, ICPSettings(starts=24)), one, tol=0)
+    # the estimate itself at one start equals the paper's schedule exactly
+    assert_same(icp_refine(obs, model, R0, t0, ICPSettings(starts=1)), one, tol=0)
+
+
+def test_a_start_without_correspondences_is_passed_over_quietly():
+    """Starts that leave every observed point outside the first radius are not candidates and
+    warn nothing; the estimate's own refinement, which has correspondences, is kept."""
+    model = load_model("003_cracker_box")
+    obs, R0, t0, _, _ = visible_case(np.random.default_rng(7), model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sol = icp_refine(obs, model, R0, t0, ICPSettings(starts=60, max_distance=0.002))
+    assert sol.fitness > 0
+
+
+def test_icp_starts_keep_stored_runs_identity():
+    from cloudpose.config import Config, ICPConfig, resolve
+
+    cfg = resolve("shared-0", "cpu-online", 1)
+    stored = cfg.to_dict()
+    del stored["icp"]["starts"], stored["icp"]["start_margin"]
+    assert Config.from_dict(stored).fingerprint() == cfg.fingerprint()
+    many = resolve("shared-0", "cpu-online", 1, {"icp": {"starts": 24}})
+    assert many.fingerprint() != cfg.fingerprint()
+    assert ICPSettings.from_config(many.icp).starts == 24
+    with pytest.raises(ValueError, match=r"icp\.starts must be one of \[1, 12, 24, 60\]"):
+        ICPConfig(starts=6)
 
 
 def test_refine_poses_applies_the_guard_and_reports_each_object():

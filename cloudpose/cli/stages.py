@@ -83,6 +83,14 @@ def evaluate(
             "the run's are logged as {name}-fallback / {name}-nofallback.",
         ),
     ] = None,
+    icp_starts: Annotated[
+        int | None,
+        typer.Option(
+            help="ICP from the estimate turned by each element of a rotation group (12, 24 or "
+            "60 starts), keeping the best fit; 1 = the estimate only (the paper). Other "
+            "settings than the run's are logged as {name}-starts{N}.",
+        ),
+    ] = None,
     real: Annotated[
         bool,
         typer.Option(
@@ -123,13 +131,19 @@ def evaluate(
 
     if bop_csv is not None:
         check_results_destination(bop_csv, force)
+    from cloudpose.config import START_GROUPS
     from cloudpose.evaluate import evaluate_real
-    from cloudpose.refine import ICPSettings
 
-    settings = None if icp_fallback is None else ICPSettings(fallback=icp_fallback)
+    if icp_starts is not None and icp_starts not in START_GROUPS:
+        raise ValueError(
+            f"--icp-starts {icp_starts}: expected one of {', '.join(map(str, START_GROUPS))}"
+        )
+    overrides = {
+        k: v for k, v in (("fallback", icp_fallback), ("starts", icp_starts)) if v is not None
+    }
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
-    kwargs = dict(icp=icp, icp_settings=settings, progress=progress, device=device)
+    kwargs = dict(icp=icp, icp_overrides=overrides, progress=progress, device=device)
     if real:
         out = evaluate_real(run, segmentation=segmentation, **kwargs)
     else:

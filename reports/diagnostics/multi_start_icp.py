@@ -1,0 +1,242 @@
+"""Are the network's coarse rotation misses within reach of a verification step? ICP from the
+network's estimate turned by every element of a rotation group, the best fit kept
+(``icp.starts``, :mod:`cloudpose.refine`), against ICP from the estimate alone, for the network
+and for the classical baselines alike.
+
+Every estimate is read from a logged evaluation (the ``net_R`` / ``net_t`` columns of
+``eval/{split}/instances.csv``), so no network runs here: only the refinement is redone, on
+the same segments the evaluation used (the preset's test set, or the real development frames).
+The one-start rows are recomputed the same way, and a check asserts that they equal the logged
+``icp_*`` columns, so both rows differ only in the starts.
+
+Runs are read by MLflow run name from the store of the current folder (the newest run of a
+name), e.g. in the project that holds the default's sweep::
+
+    python reports/diagnostics/multi_start_icp.py --split real --starts 24 \\
+        --run shared-0/cpu-online/seed1 ... --run shared-0/cpu-online/seed7 \\
+        --baseline baseline-fpfh/cpu-online/seed1+real-6b1ea2e9 \\
+        > reports/diagnostics/multi_start_icp_real.md
+
+A baseline evaluated on a subsample of the test set (``--limit``) is compared with the
+network on the instances both hold.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cloudpose import tracking
+from cloudpose.config import resolve
+from cloudpose.data.cache import segments_for
+from cloudpose.data.dataset import prepare_data
+from cloudpose.data.layout import open_dataset
+from cloudpose.evaluate import instance_table, real_dev_root
+from cloudpose.infer import Estimates, refine_poses
+from cloudpose.refine import ICPSettings
+from cloudpose.report.real import METRICS, table_metrics, versus_baseline
+
+KEY = ["frame_id", "instance"]
+
+
+def logged(client, name: str, split: str) -> tuple[pd.DataFrame, dict]:
+    """The instance table ``eval/{split}/instances.csv`` and the tags of the newest finished
+    run named ``name``."""
+    run = tracking.newest_run_named(client, name)
+    if run is None:
+        raise SystemExit(f"no finished run named {name!r} in the MLflow store of {Path.cwd()}")
+    table = tracking.read_csv_artifact(client, run, f"eval/{split}/instances.csv")
+    return table, run.data.tags
+
+
+def poses(table: pd.DataFrame, prefix: str) -> Estimates:
+    """The logged poses of one method (``net`` / ``icp``); identity and zero for a miss."""
+    n = len(table)
+    R, t = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+    for i, (r, s) in enumerate(zip(table[f"{prefix}_R"], table[f"{prefix}_t"], strict=True)):
+        if isinstance(r, str) and r:
+            R[i] = np.array(r.split(), dtype=float).reshape(3, 3)
+            t[i] = np.array(s.split(), dtype=float)
+    return Estimates(R, t)
+
+
+class Segments:
+    """The segments an evaluation of ``split`` used, built once per preset."""
+
+    def __init__(self, split: str, project: Path):
+        self.split, self.project, self._cache = split, project, {}
+
+    def of(self, preset: str, seed: int):
+        if preset not in self._cache:
+            cfg = resolve("shared-0", preset, seed)
+            if self.split == "test":
+                prepared = prepare_data(cfg.data, self.project, progress=False)
+                dataset, pool = prepared.dataset, prepared.test
+            else:
+                dataset = open_dataset(real_dev_root())
+                cache = self.project / "data" / "cache"
+                pool = segments_for(dataset, "all", cfg.data, cache_dir=cache, progress=False)
+            self._cache[preset] = (dataset, pool, cfg.loss.symmetry_table)
+        return self._cache[preset]
+
+
+def refined(client, name: str, split: str, starts: int, segments: Segments) -> dict:
+    """The run's logged table (``one``: its own one-start ICP) and the same estimates refined
+    from ``starts`` starts (``many``), with the share of objects another start won and the
+    refinement's milliseconds per object."""
+    table, tags = logged(client, name, split)
+    dataset, pool, sym = segments.of(tags["preset"], int(tags.get("seed", 1)))
+    keys = pd.Index(
+        pd.Series(pool.frame_id).astype(str) + "#" + pd.Series(pool.instance).astype(str)
+    )
+    where = keys.get_indexer(table["frame_id"].astype(str) + "#" + table["instance"].astype(str))
+    if (where < 0).any():
+        raise SystemExit(f"{name}: {int((where < 0).sum())} logged instances not in the segments")
+    segs = pool.subset(where)
+    segs.valid = ~table["miss"].to_numpy(dtype=bool)
+    models = dataset.models()
+    est = poses(table, "net")
+    one, _ = refine_poses(segs, est, models)
+    check = instance_table(segs, {"icp": one}, models, dataset.classes, sym)
+    np.testing.assert_allclose(
+        check["icp_ads"].to_numpy(float),
+        table["icp_ads"].to_numpy(float),
+        rtol=0,
+        atol=1e-9,
+        err_msg=f"{name}: the one-start refinement differs from the logged one",
+    )
+    t0 = time.perf_counter()
+    many, _stats = refine_poses(segs, est, models, ICPSettings(starts=starts))
+    ms = 1000 * (time.perf_counter() - t0) / max(int(segs.valid.sum()), 1)
+    moved = np.abs(many.R - one.R).max(axis=(1, 2)) > 1e-6
+    out = instance_table(segs, {"net": est, "icp": many}, models, dataset.classes, sym)
+    return {
+        "name": name,
+        "one": table,
+        "many": out,
+        "moved": float(moved[segs.valid].mean()),
+        "ms": ms,
+    }
+
+
+def cells(results: list[dict], keep: pd.Index | None = None) -> dict[tuple, list[float]]:
+    """(refinement, video, metric) -> values over runs, in percent."""
+    out: dict[tuple, list[float]] = {}
+    for r in results:
+        for label, table, prefixes in (
+            ("none", r["one"], ("net",)),
+            ("1 start", r["one"], ("icp",)),
+            ("many", r["many"], ("icp",)),
+        ):
+            if keep is not None:
+                table = table.set_index(KEY).loc[keep].reset_index()
+            for (col, video, metric), v in table_metrics(table).items():
+                if col in prefixes:
+                    out.setdefault((label, video, metric), []).append(100 * v)
+    return out
+
+
+def fmt(values: list[float]) -> str:
+    v = np.asarray(values)
+    return f"{v.mean():.1f}" if len(v) == 1 else f"{v.mean():.1f} ± {v.std(ddof=1):.1f}"
+
+
+def section(title: str, groups: list[tuple[str, list[dict]]], starts: int, keep=None) -> list[str]:
+    lines = [f"## {title}", ""]
+    videos = None
+    for metric, label in METRICS.items():
+        rows = []
+        for method, results in groups:
+            c = cells(results, keep)
+            if videos is None:
+                videos = [*sorted({v for _, v, _ in c if v != "pooled"}), "pooled"]
+                if len(videos) == 2:  # one video: the pooled column says it all
+                    videos = ["pooled"]
+            for ref in ("none", "1 start", "many"):
+                name = {
+                    "none": method,
+                    "1 start": f"{method} + ICP",
+                    "many": f"{method} + ICP from {starts} starts",
+                }[ref]
+                rows.append([name] + [fmt(c[(ref, v, metric)]) for v in videos])
+        lines += [f"**{label} (%)**", "", "| method | " + " | ".join(videos) + " |"]
+        lines += ["|---|" + "---:|" * len(videos)] + ["| " + " | ".join(r) + " |" for r in rows]
+        lines.append("")
+    lines += [
+        "| method | runs | objects another start won | ms / object, ICP from all starts |",
+        "|---|---:|---:|---:|",
+    ]
+    for method, results in groups:
+        moved = np.mean([r["moved"] for r in results])
+        ms = np.mean([r["ms"] for r in results])
+        lines.append(f"| {method} | {len(results)} | {100 * moved:.1f}% | {ms:.1f} |")
+    return [*lines, ""]
+
+
+def paired(net: list[dict], base: dict, starts: int) -> list[str]:
+    """Network minus baseline on the real frames, bootstrap over object poses."""
+    lines = [
+        "| metric | ICP | network − baseline (pp) | 95% interval | |",
+        "|---|---|---:|---:|---|",
+    ]
+    for metric, label in METRICS.items():
+        for ref, key in (("1 start", "one"), (f"{starts} starts", "many")):
+            d = versus_baseline([r[key] for r in net], base[key], metric, "icp")
+            lo, hi = 100 * d["low"], 100 * d["high"]
+            verdict = "network ahead" if lo > 0 else "baseline ahead" if hi < 0 else "not resolved"
+            lines.append(
+                f"| {label} | {ref} | {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] | {verdict} |"
+            )
+    return [*lines, ""]
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", action="append", required=True, help="network run name (repeat)")
+    ap.add_argument("--baseline", action="append", default=[], help="baseline run name (repeat)")
+    ap.add_argument("--split", choices=("test", "real"), default="test")
+    ap.add_argument("--starts", type=int, default=24)
+    args = ap.parse_args(argv)
+    client = tracking.setup(Path.cwd())
+    segments = Segments(args.split, Path.cwd())
+    net = [refined(client, n, args.split, args.starts, segments) for n in args.run]
+    bases = [refined(client, n, args.split, args.starts, segments) for n in args.baseline]
+    where = "the real development frames" if args.split == "real" else "the preset's test set"
+    cmd = " ".join(
+        shlex.quote(a)
+        for a in ["python", "reports/diagnostics/multi_start_icp.py", *(argv or sys.argv[1:])]
+    )
+    lines = [
+        f"# ICP from {args.starts} starts on {where}",
+        "",
+        f"_made by `{cmd}` in the project folder that holds the runs; the estimates are the logged ones, only ICP is redone; milliseconds on the machine that ran it, beside whatever else it ran._",
+        "",
+        f"ICP from {args.starts} starts: the paper's schedule from the estimate turned by each element of the rotation group of that order (the identity first), the refinement with the highest fitness kept unless it beats the estimate's own by no more than 0.02 (`cloudpose evaluate --icp-starts {args.starts}`, `icp.starts`). Cells: mean ± sample SD over the network's runs; one value for a baseline.",
+        "",
+    ]
+    lines += section("All instances of the network", [("network", net)], args.starts)
+    for b in bases:
+        keep = b["one"].set_index(KEY).index
+        lines += section(
+            f"On the instances of {b['name']} ({len(keep)})",
+            [("network", net), (b["name"], [b])],
+            args.starts,
+            keep,
+        )
+        if args.split == "real":
+            lines += [
+                f"Paired on the same instances, network (mean over its runs) − {b['name']}, 95% interval from a bootstrap over object poses and the network's runs:",
+                "",
+            ]
+            lines += paired(net, b, args.starts)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
