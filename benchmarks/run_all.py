@@ -58,6 +58,7 @@ FIGURES = (
     "infer_ms_per_object",
     "infer_ms_frame8",
     "icp_ms_per_object",
+    "icp_starts24_ms_per_object",
     "fps_ms_20k",
     "ads_ms_per_10k",
     "baseline_fpfh_ms_per_object",
@@ -73,7 +74,7 @@ FIGURES = (
 GROUPS = {
     "train": ("train_fraction_of_peak", "train_bf16_samples_per_s"),
     "infer": ("infer_ms_per_object", "infer_ms_frame8"),
-    "refine_metrics": ("icp_ms_per_object", "ads_ms_per_10k"),
+    "refine_metrics": ("icp_ms_per_object", "icp_starts24_ms_per_object", "ads_ms_per_10k"),
     "fps": ("fps_ms_20k",),
     "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),

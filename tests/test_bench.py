@@ -22,6 +22,7 @@ def test_quick_run_writes_every_selected_figure(tmp_path):
     expected = {
         "fps_ms_20k",
         "icp_ms_per_object",
+        "icp_starts24_ms_per_object",
         "ads_ms_per_10k",
         "infer_ms_per_object",
         "infer_ms_frame8",
