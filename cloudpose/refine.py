@@ -263,11 +263,11 @@ def icp_refine(
             ``ModelIndex`` of them (reuse it across instances of the model).
         R_init: (3, 3) estimated rotation, model -> camera.
         t_init: (3,) estimated translation, metres.
-        settings: the schedule.
+        settings: the schedule, the guard and the starts.
 
     Returns:
-        The refined pose with Open3D's fitness and inlier RMSE for the last iteration; the
-        initial pose (``fallback`` True) when ``settings.fallback`` and the fitness is below
+        The refined pose with Open3D's fitness and inlier RMSE for the last iteration (of the
+        start kept, with ``settings.starts`` > 1); the initial pose (``fallback`` True) when ``settings.fallback`` and the fitness is below
         ``settings.min_fitness``. With fewer than 3 observed points, or no model point within
         the first radius, the initial pose with fitness 0 (and a warning).
     """
