@@ -405,12 +405,20 @@ def merge_report(out: Path, report: dict[str, Any]) -> dict[str, Any]:
             if at is not None:
                 lines[at] = text
                 continue
-            # after the last line of a figure listed before it, else at the section's top
+            # after the last line of a figure listed before it in the same block (the first
+            # table, the list under DESCRIPTIONS; not a hand-written table further down),
+            # else at the block's top
             earlier = {prefix[:3] + k + "`" for k in FIGURES[: FIGURES.index(key)]}
-            spot = [i for i, line in enumerate(lines) if line[: line.find("`", 3) + 1] in earlier]
             start = next(i for i, line in enumerate(lines) if line.startswith(after))
-            pos = max([i for i in spot if i > start], default=start + (after == DESCRIPTIONS))
-            lines.insert(pos + 1, text)
+            top = start + (after == DESCRIPTIONS)  # a blank line follows the list's header
+            end = next(
+                (i for i in range(top + 1, len(lines)) if not lines[i].startswith(prefix[:2])),
+                len(lines),
+            )
+            spot = [
+                i for i in range(top + 1, end) if lines[i][: lines[i].find("`", 3) + 1] in earlier
+            ]
+            lines.insert(max(spot, default=top) + 1, text)
     (out / "benchmarks.json").write_text(json.dumps(old, indent=2, default=_json_default))
     (out / "benchmarks.md").write_text("\n".join(lines))
     return old

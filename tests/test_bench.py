@@ -138,6 +138,42 @@ def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
     ]
 
 
+def test_merge_inserts_into_the_first_table_not_a_hand_written_one(tmp_path, monkeypatch):
+    """A later section that quotes an older run's table and notes (rows and lines of figures
+    listed before the new one) keeps them; the new figure joins the report's own table and
+    list."""
+
+    def fig(value: float) -> dict:
+        return {"value": value, "unit": "s", "what": f"w{value}", "reference": None}
+
+    monkeypatch.setattr(run_all, "RUNNERS", {"fps": lambda *_: {"fps_ms_20k": fig(2.0)}})
+    first = run_all.run(["fps"], quick=True, out_dir=tmp_path)
+    first["figures"] = {"infer_ms_per_object": fig(1.0), "cpu_variant_wall_s": fig(3.0)}
+    (tmp_path / "benchmarks.json").write_text(json.dumps(first))
+    older = [
+        "",
+        "## An older machine",
+        "",
+        "| figure | value | unit | reference | ratio | target | met |",
+        "|---|---|---|---|---|---|---|",
+        "| `infer_ms_per_object` | 9 | ms | - | - | - | - |",
+        "",
+        "- `infer_ms_per_object`: as it was then.",
+        "",
+    ]
+    md = run_all.render_markdown(first) + "\n".join(older)
+    (tmp_path / "benchmarks.md").write_text(md)
+
+    run_all.run(["fps"], quick=True, out_dir=tmp_path, merge=True)
+    merged = (tmp_path / "benchmarks.md").read_text()
+    tail = "\n".join(older)
+    assert merged.endswith(tail)
+    head = merged[: -len(tail)].splitlines()
+    rows = [line.split("`")[1] for line in head if line.startswith("| `")]
+    described = [line.split("`")[1] for line in head if line.startswith("- `")]
+    assert rows == described == ["infer_ms_per_object", "fps_ms_20k", "cpu_variant_wall_s"]
+
+
 INTEL_CPUINFO = """processor\t: 0
 vendor_id\t: GenuineIntel
 model name\t: Intel(R) Xeon(R) Processor
