@@ -334,8 +334,8 @@ START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}
 
 @dataclass(frozen=True)
 class ICPConfig:
-    """The guard on ICP refinement after the network (docs/design.md "Refinement" is the schedule,
-    :class:`cloudpose.refine.ICPSettings`).
+    """The guard and the starts of ICP refinement after the network (the schedule:
+    docs/design.md "Refinement", :class:`cloudpose.refine.ICPSettings`).
 
     Attributes:
         fallback: keep the network's pose when ICP's fitness (share of observed points within
@@ -344,7 +344,7 @@ class ICPConfig:
             (reports/diagnostics/icp_fallback.md measures it).
         starts: ICP from the estimate only (1, the paper) or also from it turned by each
             element of a rotation group (12, 24, 60), keeping the best fit
-            (:mod:`cloudpose.refine`; reports/diagnostics/multi_start_icp.md measures it).
+            (:mod:`cloudpose.refine`; reports/diagnostics/multi_start_icp_*.md measure it).
         start_margin: share of points by which another start's fitness must beat the
             estimate's own (0..1).
     """
