@@ -105,17 +105,32 @@ def test_baselines_bench_times_both_methods_beside_the_network():
     assert max(res["baseline_fpfh_ms_per_object"]["detail"]["rotation_error_deg_all"]) < 10
 
 
+def _fig(value: float) -> dict:
+    return {"value": value, "unit": "s", "what": f"w{value}", "reference": None}
+
+
+def _report_to_merge_into(tmp_path, monkeypatch) -> dict:
+    """A report of two figures in ``tmp_path`` (its JSON only) and an fps runner that gives
+    ``fps_ms_20k``, the figure a merge then adds between them."""
+    monkeypatch.setattr(run_all, "RUNNERS", {"fps": lambda *_: {"fps_ms_20k": _fig(2.0)}})
+    first = run_all.run(["fps"], quick=True, out_dir=tmp_path)
+    first["figures"] = {"infer_ms_per_object": _fig(1.0), "cpu_variant_wall_s": _fig(3.0)}
+    (tmp_path / "benchmarks.json").write_text(json.dumps(first))
+    return first
+
+
+def _listed(lines: list[str]) -> tuple[list[str], list[str]]:
+    """The figures of a report's table rows and of its description lines, in order."""
+    rows = [line.split("`")[1] for line in lines if line.startswith("| `")]
+    described = [line.split("`")[1] for line in lines if line.startswith("- `")]
+    return rows, described
+
+
 def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
     """--merge: the figures run now go into the existing report in report order; every other
     line of it, header included, stays as it was."""
 
-    def fig(value: float) -> dict:
-        return {"value": value, "unit": "s", "what": f"w{value}", "reference": None}
-
-    monkeypatch.setattr(run_all, "RUNNERS", {"fps": lambda *_: {"fps_ms_20k": fig(2.0)}})
-    first = run_all.run(["fps"], quick=True, out_dir=tmp_path)
-    first["figures"] = {"infer_ms_per_object": fig(1.0), "cpu_variant_wall_s": fig(3.0)}
-    (tmp_path / "benchmarks.json").write_text(json.dumps(first))
+    first = _report_to_merge_into(tmp_path, monkeypatch)
     md = run_all.render_markdown(first).replace("# Benchmarks", "# Benchmarks (hand-edited)")
     (tmp_path / "benchmarks.md").write_text(md)
 
@@ -125,8 +140,7 @@ def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
     assert saved["figures"]["fps_ms_20k"]["measured"]["quick"] is True
     assert saved["started"] == first["started"]
     merged = (tmp_path / "benchmarks.md").read_text().splitlines()
-    rows = [line.split("`")[1] for line in merged if line.startswith("| `")]
-    described = [line.split("`")[1] for line in merged if line.startswith("- `")]
+    rows, described = _listed(merged)
     assert rows == described == ["infer_ms_per_object", "fps_ms_20k", "cpu_variant_wall_s"]
     assert [line for line in merged if "fps_ms_20k" not in line] == md.splitlines()
     # merging again replaces its lines in place
@@ -143,13 +157,7 @@ def test_merge_inserts_into_the_first_table_not_a_hand_written_one(tmp_path, mon
     listed before the new one) keeps them; the new figure joins the report's own table and
     list."""
 
-    def fig(value: float) -> dict:
-        return {"value": value, "unit": "s", "what": f"w{value}", "reference": None}
-
-    monkeypatch.setattr(run_all, "RUNNERS", {"fps": lambda *_: {"fps_ms_20k": fig(2.0)}})
-    first = run_all.run(["fps"], quick=True, out_dir=tmp_path)
-    first["figures"] = {"infer_ms_per_object": fig(1.0), "cpu_variant_wall_s": fig(3.0)}
-    (tmp_path / "benchmarks.json").write_text(json.dumps(first))
+    first = _report_to_merge_into(tmp_path, monkeypatch)
     older = [
         "",
         "## An older machine",
@@ -168,9 +176,7 @@ def test_merge_inserts_into_the_first_table_not_a_hand_written_one(tmp_path, mon
     merged = (tmp_path / "benchmarks.md").read_text()
     tail = "\n".join(older)
     assert merged.endswith(tail)
-    head = merged[: -len(tail)].splitlines()
-    rows = [line.split("`")[1] for line in head if line.startswith("| `")]
-    described = [line.split("`")[1] for line in head if line.startswith("- `")]
+    rows, described = _listed(merged[: -len(tail)].splitlines())
     assert rows == described == ["infer_ms_per_object", "fps_ms_20k", "cpu_variant_wall_s"]
 
 

@@ -184,6 +184,24 @@ class _Progress:
         self.path.unlink(missing_ok=True)
 
 
+def split_segments(cfg, split: str, project_dir: Path, progress: bool = True):
+    """``(prepared, dataset, segments)`` of one of :data:`SPLITS` for a run config ``cfg``:
+    the preset's prepared data (its key identifies the run's data whatever the split), the
+    dataset the segments come from (their models), and the segments: the test set, the real
+    development frames (all 61, cached beside the preset's), or the validation frames held
+    out of the training set."""
+    prepared = prepare_data(cfg.data, project_dir, progress=progress)
+    if split == "test":
+        return prepared, prepared.dataset, prepared.test
+    if split == "real":
+        dataset = open_dataset(real_dev_root())
+        cache_dir = project_dir / "data" / "cache"
+        pool = segments_for(dataset, "all", cfg.data, cache_dir=cache_dir, progress=progress)
+        return prepared, dataset, pool
+    val = split_frames(prepared.train.frame_id, cfg.train.val_fraction)
+    return prepared, prepared.dataset, prepared.train.subset(val)
+
+
 def run_baseline(
     method: str,
     preset: str = DEFAULT_PRESET,
@@ -230,18 +248,8 @@ def run_baseline(
         split = evaluation_name(data, frames, data_key)
         described = describe_split(dataset, frames)
     else:
-        prepared = prepare_data(cfg.data, project_dir, progress=progress)
+        prepared, dataset, pool = split_segments(cfg, split, project_dir, progress)
         data_key = prepared.key
-        dataset = prepared.dataset
-        if split == "test":
-            pool = prepared.test
-        elif split == "real":
-            dataset = open_dataset(real_dev_root())
-            cache_dir = project_dir / "data" / "cache"
-            pool = segments_for(dataset, "all", cfg.data, cache_dir=cache_dir, progress=progress)
-        else:
-            val = split_frames(prepared.train.frame_id, cfg.train.val_fraction)
-            pool = prepared.train.subset(val)
     models = dataset.models()
     segs = pool.subset(subsample(len(pool), limit))
     call = BaselineCall(

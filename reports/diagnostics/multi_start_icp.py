@@ -33,11 +33,9 @@ import numpy as np
 import pandas as pd
 
 from cloudpose import tracking
+from cloudpose.baselines.run import split_segments
 from cloudpose.config import resolve
-from cloudpose.data.cache import segments_for
-from cloudpose.data.dataset import prepare_data
-from cloudpose.data.layout import open_dataset
-from cloudpose.evaluate import instance_table, real_dev_root
+from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, refine_poses
 from cloudpose.refine import ICPSettings
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
@@ -75,13 +73,7 @@ class Segments:
     def of(self, preset: str, seed: int):
         if preset not in self._cache:
             cfg = resolve("shared-0", preset, seed)
-            if self.split == "test":
-                prepared = prepare_data(cfg.data, self.project, progress=False)
-                dataset, pool = prepared.dataset, prepared.test
-            else:
-                dataset = open_dataset(real_dev_root())
-                cache = self.project / "data" / "cache"
-                pool = segments_for(dataset, "all", cfg.data, cache_dir=cache, progress=False)
+            _, dataset, pool = split_segments(cfg, self.split, self.project, progress=False)
             self._cache[preset] = (dataset, pool, cfg.loss.symmetry_table)
         return self._cache[preset]
 
@@ -153,22 +145,20 @@ def fmt(values: list[float]) -> str:
 
 def section(title: str, groups: list[tuple[str, list[dict]]], starts: int, keep=None) -> list[str]:
     lines = [f"## {title}", ""]
-    videos = None
+    values = {method: cells(results, keep) for method, results in groups}
+    videos = [*sorted({v for _, v, _ in values[groups[0][0]] if v != "pooled"}), "pooled"]
+    if len(videos) == 2:  # one video: the pooled column says it all
+        videos = ["pooled"]
     for metric, label in METRICS.items():
         rows = []
-        for method, results in groups:
-            c = cells(results, keep)
-            if videos is None:
-                videos = [*sorted({v for _, v, _ in c if v != "pooled"}), "pooled"]
-                if len(videos) == 2:  # one video: the pooled column says it all
-                    videos = ["pooled"]
-            for ref in ("none", "1 start", "many"):
-                name = {
-                    "none": method,
-                    "1 start": f"{method} + ICP",
-                    "many": f"{method} + ICP from {starts} starts",
-                }[ref]
-                rows.append([name] + [fmt(c[(ref, v, metric)]) for v in videos])
+        for method, _ in groups:
+            names = {
+                "none": method,
+                "1 start": f"{method} + ICP",
+                "many": f"{method} + ICP from {starts} starts",
+            }
+            for ref, name in names.items():
+                rows.append([name] + [fmt(values[method][(ref, v, metric)]) for v in videos])
         lines += [f"**{label} (%)**", "", "| method | " + " | ".join(videos) + " |"]
         lines += ["|---|" + "---:|" * len(videos)] + ["| " + " | ".join(r) + " |" for r in rows]
         lines.append("")
