@@ -96,25 +96,36 @@ def make_batch(
     return pts, cls, R, t
 
 
-def make_step(variant: str, impl: str, B: int, n: int, compile_mode: str | None = None):
-    """A closure running one training step of ``variant``.
+def make_step(
+    variant: str,
+    impl: str,
+    B: int,
+    n: int,
+    compile_mode: str | None = None,
+    device: str = "cpu",
+):
+    """A closure running one training step of ``variant``; it returns the loss, so a step on a
+    GPU is timed to its end (``.item()`` waits for the device).
 
     Args:
         impl: "plain", "fused" (float32) or "fused_bf16" (fused bf16 GEMM + bf16 autocast).
         compile_mode: torch.compile mode for the model, or None.
+        device: where the model, the batch and the step live.
     """
     cfg = resolve(variant, "paper")
     torch.manual_seed(0)
     model = build_model(cfg.model)
     if impl != "plain":
         fuse_model(model, bf16=impl == "fused_bf16")
+    model.to(device)
     net = torch.compile(model, mode=compile_mode) if compile_mode else model
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
-    pts, cls, R, t = make_batch(B, n, cfg.model.num_classes, seed=1)
+    pts, cls, R, t = (x.to(device) for x in make_batch(B, n, cfg.model.num_classes, seed=1))
     bf16 = impl == "fused_bf16"
+    autocast_device = torch.device(device).type
 
     def step() -> float:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with torch.autocast(autocast_device, dtype=torch.bfloat16, enabled=bf16):
             out = net(pts, cls)
         loss = pose_loss(
             out.R.float(),

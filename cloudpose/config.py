@@ -169,7 +169,8 @@ class TrainConfig:
         device: "auto" (CUDA if available, else CPU), "cpu" or "cuda[:i]".
         kernel: "fused" = the last per-point layer, its BatchNorm, ReLU and the max pool as one
             exact autograd function (:mod:`cloudpose.models.fused`, same numerics, 2-2.5x the
-            training throughput on CPU); "plain" = the textbook modules.
+            training throughput on CPU; on a GPU, where it is slower, the plain modules run
+            instead: :func:`cloudpose.train.fused_kernel`); "plain" = the textbook modules.
         bn_recalibrate: before each validation and before the final save, re-estimate every
             BatchNorm's running statistics as the plain average over this many training
             batches (no gradient step; 0 = keep the running averages). Fixes eval mode in

@@ -288,3 +288,15 @@ def test_bad_input_raises() -> None:
         fused(torch.randn(4, 8))
     with pytest.raises(ValueError, match="more than 1 value"):
         fused(torch.randn(1, 1, 8))
+
+
+@pytest.mark.parametrize(
+    ("kernel", "device", "fused"),
+    [("fused", "cpu", True), ("fused", "cuda", False), ("plain", "cpu", False)],
+)
+def test_training_fuses_on_the_cpu_only(kernel: str, device: str, fused: bool) -> None:
+    """The fused kernel is the CPU's; on a GPU training runs the plain modules (faster there)."""
+    from cloudpose.train import fused_kernel
+
+    cfg = resolve("shared-0", "smoke", overrides={"train": {"kernel": kernel}})
+    assert fused_kernel(cfg, torch.device(device)) is fused

@@ -113,7 +113,28 @@ def test_training_step_on_cuda_matches_cpu(variant, kernel):
         _close(dev[key], cpu[key], key)
     # gradients of a max pool and a BatchNorm: a few float32 roundings more than the outputs
     _close(dev["grads"], cpu["grads"], "grad", rtol=1e-3, atol=1e-5)
-    _close(dev["state"], cpu["state"], "state", rtol=1e-3, atol=1e-5)
+    _close_after_adam(dev, cpu)
+
+
+GRAD_FLOOR = 1e-4
+"""Gradients above this have the same sign on both devices (they agree to 1e-5 + 0.1%)."""
+
+
+def _close_after_adam(dev: dict, cpu: dict) -> None:
+    """Weights and BatchNorm statistics after the step. Adam's first step moves a weight by
+    about ``lr * sign(grad)``, so a gradient at rounding level moves it by up to ``lr`` either
+    way: a Linear bias followed by BatchNorm has an exactly zero gradient in exact arithmetic,
+    and float32 leaves noise whose sign differs between devices. Those entries are left out;
+    every other weight and every buffer is compared, and they are most of the network."""
+    compared = total = 0
+    for name, a in dev["state"].items():
+        b, grad = cpu["state"][name], cpu["grads"].get(name)
+        if grad is not None:
+            keep = grad.abs() > GRAD_FLOOR
+            compared, total = compared + int(keep.sum()), total + keep.numel()
+            a, b = a[keep], b[keep]
+        _close(a, b, f"state/{name}", rtol=1e-3, atol=1e-5)
+    assert compared > 0.5 * total, f"only {compared} of {total} weights have a clear gradient"
 
 
 @pytest.mark.parametrize("variant", ["shared-0", "shared-2", "shared-all", "rot6d"])
