@@ -222,6 +222,18 @@ def command_line() -> str:
     return shlex.join([prog, *argv[1:]])
 
 
+def shown_path(path: str | Path) -> str:
+    """A path as a provenance line writes it: relative to the working folder when inside it, so a
+    committed report names the project's files, not one machine's folders; as given otherwise."""
+    path = Path(path)
+    if path.is_absolute():
+        try:
+            return str(path.relative_to(Path.cwd()))
+        except ValueError:
+            pass
+    return str(path)
+
+
 @functools.cache
 def git_commit(repo: Path | None = None) -> str:
     """Short commit of the code, ``+dirty`` when the tree has changes; "unknown" outside git.

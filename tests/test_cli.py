@@ -5,10 +5,13 @@ Every user mistake the CLI must answer in one line is in test_cli_misuse.py.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
+import typer
 from typer.testing import CliRunner
 
-from cloudpose.cli import app
+from cloudpose.cli import app, recorded_command
 
 
 @pytest.mark.slow
@@ -39,3 +42,26 @@ def test_cli_variants_lists_the_registry():
     assert res.exit_code == 0, res.output
     for name in variants():
         assert name in res.output
+
+
+def test_recorded_command_writes_paths_in_the_working_folder_relative(tmp_path, monkeypatch):
+    """A provenance line names the project's files, not the folder of the machine it ran on; a
+    path outside the working folder stays as given."""
+    demo = typer.Typer()
+    seen: list[str] = []
+
+    @demo.command()
+    def make(ctx: typer.Context, out: Path = typer.Option(...), seed: int = 1) -> None:
+        seen.append(recorded_command(ctx))
+
+    project = tmp_path / "project"
+    (project / "reports").mkdir(parents=True)
+    monkeypatch.chdir(project)
+    runner = CliRunner()
+    for out, shown in [
+        (project / "reports" / "log.md", "reports/log.md"),
+        (tmp_path / "elsewhere.md", str(tmp_path / "elsewhere.md")),
+    ]:
+        res = runner.invoke(demo, ["--out", str(out), "--seed", "3"])
+        assert res.exit_code == 0, res.output
+        assert seen[-1] == f"cloudpose --out {shown} --seed 3"

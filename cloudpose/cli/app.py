@@ -166,8 +166,16 @@ def recorded_command(ctx: typer.Context) -> str:
             parts.append(p.opts[0] if value else (p.secondary_opts or p.opts)[0])
             continue
         for v in value if p.multiple else [value]:
-            parts += [p.opts[0], str(v)]
+            parts += [p.opts[0], _shown(v)]
     return shlex.join(parts)
+
+
+def _shown(value) -> str:
+    """An option's value as the provenance line writes it (paths: :func:`tracking.shown_path`;
+    the command still runs as written from the same folder)."""
+    from cloudpose.tracking import shown_path
+
+    return shown_path(value) if isinstance(value, Path) else str(value)
 
 
 def config_of(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):

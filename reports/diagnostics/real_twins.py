@@ -57,6 +57,7 @@ from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics.summaries import voc_ap_auc
+from cloudpose.tracking import shown_path
 
 CONDITIONS = (
     "real",
@@ -282,7 +283,7 @@ def main() -> None:
     print("# Real frames against their synthetic twins\n")
     print(
         f"_made by `{cmd}`; checkpoint {ckpt} ({cfg.variant}/{cfg.preset}/seed{cfg.seed}, "
-        f"generator version {cfg.data.synth_version}); data {Path(args.data).resolve()} "
+        f"generator version {cfg.data.synth_version}); data {shown_path(Path(args.data).resolve())} "
         f"({args.frames}: {len(frames)} frames); twins rendered with surface version {surface}, "
         f"noise seed {args.seed}; {cfg.train.n_points} points per segment into the network; "
         f"instances without a usable point (misses): {missed_text or 'none'}._\n"

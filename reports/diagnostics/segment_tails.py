@@ -40,6 +40,7 @@ from cloudpose.data.layout import open_dataset
 from cloudpose.data.render import Renderer
 from cloudpose.data.segments import extract_segments, farthest_point_sampling, instance_streams
 from cloudpose.data.synth.sensor import edge_distance
+from cloudpose.tracking import shown_path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from real_twins import _conditions, _markdown
@@ -155,7 +156,7 @@ def main() -> None:
     cmd = "nice -n 19 python reports/diagnostics/segment_tails.py " + " ".join(sys.argv[1:])
     print("# Segment tails: distance of segment points to the model at the ground truth\n")
     print(
-        f"_made by `{cmd.strip()} > reports/diagnostics/segment_tails.md`; data {args.data}; "
+        f"_made by `{cmd.strip()} > reports/diagnostics/segment_tails.md`; data {shown_path(args.data)}; "
         f"surface version {args.surface_version}, noise seed {args.seed}; instances weighted "
         "equally; distances to the posed surface mesh; far = beyond 1 cm; behind/in front: "
         "sign along the viewing ray; off-silh.: the ray misses the instance in the clean "
