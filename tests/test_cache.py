@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from cloudpose.config import DataConfig
 from cloudpose.data import cache, dataset
@@ -114,8 +115,17 @@ def test_prepare_and_keys(project, tmp_path):
     assert cache.cache_key(copy, "train", CFG) == key  # a re-render is the same data
     meta.write_bytes(raw[:-1] + bytes([raw[-1] ^ 1]))  # any other byte still counts
     assert cache.cache_key(copy, "train", CFG) != key
+    # a PNG is its pixels: the same image compressed to other bytes (another encoder, another
+    # CPU) is the same data, one pixel changed is not
     label = root / "data" / "0000" / "000002-label.png"
-    label.write_bytes(label.read_bytes() + b"\0")  # new content
+    raw = label.read_bytes()
+    with Image.open(label) as im:
+        pixels = np.array(im)
+    Image.fromarray(pixels).save(label, format="PNG", compress_level=1)
+    assert label.read_bytes() != raw
+    assert cache.cache_key(root, "train", CFG, memo_dir=cdir) == key
+    pixels[tuple(np.argwhere(pixels > 0)[0])] = 0  # one object pixel to background
+    Image.fromarray(pixels).save(label, format="PNG")
     key2 = cache.cache_key(root, "train", CFG, memo_dir=cdir)
     assert key2 != key
     p2 = cache.prepare(root, "train", CFG, cdir, workers=1, progress=False)

@@ -3,7 +3,7 @@
 :func:`prepare` runs :func:`cloudpose.data.segments.extract_segments` over a split's frames (all
 cores) and writes one uncompressed ``.npz`` of columnar arrays (:class:`SegmentSet`) that loads
 into memory in seconds. The file name holds a key that hashes everything the segments depend on:
-the frame list, the content of each frame file and model file (and of the files of a predicted
+the frame list, the content of each frame file (a PNG's decoded image, not its bytes) and model file (and of the files of a predicted
 segmentation), and the segment settings (n_fps, outlier_radius, segmentation, FPS seed,
 pipeline version). A changed frame or setting gives a new key, so a stale cache is never read.
 
@@ -84,8 +84,9 @@ def cache_key(
     """Key of a split's segments: hash of frame ids, the *content* of each frame's files and of
     the model files, and the segment settings (20 hex digits).
 
-    Byte-identical data gives the same key wherever it lies and whenever it was written (a
-    ``cp -r`` copy, a re-render in another clone). Content digests are remembered by path,
+    The same data gives the same key wherever it lies, whenever and on whichever machine it was
+    written (a ``cp -r`` copy, a re-render in another clone or on another CPU, whose PNG
+    encoder may compress the same pixels to other bytes). Content digests are remembered by path,
     size and modification time in the memo :data:`DIGEST_MEMO` in ``memo_dir`` (when given),
     so a large dataset is read once, not on every command.
     """
@@ -123,12 +124,35 @@ MAT_TEXT_HEADER = 116
 in it alone; the digest of a ``.mat`` file leaves it out."""
 
 
-DIGEST_MEMO = "digests-v2.json"
+DIGEST_MEMO = "digests-v3.json"
 """The memo of file digests; its name changes with the digest's definition (v2: a ``.mat``
-file's text header left out), so no digest of an older definition is reused."""
+file's text header left out; v3: a PNG's decoded image, not its bytes), so no digest of an
+older definition is reused."""
+
+
+def _png_digest(path: Path) -> str:
+    """BLAKE2b of a PNG's decoded image: mode, size, palette and pixels.
+
+    A PNG's bytes are not its content: the same pixels compress to other bytes under another
+    deflate implementation, and Pillow's (zlib-ng) picks its matches by the CPU's instruction
+    set, so one frame rendered on two machines gives two files that decode alike.
+    """
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im.load()
+        h = hashlib.blake2b()
+        h.update(f"png:{im.mode};{im.size[0]}x{im.size[1]};".encode())
+        palette = im.getpalette()
+        if palette is not None:
+            h.update(bytes(palette))
+        h.update(im.tobytes())
+    return h.hexdigest()[:32]
 
 
 def _file_digest(path: Path) -> str:
+    if path.suffix.lower() == ".png":
+        return _png_digest(path)
     with open(path, "rb") as f:
         if path.suffix == ".mat":
             f.seek(MAT_TEXT_HEADER)
@@ -136,8 +160,9 @@ def _file_digest(path: Path) -> str:
 
 
 def content_digests(paths: list[Path], memo_dir: str | Path | None = None) -> list[str]:
-    """BLAKE2b digests (32 hex digits) of the files' bytes, in order (a ``.mat`` file's bytes
-    after its descriptive text header, which holds the time it was written).
+    """BLAKE2b digests (32 hex digits) of the files' content, in order: a file's bytes, a
+    ``.mat`` file's bytes after its descriptive text header (which holds the time it was
+    written), a PNG's decoded image (:func:`_png_digest`).
 
     Args:
         paths: files to hash.
