@@ -72,7 +72,8 @@ def current_keys(preset: str, project_dir: Path) -> dict[str, str]:
 def rekey_runs(
     preset: str, old: Iterable[str], project_dir: Path | None = None, *, dry_run: bool = False
 ) -> list[Rekeyed]:
-    """Give the runs of ``preset`` whose ``data`` tag is one of ``old`` today's keys.
+    """Give the runs of ``preset`` whose ``data`` tag is (or was, before an earlier rekey) one of
+    ``old`` today's keys.
 
     Args:
         preset: the preset whose runs to rekey (tag ``preset``).
@@ -100,8 +101,9 @@ def rekey_runs(
     changes: list[Rekeyed] = []
     for run in tracking.find_runs(client, preset=preset, status=None):
         tags = run.data.tags
-        data = tags.get("data", "")
-        if not any(data.startswith(k) for k in old):
+        # a run rekeyed while it ran logs its evaluations' keys later, by the old definition
+        was = (tags.get("data", ""), tags.get(REKEYED_PREFIX + "data", ""))
+        if not any(w.startswith(k) for w in was for k in old):
             continue
         wanted = {"data": keys["data"]}
         own = {
@@ -111,10 +113,11 @@ def rekey_runs(
             if tag.startswith("eval/") and tag.endswith("/data") and value in own:
                 wanted[tag] = own[value]
         for tag, new in wanted.items():
-            if tags.get(tag) != new:
-                changes.append(Rekeyed(run.info.run_id, run.info.run_name, tag, tags[tag], new))
-    if not dry_run:
-        for c in changes:
-            client.set_tag(c.run_id, REKEYED_PREFIX + c.tag, c.old)
-            client.set_tag(c.run_id, c.tag, c.new)
+            if tags.get(tag) == new:
+                continue
+            changes.append(Rekeyed(run.info.run_id, run.info.run_name, tag, tags[tag], new))
+            if not dry_run:
+                if REKEYED_PREFIX + tag not in tags:  # a second rekey keeps the first key
+                    client.set_tag(run.info.run_id, REKEYED_PREFIX + tag, tags[tag])
+                client.set_tag(run.info.run_id, tag, new)
     return changes

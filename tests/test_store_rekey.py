@@ -57,6 +57,12 @@ def test_rekeyed_runs_are_found_under_todays_keys(tmp_path, smoke_data, empty_st
     assert tags["eval/test-degraded-mild/data"] == "c" * 20
     assert client.get_run(other).data.tags["data"] == "fedcba9876543210"
     assert finished_run(client, cfg, keys["data"]).info.run_id == moved
+    # a run rekeyed while it ran logs its evaluations later, keyed by the old definition
+    client.set_tag(moved, "eval/real/data", "d" * 20)
+    res = cli("store-rekey", "--preset", "smoke", "--old", "01234567")
+    assert "changed 1 tag(s) of 1 run(s)" in res.output, res.output
+    tags = client.get_run(moved).data.tags
+    assert tags["eval/real/data"] == keys["real"] and tags["rekeyed/eval/real/data"] == "b" * 20
     # again: nothing left to change; today's key is refused as an old one
     assert (
         "changed 0 tag(s) of 0 run(s)"
