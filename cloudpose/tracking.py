@@ -216,10 +216,20 @@ def metric_key(*parts: str) -> str:
 
 
 def command_line() -> str:
-    """The command line of this process, as a user would type it (``cloudpose report ...``)."""
+    """The command line of this process, as a user would type it (``cloudpose report ...``), with
+    absolute paths inside the working folder written relative to it (:func:`shown_path`)."""
     argv = list(sys.argv)
     prog = Path(argv[0]).name if argv else "python"
-    return shlex.join([prog, *argv[1:]])
+    return shlex.join([prog, *map(_shown_arg, argv[1:])])
+
+
+def _shown_arg(arg: str) -> str:
+    """One argument as :func:`command_line` writes it: ``/abs/x`` and ``--opt=/abs/x`` inside
+    the working folder become relative; anything else is kept."""
+    head, sep, value = arg.partition("=") if arg.startswith("--") else ("", "", arg)
+    if not value.startswith("/"):
+        return arg
+    return f"{head}{sep}{shown_path(value)}"
 
 
 def shown_path(path: str | Path) -> str:

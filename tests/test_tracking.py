@@ -117,3 +117,26 @@ def test_git_commit_is_the_tree_when_the_process_first_asked(tmp_path):
     first = tracking.git_commit(tmp_path)
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "b")
     assert first != "unknown" and tracking.git_commit(tmp_path) == first
+
+
+def test_command_line_writes_paths_inside_the_working_folder_relative(tmp_path, monkeypatch):
+    """A provenance line names the project's files, not one machine's folders: absolute paths
+    under the working folder (bare or as ``--opt=PATH``) are written relative, others as given."""
+    monkeypatch.chdir(tmp_path)
+    outside = tmp_path.parent / "elsewhere" / "x.md"
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "/usr/bin/cloudpose",
+            "report",
+            "--out",
+            str(tmp_path / "reports" / "a b"),
+            f"--readme={tmp_path / 'reports' / 'README.md'}",
+            str(outside),
+            "--seeds=3",
+        ],
+    )
+    assert tracking.command_line() == (
+        f"cloudpose report --out 'reports/a b' --readme=reports/README.md {outside} --seeds=3"
+    )
