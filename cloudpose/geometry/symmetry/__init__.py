@@ -77,6 +77,7 @@ from cloudpose.geometry.symmetry.table import (
     symmetry_from_json,
     symmetry_to_json,
     sync_table,
+    table_differences,
 )
 
 __all__ = [
@@ -101,4 +102,5 @@ __all__ = [
     "symmetry_from_json",
     "symmetry_to_json",
     "sync_table",
+    "table_differences",
 ]

@@ -14,6 +14,7 @@ import numpy as np
 
 from cloudpose.config import SYMMETRY_TABLE_VERSIONS
 from cloudpose.conventions import packaged_classes, resource_path
+from cloudpose.geometry.rigid import rotation_error_deg
 
 SYMMETRY_TABLES = {
     v: resource_path("symmetries.json" if v == 1 else f"symmetries-v{v}.json")
@@ -177,7 +178,7 @@ def symmetry_to_json(s: ClassSymmetry) -> dict:
     """The table entry of one class (rotations as rotation vectors in degrees, rounded)."""
     from scipy.spatial.transform import Rotation
 
-    rotvecs = np.degrees(Rotation.from_matrix(s.discrete).as_rotvec()).round(6) + 0.0
+    rotvecs = _canonical_rotvecs(np.degrees(Rotation.from_matrix(s.discrete).as_rotvec()))
     return {
         "kind": s.kind,
         "discrete_rotvec_deg": rotvecs.tolist(),
@@ -185,6 +186,56 @@ def symmetry_to_json(s: ClassSymmetry) -> dict:
         "flip": s.flip,
         "centre_m": np.round(s.centre, 6).tolist(),
     }
+
+
+def _canonical_rotvecs(rotvecs_deg: np.ndarray) -> np.ndarray:
+    """(G, 3) rotation vectors in degrees, rounded to 1e-6, with each half turn written one
+    way: ``v`` and ``-v`` of angle 180 are the same rotation, and which one an eigen-solver or
+    SVD returns depends on the CPU's kernels; the largest component of a half turn is made
+    positive."""
+    v = np.asarray(rotvecs_deg, dtype=np.float64).copy()
+    half = np.abs(np.linalg.norm(v, axis=1) - 180.0) < 1e-3
+    big = v[np.arange(len(v)), np.abs(v).argmax(axis=1)]
+    v[half & (big < 0)] *= -1.0
+    return v.round(6) + 0.0
+
+
+def table_differences(a: dict, b: dict, tol_deg: float = 1e-3, tol_m: float = 1e-6) -> list[str]:
+    """Where two symmetry tables (as :func:`build_table` returns or the packaged JSON holds)
+    describe different symmetries: one line per difference, empty when they agree.
+
+    Rotations are compared as rotations (geodesic distance <= ``tol_deg``, as sets, in any
+    order and either sign of a half turn), axes up to sign, centres within ``tol_m``: what a
+    table means, not its digits, which differ in the last places between CPUs.
+    """
+    out = [
+        f"{k}: {a.get(k)!r} != {b.get(k)!r}"
+        for k in ("version", "tolerance", "tolerance_p99")
+        if a.get(k) != b.get(k)
+    ]
+    ca, cb = a.get("classes", {}), b.get("classes", {})
+    out += [f"{n}: in one table only" for n in sorted(set(ca) ^ set(cb))]
+    for name in sorted(set(ca) & set(cb)):
+        x, y = symmetry_from_json(ca[name]), symmetry_from_json(cb[name])
+        if (x.axis is None) != (y.axis is None) or x.flip != y.flip:
+            out.append(f"{name}: kind or flip differs ({x.describe()} vs {y.describe()})")
+            continue
+        if x.axis is not None and abs(float(x.axis @ y.axis)) < np.cos(np.radians(tol_deg)):
+            out.append(f"{name}: axis {x.axis.tolist()} vs {y.axis.tolist()}")
+        if np.abs(x.centre - y.centre).max() > tol_m:
+            out.append(f"{name}: centre {x.centre.tolist()} vs {y.centre.tolist()}")
+        err = rotation_error_deg(  # (Gx, Gy): every rotation of x against every one of y
+            np.repeat(x.discrete, len(y.discrete), 0), np.tile(y.discrete, (len(x.discrete), 1, 1))
+        ).reshape(len(x.discrete), len(y.discrete))
+        if (
+            len(x.discrete) != len(y.discrete)
+            or err.min(1).max() > tol_deg
+            or err.min(0).max() > tol_deg
+        ):
+            out.append(
+                f"{name}: discrete rotations differ ({len(x.discrete)} vs {len(y.discrete)})"
+            )
+    return out
 
 
 def symmetry_from_json(entry: dict) -> ClassSymmetry:
@@ -250,6 +301,13 @@ def sync_table(version: int, write: bool = False) -> TableSync:
     text = json.dumps(table, indent=1) + "\n"
     if write:
         path.write_text(text)
-    elif not path.is_file() or path.read_text() != text:
-        raise ValueError(f"{path} differs from the models' symmetries; run with --write")
+    elif not path.is_file():
+        raise ValueError(f"{path} not found; run with --write")
+    else:
+        diff = table_differences(json.loads(path.read_text()), json.loads(text))
+        if diff:
+            raise ValueError(
+                f"{path} differs from the models' symmetries ({'; '.join(diff[:3])}); "
+                "run with --write"
+            )
     return TableSync(path, table, write)
