@@ -152,7 +152,7 @@ def setup(project_dir: Path | None = None):
         logging.getLogger(name).setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", module="mlflow")
     uri = tracking_uri(project_dir)
-    db = _sqlite_path(uri)
+    db = sqlite_path(uri)
     if db is None:
         return mlflow.MlflowClient(tracking_uri=uri)
     # The first client of a new SQLite store creates its tables and runs every schema
@@ -180,7 +180,7 @@ class StoreError(RuntimeError):
     """The MLflow store exists but cannot be opened (the message says how to recover)."""
 
 
-def _sqlite_path(uri: str) -> Path | None:
+def sqlite_path(uri: str) -> Path | None:
     """The database file of a ``sqlite:///`` tracking URI, else None."""
     prefix = "sqlite:///"
     return Path(uri[len(prefix) :]) if uri.startswith(prefix) else None

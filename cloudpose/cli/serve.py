@@ -118,16 +118,23 @@ def store_pack(
         list[str] | None,
         typer.Option(help="Run (id or name) whose checkpoints (*.pt) to pack (repeatable)."),
     ] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing archive.")] = False,
 ) -> None:
     """Pack this folder's MLflow store (mlflow.db and mlartifacts/) into one .tar.xz with
     artifact addresses relative to the folder; checkpoints only of the runs named."""
     from cloudpose.store_archive import pack_store
 
-    s = pack_store(Path.cwd(), out, checkpoint or [])
+    s = pack_store(Path.cwd(), out, checkpoint or [], force=force)
     typer.echo(
         f"{out}: {s.runs} runs, {s.files} artifact files ({s.checkpoints_kept} checkpoints "
         f"packed, {s.checkpoints_left_out} left out), {s.bytes / 1e6:.1f} MB"
     )
+    if s.without_artifacts:
+        typer.secho(
+            f"warning: {len(s.without_artifacts)} of {s.runs} runs have no artifact folder "
+            f"(e.g. run {s.without_artifacts[0]}): they have no artifacts in the archive",
+            err=True,
+        )
 
 
 @app.command("store-unpack")
