@@ -44,7 +44,8 @@ def load_classes(path: str | Path) -> list[str]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: class list not found (expected classes.txt)")
-    names = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    text = path.read_text(encoding="utf-8-sig")  # a byte order mark is no part of a name
+    names = [line.strip() for line in text.splitlines() if line.strip()]
     if not names:
         raise ValueError(f"{path}: class list is empty (expected one class name per line)")
     dup = sorted({n for n in names if names.count(n) > 1})

@@ -77,7 +77,7 @@ def test_an_unreadable_chunk_is_made_again(tmp_path):
     ref = chunks[2]
     path = chunks.store.path(1, 2)
     path.write_bytes(b"not a zip")
-    with pytest.warns(UserWarning, match="unreadable stored chunk"):
+    with pytest.warns(UserWarning, match="stored chunk is unreadable"):
         again = OnlineChunks(KW, 1, 4, 3, store=tmp_path)[2]
     for a, b in zip(again, ref, strict=True):
         assert torch.equal(a, b)

@@ -29,6 +29,15 @@ class _Commands(TyperGroup):
 
         try:
             return super().invoke(ctx)
+        except _CORRUPT as exc:
+            # before ValueError: a JSONDecodeError is one, and its text names no file
+            message = _corrupt_file_message(exc)
+            if _DEBUG:
+                if isinstance(exc, EOFError):  # click would print "Aborted." for it
+                    raise RuntimeError(message) from exc
+                raise
+            typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(2) from None
         except (ValueError, FileNotFoundError, FileExistsError, ConnectionError, StoreError) as exc:
             if _DEBUG:
                 raise
@@ -45,6 +54,85 @@ class _Commands(TyperGroup):
     def format_help(self, ctx: click.Context, formatter) -> None:
         _help_layout(self, ctx)
         return super().format_help(ctx, formatter)
+
+
+def _corrupt_types() -> tuple[type[BaseException], ...]:
+    import json
+    import lzma
+    import pickle
+    import zipfile
+    import zlib
+
+    return (
+        EOFError,
+        zipfile.BadZipFile,
+        pickle.UnpicklingError,
+        json.JSONDecodeError,
+        lzma.LZMAError,
+        zlib.error,
+    )
+
+
+_CORRUPT = _corrupt_types()
+"""What a parser raises on a zero-byte, truncated or garbled file that no reader of the suite
+caught. ``EOFError`` among them: the commands read no terminal input, so it never means Ctrl-D
+here; left to click it would print "Aborted." (exit 1, even under ``--debug``), naming nothing."""
+
+
+def _corrupt_file_message(exc: BaseException) -> str:
+    """One line for an unreadable file: the file (found in the traceback's frames: the path
+    the innermost reader was given), what the parser said, and what to do."""
+    from cloudpose.files import why
+
+    debug = "" if _DEBUG else "; --debug shows the traceback"
+    frames = _traceback_frames(exc)
+    if any(f.f_code.co_filename.endswith(_PIPES) for f in frames):
+        return f"a worker process ended early ({why(exc)}){debug}"
+    path = _file_in(frames)
+    where = f"{path}: " if path is not None else "a file this command reads is "
+    return (
+        f"{where}unreadable: empty, truncated or garbled ({why(exc)}); a cache (under "
+        f"data/cache) can be deleted and is made again, other files need restoring{debug}"
+    )
+
+
+_PIPES = ("multiprocessing/connection.py",)
+"""Where an ``EOFError`` means a worker process's pipe closed, not a file."""
+
+
+def _traceback_frames(exc: BaseException) -> list:
+    """The frames of ``exc``'s traceback, innermost first."""
+    tb, frames = exc.__traceback__, []
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    return frames[::-1]
+
+
+def _file_in(frames: list) -> Path | None:
+    """The file the failing read was reading: of the frames from the innermost out to the
+    innermost of cloudpose's own, the first local that is a path (or an open file's name) of
+    an existing file."""
+    import io
+    import os
+
+    package = str(Path(__file__).resolve().parents[1])
+    for frame in frames:
+        for value in list(frame.f_locals.values()):
+            if isinstance(value, io.IOBase):
+                value = getattr(value, "name", None)
+            if isinstance(value, str) and (len(value) > 1024 or "\n" in value):
+                continue
+            if not isinstance(value, (str, os.PathLike)) or not value:
+                continue
+            try:
+                if Path(value).is_file():
+                    return Path(value)
+            except (OSError, ValueError):
+                continue
+        if frame.f_code.co_filename.startswith(package):
+            break  # outer frames hold other paths: the run's, the project's
+    return None
 
 
 PIPED_HELP_WIDTH = 120

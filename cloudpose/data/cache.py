@@ -12,6 +12,12 @@ it needs are stored in the file): a scene whose segments are a tenth or ten time
 model's size stops the command that reads it (prepare, train, evaluate, baseline) with one
 line, unless ``CLOUDPOSE_NO_UNIT_CHECK=1``.
 
+A cache file is checked on every use (:meth:`SegmentSet.check`: every field there, with the
+shapes the others imply and the bytes its header declares; :meth:`SegmentSet.load`: every
+array's CRC): one that is empty, truncated, garbled or of the wrong shape is made again, with
+a one-line warning naming it. So is a damaged digest memo. A frame image that cannot be read is
+one line naming it (``error: PATH: image is not a readable PNG ...``).
+
 Which dataset a config means, and its preparation for training, are in
 :mod:`cloudpose.data.dataset`.
 
@@ -36,7 +42,7 @@ from cloudpose.data.mask_sources import get_mask_source
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, Segment, SegmentWarning, extract_segments
 from cloudpose.data.ycb import YCBVideo
-from cloudpose.files import atomic_text
+from cloudpose.files import CorruptFileError, atomic_text, read_json, read_npz, why
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -136,11 +142,22 @@ def _png_digest(path: Path) -> str:
     A PNG's bytes are not its content: the same pixels compress to other bytes under another
     deflate implementation, and Pillow's (zlib-ng) picks its matches by the CPU's instruction
     set, so one frame rendered on two machines gives two files that decode alike.
+
+    Raises:
+        CorruptFileError: the file is empty, truncated or not a PNG (named, with what to do).
     """
     from PIL import Image
 
-    with Image.open(path) as im:
+    try:
+        im = Image.open(path)
         im.load()
+    except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as e:
+        raise CorruptFileError(
+            path,
+            f"image is not a readable PNG ({why(e)}); replace it (in a synthetic set: delete it "
+            "and run the command again, which renders its frame anew)",
+        ) from e
+    with im:
         h = hashlib.blake2b()
         h.update(f"png:{im.mode};{im.size[0]}x{im.size[1]};".encode())
         palette = im.getpalette()
@@ -159,6 +176,28 @@ def _file_digest(path: Path) -> str:
         return hashlib.file_digest(f, "blake2b").hexdigest()[:32]
 
 
+def _read_memo(path: Path) -> dict[str, list]:
+    """The digest memo in ``path``; {} (after a one-line warning naming it) when it is not one:
+    it is only a memo, so it is made again."""
+    try:
+        memo = read_json(path, "digest memo", "making it again")
+        ok = isinstance(memo, dict) and all(
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(x, int) for x in v[:2])
+            and isinstance(v[2], str)
+            for v in memo.values()
+        )
+        if not ok:
+            raise CorruptFileError(
+                path, "digest memo is not {path: [size, mtime_ns, digest]}; making it again"
+            )
+    except CorruptFileError as e:
+        warnings.warn(str(e), stacklevel=3)
+        return {}
+    return memo
+
+
 def content_digests(paths: list[Path], memo_dir: str | Path | None = None) -> list[str]:
     """BLAKE2b digests (32 hex digits) of the files' content, in order: a file's bytes, a
     ``.mat`` file's bytes after its descriptive text header (which holds the time it was
@@ -171,12 +210,7 @@ def content_digests(paths: list[Path], memo_dir: str | Path | None = None) -> li
             no memo.
     """
     memo_path = Path(memo_dir) / DIGEST_MEMO if memo_dir else None
-    memo: dict[str, list] = {}
-    if memo_path is not None and memo_path.is_file():
-        try:
-            memo = json.loads(memo_path.read_text())
-        except ValueError:  # a torn or foreign file: start over, it is only a memo
-            memo = {}
+    memo = _read_memo(memo_path) if memo_path is not None and memo_path.is_file() else {}
     out, changed = [], False
     for p in paths:
         st = os.stat(p)
@@ -254,11 +288,24 @@ def _run(jobs: list, ds: Dataset, workers: int):
 
 def _stored_unit_stats(path: Path, models_by_class: dict[int, np.ndarray]) -> dict:
     """The unit statistics a cache file stores; measured from its segments for a file written
-    before they were stored."""
+    before they were stored.
+
+    Raises:
+        CorruptFileError: the file fails :meth:`SegmentSet.check` or its statistics are
+            unreadable.
+    """
+    SegmentSet.check(path)
     with np.load(path, allow_pickle=False) as z:
-        if "unit_scene" in z.files and "unit_stats" in z.files:
-            return {"unit_scene": z["unit_scene"], "unit_stats": z["unit_stats"]}
+        stored = "unit_scene" in z.files and "unit_stats" in z.files
+    if stored:
+        return read_npz(path, ("unit_scene", "unit_stats"), "segment cache")
     return unit_stats(SegmentSet.load(path), models_by_class)
+
+
+def _discard(e: CorruptFileError) -> None:
+    """A damaged cache file: warn in one line naming it, and remove it (it is made again)."""
+    warnings.warn(f"{e}; making it again", stacklevel=3)
+    e.path.unlink(missing_ok=True)
 
 
 def cache_path(
@@ -292,6 +339,9 @@ def prepare(
     Returns:
         Path of the cache file.
 
+    A cache file that fails :meth:`SegmentSet.check` (zero bytes, truncated, a field of the
+    wrong shape) is made again, with a one-line warning naming it.
+
     Raises:
         ValueError: a scene's segments look like depth in another unit (:func:`check_units`;
             the cache is written all the same, and checked again on every use).
@@ -301,8 +351,13 @@ def prepare(
     settings = _settings(cfg)
     path = cache_path(ds, split, cfg, cache_dir or root / "cache")
     if path.is_file():
-        check_units(ds, _stored_unit_stats(path, ds.models()))
-        return path
+        try:
+            unit = _stored_unit_stats(path, ds.models())
+        except CorruptFileError as e:
+            _discard(e)
+        else:
+            check_units(ds, unit)
+            return path
     frames = _split_frames(ds, split)
     jobs = [(fid, settings) for fid in frames]
     workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
@@ -357,5 +412,23 @@ def segments_for(
 
     cfg = cfg or DataConfig()
     cache_dir = Path(cache_dir) if cache_dir else Path.cwd() / "data" / "cache"
-    path = prepare(dataset, frames, cfg, cache_dir, workers=workers, progress=progress)
-    return SegmentSet.load(path)
+    return load_segments(dataset, frames, cfg, cache_dir, workers=workers, progress=progress)
+
+
+def load_segments(
+    dataset: str | Path | Dataset,
+    split: str,
+    cfg: DataConfig,
+    cache_dir: str | Path | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> SegmentSet:
+    """The segments of a split: :func:`prepare` (arguments as there), then the cache read
+    whole; a file whose bytes turn out damaged on that read (a CRC that fails) is made again,
+    with a one-line warning naming it."""
+    path = prepare(dataset, split, cfg, cache_dir, workers=workers, progress=progress)
+    try:
+        return SegmentSet.load(path)
+    except CorruptFileError as e:
+        _discard(e)
+    return SegmentSet.load(prepare(dataset, split, cfg, cache_dir, workers, progress))

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cloudpose.data.cache import SegmentSet, cache_key, prepare, segments_for
+from cloudpose.data.cache import SegmentSet, cache_key, load_segments, segments_for
 from cloudpose.data.layout import Dataset, as_dataset, open_dataset
 
 if TYPE_CHECKING:
@@ -96,7 +96,7 @@ def prepare_data(
     ds = open_dataset(root)
     train, test = (
         only_classes(
-            SegmentSet.load(prepare(ds, split, cfg, cache_dir, workers=workers, progress=progress)),
+            load_segments(ds, split, cfg, cache_dir, workers=workers, progress=progress),
             ds,
             cfg.classes,
         )

@@ -9,6 +9,8 @@ and of evaluation. :func:`unit_stats` measures, per scene, what the depth unit c
 
 from __future__ import annotations
 
+import math
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,9 +22,14 @@ from cloudpose.data.segments import (
     depth_scale_stats,
     report_depth_scale,
 )
-from cloudpose.files import atomic_write
+from cloudpose.files import UNREADABLE, CorruptFileError, atomic_write, read_npz, why
 
 __all__ = ["UNIT_SAMPLE", "SegmentSet", "check_units", "unit_stats"]
+
+_NPY_HEADERS = {
+    (1, 0): np.lib.format.read_array_header_1_0,
+    (2, 0): np.lib.format.read_array_header_2_0,
+}
 
 
 @dataclass
@@ -102,29 +109,78 @@ class SegmentSet:
 
     @classmethod
     def load(cls, path: str | Path) -> SegmentSet:
-        """Read a set written by :meth:`save`.
+        """Read a set written by :meth:`save`, every array whole (a damaged one fails its CRC).
 
         Raises:
             FileNotFoundError: no such file.
-            ValueError: the file lacks a field or a field has the wrong shape.
+            CorruptFileError: (a ``ValueError``) the file is empty, truncated or garbled, lacks
+                a field, or a field has the wrong shape.
         """
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: segment cache not found")
-        with np.load(path, allow_pickle=False) as z:
-            missing = [n for n in (*cls._ARRAYS, "key") if n not in z.files]
-            if missing:
-                raise ValueError(f"{path}: segment cache lacks fields {missing}")
-            parts = {n: z[n] for n in cls._ARRAYS}
-            key = str(z["key"])
-        m = len(parts["count"])
-        p = parts["points"]
-        if p.ndim != 3 or p.shape[0] != m or p.shape[2] != 3:
-            raise ValueError(f"{path}: points have shape {p.shape}, expected ({m}, n_fps, 3)")
-        for n in cls._ARRAYS:
-            if len(parts[n]) != m:
-                raise ValueError(f"{path}: field {n} has {len(parts[n])} rows, expected {m}")
+        parts = read_npz(path, (*cls._ARRAYS, "key"), "segment cache")
+        key = str(parts.pop("key"))
+        _check_shapes(path, {n: a.shape for n, a in parts.items()})
         return cls(**parts, key=key)
+
+    @classmethod
+    def check(cls, path: str | Path) -> None:
+        """Check a file written by :meth:`save` without reading its arrays: every field is there
+        with the shape the others imply, and each array's stored bytes are as many as its header
+        declares (a zero-byte or truncated file fails here). Garbled bytes inside an array are
+        found by :meth:`load`, which reads them.
+
+        Raises:
+            CorruptFileError: as :meth:`load`.
+        """
+        path = Path(path)
+        shapes: dict[str, tuple[int, ...]] = {}
+        try:
+            with zipfile.ZipFile(path) as z:
+                members = {i.filename: i for i in z.infolist()}
+                missing = [n for n in (*cls._ARRAYS, "key") if f"{n}.npy" not in members]
+                if missing:
+                    raise CorruptFileError(path, f"segment cache lacks fields {missing}")
+                for n in cls._ARRAYS:
+                    info = members[f"{n}.npy"]
+                    with z.open(info) as f:
+                        version = np.lib.format.read_magic(f)
+                        read_header = _NPY_HEADERS.get(version)
+                        if read_header is None:  # a later format: read it all
+                            cls.load(path)
+                            return
+                        shape, _, dtype = read_header(f)
+                        header = f.tell()
+                    if header + math.prod(shape) * dtype.itemsize != info.file_size:
+                        raise CorruptFileError(
+                            path,
+                            f"segment cache array {n} holds {info.file_size - header} bytes, its "
+                            f"header declares {math.prod(shape) * dtype.itemsize}",
+                        )
+                    shapes[n] = shape
+        except CorruptFileError:
+            raise
+        except UNREADABLE as e:
+            raise CorruptFileError(path, f"segment cache is unreadable ({why(e)})") from e
+        _check_shapes(path, shapes)
+
+
+def _check_shapes(path: Path, shapes: dict[str, tuple[int, ...]]) -> None:
+    """The fields of a stored set agree: M rows each, points (M, n_fps, 3), R (M, 3, 3),
+    t (M, 3), the others (M,)."""
+    count = shapes["count"]
+    if len(count) != 1:
+        raise CorruptFileError(path, f"segment cache field count has shape {count}, expected (M,)")
+    m = count[0]
+    n_fps = shapes["points"][1] if len(shapes["points"]) == 3 else "n_fps"
+    expected = {n: (m,) for n in SegmentSet._ARRAYS}
+    expected.update(points=(m, n_fps, 3), R=(m, 3, 3), t=(m, 3))
+    for n, want in expected.items():
+        if shapes[n] != want:
+            raise CorruptFileError(
+                path, f"segment cache field {n} has shape {shapes[n]}, expected {want}"
+            )
 
 
 # --------------------------------------------------------------------------- units

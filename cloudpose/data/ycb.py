@@ -112,12 +112,39 @@ def load_model_points(path: str | Path) -> np.ndarray:
 
 
 def _read_lines(path: Path, what: str) -> list[str]:
+    """The frame ids of a frame list, one "SEQ/FRAME" a line (blank lines skipped).
+
+    A UTF-8 byte order mark (which Windows editors write) is dropped. A frame listed twice is
+    refused, naming both lines: it would count twice in every metric and in training, and a
+    list that repeats a frame is not the list its author meant (two lists joined, a split
+    copied twice), so no guess of which copy is meant is made here.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a line that is not a frame id, a frame listed twice, or not UTF-8 text.
+    """
     if not path.is_file():
         raise FileNotFoundError(f"{path}: {what} not found")
-    ids = [line.strip() for line in path.read_text().splitlines() if line.strip()]
-    for i, fid in enumerate(ids):
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: {what} is not UTF-8 text ({e.reason} at byte {e.start})") from e
+    ids: list[str] = []
+    first: dict[str, int] = {}
+    for number, line in enumerate(text.splitlines(), start=1):
+        fid = line.strip()
+        if not fid:
+            continue
         if not _FRAME_ID.match(fid):
-            raise ValueError(f"{path}, line {i + 1}: {fid!r} is not a frame id 'SEQ/FRAME'")
+            raise ValueError(f"{path}, line {number}: {fid!r} is not a frame id 'SEQ/FRAME'")
+        if fid in first:
+            raise ValueError(
+                f"{path}, line {number}: frame {fid} is listed again (first on line "
+                f"{first[fid]}); it would count twice in every metric: list each frame once "
+                f"(awk '!seen[$0]++' keeps the first of each)"
+            )
+        first[fid] = number
+        ids.append(fid)
     return ids
 
 

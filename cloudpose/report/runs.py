@@ -19,7 +19,11 @@ import numpy as np
 import pandas as pd
 
 from cloudpose import tracking
+from cloudpose.files import CorruptFileError, why
 from cloudpose.runs import is_preset_config
+
+INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
+"""Columns every evaluation's instance table has (:func:`cloudpose.evaluate.instance_table`)."""
 
 TEST_KEY = "test/ads_auc"
 """A run counts as evaluated when it has this metric."""
@@ -54,21 +58,65 @@ class RunRecord:
         return float(self.metrics.get(key, math.nan))
 
     def instances(self, name: str = "test") -> pd.DataFrame | None:
-        """The per-instance table ``eval/{name}/instances.csv``, or None if it is missing."""
+        """The per-instance table ``eval/{name}/instances.csv``, or None if it is missing.
+
+        Raises:
+            CorruptFileError: the table is empty, truncated (its last row cut, or fewer rows
+                than the run's metric ``{name}/count``) or lacks the columns an evaluation
+                writes; the message names the file, the run and the command that writes it
+                again.
+        """
         key = ("instances", name)
         if key not in self._cache:
             rel = f"eval/{name}/instances.csv"
             local = tracking.local_artifact(self.artifact_uri, rel)
             if local is not None:
-                self._cache[key] = pd.read_csv(local) if local.exists() else None
+                self._cache[key] = self._read_instances(local, name) if local.exists() else None
             else:
                 with tempfile.TemporaryDirectory() as tmp:
                     try:
                         path = self.client.download_artifacts(self.run_id, rel, tmp)
-                        self._cache[key] = pd.read_csv(path)
                     except Exception:
-                        self._cache[key] = None
+                        path = None
+                    self._cache[key] = None if path is None else self._read_instances(path, name)
         return self._cache[key]
+
+    def _read_instances(self, path: str | Path, name: str) -> pd.DataFrame:
+        """An evaluation's instance table, checked: whole (it ends with a line end, as pandas
+        writes it), with the columns an evaluation writes and the rows its metrics count."""
+        path = Path(path)
+        what = f"instance table of run {self.run_id} ({self.variant} seed {self.seed})"
+
+        def damaged(problem: str) -> CorruptFileError:
+            if self.variant.startswith("baseline-"):
+                command = (
+                    f"cloudpose baseline --method {self.variant.removeprefix('baseline-')} "
+                    f"--preset {self.preset} --seed {self.seed} --rerun"
+                )
+            else:
+                command = f"cloudpose evaluate --run {self.run_id}"
+            return CorruptFileError(
+                path, f"{what} {problem}; evaluate the run again to write it anew: {command}"
+            )
+
+        raw = path.read_bytes()
+        if not raw.strip():
+            raise damaged("is empty")
+        if not raw.endswith(b"\n"):
+            raise damaged("is cut short in its last row")
+        try:
+            df = pd.read_csv(path)
+        except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
+            raise damaged(f"is unreadable ({why(e)})") from e
+        missing = [c for c in INSTANCE_COLUMNS if c not in df.columns]
+        if missing:
+            raise damaged(f"lacks the columns {missing}")
+        count = self.metrics.get(tracking.metric_key(name, "count"))
+        if count is not None and math.isfinite(count) and len(df) != int(count):
+            raise damaged(
+                f"has {len(df)} rows, where the run's metric {name}/count has {int(count)}"
+            )
+        return df
 
     def history(self, key: str) -> pd.Series:
         """Per-epoch values of ``key`` (index: epoch); empty if never logged."""

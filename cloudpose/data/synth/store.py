@@ -22,10 +22,13 @@ store would; a store carried to another machine gives that machine's runs the ch
 machine that made them.
 
 Layout: ``ROOT/KEY/settings.json`` (the key's parts, readable) and
-``ROOT/KEY/seed-S/chunk-JJJJJJ.npz`` (points, cls_id, R, t; ~26 kB at 8 segments of 256 points:
+``ROOT/KEY/seed-S/chunk-JJJJJJ.npz`` (points, cls_id, R, t, and where = (S, J): a file copied
+to another chunk's name is found; ~26 kB at 8 segments of 256 points:
 ~110 MB for the 4,192 chunks of the default's 4,096 steps). Writes are atomic (a temporary file renamed),
-so processes that make the same chunk at once, or a run killed mid-write, leave whole files; an
-unreadable file is synthesized again and replaced. Delete a folder to reclaim its space.
+so processes that make the same chunk at once, or a run killed mid-write, leave whole files; a
+file that is unreadable (empty, truncated, garbled) or not the chunk the store expects (another
+chunk size or point count, NaN) is synthesized again and replaced, with a one-line warning
+naming it. Delete a folder to reclaim its space.
 """
 
 from __future__ import annotations
@@ -34,16 +37,16 @@ import ast
 import functools
 import hashlib
 import importlib.metadata
+import inspect
 import json
 import warnings
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from cloudpose.conventions import resource_path
-from cloudpose.files import atomic_text, atomic_write
+from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_npz
 
 STORE_DIR = ("data", "cache", "online")
 """Where a project keeps its store, under the project folder."""
@@ -160,18 +163,53 @@ class ChunkStore:
         if not path.is_file():
             return None
         try:
-            with np.load(path) as z:
-                return tuple(torch.from_numpy(z[k]) for k in _FIELDS)  # type: ignore[return-value]
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
-            warnings.warn(
-                f"{path}: unreadable stored chunk ({e}); synthesizing it again", stacklevel=2
-            )
+            arrays = read_npz(path, _FIELDS, "stored chunk", optional=("where",))
+            self._check(path, arrays)
+            where = arrays.get("where")  # absent in files stored before it was written
+            if where is not None and where.tolist() != [int(seed), int(j)]:
+                raise CorruptFileError(
+                    path, f"stored chunk is chunk {where.tolist()} (seed, j), not {[seed, j]}"
+                )
+        except CorruptFileError as e:
+            warnings.warn(f"{e}; synthesizing it again", stacklevel=2)
             return None
+        return tuple(torch.from_numpy(arrays[k]) for k in _FIELDS)  # type: ignore[return-value]
+
+    def _check(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
+        """A stored chunk is what this store makes: ``chunk_size`` segments of ``n_points``
+        finite float32 points, int64 classes, float32 rotations and translations."""
+        n, k = self.settings["chunk_size"], self._n_points()
+        expected = {
+            "points": ((n, k, 3), np.float32),
+            "cls_id": ((n,), np.int64),
+            "R": ((n, 3, 3), np.float32),
+            "t": ((n, 3), np.float32),
+        }
+        for name, (shape, dtype) in expected.items():
+            a = arrays[name]
+            if a.shape != shape or a.dtype != dtype:
+                raise CorruptFileError(
+                    path,
+                    f"stored chunk field {name} is {a.dtype} {a.shape}, expected "
+                    f"{np.dtype(dtype)} {shape}",
+                )
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                raise CorruptFileError(path, f"stored chunk field {name} holds NaN or inf")
+
+    def _n_points(self) -> int:
+        """Points per segment: the synthesis argument, or its default."""
+        synth = self.settings["synth"]
+        if "n_points" in synth:
+            return int(synth["n_points"])
+        from cloudpose.data.synth.online import OnlineSynth
+
+        return int(inspect.signature(OnlineSynth).parameters["n_points"].default)
 
     def save(self, seed: int, j: int, chunk: Chunk) -> None:
         """Keep chunk ``j`` of ``seed`` (atomic: written to a temporary file, then renamed)."""
         path = self.path(seed, j)
         arrays = {k: v.numpy() for k, v in zip(_FIELDS, chunk, strict=True)}
+        arrays["where"] = np.array([int(seed), int(j)], dtype=np.int64)
         try:
             settings = self.folder / "settings.json"
             if not settings.is_file():
@@ -187,4 +225,3 @@ class ChunkStore:
             return 0
         names = {p.name for p in folder.glob("chunk-*.npz")}
         return sum(f"chunk-{j:06d}.npz" in names for j in range(n_chunks))
-

@@ -20,7 +20,7 @@ from cloudpose.data.synth.frames import (
     frame_id,
     generate_frame,
 )
-from cloudpose.files import atomic_text
+from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json
 
 # --------------------------------------------------------------------------- writing
 
@@ -29,9 +29,18 @@ _worker_gen: _Generator | None = None
 
 
 def _frame_done(root: Path, fid: str) -> bool:
+    """Whether the frame's depth, label and meta files are there and not empty (a zero-byte
+    file, which no write of this module leaves, is rendered again; a truncated one is named by
+    the first reader)."""
     seq, name = fid.split("/")
     d = root / "data" / seq
-    return all((d / f"{name}-{k}").is_file() for k in ("depth.png", "label.png", "meta.mat"))
+    for k in ("depth.png", "label.png", "meta.mat"):
+        try:
+            if (d / f"{name}-{k}").stat().st_size == 0:
+                return False
+        except FileNotFoundError:
+            return False
+    return True
 
 
 def _write(root: Path, f: SynthFrame) -> None:
@@ -97,6 +106,12 @@ def _clean_staging(root: Path) -> None:
         pass  # another run is staging
 
 
+_LOST = (
+    "which generator made the frames here is unknown: restore the file, or delete the folder and "
+    "run the command again to render it anew"
+)
+
+
 def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, version: int) -> None:
     from cloudpose.data.surfaces import surface_settings
 
@@ -112,7 +127,11 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, ve
     }
     info = root / "synth.json"
     if info.is_file():
-        old = json.loads(info.read_text())
+        old = read_json(
+            info, "the record of the settings this folder's frames were made with", _LOST
+        )
+        if not isinstance(old, dict):
+            raise CorruptFileError(info, f"holds {type(old).__name__}, not the settings; {_LOST}")
         old = {k: old.get(k) for k in settings}
         if old["version"] != version:
             raise ValueError(
@@ -130,13 +149,19 @@ def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, ve
     root.mkdir(parents=True, exist_ok=True)
     _clean_staging(root)
     atomic_text(info, json.dumps(settings, indent=2) + "\n")
-    shutil.copyfile(resource_path("classes.txt"), root / "classes.txt")
-
+    _copy_packaged(resource_path("classes.txt"), root / "classes.txt")
     for name in packaged_classes():
-        dst = root / "models" / name / "points.xyz"
-        if not dst.is_file():
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(resource_path("models", name, "points.xyz"), dst)
+        _copy_packaged(
+            resource_path("models", name, "points.xyz"), root / "models" / name / "points.xyz"
+        )
+
+
+def _copy_packaged(src: Path, dst: Path) -> None:
+    """Copy a packaged file into the root atomically, again when the copy there is not the
+    same size (cut short or emptied since)."""
+    if dst.is_file() and dst.stat().st_size == src.stat().st_size:
+        return
+    atomic_write(dst, lambda tmp: shutil.copyfile(src, tmp))
 
 
 def synthesize(
