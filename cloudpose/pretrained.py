@@ -1,0 +1,185 @@
+"""The shipped network: a trained shared-0 of the default preset inside the package, so a fresh
+clone predicts and evaluates without training.
+
+``pretrained`` names it wherever a checkpoint or run is asked for (``cloudpose predict
+--checkpoint pretrained``, ``cloudpose evaluate --run pretrained --real``). The package holds
+the weights (``resources/pretrained/NAME.pt``: the network's state in half precision, when
+that keeps every pose of the real development frames and of the synthetic test frames within
+:data:`HALF_TOLERANCE_DEG`, and its resolved config) and a record beside them
+(``NAME.json``: the MLflow run it was taken from, its data key and config fingerprint, the
+metrics that run logged, the weights' SHA-256 and the command that made both).
+``cloudpose ship --run RUN`` writes the pair from a finished run (:func:`ship`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cloudpose.conventions import resource_path
+from cloudpose.files import atomic_text, atomic_write
+
+PRETRAINED = "pretrained"
+"""The name of the shipped network wherever a checkpoint or run is asked for."""
+
+SHIPPED = {PRETRAINED: "shared-0_cpu-online_seed1"}
+"""Name -> file stem under ``resources/pretrained``."""
+
+HALF_TOLERANCE_DEG = 0.01
+"""Half precision ships only if no pose it gives differs from the float32 network's by more
+than this many degrees (and 0.01 mm)."""
+
+HEADLINE = tuple(
+    f"{split}{icp}/{key}"
+    for split in ("test", "real")
+    for icp in ("", "_icp")
+    for key in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm", "count")
+)
+"""The run's metrics copied into the record (those it logged of these)."""
+
+
+@dataclass(frozen=True)
+class Shipped:
+    """A shipped network: its weights file and the record written beside it."""
+
+    name: str
+    path: Path
+    info: dict[str, Any]
+
+    def describe(self) -> str:
+        """One line: which run it is and where it came from."""
+        i = self.info
+        return (
+            f"{self.name}: {i['run_name']} (MLflow run {i['run_id'][:8]}, data {i['data_key'][:10]}, "
+            f"{i['dtype']} weights, {self.path.name})"
+        )
+
+
+def is_pretrained(name: str | Path | None) -> bool:
+    """Whether ``name`` (a ``--run`` or ``--checkpoint`` value) names a shipped network."""
+    return isinstance(name, str) and name in SHIPPED
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def shipped(name: str = PRETRAINED, folder: Path | None = None) -> Shipped:
+    """The shipped network ``name``, its weights checked against the record's checksum.
+
+    Raises:
+        ValueError: an unknown name (listing the known ones), a missing or unreadable record,
+            or weights whose checksum is not the record's (naming the file and what to do).
+    """
+    if name not in SHIPPED:
+        raise ValueError(f"unknown shipped network {name!r}; known: {', '.join(SHIPPED)}")
+    folder = folder or resource_path("pretrained")
+    stem = SHIPPED[name]
+    path, record = folder / f"{stem}.pt", folder / f"{stem}.json"
+    if not record.is_file() or not path.is_file():
+        raise ValueError(
+            f"{folder}: the shipped network {stem} is missing ({path.name} and {record.name} "
+            "expected); reinstall the package or use a trained run"
+        )
+    try:
+        info = json.loads(record.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{record}: not a shipped-network record ({exc})") from exc
+    if _sha256(path) != info.get("sha256"):
+        raise ValueError(
+            f"{path}: its SHA-256 is not the one {record.name} records (a damaged or replaced "
+            "file); restore it from the repository (git checkout -- PATH)"
+        )
+    return Shipped(name, path, info)
+
+
+def half_state(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A network state with every floating tensor in float16 (integer buffers kept)."""
+    return {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
+
+
+def pose_difference(a, b, valid: np.ndarray) -> tuple[float, float]:
+    """Largest rotation (degrees) and translation (mm) difference between two
+    :class:`~cloudpose.infer.Estimates` over the ``valid`` rows."""
+    from cloudpose.geometry.rigid import rotation_error_deg
+
+    if not np.any(valid):
+        return 0.0, 0.0
+    rot = rotation_error_deg(a.R[valid], b.R[valid])
+    dt = 1000 * np.linalg.norm(a.t[valid] - b.t[valid], axis=1)
+    return float(rot.max()), float(dt.max())
+
+
+def ship(
+    checkpoint: Path,
+    out_dir: Path,
+    stem: str,
+    *,
+    run_name: str,
+    run_id: str,
+    data_key: str,
+    fingerprint: str,
+    metrics: dict[str, float],
+    command: str,
+    check_segments: list,
+    half: bool = True,
+) -> Path:
+    """Write ``stem.pt`` (weights and config) and ``stem.json`` (record) into ``out_dir``.
+
+    Half precision is kept only if, on every segment set of ``check_segments`` (pairs of a name
+    and :class:`~cloudpose.data.segment_set.SegmentSet`), no pose differs from the float32
+    network's by more than :data:`HALF_TOLERANCE_DEG` (and 0.01 mm); else float32 ships. The
+    record says which and by how much the poses differ.
+
+    Returns:
+        The weights file written.
+    """
+    from cloudpose.infer import estimate_poses, load_checkpoint
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or "model" not in state or "config" not in state:
+        raise ValueError(f"{checkpoint} is not a cloudpose checkpoint (keys 'model', 'config')")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    full, cfg = load_checkpoint(checkpoint)
+    dtype, worst = "float32", {}
+    if half:
+        trial = out_dir / f".{stem}.half.pt"
+        torch.save({"model": half_state(state["model"]), "config": state["config"]}, trial)
+        try:
+            halved, _ = load_checkpoint(trial)
+            for name, segs in check_segments:
+                a = estimate_poses(full, segs, cfg.train.n_points)
+                b = estimate_poses(halved, segs, cfg.train.n_points)
+                worst[name] = pose_difference(a, b, np.asarray(segs.valid, dtype=bool))
+        finally:
+            trial.unlink(missing_ok=True)
+        ok = all(r <= HALF_TOLERANCE_DEG and t <= 0.01 for r, t in worst.values())
+        dtype = "float16" if ok else "float32"
+    weights = half_state(state["model"]) if dtype == "float16" else state["model"]
+    path = out_dir / f"{stem}.pt"
+    atomic_write(path, lambda p: torch.save({"model": weights, "config": state["config"]}, p))
+    record = {
+        "run_name": run_name,
+        "run_id": run_id,
+        "data_key": data_key,
+        "config_fingerprint": fingerprint,
+        "dtype": dtype,
+        "half_vs_float32": {
+            k: {"max_rot_deg": r, "max_trans_mm": t} for k, (r, t) in worst.items()
+        },
+        "metrics": {k: metrics[k] for k in HEADLINE if k in metrics},
+        "sha256": _sha256(path),
+        "made_by": command,
+    }
+    atomic_text(out_dir / f"{stem}.json", json.dumps(record, indent=1) + "\n")
+    return path
