@@ -16,10 +16,16 @@ Measured in one run, on the same cores, at the default preset's settings
   later run of the seed gets;
 - where a scene's time goes: milliseconds per stage of ``OnlineSynth`` (scene sampling, the
   objects' windows, the ray cast, the background ring, the sensor, the segment path), one
-  thread.
+  thread, for on-line synthesis version 1 (``data.online_version = 1``, the ray cast path)
+  and version 2 (the compiled path) on the same scenes, alternating scene by scene;
+- both versions' segments/s in one process, alternating batch by batch (so a machine shared
+  with other work slows both alike), and how far their segments agree (share of segments
+  with the same points, and the mean nearest-point distance of the others).
 
-The figure is the supply ratio ``synthesis x reuse / consumption``: >= 2 means synthesis never
-stalls training. ``reuse`` = 1 is reported beside it (every segment used once).
+Two figures: ``online_supply_ratio``, the supply ratio ``synthesis x reuse / consumption`` of
+the preset as it is (its ``online_version``; >= 2 means synthesis never stalls training;
+``reuse`` = 1 beside it), and ``online_v2_supply_ratio``, version 2's segments/s of one process
+over training's at reuse 1 (every segment used once; target >= 1), with version 1's beside it.
 
 Usage: ``python -m benchmarks.bench_online [--quick]``
 """
@@ -43,12 +49,13 @@ from cloudpose.config import DEFAULT_PRESET, resolve
 _ONLINE = resolve("shared-0", DEFAULT_PRESET)
 BATCH, N_POINTS = _ONLINE.train.batch_size, _ONLINE.train.n_points
 REUSE, VERSION = _ONLINE.data.online_reuse, _ONLINE.data.synth_version
+ONLINE_VERSION = _ONLINE.data.online_version
 
 
 def _synthesis_rate(batches: int) -> dict:
     from cloudpose.data.synth.online import OnlineSynth
 
-    synth = OnlineSynth(VERSION, n_points=N_POINTS)
+    synth = OnlineSynth(VERSION, n_points=N_POINTS, online_version=ONLINE_VERSION)
     synth.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels
     t0, scenes = time.perf_counter(), 0
     for step in range(batches):
@@ -57,12 +64,71 @@ def _synthesis_rate(batches: int) -> dict:
     return {"segments_per_s": batches * BATCH / dt, "ms_per_scene": 1000 * dt / scenes}
 
 
-def _scene_parts(scenes: int) -> dict:
-    """Milliseconds a scene spends in each stage of ``OnlineSynth`` (one process, warm)."""
+def _agreement(a, b) -> tuple[int, float]:
+    """Segments of two batches with the same points (within 1e-5 m), and the largest mean
+    nearest-point distance (metres, both ways) over the others."""
+    from scipy.spatial import cKDTree
+
+    same, worst = 0, 0.0
+    for p, q in zip(a.points, b.points, strict=True):
+        if np.abs(p - q).max() < 1e-5:
+            same += 1
+            continue
+        d = (cKDTree(q).query(p)[0].mean() + cKDTree(p).query(q)[0].mean()) / 2
+        worst = max(worst, float(d))
+    return same, worst
+
+
+def _versions_rate(batches: int) -> dict:
+    """Segments/s of on-line synthesis versions 1 and 2 in this process (one thread each),
+    batch by batch alternately, and how far their segments agree."""
+    from cloudpose.data.synth.online import OnlineSynth
+
+    synths = {
+        v: OnlineSynth(VERSION, n_points=N_POINTS, nthreads=1, online_version=v) for v in (1, 2)
+    }
+    for s in synths.values():
+        s.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels, BVHs
+    dt = dict.fromkeys(synths, 0.0)
+    scenes = dict.fromkeys(synths, 0)
+    same, worst, total, classes_equal = 0, 0.0, 0, True
+    for step in range(batches):
+        got = {}
+        for v, s in synths.items():
+            t = time.perf_counter()
+            got[v] = s.batch(0, step, BATCH)
+            dt[v] += time.perf_counter() - t
+            scenes[v] += got[v].scenes
+        classes_equal &= bool(np.array_equal(got[1].cls_id, got[2].cls_id))
+        k, w = _agreement(got[1], got[2])
+        same, worst, total = same + k, max(worst, w), total + BATCH
+    out = {
+        f"v{v}": {
+            "segments_per_s": batches * BATCH / dt[v],
+            "ms_per_scene": 1000 * dt[v] / scenes[v],
+        }
+        for v in synths
+    }
+    out["agreement"] = {
+        "segments": total,
+        "same_points": same,
+        "same_classes_and_poses": classes_equal,
+        "others_mean_nearest_mm": 1000 * worst,
+    }
+    return out
+
+
+PARTS = ("scene", "windows", "ray_cast", "background", "sensor", "segments")
+"""The stages of a scene (version 2: ``windows`` and ``ray_cast`` are its z-buffer's box and
+drawing, timed together under ``ray_cast``)."""
+
+
+def _scene_stages(synth, rng: np.random.Generator, parts: dict) -> None:
+    """One scene through ``synth``'s stages, each timed into ``parts`` (seconds)."""
     import warnings
 
     from cloudpose.data.segments import SegmentWarning, extract_segments
-    from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.data.synth.online import WINDOW_PAD, cut_segments
     from cloudpose.data.synth.sensor import (
         add_sensor_noise_v2_objects,
         background_depth_at,
@@ -70,43 +136,72 @@ def _scene_parts(scenes: int) -> dict:
     )
     from cloudpose.data.ycb import Frame
 
-    synth = OnlineSynth(VERSION, n_points=N_POINTS, nthreads=1)
-    synth.batch(0, 10_001, BATCH)  # warm-up: surfaces, kernels, the classes' BVHs
-    parts = dict.fromkeys(("scene", "windows", "ray_cast", "background", "sensor", "segments"), 0.0)
-    for k in range(scenes):
-        rng = np.random.default_rng([0, 99, k])
+    v2 = synth.online_version >= 2
+    t = time.perf_counter()
+    scene = synth.sample_scene(rng)
+    parts["scene"] += time.perf_counter() - t
+    renderer = synth._gen.renderer
+    if v2:
         t = time.perf_counter()
-        scene = synth.sample_scene(rng)
-        parts["scene"] += time.perf_counter() - t
+        got = renderer.render_raster(synth.K, synth.shape, scene.cls_ids, scene.poses(), WINDOW_PAD)
+        parts["ray_cast"] += time.perf_counter() - t
+        if got is None:
+            return
+        r, (v0, v1, u0, u1) = got
+    else:
         t = time.perf_counter()
         found = synth.windows(scene)
         parts["windows"] += time.perf_counter() - t
         if found is None:
-            continue
+            return
         wins, (v0, v1, u0, u1) = found
         t = time.perf_counter()
-        r = synth._gen.renderer.render_instanced(
+        r = renderer.render_instanced(
             synth.K, synth.shape, scene.cls_ids, scene.poses(), wins, (v0, v1, u0, u1), 1
         )
         parts["ray_cast"] += time.perf_counter() - t
-        Kw = synth.K.copy()
-        Kw[0, 2] -= u0
-        Kw[1, 2] -= v0
-        t = time.perf_counter()
-        clean = np.where(r.label > 0, r.depth.astype(np.float64), 0.0)
-        rv, ru = np.nonzero(object_ring(r.label))
-        clean[rv, ru] = background_depth_at(Kw, rv, ru, scene.world_to_camera, scene.background)
-        parts["background"] += time.perf_counter() - t
-        t = time.perf_counter()
-        depth = add_sensor_noise_v2_objects(clean, r.label, Kw, rng)
-        parts["sensor"] += time.perf_counter() - t
-        t = time.perf_counter()
-        frame = Frame("x", depth.astype(np.float32), r.label, Kw, scene.cls_ids, None, None)
+    Kw = synth.K.copy()
+    Kw[0, 2] -= u0
+    Kw[1, 2] -= v0
+    t = time.perf_counter()
+    clean = np.where(r.label > 0, r.depth.astype(np.float64), 0.0)
+    rv, ru = np.nonzero(object_ring(r.label))
+    clean[rv, ru] = background_depth_at(Kw, rv, ru, scene.world_to_camera, scene.background)
+    parts["background"] += time.perf_counter() - t
+    t = time.perf_counter()
+    depth = add_sensor_noise_v2_objects(clean, r.label, Kw, rng, compiled=v2)
+    parts["sensor"] += time.perf_counter() - t
+    t = time.perf_counter()
+    frame = Frame("x", depth.astype(np.float32), r.label, Kw, scene.cls_ids, scene.poses(), None)
+    if v2:
+        cut_segments(frame, N_POINTS, 0.2, rng)
+    else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SegmentWarning)
             extract_segments(frame, n_fps=N_POINTS, rng=rng, with_gt=False)
-        parts["segments"] += time.perf_counter() - t
-    return {f"{k}_ms": 1000 * v / scenes for k, v in parts.items()}
+    parts["segments"] += time.perf_counter() - t
+
+
+def _scene_parts(scenes: int) -> dict:
+    """Milliseconds a scene spends in each stage of ``OnlineSynth``, on-line versions 1 and 2
+    on the same scenes, alternating (one process, one thread, warm)."""
+    from cloudpose.data.synth.online import OnlineSynth
+
+    synths = {
+        v: OnlineSynth(VERSION, n_points=N_POINTS, nthreads=1, online_version=v) for v in (1, 2)
+    }
+    parts = {v: dict.fromkeys(PARTS, 0.0) for v in synths}
+    for s in synths.values():
+        s.batch(0, 10_001, BATCH)  # warm-up: surfaces, kernels, the classes' BVHs
+    for k in range(scenes):
+        for v, s in synths.items():
+            _scene_stages(s, np.random.default_rng([0, 99, k]), parts[v])
+    out = {}
+    for v in synths:
+        ms = {f"{k}_ms": 1000 * x / scenes for k, x in parts[v].items()}
+        ms["all_ms"] = sum(ms.values())
+        out[f"v{v}"] = ms
+    return out
 
 
 def _frame_rate(frames: int) -> dict:
@@ -146,6 +241,8 @@ def _stream_rate(steps: int) -> dict:
 
     step = make_step("shared-0", "fused", BATCH, N_POINTS)
     synth_kwargs = {"version": VERSION, "n_points": N_POINTS}
+    if ONLINE_VERSION != 1:
+        synth_kwargs["online_version"] = ONLINE_VERSION
     rates = []
     with tempfile.TemporaryDirectory() as store:
         for _ in range(2):
@@ -166,16 +263,58 @@ def _stream_rate(steps: int) -> dict:
 
 
 def run(quick: bool = False) -> dict:
-    """The figure ``online_supply_ratio`` and its parts (see the module doc)."""
+    """The figures ``online_supply_ratio`` and ``online_v2_supply_ratio`` and their parts
+    (see the module doc)."""
     n = 2 if quick else 12
     train = _train_rate(5 if quick else 60)
+    versions = _versions_rate(2 if quick else 12)
+    train_after = _train_rate(5 if quick else 60)  # the machine's load may change meanwhile
     synth = _synthesis_rate(n)
     frames = _frame_rate(2 if quick else 8)
     stream = _stream_rate(4 if quick else 60)
     parts = _scene_parts(3 if quick else 40)
     threads = torch.get_num_threads()
     ratio = synth["segments_per_s"] * REUSE / train["segments_per_s"]
+    consume = (train["segments_per_s"] + train_after["segments_per_s"]) / 2
+    v1, v2 = versions["v1"]["segments_per_s"], versions["v2"]["segments_per_s"]
+    speedup = v2 / v1
+    agree = versions["agreement"]
+    stages = ", ".join(
+        f"{k} {parts['v1'][f'{k}_ms']:.1f} -> {parts['v2'][f'{k}_ms']:.1f}" for k in (*PARTS, "all")
+    )
+    note = (
+        f"{v1:.0f} -> {v2:.0f} segments/s in one process ({speedup:.2f}x per segment); "
+        f"per scene, version 1 -> 2, ms (the same scenes, alternating): {stages}; "
+        f"{agree['same_points']} of {agree['segments']} segments the same points, the others "
+        f"within {agree['others_mean_nearest_mm']:.2f} mm mean nearest-point distance"
+    )
     return {
+        "online_v2_supply_ratio": {
+            "value": v2 / consume,
+            "unit": "x the training consumption",
+            "what": f"on-line synthesis version 2 (data.online_version = 2, 1 process, 1 "
+            f"thread) segments/s at reuse 1 / shared-0 training segments/s (batch {BATCH}, "
+            f"n = {N_POINTS}, {threads} threads; mean of a measurement before and after)",
+            "reference": {"name": "version 1 (the ray cast path)", "value": v1 / consume},
+            "ratio": speedup,
+            "target": ">= 1 at reuse 1 (8x version 1 per segment)",
+            "met": bool(v2 / consume >= 1.0),
+            "note": note,
+            "detail": {
+                "train_segments_per_s": consume,
+                "train_segments_per_s_before_after": [
+                    train["segments_per_s"],
+                    train_after["segments_per_s"],
+                ],
+                "v1_segments_per_s": v1,
+                "v2_segments_per_s": v2,
+                "v1_ms_per_scene": versions["v1"]["ms_per_scene"],
+                "v2_ms_per_scene": versions["v2"]["ms_per_scene"],
+                "v2_vs_v1_per_segment": speedup,
+                "agreement": versions["agreement"],
+                "scene_parts_ms": parts,
+            },
+        },
         "online_supply_ratio": {
             "value": ratio,
             "unit": "x the training consumption",
@@ -199,9 +338,9 @@ def run(quick: bool = False) -> dict:
                 "stream_from_store_steps_per_s": stream["stored_steps_per_s"],
                 "stream_from_store_vs_synthesizing": stream["stored_steps_per_s"]
                 / stream["steps_per_s"],
-                "scene_parts_ms": parts,
+                "online_version": ONLINE_VERSION,
             },
-        }
+        },
     }
 
 

@@ -13,6 +13,9 @@ load). Figures (JSON keys):
 - ``baseline_fpfh_ms_per_object``, ``baseline_ppf_ms_per_object`` (``benchmarks.bench_baselines``)
 - ``synth_frames_per_s``, ``prepare_frames_per_s`` (``benchmarks.bench_data``)
 - ``online_supply_ratio``: on-line synthesis against training consumption (``benchmarks.bench_online``)
+- ``online_v2_supply_ratio``: on-line synthesis version 2 (the compiled path) at reuse 1
+  against training consumption, version 1 beside it, stage times of both
+  (``benchmarks.bench_online``)
 - ``cpu_variant_wall_s``: wall time of one ``cpu``-preset variant, train + evaluate. Not run by
   default (it takes minutes): read from the MLflow store (start to end of the newest finished
   ``cpu`` run; training and evaluation log into the same run), else null with a note;
@@ -66,6 +69,7 @@ FIGURES = (
     "synth_frames_per_s",
     "prepare_frames_per_s",
     "online_supply_ratio",
+    "online_v2_supply_ratio",
     "cpu_variant_wall_s",
     "ray_executor_wall_s",
 )
@@ -78,7 +82,7 @@ GROUPS = {
     "fps": ("fps_ms_20k",),
     "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),
-    "online": ("online_supply_ratio",),
+    "online": ("online_supply_ratio", "online_v2_supply_ratio"),
     "cpu_variant": ("cpu_variant_wall_s",),
     "cluster": ("ray_executor_wall_s",),
 }

@@ -57,6 +57,25 @@ GENERATOR_VERSION = 2
 """The newest generator version (the default)."""
 
 
+ONLINE_VERSIONS = (1, 2)
+"""How on-line synthesis makes its segments (``DataConfig.online_version``,
+:class:`cloudpose.data.synth.online.OnlineSynth`): 1, Open3D ray casting and numpy (every
+on-line run stored before this field existed); 2, the same scenes, draws and sensor by
+compiled kernels (a z-buffer of the meshes; its segments per second against version 1's:
+``online_v2_supply_ratio`` in reports/benchmarks.md): the same segments to float rounding, but
+not bit for bit, so a stream of its own."""
+
+
+def check_online_version(version: int) -> int:
+    """``version`` if it is one of :data:`ONLINE_VERSIONS`, else ValueError."""
+    if version not in ONLINE_VERSIONS:
+        raise ValueError(
+            f"on-line synthesis version {version!r}: expected one of {ONLINE_VERSIONS} "
+            "(data.online_version)"
+        )
+    return int(version)
+
+
 def check_synth_version(version: int) -> int:
     """``version`` if it is one of :data:`GENERATOR_VERSIONS`, else ValueError."""
     if version not in GENERATOR_VERSIONS:
@@ -273,6 +292,9 @@ class DataConfig:
             (:data:`ONLINE_SCENES`): "all", objects of every class,
             the others as occluders, as in the test frames; "classes", the kept classes only
             (at least 3), which wastes no scene on segments it drops.
+        online_version: with "online", how segments are synthesized
+            (:data:`ONLINE_VERSIONS`): 1, ray casting (the committed on-line runs); 2, the
+            compiled path, the same scenes and sensor to float rounding, several times faster.
         segment_streams: how a frame's instances draw their FPS start points
             (:data:`cloudpose.data.segments.SEGMENT_STREAMS`): "instance", each from its own
             stream, so a missed or dropped instance changes no other; "frame", one stream per
@@ -296,6 +318,7 @@ class DataConfig:
     online_reuse: int = 4
     online_workers: int = 1
     online_scenes: str = "all"
+    online_version: int = 1
     segment_streams: str = "instance"
 
     def __post_init__(self) -> None:
@@ -326,6 +349,7 @@ class DataConfig:
                 f"{self.online_reuse}, {self.online_workers}"
             )
         check_synth_version(self.synth_version)
+        check_online_version(self.online_version)
 
 
 START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}
@@ -451,6 +475,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_reuse": 4,
         "online_workers": 1,
         "online_scenes": "all",
+        "online_version": 1,
         "segment_streams": "frame",
     },
     "icp": {

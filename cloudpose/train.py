@@ -98,6 +98,8 @@ def online_synth_kwargs(cfg: Config, class_names: list[str]) -> dict:
         "outlier_radius": d.outlier_radius,
         "class_ids": classes,
         "scenes": d.online_scenes,
+        # version 1 leaves it out: its chunk store settings stay as they were
+        **({"online_version": d.online_version} if d.online_version != 1 else {}),
     }
 
 

@@ -75,3 +75,113 @@ def object_pixel_geometry_kernel(pad, lpad, v, u, Kinv):  # pragma: no cover - c
         if norm > 0:
             cos[i] = min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
     return jump, cos
+
+
+@njit(cache=True)
+def _squared_distance_1d(f, d, v, z):  # pragma: no cover - compiled
+    """Felzenszwalb & Huttenlocher's lower envelope of parabolas: ``d[q] = min_p (q - p)^2 +
+    f[p]`` for one row (``v``, ``z`` scratch of len(f) and len(f) + 1)."""
+    n = f.shape[0]
+    k = -1
+    for q in range(n):
+        if f[q] == np.inf:
+            continue
+        if k < 0:
+            k = 0
+            v[0] = q
+            z[0] = -np.inf
+            z[1] = np.inf
+            continue
+        s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * q - 2.0 * v[k])
+        while s <= z[k]:
+            k -= 1
+            s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * q - 2.0 * v[k])
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = np.inf
+    if k < 0:
+        for q in range(n):
+            d[q] = np.inf
+        return
+    k = 0
+    for q in range(n):
+        while z[k + 1] < q:
+            k += 1
+        dq = q - v[k]
+        d[q] = dq * dq + f[v[k]]
+
+
+@njit(cache=True)
+def edge_distance_kernel(label):  # pragma: no cover - compiled
+    """Pixels to the nearest pixel of another label, 1 on both sides of a boundary (the exact
+    Euclidean distance transform by two passes of 1-D lower envelopes, Felzenszwalb &
+    Huttenlocher, Theory of Computing 2012): the twin is
+    :func:`cloudpose.data.synth.sensor.edge_distance` (scipy's ``distance_transform_edt``).
+
+    Args:
+        label: (H, W) integer label image.
+
+    Returns:
+        (H, W) float64 distances (>= 1; inf everywhere when there is no boundary).
+    """
+    H, W = label.shape
+    g = np.empty((H, W))
+    for y in range(H):
+        for x in range(W):
+            c = label[y, x]
+            b = (
+                (y > 0 and label[y - 1, x] != c)
+                or (y < H - 1 and label[y + 1, x] != c)
+                or (x > 0 and label[y, x - 1] != c)
+                or (x < W - 1 and label[y, x + 1] != c)
+            )
+            g[y, x] = 0.0 if b else np.inf
+    n = max(H, W)
+    f = np.empty(n)
+    d = np.empty(n)
+    v = np.empty(n, np.int64)
+    z = np.empty(n + 1)
+    for x in range(W):  # columns
+        for y in range(H):
+            f[y] = g[y, x]
+        _squared_distance_1d(f[:H], d[:H], v, z)
+        for y in range(H):
+            g[y, x] = d[y]
+    out = np.empty((H, W))
+    for y in range(H):  # rows
+        for x in range(W):
+            f[x] = g[y, x]
+        _squared_distance_1d(f[:W], d[:W], v, z)
+        for x in range(W):
+            out[y, x] = np.sqrt(d[x]) + 1.0
+    return out
+
+
+@njit(cache=True)
+def smoothed_at_kernel(noise, weights, v, u):  # pragma: no cover - compiled
+    """A separable filter with periodic borders (scipy.ndimage's ``mode="wrap"``: along axis 0,
+    then axis 1) of ``noise`` (H, W), evaluated at the pixels ``(v, u)`` only: the first pass
+    over every row, the second at those pixels. ``weights``: (2r + 1,) the 1-D kernel."""
+    H, W = noise.shape
+    r = weights.shape[0] // 2
+    # first pass into columns r .. r + W - 1 of a row padded periodically by r each side
+    tmp = np.zeros((H, W + 2 * r))
+    for y in range(H):
+        for j in range(2 * r + 1):
+            yy = (y + j - r) % H
+            wj = weights[j]
+            for x in range(W):
+                tmp[y, r + x] += wj * noise[yy, x]
+        for x in range(r):
+            tmp[y, x] = tmp[y, r + (x - r) % W]
+            tmp[y, r + W + x] = tmp[y, r + x % W]
+    m = v.shape[0]
+    out = np.empty(m)
+    for i in range(m):
+        s = 0.0
+        y = v[i]
+        for j in range(2 * r + 1):
+            s += weights[j] * tmp[y, u[i] + j]
+        out[i] = s
+    return out

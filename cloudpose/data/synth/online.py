@@ -25,6 +25,24 @@ design: an object with fewer than :data:`~cloudpose.data.synth.scenes.MIN_VISIBL
 visible pixels is dropped without re-rendering the scene (it still hides what is behind it),
 and no alone-pixel count is rendered (training does not use occlusion factors).
 
+Version 2 (``data.online_version = 2``, :data:`~cloudpose.config.ONLINE_VERSIONS`): the same
+scenes, random draws and computations, by compiled kernels where version 1 used Open3D and
+numpy. The scene sampler's slide loop is compiled for both versions (the same scenes, so the
+frames do not change); version 2 then draws each object into a z-buffer of its mesh
+(:meth:`~cloudpose.data.render.Renderer.render_raster`, :mod:`cloudpose.kernels.raster`:
+each triangle tested at the pixel centres of its projection, the plane's depth: what the ray
+cast through those centres hits), computes the sensor's edge distance and correlated
+missing-depth field by compiled kernels (the field only at the object pixels, from the same
+white noise), and cuts the segments in one pass over the pixels with an FPS over a grid of
+buckets (:func:`cut_segments`, :mod:`cloudpose.kernels.segment_cut`: the same order as the
+k-d tree FPS). Its segments are version 1's to float rounding: a rounding flip (a silhouette
+pixel, a threshold of the missing-depth field) changes one segment's pixel set, and its FPS
+then picks other points of the same surface (``benchmarks/bench_online.py`` measures the share
+that is bit for bit the same; tests/test_online.py holds it). Not bit for bit, so a stream of
+its own: the committed on-line runs are version 1, and a preset opts in with
+``data.online_version = 2`` (``--set data.online_version=2`` on the command line). Without
+numba it runs the twins (ray cast, scipy, the k-d tree FPS): the same segments to rounding.
+
 Determinism: batch ``step`` of a run is a pure function of ``(seed, step)``: its scenes use
 ``np.random.default_rng([seed, ONLINE_STREAM, step, k])`` for k = 0, 1, ... until the batch is
 full, so a resumed run continues with the batches an uninterrupted one would have drawn, in any
@@ -41,7 +59,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cloudpose.config import ONLINE_SCENES, check_synth_version
+from cloudpose.config import ONLINE_SCENES, check_online_version, check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import SegmentWarning, extract_segments
 from cloudpose.data.synth.frames import _generator
@@ -108,6 +126,76 @@ class SegmentBatch:
         )
 
 
+def cut_segments(frame, n_fps: int, outlier_radius: float, rng: np.random.Generator) -> list:
+    """:func:`~cloudpose.data.segments.extract_segments` of a frame whose instances are of
+    distinct classes (a synthesized scene), with the ground-truth masks, in one pass over the
+    pixels instead of one per instance: the same segments, point for point (each instance's
+    pixels in the same row-major order, back-projected by the same expression, the same
+    outlier filter, FPS and random streams). No occlusion factor (NaN); an instance without a
+    usable point comes back invalid, without a warning.
+
+    Args:
+        frame: a :class:`~cloudpose.data.ycb.Frame` with poses; distinct ``cls_ids``.
+        n_fps: points kept per segment.
+        outlier_radius: metres.
+        rng: the frame's generator (:func:`~cloudpose.data.segments.instance_streams`).
+
+    Returns:
+        One :class:`~cloudpose.data.segments.Segment` per instance, in ``cls_ids`` order.
+    """
+    from cloudpose.data.segments import Segment, farthest_point_sampling, instance_streams
+    from cloudpose.kernels.backend import enabled
+
+    cls_ids = np.asarray(frame.cls_ids, dtype=np.int64)
+    n = len(cls_ids)
+    if len(np.unique(cls_ids)) != n:
+        raise ValueError(f"cut_segments needs distinct classes, got {cls_ids.tolist()}")
+    streams = instance_streams(rng, cls_ids)
+    depth = np.asarray(frame.depth)
+    w = depth.shape[1]
+    lut = np.full(256, -1, dtype=np.int64)
+    lut[cls_ids] = np.arange(n)
+    compiled = enabled()
+    if compiled:
+        from cloudpose.kernels.segment_cut import backproject_filtered, gather_instances, grid_fps
+
+        sel, offsets = gather_instances(depth, np.asarray(frame.label), lut, n)
+    else:
+        inst = lut[np.asarray(frame.label).ravel()]
+        sel = np.flatnonzero((inst >= 0) & (depth.ravel() > 0))
+        sel = sel[np.argsort(inst[sel], kind="stable")]  # by instance, row-major within each
+        offsets = np.concatenate([[0], np.cumsum(np.bincount(inst[sel], minlength=n))])
+    z_all = depth.ravel()
+    Kinv = np.linalg.inv(np.asarray(frame.K, dtype=np.float64))
+    out = []
+    for i, c in enumerate(cls_ids):
+        idx = sel[offsets[i] : offsets[i + 1]]
+        if compiled:
+            pts = backproject_filtered(depth, idx, Kinv, float(outlier_radius))
+        else:
+            v, u = np.divmod(idx, w)
+            z = z_all[idx].astype(np.float64)
+            pix = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64)
+            pts = (pix @ Kinv.T) * z[:, None]  # backproject's expression
+            if len(pts):
+                pts = pts[np.linalg.norm(pts - pts.mean(axis=0), axis=1) <= outlier_radius]
+        valid = len(pts) > 0
+        if valid and compiled and np.isfinite(pts).all():
+            p32 = np.ascontiguousarray(pts, dtype=np.float32)
+            first = int(streams[i].integers(len(p32)))  # farthest_point_sampling's start draw
+            m = min(n_fps, len(p32))
+            order = grid_fps(p32, m, first) if m > 1 else np.array([first], dtype=np.int64)
+            sample = p32[np.resize(order, n_fps) if m < n_fps else order]
+        elif valid:
+            sample = pts[farthest_point_sampling(pts, n_fps, streams[i])].astype(np.float32)
+        else:
+            sample = np.zeros((n_fps, 3), dtype=np.float32)
+        R = frame.poses[i, :, :3].astype(np.float32)
+        t = frame.poses[i, :, 3].astype(np.float32)
+        out.append(Segment(sample, len(pts), int(c), R, t, np.nan, frame.frame_id, i, valid))
+    return out
+
+
 class OnlineSynth:
     """Draws table scenes and cuts them into training segments (see the module doc).
 
@@ -126,6 +214,11 @@ class OnlineSynth:
             the price of occluders of those classes only.
         K, shape: camera intrinsics and image size (YCB-Video's by default).
         nthreads: ray-casting threads (0: every core; a synthesis worker uses 1).
+        online_version: how the segments are made (:data:`~cloudpose.config.ONLINE_VERSIONS`):
+            1, the ray cast path above; 2, the same scenes, sensor and segment path computed
+            by compiled kernels (a z-buffer of the meshes instead of the ray cast, the
+            sensor's edge distance and correlated field compiled, segments cut in one pass):
+            the same random draws and the same numbers to float rounding (see "Version 2").
     """
 
     def __init__(
@@ -140,8 +233,10 @@ class OnlineSynth:
         K: np.ndarray = YCB_INTRINSICS,
         shape: tuple[int, int] = IMAGE_SHAPE,
         nthreads: int = 0,
+        online_version: int = 1,
     ) -> None:
         self.version = check_synth_version(version)
+        self.online_version = check_online_version(online_version)
         self.nthreads = int(nthreads)
         if n_points < 1:
             raise ValueError(f"n_points must be >= 1, got {n_points}")
@@ -216,14 +311,22 @@ class OnlineSynth:
         """
         from cloudpose.data.ycb import Frame
 
-        found = self.windows(scene)
-        if found is None:
-            return None
-        wins, (v0, v1, u0, u1) = found
         poses = scene.poses()
-        r = self._gen.renderer.render_instanced(
-            self.K, self.shape, scene.cls_ids, poses, wins, (v0, v1, u0, u1), self.nthreads
-        )
+        if self.online_version >= 2:
+            got = self._gen.renderer.render_raster(
+                self.K, self.shape, scene.cls_ids, poses, WINDOW_PAD, self.nthreads
+            )
+            if got is None:
+                return None
+            r, (v0, v1, u0, u1) = got
+        else:
+            found = self.windows(scene)
+            if found is None:
+                return None
+            wins, (v0, v1, u0, u1) = found
+            r = self._gen.renderer.render_instanced(
+                self.K, self.shape, scene.cls_ids, poses, wins, (v0, v1, u0, u1), self.nthreads
+            )
         label = r.label
         Kw = self.K.copy()
         Kw[0, 2] -= u0
@@ -235,7 +338,9 @@ class OnlineSynth:
             clean[ring_v, ring_u] = background_depth_at(
                 Kw, ring_v, ring_u, scene.world_to_camera, scene.background
             )
-            out = add_sensor_noise_v2_objects(clean, label, Kw, rng)
+            out = add_sensor_noise_v2_objects(
+                clean, label, Kw, rng, compiled=self.online_version >= 2
+            )
         else:
             bg = background_depth(Kw, (v1 - v0, u1 - u0), scene.world_to_camera, scene.background)
             clean = np.where(label > 0, r.depth.astype(np.float64), bg)
@@ -250,11 +355,14 @@ class OnlineSynth:
         if rendered is None:
             return []
         frame, visible = rendered
-        with warnings.catch_warnings():  # an object without a usable point is dropped below
-            warnings.simplefilter("ignore", SegmentWarning)
-            segs = extract_segments(
-                frame, n_fps=self.n_points, outlier_radius=self.outlier_radius, rng=rng
-            )
+        if self.online_version >= 2:
+            segs = cut_segments(frame, self.n_points, self.outlier_radius, rng)
+        else:
+            with warnings.catch_warnings():  # an object without a usable point is dropped below
+                warnings.simplefilter("ignore", SegmentWarning)
+                segs = extract_segments(
+                    frame, n_fps=self.n_points, outlier_radius=self.outlier_radius, rng=rng
+                )
         keep = []
         for s, v in zip(segs, visible, strict=True):
             if not s.valid or v < MIN_VISIBLE_PIXELS:

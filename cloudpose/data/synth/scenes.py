@@ -163,8 +163,7 @@ def _footprint_cells(points_xy: np.ndarray) -> np.ndarray:
     size = ij.max(axis=0) - lo + 3
     img = np.zeros(size, dtype=bool)
     img[ij[:, 0] - lo[0], ij[:, 1] - lo[1]] = True
-    img = ndimage.binary_fill_holes(ndimage.binary_closing(img, iterations=2))
-    return np.argwhere(img) + lo
+    return np.argwhere(_close(img, fill=True)) + lo
 
 
 def look_at_camera(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarray:
@@ -201,10 +200,59 @@ def _raster_cells(points_xy: np.ndarray, fill: bool) -> np.ndarray:
     lo = ij.min(axis=0) - 2
     img = np.zeros(ij.max(axis=0) - lo + 3, dtype=bool)
     img[ij[:, 0] - lo[0], ij[:, 1] - lo[1]] = True
+    return np.argwhere(_close(img, fill)) + lo
+
+
+def _close_numpy(img: np.ndarray, fill: bool) -> np.ndarray:
+    """A raster closed (two steps of the 4-neighbour cross), its holes filled when ``fill``."""
     img = ndimage.binary_closing(img, iterations=2)
-    if fill:
-        img = ndimage.binary_fill_holes(img)
-    return np.argwhere(img) + lo
+    return ndimage.binary_fill_holes(img) if fill else img
+
+
+def _close(img: np.ndarray, fill: bool) -> np.ndarray:
+    """:func:`_close_numpy` by the compiled :func:`cloudpose.kernels.placement.close_cells`
+    where the kernels are enabled (the same raster)."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        return _close_numpy(img, fill)
+    from cloudpose.kernels.placement import close_cells
+
+    return close_cells(img, fill)
+
+
+def _slide(
+    cells: np.ndarray, occupied: np.ndarray, anchor: np.ndarray, step: np.ndarray
+) -> np.ndarray | None:
+    """Position (2,) of the last step, sliding from :data:`_START` metres out towards
+    ``anchor`` along ``step``, at which the footprint ``cells`` is on the grid and free before
+    it first touches ``occupied``; None if none is. The compiled
+    :func:`cloudpose.kernels.placement.slide_steps` where the kernels are enabled (the same
+    step), else this numpy loop."""
+    from cloudpose.kernels.backend import enabled
+
+    k_max = int(_START / _GRID)
+    if enabled():
+        from cloudpose.kernels.placement import slide_steps
+
+        k = slide_steps(cells, occupied, anchor, step, k_max, _GRID, _GRID_HALF)
+        return None if k < 0 else anchor + step * (k * _GRID)
+    xy = None
+    for k in range(k_max, -1, -1):
+        cand = anchor + step * (k * _GRID)
+        ij = cells + np.floor(cand / _GRID).astype(np.int64) + _GRID_HALF
+        if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any():
+            continue
+        if occupied[ij[:, 0], ij[:, 1]].any():
+            break
+        xy = cand
+    return xy
+
+
+def _cell_keys(cells: np.ndarray) -> np.ndarray:
+    """(C,) int64 one key per (C, 2) grid cell (cells within 2^20 of the origin)."""
+    cells = np.asarray(cells, dtype=np.int64)
+    return (cells[:, 0] + (1 << 20)) * (1 << 21) + (cells[:, 1] + (1 << 20))
 
 
 class _Support(NamedTuple):
@@ -243,6 +291,7 @@ def _try_stack(
     """
     bottom = local[local[:, 2] <= local[:, 2].min() + STACK_CONTACT, :2]
     com = local.mean(axis=0)[:2]
+    tops: dict[int, np.ndarray] = {}  # the top cells of each support tried, as keys
     for _ in range(tries):
         k = int(rng.integers(len(supports)))
         sup = supports[k]
@@ -250,8 +299,9 @@ def _try_stack(
         xy_com = (cell + rng.random(2)) * _GRID
         origin = xy_com - com
         contact = _raster_cells(bottom + origin, fill=False)
-        top = {tuple(c) for c in sup.top_cells.tolist()}
-        contact = np.array([c for c in contact.tolist() if tuple(c) in top], dtype=np.float64)
+        if k not in tops:
+            tops[k] = _cell_keys(sup.top_cells)
+        contact = contact[np.isin(_cell_keys(contact), tops[k])].astype(np.float64)
         if len(contact) < 3:
             continue
         try:
@@ -342,15 +392,7 @@ def sample_table_scene(
             anchor = np.mean(placed_xy, axis=0) if placed_xy else np.zeros(2)
             step = np.array([np.cos(direction), np.sin(direction)])
             # slide in from afar towards the cluster centre until the next step would touch
-            xy = None
-            for k in range(int(_START / _GRID), -1, -1):
-                cand = anchor + step * (k * _GRID)
-                ij = cells + np.floor(cand / _GRID).astype(np.int64) + _GRID_HALF
-                if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any():
-                    continue
-                if occupied[ij[:, 0], ij[:, 1]].any():
-                    break
-                xy = cand
+            xy = _slide(cells, occupied, anchor, step)
             if xy is not None:
                 xy = xy + step * gap
             if xy is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -325,6 +326,65 @@ def correlated_uniform(
     return ndtr(z / std)
 
 
+def _gaussian_weights(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """(2r + 1,) the 1-D kernel ``scipy.ndimage.gaussian_filter`` uses (r = truncate sigma,
+    rounded)."""
+    r = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    w = np.exp(-0.5 / float(sigma) ** 2 * x**2)
+    return w / w.sum()
+
+
+def correlated_uniform_at(
+    rng: np.random.Generator,
+    shape: tuple[int, int],
+    sigma: float,
+    v: np.ndarray,
+    u: np.ndarray,
+) -> np.ndarray:
+    """``correlated_uniform(rng, shape, sigma)[v, u]`` with the same draws, computed at the
+    pixels ``(v, u)`` only (the compiled :func:`cloudpose.kernels.sensor.smoothed_at_kernel`
+    where the kernels are enabled): equal to float rounding (the filter's sums in another
+    order).
+
+    Returns:
+        (m,) float64 in (0, 1).
+    """
+    from cloudpose.kernels.backend import enabled
+
+    if sigma <= 0 or not enabled():
+        return correlated_uniform(rng, shape, sigma)[v, u]
+    from scipy.special import ndtr
+
+    from cloudpose.kernels.sensor import smoothed_at_kernel
+
+    z = smoothed_at_kernel(
+        rng.standard_normal(shape), _gaussian_weights(sigma), v.astype(np.int64), u.astype(np.int64)
+    )
+    return ndtr(z / _smoothed_std(float(sigma)))
+
+
+@functools.cache
+def _smoothed_std(sigma: float) -> float:
+    """Standard deviation of unit white noise smoothed as :func:`correlated_uniform` does."""
+    delta = np.zeros((int(8 * sigma) + 3,) * 2)
+    delta[len(delta) // 2, len(delta) // 2] = 1.0
+    return float(np.sqrt((ndimage.gaussian_filter(delta, sigma, mode="constant") ** 2).sum()))
+
+
+def edge_distance_compiled(label: np.ndarray) -> np.ndarray:
+    """:func:`edge_distance` by the compiled exact transform
+    (:func:`cloudpose.kernels.sensor.edge_distance_kernel`) where the kernels are enabled: the
+    same values (both exact Euclidean distances)."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        return edge_distance(label)
+    from cloudpose.kernels.sensor import edge_distance_kernel
+
+    return edge_distance_kernel(np.ascontiguousarray(label))
+
+
 def add_sensor_noise_v2(
     depth: np.ndarray,
     label: np.ndarray,
@@ -392,6 +452,7 @@ def add_sensor_noise_v2_objects(
     rng: np.random.Generator,
     model: NoiseModel = NoiseModel(),
     dropout: DropoutModel | None = None,
+    compiled: bool = False,
 ) -> np.ndarray:
     """:func:`add_sensor_noise_v2` on the object pixels only: the same model, computed and
     drawn where a segment can take a point (background pixels come back 0).
@@ -413,6 +474,10 @@ def add_sensor_noise_v2_objects(
         rng: random generator.
         model: noise parameters.
         dropout: missing-depth model of object pixels (default :data:`REAL_DROPOUT`).
+        compiled: the edge distance and the correlated field by the compiled kernels
+            (:func:`edge_distance_compiled`, :func:`correlated_uniform_at`: the same draws, the
+            field only at the object pixels; on-line synthesis version 2). The same values to
+            float rounding.
 
     Returns:
         (H, W) float64 noisy depth on object pixels, metres, 0 = no reading or background.
@@ -437,8 +502,12 @@ def add_sensor_noise_v2_objects(
     noisy = _noisy(z, valid, jump, edge, normal, u_edge, rng.random(m), model)
     noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
     c = lab[v, u]
-    p = dropout.probability(edge_distance(lab)[v, u], cos, c)
-    field = correlated_uniform(rng, (H, W), dropout.blob_sigma)[v, u]
+    if compiled:
+        p = dropout.probability(edge_distance_compiled(lab)[v, u], cos, c)
+        field = correlated_uniform_at(rng, (H, W), dropout.blob_sigma, v, u)
+    else:
+        p = dropout.probability(edge_distance(lab)[v, u], cos, c)
+        field = correlated_uniform(rng, (H, W), dropout.blob_sigma)[v, u]
     noisy[field < p] = 0.0
     out[v, u] = noisy
     return out

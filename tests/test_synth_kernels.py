@@ -1,0 +1,121 @@
+"""The compiled kernels of on-line synthesis version 2 against their twins: the z-buffer against
+the ray cast, the edge distance and the correlated field against scipy, the scene slide against
+its numpy loop, the grid FPS against the numpy loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cloudpose.data.segments import farthest_point_sampling_reference
+from cloudpose.data.synth.online import WINDOW_PAD, OnlineSynth
+from cloudpose.data.synth.sensor import (
+    correlated_uniform,
+    correlated_uniform_at,
+    edge_distance,
+    edge_distance_compiled,
+)
+from cloudpose.kernels.backend import disabled, enabled
+
+pytestmark = pytest.mark.skipif(not enabled(), reason="numba kernels off")
+
+
+@pytest.fixture(scope="module")
+def synth():
+    return OnlineSynth(2, n_points=64, nthreads=1)
+
+
+def test_zbuffer_is_the_ray_cast(synth):
+    """Over 8 table scenes: the same label at every pixel but a handful (silhouette pixels
+    within rounding), and the same depth to float32 rounding of ~1 m at all but a handful
+    (a pixel centre on an edge-on triangle, which the ray cast misses as grazing)."""
+    r = synth._gen.renderer
+    pixels, off_label, off_depth = 0, 0, 0
+    for k in range(8):
+        scene = synth.sample_scene(np.random.default_rng([7, k]))
+        wins, box = synth.windows(scene)
+        a = r.render_instanced(synth.K, synth.shape, scene.cls_ids, scene.poses(), wins, box, 1)
+        b, box_b = r.render_raster(synth.K, synth.shape, scene.cls_ids, scene.poses(), WINDOW_PAD)
+        assert box_b == box
+        np.testing.assert_array_equal(a.visible_pixels.sum(), (a.label > 0).sum())
+        both = (a.label == b.label) & (a.label > 0)
+        pixels += int((a.label > 0).sum())
+        off_label += int((a.label != b.label).sum())
+        off_depth += int((np.abs(a.depth[both].astype(np.float64) - b.depth[both]) > 1e-5).sum())
+        assert np.abs(b.visible_pixels - a.visible_pixels).max() <= 3
+    assert pixels > 100_000
+    assert off_label <= 1e-4 * pixels and off_depth <= 1e-4 * pixels, (off_label, off_depth)
+
+
+def test_zbuffer_of_an_object_behind_the_camera_casts_rays(synth):
+    """An object reaching behind the camera takes the ray cast over the whole image."""
+    r = synth._gen.renderer
+    pose = np.concatenate([np.eye(3), [[0.0], [0.0], [0.02]]], axis=1)[None]
+    got = r.render_raster(synth.K, synth.shape, np.array([2]), pose, WINDOW_PAD)
+    assert got is not None and got[1] == (0, 480, 0, 640)
+    assert got[0].visible_pixels[0] > 0
+    far = pose.copy()
+    far[0, 0, 3] = 100.0
+    far[0, 2, 3] = 1.0
+    assert r.render_raster(synth.K, synth.shape, np.array([2]), far, WINDOW_PAD) is None
+
+
+def test_edge_distance_and_field_are_scipys():
+    rng = np.random.default_rng(0)
+    lab = np.zeros((70, 90), np.uint8)
+    lab[10:40, 5:60] = 3
+    lab[30:65, 50:85] = 5
+    lab[15:20, 10:14] = 0
+    np.testing.assert_array_equal(edge_distance_compiled(lab), edge_distance(lab))
+    assert np.isinf(edge_distance_compiled(np.zeros((5, 6), np.uint8))).all()
+    for shape in ((70, 90), (12, 20)):  # smaller than the kernel: wraps more than once
+        lab = rng.integers(0, 3, shape).astype(np.uint8)
+        v, u = np.nonzero(lab)
+        want = correlated_uniform(np.random.default_rng(1), shape, 4.0)[v, u]
+        got = correlated_uniform_at(np.random.default_rng(1), shape, 4.0, v, u)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_scenes_are_the_same_with_and_without_the_slide_kernel(synth):
+    for k in range(6):
+        a = synth.sample_scene(np.random.default_rng([3, k]))
+        with disabled():
+            b = synth.sample_scene(np.random.default_rng([3, k]))
+        np.testing.assert_array_equal(a.cls_ids, b.cls_ids)
+        np.testing.assert_array_equal(a.model_to_world, b.model_to_world)
+        np.testing.assert_array_equal(a.world_to_camera, b.world_to_camera)
+
+
+@pytest.mark.parametrize("n", [1, 2, 50, 3000])
+def test_grid_fps_is_the_numpy_loop(n):
+    from cloudpose.kernels.segment_cut import grid_fps
+
+    rng = np.random.default_rng(n)
+    P = np.stack([rng.uniform(0, 0.1, n), rng.uniform(0, 0.1, n), rng.uniform(1, 1.02, n)], 1)
+    for pts in (P, np.round(P * 300) / 300):  # quantised: many ties (the highest index wins)
+        pts = pts.astype(np.float32)
+        k = min(n, 256)
+        start = int(rng.integers(n))
+        np.testing.assert_array_equal(
+            grid_fps(pts, k, start), farthest_point_sampling_reference(pts, k, start)
+        )
+    flat = np.zeros((40, 3), np.float32)  # all points equal: no extent to grid
+    np.testing.assert_array_equal(
+        grid_fps(flat, 5, 7), farthest_point_sampling_reference(flat, 5, 7)
+    )
+
+
+def test_closing_and_hole_filling_are_scipys():
+    from cloudpose.data.synth.scenes import _close_numpy
+    from cloudpose.kernels.placement import close_cells
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        h, w = rng.integers(1, 25, 2)
+        img = rng.random((h, w)) < rng.uniform(0.05, 0.9)
+        for fill in (False, True):
+            np.testing.assert_array_equal(close_cells(img, fill), _close_numpy(img, fill))
+    ring = np.zeros((9, 9), bool)
+    ring[2:7, 2:7] = True
+    ring[4, 4] = False  # a hole that closing fills, and filling keeps filled
+    assert close_cells(ring, True)[4, 4] and close_cells(ring, False)[4, 4]
