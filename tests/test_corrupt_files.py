@@ -392,3 +392,31 @@ def test_a_damaged_instance_table_is_one_line_naming_it_and_the_run(tmp_path, cs
     message = str(e.value)
     assert message.startswith(f"{table}: instance table of run abc123 (shared-0 seed 1)")
     assert problem in message and "cloudpose evaluate --run abc123" in message
+
+
+def test_the_real_frame_report_checks_its_tables_too(tmp_path):
+    """``real-report`` read ``eval/real/instances.csv`` unchecked: a cut table gave "distances:
+    expected values >= 0 or inf", an empty one "No columns to parse from file"."""
+    from types import SimpleNamespace
+
+    from cloudpose.report.real import _load
+
+    table = tmp_path / "artifacts" / "eval" / "real" / "instances.csv"
+    table.parent.mkdir(parents=True)
+    run = SimpleNamespace(
+        info=SimpleNamespace(run_id="abc123", artifact_uri=(tmp_path / "artifacts").as_uri()),
+        data=SimpleNamespace(
+            tags={"variant": "baseline-fpfh", "seed": "1", "preset": "smoke"},
+            metrics={"real/count": 3.0},
+        ),
+    )
+    assert _load(None, run, "fpfh", "real") is None  # no such evaluation: listed as missing
+    table.write_text(GOOD)
+    assert len(_load(None, run, "fpfh", "real").table) == 3
+    table.write_text(GOOD[:-5])
+    with pytest.raises(CorruptFileError, match="cut short") as e:
+        _load(None, run, "fpfh", "real")
+    assert str(e.value).startswith(f"{table}: instance table of run abc123 (baseline-fpfh seed 1)")
+    assert "cloudpose baseline --method fpfh --preset smoke --seed 1 --split real --rerun" in str(
+        e.value
+    )

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose import tracking
+from cloudpose.report.runs import run_instance_table
 
 REAL = "real"
 """The metric prefix of an evaluation on the real development frames
@@ -94,11 +95,10 @@ def table_metrics(table: pd.DataFrame) -> dict[tuple[str, str, str], float]:
 
 
 def _load(client, run, method: str, name: str) -> Evaluation | None:
-    rel = f"eval/{name}/instances.csv"
     from mlflow.exceptions import MlflowException
 
     try:
-        table = tracking.read_csv_artifact(client, run, rel)
+        table = run_instance_table(client, run, name)  # checked: whole, every row
     except (FileNotFoundError, MlflowException):  # no such evaluation
         return None
     m = run.data.metrics

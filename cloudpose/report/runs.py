@@ -71,56 +71,103 @@ class RunRecord:
             rel = f"eval/{name}/instances.csv"
             local = tracking.local_artifact(self.artifact_uri, rel)
             if local is not None:
-                self._cache[key] = self._read_instances(local, name) if local.exists() else None
+                self._cache[key] = self._checked(local, name) if local.exists() else None
             else:
                 with tempfile.TemporaryDirectory() as tmp:
                     try:
                         path = self.client.download_artifacts(self.run_id, rel, tmp)
                     except Exception:
                         path = None
-                    self._cache[key] = None if path is None else self._read_instances(path, name)
+                    self._cache[key] = None if path is None else self._checked(path, name)
         return self._cache[key]
 
-    def _read_instances(self, path: str | Path, name: str) -> pd.DataFrame:
-        """An evaluation's instance table, checked: whole (it ends with a line end, as pandas
-        writes it), with the columns an evaluation writes and the rows its metrics count."""
-        path = Path(path)
-        what = f"instance table of run {self.run_id} ({self.variant} seed {self.seed})"
-
-        def damaged(problem: str) -> CorruptFileError:
-            if self.variant.startswith("baseline-"):
-                command = (
-                    f"cloudpose baseline --method {self.variant.removeprefix('baseline-')} "
-                    f"--preset {self.preset} --seed {self.seed} --rerun"
-                )
-            else:
-                command = f"cloudpose evaluate --run {self.run_id}"
-            return CorruptFileError(
-                path, f"{what} {problem}; evaluate the run again to write it anew: {command}"
-            )
-
-        raw = path.read_bytes()
-        if not raw.strip():
-            raise damaged("is empty")
-        if not raw.endswith(b"\n"):
-            raise damaged("is cut short in its last row")
-        try:
-            df = pd.read_csv(path)
-        except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
-            raise damaged(f"is unreadable ({why(e)})") from e
-        missing = [c for c in INSTANCE_COLUMNS if c not in df.columns]
-        if missing:
-            raise damaged(f"lacks the columns {missing}")
+    def _checked(self, path: str | Path, name: str) -> pd.DataFrame:
         count = self.metrics.get(tracking.metric_key(name, "count"))
-        if count is not None and math.isfinite(count) and len(df) != int(count):
-            raise damaged(
-                f"has {len(df)} rows, where the run's metric {name}/count has {int(count)}"
-            )
-        return df
+        return read_instance_table(
+            path, name, self.run_id, self.variant, self.seed, self.preset, count
+        )
 
     def history(self, key: str) -> pd.Series:
         """Per-epoch values of ``key`` (index: epoch); empty if never logged."""
         return metric_history(self.client, self.run_id, key)
+
+
+def read_instance_table(
+    path: str | Path,
+    name: str,
+    run_id: str,
+    variant: str,
+    seed: int,
+    preset: str,
+    count: float | None = None,
+) -> pd.DataFrame:
+    """An evaluation's instance table ``eval/{name}/instances.csv`` of a run, checked: whole (it
+    ends with a line end, as pandas writes every row), with the columns an evaluation writes
+    (:data:`INSTANCE_COLUMNS`) and, when the run logged its metric ``{name}/count``, as many
+    rows.
+
+    Raises:
+        CorruptFileError: empty, cut short, unreadable, lacking columns or rows; the message
+            names the file, the run and the command that writes the table anew.
+    """
+    path = Path(path)
+    what = f"instance table of run {run_id} ({variant} seed {seed})"
+
+    def damaged(problem: str) -> CorruptFileError:
+        if variant.startswith("baseline-"):
+            split = "" if name == "test" else f" --split {name}"
+            command = (
+                f"cloudpose baseline --method {variant.removeprefix('baseline-')} --preset "
+                f"{preset} --seed {seed}{split} --rerun"
+            )
+        else:
+            command = f"cloudpose evaluate --run {run_id}" + (" --real" if name == "real" else "")
+        return CorruptFileError(
+            path, f"{what} {problem}; evaluate the run again to write it anew: {command}"
+        )
+
+    raw = path.read_bytes()
+    if not raw.strip():
+        raise damaged("is empty")
+    if not raw.endswith(b"\n"):
+        raise damaged("is cut short in its last row")
+    try:
+        df = pd.read_csv(path)
+    except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise damaged(f"is unreadable ({why(e)})") from e
+    missing = [c for c in INSTANCE_COLUMNS if c not in df.columns]
+    if missing:
+        raise damaged(f"lacks the columns {missing}")
+    if count is not None and math.isfinite(count) and len(df) != int(count):
+        raise damaged(f"has {len(df)} rows, where the run's metric {name}/count has {int(count)}")
+    return df
+
+
+def run_instance_table(client, run, name: str) -> pd.DataFrame:
+    """The instance table ``eval/{name}/instances.csv`` of an MLflow ``run``, read in place
+    from a local store or downloaded, and checked (:func:`read_instance_table`).
+
+    Raises:
+        FileNotFoundError, MlflowException: the run has no such table.
+        CorruptFileError: as :func:`read_instance_table`.
+    """
+    rel = f"eval/{name}/instances.csv"
+    tags = run.data.tags
+    args = (
+        name,
+        run.info.run_id,
+        tags.get("variant", "?"),
+        int(tags.get("seed", 0)),
+        tags.get("preset", "?"),
+        run.data.metrics.get(tracking.metric_key(name, "count")),
+    )
+    local = tracking.local_artifact(run.info.artifact_uri, rel)
+    if local is not None:
+        if not local.is_file():
+            raise FileNotFoundError(f"{local}: no such instance table")
+        return read_instance_table(local, *args)
+    with tempfile.TemporaryDirectory() as tmp:
+        return read_instance_table(client.download_artifacts(run.info.run_id, rel, tmp), *args)
 
 
 def metric_history(client, run_id: str, key: str) -> pd.Series:
