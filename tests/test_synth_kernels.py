@@ -119,3 +119,36 @@ def test_closing_and_hole_filling_are_scipys():
     ring[2:7, 2:7] = True
     ring[4, 4] = False  # a hole that closing fills, and filling keeps filled
     assert close_cells(ring, True)[4, 4] and close_cells(ring, False)[4, 4]
+
+
+def test_compiled_sensor_is_the_numpy_sensor(synth):
+    """The version-2 sensor on object pixels, compiled (edge distance, field at the object
+    pixels, readings in one pass) and numpy, from the same draws: the same readings (a pixel
+    may differ only where a probability lands within an ulp of its uniform)."""
+    from cloudpose.data.synth.sensor import (
+        add_sensor_noise_v2_objects,
+        background_depth_at,
+        object_ring,
+    )
+
+    r = synth._gen.renderer
+    differ, pixels = 0, 0
+    for k in range(3):
+        scene = synth.sample_scene(np.random.default_rng([11, k]))
+        got, (v0, _, u0, _) = r.render_raster(
+            synth.K, synth.shape, scene.cls_ids, scene.poses(), WINDOW_PAD
+        )
+        Kw = synth.K.copy()
+        Kw[0, 2] -= u0
+        Kw[1, 2] -= v0
+        clean = np.where(got.label > 0, got.depth.astype(np.float64), 0.0)
+        rv, ru = np.nonzero(object_ring(got.label))
+        clean[rv, ru] = background_depth_at(Kw, rv, ru, scene.world_to_camera, scene.background)
+        a = add_sensor_noise_v2_objects(clean, got.label, Kw, np.random.default_rng(k))
+        b = add_sensor_noise_v2_objects(
+            clean, got.label, Kw, np.random.default_rng(k), compiled=True
+        )
+        differ += int((a != b).sum())
+        pixels += int((got.label > 0).sum())
+        assert (b > 0).sum() > 0.8 * (got.label > 0).sum()  # ~10% missing, as fitted
+    assert differ <= 1e-5 * pixels, f"{differ} of {pixels} readings differ"

@@ -185,3 +185,46 @@ def smoothed_at_kernel(noise, weights, v, u):  # pragma: no cover - compiled
             s += weights[j] * tmp[y, u[i] + j]
         out[i] = s
     return out
+
+
+@njit(cache=True)
+def object_readings_kernel(
+    z, jump, cos, normal, u_edge, mix, edge_dist, field, lut, c, noise, drop, max_range
+):  # pragma: no cover - compiled
+    """The version-2 sensor's readings of object pixels from their draws, in one pass: the
+    twin is the numpy tail of :func:`cloudpose.data.synth.sensor.add_sensor_noise_v2_objects`
+    (``_noisy``, the range test, ``DropoutModel.probability`` and the field threshold).
+
+    Args:
+        z, jump, cos: (m,) clean depth, edge jump (metres) and incidence cosine.
+        normal, u_edge, mix: (m,) the pixels' draws.
+        edge_dist, field: (m,) distance to another label (pixels) and the correlated uniform.
+        lut: (256,) missing rate per class id (0 for 0); c: (m,) class ids.
+        noise: (sigma0, sigma2, focal_baseline, subpixel, edge_jump, edge_flying).
+        drop: (edge_rate, edge_scale, graze_cos, graze_width).
+        max_range: metres.
+
+    Returns:
+        (m,) float64 readings, metres, 0 = none.
+    """
+    sigma0, sigma2, fb, sub, edge_jump, edge_flying = noise
+    edge_rate, edge_scale, graze_cos, graze_width = drop
+    m = z.shape[0]
+    out = np.empty(m)
+    for i in range(m):
+        zi = z[i]
+        valid = zi > 0
+        r = zi + normal[i] * (sigma0 + sigma2 * (zi - 0.4) ** 2)
+        if abs(jump[i]) > edge_jump and u_edge[i] < edge_flying:
+            r = r + mix[i] * jump[i]
+        disparity = fb / (r if valid else 1.0)
+        disparity = max(np.round(disparity / sub), 1.0) * sub
+        r = fb / disparity
+        if not valid or r <= 0 or r > max_range:
+            r = 0.0
+        p_edge = edge_rate * np.exp(-(edge_dist[i] - 1.0) / edge_scale)
+        x = min(max((cos[i] - graze_cos) / graze_width, -50.0), 50.0)
+        p_graze = 1.0 / (1.0 + np.exp(x))
+        p = 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - lut[c[i]])
+        out[i] = 0.0 if field[i] < p else r
+    return out

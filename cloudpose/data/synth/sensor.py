@@ -201,12 +201,16 @@ class DropoutModel:
         x = np.clip((np.asarray(cos_incidence) - self.graze_cos) / self.graze_width, -50, 50)
         p_graze = 1.0 / (1.0 + np.exp(x))
         ids = np.asarray(label).astype(np.int64)
-        lut = np.full(max(256, int(ids.max(initial=0)) + 1), self.default_rate)
+        p_class = self.rate_table(int(ids.max(initial=0)) + 1)[ids]
+        return 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - p_class)
+
+    def rate_table(self, size: int = 256) -> np.ndarray:
+        """(max(256, size),) float64 the class term of every class id (0 for background)."""
+        lut = np.full(max(256, size), self.default_rate)
         for c, r in self.class_rates:
             lut[c] = r
         lut[0] = 0.0
-        p_class = lut[ids]
-        return 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - p_class)
+        return lut
 
 
 REAL_DROPOUT = DropoutModel(
@@ -474,14 +478,17 @@ def add_sensor_noise_v2_objects(
         rng: random generator.
         model: noise parameters.
         dropout: missing-depth model of object pixels (default :data:`REAL_DROPOUT`).
-        compiled: the edge distance and the correlated field by the compiled kernels
-            (:func:`edge_distance_compiled`, :func:`correlated_uniform_at`: the same draws, the
-            field only at the object pixels; on-line synthesis version 2). The same values to
-            float rounding.
+        compiled: the edge distance, the correlated field and the readings by the compiled
+            kernels where they are enabled (:func:`edge_distance_compiled`,
+            :func:`correlated_uniform_at`, :func:`cloudpose.kernels.sensor.object_readings_kernel`:
+            the same draws, the field only at the object pixels; on-line synthesis version 2).
+            The same values to float rounding.
 
     Returns:
         (H, W) float64 noisy depth on object pixels, metres, 0 = no reading or background.
     """
+    from cloudpose.kernels.backend import enabled
+
     dropout = REAL_DROPOUT if dropout is None else dropout
     z_all = np.asarray(depth, dtype=np.float64)
     lab = np.asarray(label)
@@ -499,9 +506,37 @@ def add_sensor_noise_v2_objects(
     m = len(z)
     normal = rng.standard_normal(m)
     u_edge = rng.random(m)
+    c = lab[v, u]
+    if compiled and enabled():
+        from cloudpose.kernels.sensor import object_readings_kernel
+
+        mix = rng.random(m)
+        field = correlated_uniform_at(rng, (H, W), dropout.blob_sigma, v, u)
+        out[v, u] = object_readings_kernel(
+            z,
+            jump,
+            cos,
+            normal,
+            u_edge,
+            mix,
+            edge_distance_compiled(lab)[v, u],
+            field,
+            dropout.rate_table(),
+            c.astype(np.int64),
+            (
+                model.sigma0,
+                model.sigma2,
+                model.focal_baseline,
+                model.subpixel,
+                model.edge_jump,
+                model.edge_flying,
+            ),
+            (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width),
+            MAX_RANGE,
+        )
+        return out
     noisy = _noisy(z, valid, jump, edge, normal, u_edge, rng.random(m), model)
     noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
-    c = lab[v, u]
     if compiled:
         p = dropout.probability(edge_distance_compiled(lab)[v, u], cos, c)
         field = correlated_uniform_at(rng, (H, W), dropout.blob_sigma, v, u)
