@@ -28,12 +28,14 @@ from cloudpose.data.cache import segments_for
 from cloudpose.data.dataset import Prepared, folder_segments, only_classes, prepare_data
 from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.data.mask_sources import mask_source_label
+from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.headline import headline
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
+from cloudpose.pretrained import is_pretrained
 from cloudpose.refine import ICPSettings
-from cloudpose.runs import resolve_run
+from cloudpose.runs import local_checkpoint
 
 OWN_TEST = "test"
 """Metric prefix of a run's evaluation on its own test set (``test/...``, ``test_icp/...``).
@@ -250,7 +252,7 @@ def evaluate(
     """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
 
     Args:
-        run: run folder, MLflow run id, or run name (:func:`resolve_run`).
+        run: run folder, MLflow run id, or run name (:func:`cloudpose.runs.resolve_run`).
         data: dataset root in either layout (YCB-Video or BOP ycbv,
             :mod:`cloudpose.data.layout`); None = the run's own test set.
         frames: with ``data``: frame list to read ("keyframe" = YCB-Video's keyframes or the
@@ -278,9 +280,21 @@ def evaluate(
     if name is not None:
         check_evaluation_name(name, data)
     project_dir = (project_dir or Path.cwd()).resolve()
+    log = log and not is_pretrained(run)  # the shipped network has no MLflow run to log to
     client = tracking.setup(project_dir)
-    run_id, ckpt = resolve_run(client, run)
-    model, cfg = load_checkpoint(ckpt, device)
+    # a checkpoint downloaded from the run's artifacts is read here and removed with its folder
+    with local_checkpoint(client, run) as (run_id, ckpt):
+        try:
+            model, cfg = load_checkpoint(ckpt, device)
+        except ValueError as exc:
+            if not runs.is_run_folder(ckpt.parent):
+                raise
+            raise ValueError(
+                f"{exc}; rerun the run's train command (cloudpose train with its variant, "
+                "preset, seed and settings): it rewrites model.pt from last.pt or the MLflow run"
+            ) from exc
+        kept = run_id is None or runs.is_run_folder(ckpt.parent)  # shipped, or in its folder
+        ckpt_label = str(ckpt) if kept else "model.pt (downloaded)"
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
     device = next(model.buffers()).device
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
@@ -344,13 +358,31 @@ def evaluate(
     if icp:
         metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
     if log:
-        log_evaluation(client, run_id, name, table, metrics)
-        client.set_tag(run_id, tag, data_key)
-        client.set_tag(run_id, f"eval/{name}/split", split)
-        if masks:
-            client.set_tag(run_id, f"eval/{name}/segmentation", masks)
-    source = f"run {run_id}, checkpoint {ckpt}, {len(segs)} instances of {data_label}"
+        try:
+            log_evaluation(client, run_id, name, table, metrics)
+            client.set_tag(run_id, tag, data_key)
+            client.set_tag(run_id, f"eval/{name}/split", split)
+            if masks:
+                client.set_tag(run_id, f"eval/{name}/segmentation", masks)
+        except Exception as exc:
+            full = _disk_full(exc, client, run_id)
+            if full is None:
+                raise
+            raise full from exc
+    source = f"run {run_id}, checkpoint {ckpt_label}, {len(segs)} instances of {data_label}"
     return EvalOutcome(table, metrics, run_id, name, source, split)
+
+
+def _disk_full(exc: BaseException, client, run_id: str) -> DiskFullError | None:
+    """The one-line :class:`DiskFullError` of a full disk while logging an evaluation (naming
+    the MLflow store for SQLite's "database or disk is full", else the run's artifact folder),
+    else None."""
+    db = tracking.sqlite_path(client.tracking_uri)
+    if db is not None and "database or disk is full" in str(exc):
+        where = db
+    else:
+        where = tracking.local_artifact(client.get_run(run_id).info.artifact_uri, "eval")
+    return disk_full(exc, where or tempfile.gettempdir(), then="rerun the evaluation")
 
 
 def log_evaluation(

@@ -19,7 +19,7 @@ from cloudpose.data.segments import check_depth_scale, extract_segments
 from cloudpose.data.ycb import YCBVideo, read_frame
 from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
 from cloudpose.refine import ICPSettings
-from cloudpose.runs import resolve_run
+from cloudpose.runs import local_checkpoint
 
 
 @dataclass(frozen=True)
@@ -72,8 +72,8 @@ def load_model_for(checkpoint: str, device: str = "auto"):
     path = Path(checkpoint)
     if path.is_file():
         return load_checkpoint(path, device)
-    _, ckpt = resolve_run(tracking.setup(), checkpoint)
-    return load_checkpoint(ckpt, device)
+    with local_checkpoint(tracking.setup(), checkpoint) as (_, ckpt):  # a download is removed
+        return load_checkpoint(ckpt, device)
 
 
 def predict(

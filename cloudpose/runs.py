@@ -6,8 +6,10 @@ preset values, seed and every override) trained on one dataset
 (:func:`cloudpose.data.dataset.data_fingerprint`, a content hash). Both fingerprints name:
 
 - the run folder ``runs/{variant}/{preset}/seed{S}-{data[:10]}-{config[:8]}`` (:func:`run_dir`),
-  holding ``last.pt``, ``model.pt`` and ``run.json`` (:func:`read_info` / :func:`write_info`:
-  the MLflow run id, the group, the config, and once finished its final metrics);
+  holding ``last.pt`` (and ``last.prev.pt`` while it trains), ``model.pt`` and ``run.json``
+  (:func:`read_info` / :func:`write_info`: the MLflow run id, the group, the config, and once
+  finished its final metrics); a checkpoint is read checked (:func:`read_checkpoint`: a torn
+  or empty one is a :class:`CheckpointError` naming it);
 - the MLflow run's tags ``config`` and ``data``; its name is ``variant/preset/seedS``
   (:func:`run_name`), plus ``+{config[:8]}`` for a config that is not its preset's own
   (:func:`display_name`), so runs of different configs never share a name.
@@ -48,12 +50,16 @@ if TYPE_CHECKING:
 
 __all__ = [
     "TEST_KEY",
+    "CheckpointError",
     "describe_run",
     "display_name",
     "drop_checkpoint_artifact",
+    "fetch_artifact",
     "finished_run",
     "is_preset_config",
+    "local_checkpoint",
     "lock_path",
+    "read_checkpoint",
     "read_info",
     "resolve_run",
     "resolve_run_id",
@@ -350,14 +356,12 @@ def restore_run_folder(client, cfg: Config, data: str, folder: Path) -> dict[str
             "config": cfg.to_dict(),
         }
         if run.info.status == "FINISHED":
-            if not _fetch_artifact(client, run_id, "model.pt", folder / "model.pt"):
+            if not fetch_artifact(client, run_id, "model.pt", folder / "model.pt"):
                 continue
             metrics = {k: v for k, v in run.data.metrics.items() if k.split("/")[0] in _TRAINED}
             info.update({"finished": True, "metrics": metrics})
         else:
-            _fetch_artifact(
-                client, run_id, f"{CHECKPOINT_ARTIFACT_DIR}/last.pt", folder / "last.pt"
-            )
+            fetch_artifact(client, run_id, f"{CHECKPOINT_ARTIFACT_DIR}/last.pt", folder / "last.pt")
         write_info(folder, info)
         return info
     return {}
@@ -370,7 +374,7 @@ TRAINING_PREFIXES = (*_TRAINED, "time")
 """Every metric prefix training logs, per epoch: no evaluation may be named like one."""
 
 
-def _fetch_artifact(client, run_id: str, path: str, dest: Path) -> bool:
+def fetch_artifact(client, run_id: str, path: str, dest: Path) -> bool:
     """Download the run's artifact ``path`` to ``dest``; False when the run has none."""
     parent, _, name = path.rpartition("/")
     if name not in {Path(f.path).name for f in client.list_artifacts(run_id, parent or None)}:
@@ -450,7 +454,57 @@ def _resolve_name(client, run: str) -> str:
     raise ValueError(f"{why}: {listed}. Pass the run id or run folder")
 
 
-def resolve_run(client, run: str) -> tuple[str, Path]:
+CHECKPOINT_KEYS = ("model", "config")
+"""What every checkpoint holds (``model.pt``); ``last.pt`` also ``optimizer``, ``epoch``,
+``batch`` and ``sums``."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be read (empty, truncated, not a checkpoint): the message names
+    the file and why."""
+
+
+def read_checkpoint(
+    path: str | Path, map_location: Any = "cpu", keys: tuple[str, ...] = CHECKPOINT_KEYS
+) -> dict[str, Any]:
+    """The state saved in a checkpoint, checked: readable (tensors and plain data only) and
+    holding ``keys``; else :class:`CheckpointError` naming the file and why (a zero-byte or
+    torn file, a foreign pickle)."""
+    import torch
+
+    path = Path(path)
+    if path.is_file() and path.stat().st_size == 0:
+        raise CheckpointError(f"{path} is not a readable checkpoint (it is empty: 0 bytes)")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # a torn zip, an empty file (EOFError), an unsafe pickle, ...
+        reason = " ".join(str(exc).split())[:120] or type(exc).__name__
+        raise CheckpointError(
+            f"{path} is not a readable checkpoint ({type(exc).__name__}: {reason})"
+        ) from exc
+    missing = [k for k in keys if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise CheckpointError(
+            f"{path} is not a readable checkpoint (it lacks {', '.join(map(repr, missing))})"
+        )
+    return state
+
+
+@contextlib.contextmanager
+def local_checkpoint(client, run: str) -> Iterator[tuple[str, Path]]:
+    """:func:`resolve_run` whose downloaded checkpoint (a run whose folder is not on this
+    machine) lives in a temporary folder for the block only: read it inside the block.
+    ``pretrained`` (:mod:`cloudpose.pretrained`) gives run id None and the shipped weights."""
+    from cloudpose.pretrained import is_pretrained, shipped
+
+    if is_pretrained(run):  # the network the package ships: no MLflow run
+        yield None, shipped(run).path
+        return
+    with tempfile.TemporaryDirectory(prefix="cloudpose-checkpoint-") as tmp:
+        yield resolve_run(client, run, download_to=Path(tmp))
+
+
+def resolve_run(client, run: str, download_to: Path | None = None) -> tuple[str, Path]:
     """MLflow run id and local checkpoint of ``run``.
 
     ``run`` is a run folder (``runs/shared-0/cpu/seed1-...``), an MLflow run id, or a run name:
@@ -458,7 +512,9 @@ def resolve_run(client, run: str) -> tuple[str, Path]:
     config, or ``variant/preset/seedS+CONFIG`` as :func:`display_name` prints a run made with
     overrides, the one finished run whose config fingerprint starts with CONFIG (an error
     listing the candidates when there are none or several). A checkpoint that
-    is not on this machine is downloaded from the run's artifacts.
+    is not on this machine is downloaded from the run's artifacts into ``download_to`` (a
+    folder the caller removes: :func:`local_checkpoint`), else into a new temporary folder that
+    stays.
     """
     run_id = resolve_run_id(client, run)
     if is_run_folder(run):
@@ -469,7 +525,10 @@ def resolve_run(client, run: str) -> tuple[str, Path]:
 
         local = Path(
             mlflow.artifacts.download_artifacts(
-                run_id=run_id, artifact_path="model.pt", tracking_uri=client.tracking_uri
+                run_id=run_id,
+                artifact_path="model.pt",
+                dst_path=None if download_to is None else str(download_to),
+                tracking_uri=client.tracking_uri,
             )
         )
     return run_id, local

@@ -3,11 +3,17 @@
 Resumability: the run folder ``runs/{variant}/{preset}/seed{S}-{data}-{config}`` (data and config
 fingerprints: an edited preset or an override never resumes another config's run) holds ``last.pt`` (model,
 optimiser, position in the epoch and the epoch's running loss sums), written atomically at the end
-of every epoch and every ``checkpoint_every_s`` seconds within one, and ``run.json`` with the MLflow
-run id. Rerunning the same command after any interruption (``kill -9`` included) continues from
-``last.pt`` into the same MLflow run. The batch order of epoch ``e`` depends only on ``(seed, e)``
-and the model's initial weights only on ``seed``, so a resumed run ends with the same numbers as
-an uninterrupted one (on CPU, with the same thread count). Against a tracking server
+of every epoch and every ``checkpoint_every_s`` seconds within one, the one before it as
+``last.prev.pt``, and ``run.json`` with the MLflow run id. Rerunning the same command after any
+interruption (``kill -9``, SIGTERM, Ctrl-C, a full disk) continues from ``last.pt`` into the same
+MLflow run; from ``last.prev.pt``, with a warning naming the bad file, when ``last.pt`` cannot be
+read (torn, empty). An epoch's metrics are logged once: a resumed run that trains an epoch again
+(from an earlier checkpoint) does not log it a second time. A full disk is one line naming the
+file and the space it needs (:class:`cloudpose.failures.DiskFullError`), and the run is marked
+FAILED; SIGTERM stops training as Ctrl-C does (the run is marked KILLED). The batch order of
+epoch ``e`` depends only on ``(seed, e)`` and the model's initial weights only on ``seed``, so a
+resumed run ends with the same numbers as an uninterrupted one (on CPU, with the same thread
+count). Against a tracking server
 (:func:`cloudpose.tracking.is_remote`) every checkpoint is also logged to the run as the artifact
 ``checkpoint/last.pt`` (removed once the run finishes), and a machine without the run folder
 (a retried Ray task on another node) rebuilds it from MLflow (:func:`cloudpose.runs.restore_run_folder`):
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import math
 import os
 import time
@@ -44,6 +51,7 @@ from cloudpose.data.dataset import Prepared
 from cloudpose.data.synth.online import REUSE_SPACING, OnlineChunks, OnlineStream
 from cloudpose.data.synth.store import STORE_DIR, code_digest
 from cloudpose.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
+from cloudpose.failures import DiskFullError, disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
 from cloudpose.losses import pose_loss
@@ -262,7 +270,8 @@ def train(
     rdir = runs.run_dir(cfg, data.key, project_dir)
     # One process at a time per run folder: a second identical command waits, then finds
     # the run finished (or resumes it), instead of training a twin into the same folder.
-    with runs.run_lock(rdir) if world.is_main else contextlib.nullcontext():
+    lock = runs.run_lock(rdir) if world.is_main else contextlib.nullcontext()
+    with sigterm_as_interrupt(), lock:
         try:
             return _train(
                 cfg,
@@ -279,9 +288,26 @@ def train(
         except TrainingInterrupted:
             raise
         except BaseException as exc:
+            full = _disk_full(exc, project_dir, rdir)
             if world.is_main:
                 _mark_ended(project_dir, rdir, exc)
+            if full is not None:
+                raise full from exc
             raise
+
+
+RESUME_HINT = "rerun the same command: the run resumes from its last checkpoint"
+
+
+def _disk_full(exc: BaseException, project_dir: Path, rdir: Path) -> DiskFullError | None:
+    """The one-line :class:`DiskFullError` of a full disk while training, else None. The file
+    is the one a write named (a checkpoint names itself and its size), else the MLflow store
+    for SQLite's "database or disk is full", else the run folder."""
+    if isinstance(exc, DiskFullError):
+        return exc
+    db = tracking.sqlite_path(tracking.tracking_uri(project_dir))
+    where = db if db is not None and "database or disk is full" in str(exc) else rdir
+    return disk_full(exc, where, then=RESUME_HINT)
 
 
 def _mark_ended(project_dir: Path, rdir: Path, exc: BaseException) -> None:
@@ -328,7 +354,9 @@ def _train(
         if not info and checkpoint_artifacts:
             info = runs.restore_run_folder(client, cfg, data_key, rdir)
     info = world.broadcast(info)
-    if info.get("finished") and world.broadcast(final.exists()):
+    if info.get("finished") and world.broadcast(
+        world.is_main and _final_model_ready(final, last, cfg, client, info["run_id"])
+    ):
         return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
 
     dataset = data.dataset
@@ -364,9 +392,9 @@ def _train(
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     epoch, batch, sums = 0, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
     state = None
-    if world.is_main and last.exists():
+    if world.is_main:
         where = "cpu" if world.distributed else device  # sent to the other processes first
-        state = torch.load(last, map_location=where, weights_only=True)
+        state = _read_resume_state(last, where)
     state = world.broadcast(state)  # rank 0's checkpoint, on every process
     if state is not None:
         if Config.from_dict(state["config"]).to_dict() != cfg.to_dict():
@@ -399,6 +427,10 @@ def _train(
     elif world.is_main:
         client.update_run(run_id, status="RUNNING")
     run_id = world.broadcast(run_id)
+    # epochs already logged: trained again from an earlier checkpoint, not logged again
+    logged = set()
+    if world.is_main:
+        logged = {m.step for m in client.get_metric_history(run_id, "train/loss")}
 
     def checkpoint() -> None:
         _checkpoint(last, model, opt, cfg, epoch, batch, sums)
@@ -535,7 +567,8 @@ def _train(
                             prefix=prefix,
                         )
                     )
-            client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
+            if epoch + 1 not in logged:
+                client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
         epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
         if world.is_main:
             checkpoint()
@@ -545,10 +578,12 @@ def _train(
         stream.close()
 
     final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
+    if not metrics:  # no epoch trained here: the checkpoint was of the last one
+        final_metrics = info.get("metrics", {})
     if world.is_main:
-        state = {"model": model.state_dict(), "config": cfg.to_dict()}
-        atomic_write(final, lambda tmp: torch.save(state, tmp))
+        _save(final, {"model": model.state_dict(), "config": cfg.to_dict()})
         client.log_artifact(run_id, str(final))
+        last.with_name(PREVIOUS_CHECKPOINT).unlink(missing_ok=True)
         info.update({"finished": True, "metrics": final_metrics})
         runs.write_info(rdir, info)
         if checkpoint_artifacts:
@@ -584,6 +619,36 @@ class TrainingInterrupted(RuntimeError):
     """Raised when ``max_steps`` stops a run before its end (its checkpoint is saved)."""
 
 
+PREVIOUS_CHECKPOINT = "last.prev.pt"
+"""The checkpoint before ``last.pt``, beside it: where a run resumes when ``last.pt`` is torn."""
+
+RESUME_KEYS = ("model", "optimizer", "config", "epoch", "batch", "sums")
+"""What a ``last.pt`` holds."""
+
+
+def _save(path: Path, state: dict, keep: Path | None = None) -> None:
+    """Write ``state`` to ``path`` atomically; with ``keep``, the file it replaces becomes
+    ``keep``. Serialised in memory first: a full disk then fails in a plain write, as an
+    ``OSError`` (``torch.save`` into a file raises a bare RuntimeError), and is
+    :class:`DiskFullError` naming ``path`` and the bytes it needs."""
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    data = buf.getbuffer()
+
+    def write(tmp: Path) -> None:
+        tmp.write_bytes(data)
+        if keep is not None and path.exists():
+            os.replace(path, keep)
+
+    try:
+        atomic_write(path, write)
+    except OSError as exc:
+        full = disk_full(exc, path, len(data), then=RESUME_HINT)
+        if full is None:
+            raise
+        raise full from exc
+
+
 def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sums: dict) -> None:
     state = {
         "model": model.state_dict(),
@@ -593,4 +658,65 @@ def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sum
         "batch": batch,
         "sums": dict(sums),
     }
-    atomic_write(path, lambda tmp: torch.save(state, tmp))
+    _save(path, state, keep=path.with_name(PREVIOUS_CHECKPOINT))
+
+
+def _read_resume_state(last: Path, map_location) -> dict | None:
+    """The state to resume from: ``last.pt``, else (torn, empty) ``last.prev.pt`` with a
+    warning naming the bad file, which is removed (a later checkpoint must not keep it as the
+    previous one); None when the run has no checkpoint yet. Neither readable: ``ValueError``
+    naming the file and what to do."""
+    prev = last.with_name(PREVIOUS_CHECKPOINT)
+    bad: dict[Path, runs.CheckpointError] = {}
+    for path in (last, prev):
+        if not path.exists():
+            continue
+        try:
+            state = runs.read_checkpoint(path, map_location, keys=RESUME_KEYS)
+        except runs.CheckpointError as exc:
+            bad[path] = exc
+            continue
+        if bad:
+            last.unlink(missing_ok=True)
+            warnings.warn(
+                f"{bad[last]}; resuming from {path} (epoch {state['epoch'] + 1}, step "
+                f"{state['batch']}), the one before it (the bad file is removed)",
+                stacklevel=3,
+            )
+        return state
+    if bad:
+        raise ValueError(
+            f"{'; '.join(map(str, bad.values()))}: the run cannot resume from it; delete it "
+            f"(rm {' '.join(map(str, bad))}) to train the run from its start, into the same "
+            "MLflow run"
+        )
+    return None
+
+
+def _final_model_ready(final: Path, last: Path, cfg: Config, client, run_id: str) -> bool:
+    """Whether a finished run's ``model.pt`` is there and readable; a torn or missing one is
+    rewritten (with a warning) from ``last.pt`` of the last epoch, whose model it is, or from
+    the run's MLflow artifact. False when neither can: the run is then trained to its end
+    again, from its last checkpoint."""
+    try:
+        runs.read_checkpoint(final, "cpu")
+        return True
+    except (runs.CheckpointError, FileNotFoundError) as exc:
+        why = str(exc) if final.exists() else f"{final} is missing"
+    try:
+        state = runs.read_checkpoint(last, "cpu", keys=RESUME_KEYS)
+        same = Config.from_dict(state["config"]).to_dict() == cfg.to_dict()
+        if state["epoch"] == cfg.train.epochs and same:
+            _save(final, {"model": state["model"], "config": state["config"]})
+            warnings.warn(f"{why}; rewritten from {last}", stacklevel=4)
+            return True
+    except (runs.CheckpointError, FileNotFoundError):
+        pass
+    if runs.fetch_artifact(client, run_id, "model.pt", final):
+        try:
+            runs.read_checkpoint(final, "cpu")
+            warnings.warn(f"{why}; fetched again from the MLflow run {run_id}", stacklevel=4)
+            return True
+        except runs.CheckpointError:
+            final.unlink(missing_ok=True)
+    return False

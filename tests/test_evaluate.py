@@ -93,3 +93,37 @@ def test_icp_label_names_how_settings_differ():
     assert icp_label(ICPSettings(starts=24), own) == "starts24"
     assert icp_label(ICPSettings(fallback=True, starts=60), own) == "fallback-starts60"
     assert icp_label(ICPSettings(iterations=3), own) == "other"
+
+
+@pytest.mark.slow
+def test_a_downloaded_checkpoint_is_removed_after_the_evaluation(project, tmp_path, monkeypatch):
+    """A run whose folder lacks model.pt is evaluated from its MLflow artifact: the download
+    goes into a temporary folder that is removed afterwards (it was left in /tmp, 6.5 MB a call)."""
+    import tempfile
+
+    proj, out = project
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    model = out.run_dir / "model.pt"
+    aside = out.run_dir / "model.pt.aside"
+    model.rename(aside)
+    try:
+        ev = evaluate(out.run_id, project_dir=proj, progress=False, icp=False, log=False)
+    finally:
+        aside.rename(model)
+    assert len(ev.table) > 0 and "downloaded" in ev.source
+    assert list(tmp.iterdir()) == []
+
+
+def test_a_torn_model_of_a_run_folder_says_how_to_rewrite_it(smoke_run, tmp_path, monkeypatch):
+    import shutil
+
+    src, ref = smoke_run
+    proj = tmp_path / "copy"
+    shutil.copytree(src, proj, symlinks=True)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    run_dir = proj / ref.run_dir.relative_to(src)
+    (run_dir / "model.pt").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"model\.pt is not .*rerun the run's train command"):
+        evaluate(str(run_dir), project_dir=proj, progress=False, log=False)

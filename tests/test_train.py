@@ -220,3 +220,147 @@ def test_depth_noise_moves_points_along_their_rays_at_a_level_drawn_per_segment(
     # one level per segment, spread over [0, 3 mm]: some segments barely moved, none beyond
     level = along.std(dim=1)
     assert level.max() < 0.0035 and level.min() < 0.0005 and level.max() > 0.0025
+
+
+def _steps(run_id: str, proj: Path, key: str = "train/loss") -> list[int]:
+    from cloudpose import tracking
+
+    return sorted(m.step for m in tracking.setup(proj).get_metric_history(run_id, key))
+
+
+@pytest.mark.slow
+def test_a_torn_checkpoint_falls_back_to_the_previous_one(
+    tmp_path, smoke_data, smoke_run, monkeypatch
+):
+    """A truncated last.pt: the run resumes from last.prev.pt with a warning naming the torn
+    file, and ends as an uninterrupted run, each epoch logged once."""
+    _, ref = smoke_run
+    cfg = resolve("shared-0", "smoke", seed=1)
+    proj = _project(tmp_path, smoke_data, monkeypatch)
+    with pytest.raises(TrainingInterrupted) as cut:
+        train_run(cfg, project_dir=proj, progress=False, max_steps=2)
+    with pytest.raises(TrainingInterrupted):
+        train_run(cfg, project_dir=proj, progress=False, max_steps=2)
+    last = cut.value.args[0] / "last.pt"
+    last.write_bytes(last.read_bytes()[:1000])
+    with pytest.warns(UserWarning, match=r"last\.pt is not a readable checkpoint.*last\.prev\.pt"):
+        resumed = train_run(cfg, project_dir=proj, progress=False)
+    assert resumed.metrics == ref.metrics
+    assert _steps(resumed.run_id, proj) == list(range(1, cfg.train.epochs + 1))
+    assert not (last.parent / "last.prev.pt").exists()  # a finished run keeps last.pt only
+
+
+def test_an_empty_checkpoint_without_a_previous_one_is_one_line(tmp_path, smoke_data, monkeypatch):
+    from cloudpose import runs
+    from cloudpose.data.dataset import prepare_data
+    from tests.conftest import cli, one_line_error
+
+    cfg = resolve("shared-0", "smoke", seed=1)
+    proj = _project(tmp_path, smoke_data, monkeypatch)
+    monkeypatch.chdir(proj)
+    rdir = runs.run_dir(cfg, prepare_data(cfg.data, proj, progress=False).key, proj)
+    rdir.mkdir(parents=True)
+    (rdir / "last.pt").write_bytes(b"")
+    res = cli("train", "--preset", "smoke", "--seed", "1", "--no-progress")
+    line = one_line_error(res, str(rdir / "last.pt"), "empty")
+    assert "rm " in line or "delete" in line
+
+
+@pytest.mark.slow
+def test_a_full_disk_is_one_line_and_the_resumed_run_logs_each_epoch_once(
+    tmp_path, smoke_data, smoke_run, monkeypatch
+):
+    """No space for the checkpoint after epoch 2 was logged: one line naming last.pt and the
+    space it needs, the run FAILED; after space is freed the rerun resumes and logs epoch 2 once."""
+    import errno
+
+    from cloudpose import runs, tracking
+    from cloudpose import train as train_module
+    from tests.conftest import cli, one_line_error
+
+    _, ref = smoke_run
+    cfg = resolve("shared-0", "smoke", seed=1)
+    proj = _project(tmp_path, smoke_data, monkeypatch)
+    monkeypatch.chdir(proj)
+    write, calls = train_module.atomic_write, []
+
+    def full_disk(path, *args, **kwargs):
+        if Path(path).name == "last.pt":
+            calls.append(Path(path))
+            if len(calls) == cfg.train.epochs:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return write(path, *args, **kwargs)
+
+    monkeypatch.setattr(train_module, "atomic_write", full_disk)
+    res = cli("train", "--preset", "smoke", "--seed", "1", "--no-progress")
+    line = one_line_error(res, str(calls[0]), "no space left", "MB")
+    assert "needs" in line
+    run_id = runs.read_info(calls[0].parent)["run_id"]
+    assert tracking.setup(proj).get_run(run_id).info.status == "FAILED"
+    monkeypatch.setattr(train_module, "atomic_write", write)
+    resumed = train_run(cfg, project_dir=proj, progress=False)
+    assert resumed.run_id == run_id and resumed.metrics == ref.metrics
+    assert _steps(run_id, proj) == list(range(1, cfg.train.epochs + 1))
+
+
+@pytest.mark.slow
+def test_sigterm_stops_training_as_ctrl_c_does(tmp_path, smoke_data, smoke_run, monkeypatch):
+    """SIGTERM: the MLflow run is marked KILLED (not left RUNNING), and the rerun resumes it."""
+    from cloudpose import runs, tracking
+
+    _, ref = smoke_run
+    cfg = resolve("shared-0", "smoke", seed=1)
+    proj = _project(tmp_path, smoke_data, monkeypatch)
+    code = (
+        "from pathlib import Path; from cloudpose.config import resolve; "
+        "from cloudpose.pipeline import train_run; "
+        f"train_run(resolve('shared-0', 'smoke', seed=1), project_dir=Path({str(proj)!r}), "
+        "progress=False, checkpoint_every_s=0.0)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    last = None
+    while time.monotonic() < deadline and proc.poll() is None:
+        found = list((proj / "runs").glob("shared-0/smoke/seed1-*/last.pt"))
+        if found:
+            last = found[0]
+            break
+        time.sleep(0.05)
+    assert last is not None, "training wrote no checkpoint before it ended"
+    proc.send_signal(signal.SIGTERM)
+    rc = proc.wait()
+    assert rc != -signal.SIGTERM, "training was killed by SIGTERM, not stopped"
+    assert rc != 0, "training ended before it could be stopped"
+    run_id = runs.read_info(last.parent)["run_id"]
+    assert tracking.setup(proj).get_run(run_id).info.status == "KILLED"
+    resumed = train_run(cfg, project_dir=proj, progress=False)
+    assert resumed.run_id == run_id and resumed.metrics == ref.metrics
+    assert _steps(run_id, proj) == list(range(1, cfg.train.epochs + 1))
+
+
+def test_a_finished_runs_torn_model_is_rewritten_from_its_last_checkpoint(
+    smoke_run, tmp_path, monkeypatch
+):
+    """A torn model.pt of a finished run: the rerun rewrites it from last.pt (the model of the
+    last epoch) with a warning naming it, and trains nothing; its metrics stay."""
+    import shutil
+
+    from cloudpose import runs
+    from cloudpose.infer import load_checkpoint
+
+    src, ref = smoke_run
+    proj = tmp_path / "copy"
+    shutil.copytree(src, proj, symlinks=True)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    model = proj / ref.run_dir.relative_to(src) / "model.pt"
+    good = model.read_bytes()
+    model.write_bytes(good[: len(good) // 2])
+    cfg = resolve("shared-0", "smoke", seed=1)
+    with pytest.warns(UserWarning, match=r"model\.pt is not a readable checkpoint.*last\.pt"):
+        again = train_run(cfg, project_dir=proj, progress=False, max_steps=0)
+    assert again.run_id == ref.run_id and again.metrics == ref.metrics
+    rewritten = runs.read_checkpoint(model)
+    for k, v in torch.load(ref.checkpoint, weights_only=True)["model"].items():
+        assert torch.equal(rewritten["model"][k], v), k
+    load_checkpoint(model)

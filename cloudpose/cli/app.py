@@ -25,6 +25,7 @@ class _Commands(TyperGroup):
     """
 
     def invoke(self, ctx: click.Context):
+        from cloudpose.failures import DiskFullError
         from cloudpose.tracking import StoreError
 
         try:
@@ -38,7 +39,14 @@ class _Commands(TyperGroup):
                 raise
             typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
             raise typer.Exit(2) from None
-        except (ValueError, FileNotFoundError, FileExistsError, ConnectionError, StoreError) as exc:
+        except (
+            ValueError,
+            FileNotFoundError,
+            FileExistsError,
+            ConnectionError,
+            StoreError,
+            DiskFullError,
+        ) as exc:
             if _DEBUG:
                 raise
             message = " ".join(str(exc).split()) or type(exc).__name__
