@@ -370,16 +370,22 @@ class ICPConfig:
         starts: ICP from the estimate only (1, the paper) or also from it turned by each
             element of a rotation group (12, 24, 60), keeping the best fit
             (:mod:`cloudpose.refine`; reports/diagnostics/multi_start_icp_*.md measure it).
-        start_margin: share of points by which another start's fitness must beat the
+        start_margin: share of points by which another start's score must beat the
             estimate's own (0..1).
+        select: how starts are scored: "fitness" (ICP's fitness) or "depth" (fitness,
+            coverage and free-space violations against the frame's depth,
+            :func:`cloudpose.refine.depth_score`).
     """
 
     fallback: bool = False
     fallback_min_fitness: float = 0.1
     starts: int = 1
     start_margin: float = 0.02
+    select: str = "fitness"
 
     def __post_init__(self) -> None:
+        if self.select not in ("fitness", "depth"):
+            raise ValueError(f"icp.select must be 'fitness' or 'depth', got {self.select!r}")
         if not 0 <= self.fallback_min_fitness <= 1:
             raise ValueError(
                 f"icp.fallback_min_fitness must be in [0, 1], got {self.fallback_min_fitness!r}"
@@ -483,6 +489,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "fallback_min_fitness": 0.1,
         "starts": 1,
         "start_margin": 0.02,
+        "select": "fitness",
     },
     "train": {"threads": 2, "augment_depth_noise_mm": 0.0},
     "loss": {"symmetry_table": 1},

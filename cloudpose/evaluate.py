@@ -34,7 +34,7 @@ from cloudpose.headline import headline
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
 from cloudpose.pretrained import is_pretrained
-from cloudpose.refine import ICPSettings
+from cloudpose.refine import ICPSettings, segment_views
 from cloudpose.runs import local_checkpoint
 
 OWN_TEST = "test"
@@ -231,6 +231,8 @@ def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
         parts.append("fallback" if settings.fallback else "nofallback")
     if (settings.starts, settings.start_margin) != (own.starts, own.start_margin):
         parts.append(f"starts{settings.starts}")
+    if settings.select != own.select:
+        parts.append(f"select{settings.select}")
     return "-".join(parts) or "other"
 
 
@@ -343,7 +345,10 @@ def evaluate(
     t_net = time.monotonic() - t0
     if icp:
         t0 = time.monotonic()
-        est["icp"], stats = refine_poses(segs, est["net"], models_by_class, icp_settings, progress)
+        views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
+        est["icp"], stats = refine_poses(
+            segs, est["net"], models_by_class, icp_settings, progress, views=views
+        )
         t_icp = time.monotonic() - t0
     table = instance_table(
         segs, est, models_by_class, dataset.classes, symmetry_table=cfg.loss.symmetry_table

@@ -90,13 +90,15 @@ def refine_poses(
     models_by_class: dict[int, np.ndarray],
     settings: ICPSettings | None = None,
     progress: bool = False,
+    views=None,
 ) -> tuple[Estimates, ICPStats]:
     """ICP-refine every valid row; returns the refined poses and, per row, Open3D's fitness and
     inlier RMSE and whether the guard kept the estimate (``settings.fallback``; NaN / False
     for rows that are misses).
 
     The observed cloud is the segment's cached FPS points without the fill-by-repeat copies
-    (``points[:count]``).
+    (``points[:count]``). ``views``: per row, the frame's depth
+    (:func:`cloudpose.refine.segment_views`), which ``settings.select == "depth"`` needs.
     """
     settings = settings or ICPSettings()
     R, t = est.R.copy(), est.t.copy()
@@ -114,6 +116,7 @@ def refine_poses(
                 est.R[i],
                 est.t[i],
                 settings,
+                view=views[i] if views is not None else None,
             )
             R[i], t[i], fitness[i], rmse[i], kept[i] = sol
     if caught:

@@ -41,6 +41,13 @@ pose instead (``ICPSolution.fallback``). The inlier RMSE cannot serve: it is mea
 last radius (3.9 mm in the paper's schedule), so it stays near 2.5 mm whether ICP converged or
 not (reports/diagnostics/icp_fallback.md).
 
+Choosing among starts (``ICPSettings.select``, ``icp.select``): with several starts, each
+refinement is scored by ICP's fitness alone (``fitness``) or by how the posed model agrees with
+the frame's depth (``depth``, :func:`depth_score`): fitness and coverage of the segment, minus
+the share of model points that lie in front of the observed surface, in space the sensor saw
+through (free-space violations). The depth score needs the frame's depth and intrinsics
+(:class:`DepthView`; :func:`segment_views` reads them for a segment set).
+
 Threads: the fast path runs BLAS and pykdtree on one thread while it works (``threadpoolctl``);
 a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fork/join made it
 10-30x slower whenever another process held a core.
@@ -78,6 +85,87 @@ def start_rotations(starts: int) -> np.ndarray:
     return out
 
 
+SELECTIONS = ("fitness", "depth")
+"""How the ICP starts are scored (``ICPSettings.select``, ``icp.select``): ``fitness``, the
+share of observed points within the last radius (Open3D's); ``depth``, :func:`depth_score`."""
+
+FREE_SPACE_TOL = 0.01
+"""Metres by which a posed model point must lie in front of the observed surface to count as a
+free-space violation, and within which a segment point counts as covered (:func:`depth_score`)."""
+
+
+class DepthView(NamedTuple):
+    """The observed depth an instance's segment came from (``ICPSettings.select = "depth"``).
+
+    Attributes:
+        depth: (H, W) depth in metres, 0 = no reading.
+        K: (3, 3) intrinsics.
+    """
+
+    depth: np.ndarray
+    K: np.ndarray
+
+
+class DepthAgreement(NamedTuple):
+    """How a posed model agrees with the observed depth (:func:`depth_agreement`).
+
+    Attributes:
+        coverage: share of segment points within :data:`FREE_SPACE_TOL` of the posed model.
+        violation: share of the posed model's points that project onto a pixel with a depth
+            reading and lie more than :data:`FREE_SPACE_TOL` in front of it: space the sensor
+            saw through (0 when none projects onto a reading).
+    """
+
+    coverage: float
+    violation: float
+
+
+def depth_agreement(
+    observed: np.ndarray,
+    model: np.ndarray | ModelIndex,
+    R: np.ndarray,
+    t: np.ndarray,
+    view: DepthView,
+    tol: float = FREE_SPACE_TOL,
+) -> DepthAgreement:
+    """Coverage of the segment and free-space violations of the model posed by ``(R, t)``.
+
+    Args:
+        observed: (N, 3) segment points, camera frame, metres.
+        model: (P, 3) model points (model frame, metres) or their :class:`ModelIndex`.
+        R: (3, 3) rotation model -> camera; t: (3,) translation, metres.
+        view: the frame's depth and intrinsics.
+        tol: metres (:data:`FREE_SPACE_TOL`).
+    """
+    index = _index_of(model)
+    X = index.points @ R.T + t  # (P, 3) posed model, camera frame
+    z = X[:, 2]
+    H, W = view.depth.shape
+    front = z > 1e-6
+    uv = np.full((len(X), 2), -1, dtype=np.int64)
+    proj = X[front] @ np.asarray(view.K, dtype=np.float64).T
+    uv[front] = np.floor(proj[:, :2] / proj[:, 2:3] + 0.5).astype(np.int64)
+    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    d = np.zeros(len(X))
+    d[inside] = view.depth[uv[inside, 1], uv[inside, 0]]
+    seen = inside & (d > 0)
+    violation = float(np.mean(z[seen] < d[seen] - tol)) if seen.any() else 0.0
+    q = (np.asarray(observed, dtype=np.float64) - t) @ R  # segment in the model frame
+    _, idx = index.tree.query(q, k=1, distance_upper_bound=tol)
+    coverage = float(np.mean(idx < len(index.points))) if len(q) else 0.0
+    return DepthAgreement(coverage, violation)
+
+
+def depth_score(fitness: float, agreement: DepthAgreement) -> float:
+    """The ``depth`` selection's score of an ICP start: (fitness + coverage) / 2 - violation.
+
+    Fitness and coverage reward explaining the segment (within the last radius and within
+    :data:`FREE_SPACE_TOL`); a model that sticks out into space the sensor saw through loses
+    the share of its points that do. Weights fixed by the form, not fitted to any data.
+    """
+    return 0.5 * (fitness + agreement.coverage) - agreement.violation
+
+
 @dataclass(frozen=True)
 class ICPSettings:
     """The refinement schedule.
@@ -92,8 +180,11 @@ class ICPSettings:
             radius for the refined pose to be kept (0..1).
         starts: rotations of the estimate ICP starts from, keeping the best fit: 1 (the
             estimate only, the paper), 12, 24 or 60 (:data:`START_GROUPS`; module doc).
-        start_margin: share of observed points by which another start's fitness must exceed
+        start_margin: share of observed points by which another start's score must exceed
             the estimate's own to replace it (0..1).
+        select: how the starts are scored (:data:`SELECTIONS`): ``fitness`` (ICP's fitness
+            alone) or ``depth`` (:func:`depth_score`: fitness, coverage of the segment and
+            free-space violations against the observed depth; needs the frame's depth).
     """
 
     iterations: int = 10
@@ -103,8 +194,13 @@ class ICPSettings:
     min_fitness: float = 0.1
     starts: int = 1
     start_margin: float = 0.02
+    select: str = "fitness"
 
     def __post_init__(self) -> None:
+        if self.select not in SELECTIONS:
+            raise ValueError(
+                f"ICPSettings.select: expected one of {', '.join(SELECTIONS)}, got {self.select!r}"
+            )
         if not 0 <= self.min_fitness <= 1:
             raise ValueError(f"ICPSettings.min_fitness: expected in [0, 1], got {self.min_fitness}")
         if self.iterations < 1:
@@ -133,6 +229,7 @@ class ICPSettings:
             min_fitness=icp.fallback_min_fitness,
             starts=icp.starts,
             start_margin=icp.start_margin,
+            select=getattr(icp, "select", "fitness"),
         )
 
     def radii(self) -> list[float]:
@@ -208,6 +305,19 @@ def _check_pose(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
+def _check_view(settings: ICPSettings, view: DepthView | None) -> None:
+    if settings.select == "depth" and settings.starts > 1:
+        if view is None:
+            raise ValueError(
+                "ICP starts scored by depth (select='depth') need the frame's depth: pass view"
+            )
+        if np.ndim(view.depth) != 2 or np.shape(view.K) != (3, 3):
+            raise ValueError(
+                f"view: expected (H, W) depth and (3, 3) K, got {np.shape(view.depth)} and "
+                f"{np.shape(view.K)}"
+            )
+
+
 def _degenerate(R: np.ndarray, t: np.ndarray, why: str) -> ICPSolution:
     warnings.warn(f"ICP skipped ({why}); returning the initial pose", stacklevel=3)
     return ICPSolution(R.copy(), t.copy(), 0.0, 0.0)
@@ -254,6 +364,7 @@ def icp_refine(
     R_init: np.ndarray,
     t_init: np.ndarray,
     settings: ICPSettings = ICPSettings(),
+    view: DepthView | None = None,
 ) -> ICPSolution:
     """Refine one pose estimate with point-to-point ICP (fast path, same poses as Open3D's).
 
@@ -264,6 +375,8 @@ def icp_refine(
         R_init: (3, 3) estimated rotation, model -> camera.
         t_init: (3,) estimated translation, metres.
         settings: the schedule, the guard and the starts.
+        view: the frame's depth and intrinsics; needed with ``settings.select == "depth"``
+            and more than one start.
 
     Returns:
         The refined pose with Open3D's fitness and inlier RMSE for the last iteration (of the
@@ -273,14 +386,15 @@ def icp_refine(
     """
     observed = _check_points("observed", observed)
     R_init, t_init = _check_pose(R_init, t_init)
+    _check_view(settings, view)
     if len(observed) < 3:
         return _degenerate(R_init, t_init, f"{len(observed)} observed points, need >= 3")
     index = _index_of(model_points)
     if index.compiled is not None:  # compiled: no BLAS or OpenMP threads to hold back
-        sol = _refine_starts(observed, index, R_init, t_init, settings)
+        sol = _refine_starts(observed, index, R_init, t_init, settings, view)
     else:
         with _single_threaded():
-            sol = _refine_starts(observed, index, R_init, t_init, settings)
+            sol = _refine_starts(observed, index, R_init, t_init, settings, view)
     return _guard(sol, R_init, t_init, settings)
 
 
@@ -290,18 +404,29 @@ def _refine_starts(
     R_init: np.ndarray,
     t_init: np.ndarray,
     settings: ICPSettings,
+    view: DepthView | None = None,
 ) -> ICPSolution:
     """ICP from the estimate and, with ``settings.starts`` > 1, from each turned start; the best
-    fit (the estimate's own unless another beats it by more than ``start_margin``)."""
+    by ``settings.select`` (the estimate's own unless another beats it by more than
+    ``start_margin``)."""
     radii = settings.radii()
     best = _icp_model_frame(observed, index, R_init, t_init, radii)
     if settings.starts == 1:
         return best
-    to_beat = best.fitness + settings.start_margin
+
+    def score(sol: ICPSolution) -> float:
+        if settings.select == "fitness":
+            return sol.fitness
+        return depth_score(sol.fitness, depth_agreement(observed, index, sol.R, sol.t, view))
+
+    to_beat = score(best) + settings.start_margin
     for D in start_rotations(settings.starts)[1:]:
         sol = _icp_model_frame(observed, index, R_init @ D, t_init, radii, quiet=True)
-        if sol is not None and sol.fitness > to_beat:
-            best, to_beat = sol, sol.fitness
+        if sol is None:
+            continue
+        s = score(sol)
+        if s > to_beat:
+            best, to_beat = sol, s
     return best
 
 
@@ -360,6 +485,7 @@ def icp_refine_batch(
     R_init: np.ndarray,
     t_init: np.ndarray,
     settings: ICPSettings = ICPSettings(),
+    views: Sequence[DepthView | None] | None = None,
 ) -> list[ICPSolution]:
     """Refine many pose estimates (the same result as ``icp_refine`` on each).
 
@@ -372,6 +498,7 @@ def icp_refine_batch(
         R_init: (M, 3, 3) estimated rotations, model -> camera.
         t_init: (M, 3) estimated translations, metres.
         settings: the schedule.
+        views: M depth views (``settings.select == "depth"``), or None.
 
     Returns:
         M solutions, in input order.
@@ -396,8 +523,10 @@ def icp_refine_batch(
                     _degenerate(R_init[i], t_init[i], f"{len(obs)} observed points, need >= 3")
                 )
                 continue
+            view = views[i] if views is not None else None
+            _check_view(settings, view)
             index = _index_of(model_points[i])
-            sol = _refine_starts(obs, index, R_init[i], t_init[i], settings)
+            sol = _refine_starts(obs, index, R_init[i], t_init[i], settings, view)
             out.append(_guard(sol, R_init[i], t_init[i], settings))
     return out
 
@@ -454,3 +583,21 @@ def icp_refine_open3d(
     t = R_T.T @ (t_init - t_T)
     sol = ICPSolution(R, t, float(result.fitness), float(result.inlier_rmse))
     return _guard(sol, R_init, t_init, settings)
+
+
+def segment_views(dataset, segs) -> list[DepthView | None]:
+    """The depth view of every row of a segment set (``segs.frame_id``), each frame read once
+    from ``dataset`` (:mod:`cloudpose.data.layout`); None for a row without a frame id."""
+    cache: dict[str, DepthView] = {}
+    out: list[DepthView | None] = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a frame's read warnings were given when it was cached
+        for fid in np.asarray(segs.frame_id).astype(str):
+            if not fid:
+                out.append(None)
+                continue
+            if fid not in cache:
+                f = dataset.frame(fid)
+                cache[fid] = DepthView(f.depth, np.asarray(f.K, dtype=np.float64))
+            out.append(cache[fid])
+    return out
