@@ -578,8 +578,13 @@ def _train(
         stream.close()
 
     final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
-    if not metrics:  # no epoch trained here: the checkpoint was of the last one
-        final_metrics = info.get("metrics", {})
+    if not metrics and world.is_main:  # stopped after its last checkpoint: as it logged them
+        logged_metrics = client.get_run(run_id).data.metrics
+        final_metrics = info.get("metrics") or {
+            k: v
+            for k, v in logged_metrics.items()
+            if k.split("/")[0] in runs.TRAINING_PREFIXES and not k.startswith("time/")
+        }
     if world.is_main:
         _save(final, {"model": model.state_dict(), "config": cfg.to_dict()})
         client.log_artifact(run_id, str(final))

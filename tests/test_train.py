@@ -364,3 +364,30 @@ def test_a_finished_runs_torn_model_is_rewritten_from_its_last_checkpoint(
     for k, v in torch.load(ref.checkpoint, weights_only=True)["model"].items():
         assert torch.equal(rewritten["model"][k], v), k
     load_checkpoint(model)
+
+
+@pytest.mark.slow
+def test_a_run_stopped_after_its_last_checkpoint_ends_with_its_metrics(
+    tmp_path, smoke_data, smoke_run, monkeypatch
+):
+    """Stopped between the last epoch's checkpoint and model.pt: the rerun trains nothing and
+    ends with the metrics the run logged (they were lost: {})."""
+    from cloudpose import train as train_module
+
+    _, ref = smoke_run
+    cfg = resolve("shared-0", "smoke", seed=1)
+    proj = _project(tmp_path, smoke_data, monkeypatch)
+    write = train_module.atomic_write
+
+    def stopped_at_model(path, *args, **kwargs):
+        if Path(path).name == "model.pt":
+            raise KeyboardInterrupt
+        return write(path, *args, **kwargs)
+
+    monkeypatch.setattr(train_module, "atomic_write", stopped_at_model)
+    with pytest.raises(KeyboardInterrupt):
+        train_run(cfg, project_dir=proj, progress=False)
+    monkeypatch.setattr(train_module, "atomic_write", write)
+    again = train_run(cfg, project_dir=proj, progress=False, max_steps=0)
+    assert again.metrics == ref.metrics
+    assert json.loads((again.run_dir / "run.json").read_text())["metrics"] == ref.metrics
