@@ -284,3 +284,18 @@ def test_what_a_killed_pack_or_unpack_left_is_removed_by_the_next(project, tmp_p
     (stale_dir / "mlartifacts").mkdir(parents=True)
     assert unpack_store(archive, into) == 2
     assert not stale_dir.exists()
+
+
+def test_a_full_disk_while_packing_is_one_line(project, tmp_path, monkeypatch):
+    import errno
+
+    from cloudpose import store_archive
+
+    def full(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(store_archive, "atomic_write", full)
+    monkeypatch.chdir(project)
+    archive = tmp_path / "s.tar.xz"
+    line = one_line_error(cli("store-pack", str(archive)), str(archive), "no space left")
+    assert "free there" in line and not archive.exists()
