@@ -20,7 +20,9 @@ Measured in one run, on the same cores, at the default preset's settings
   and version 2 (the compiled path) on the same scenes, alternating scene by scene;
 - both versions' segments/s in one process, alternating batch by batch (so a machine shared
   with other work slows both alike), and how far their segments agree (share of segments
-  with the same points, and the mean nearest-point distance of the others).
+  with the same points, and the mean nearest-point distance of the others). Version 1 is
+  timed with the scene sampler's numpy twins (``_numpy_sampler``: the same scenes), so its
+  figures are those of the code before version 2.
 
 Two figures: ``online_supply_ratio``, the supply ratio ``synthesis x reuse / consumption`` of
 the preset as it is (its ``online_version``; >= 2 means synthesis never stalls training;
@@ -32,6 +34,7 @@ Usage: ``python -m benchmarks.bench_online [--quick]``
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -62,6 +65,24 @@ def _synthesis_rate(batches: int) -> dict:
         scenes += synth.batch(0, step, BATCH).scenes
     dt = time.perf_counter() - t0
     return {"segments_per_s": batches * BATCH / dt, "ms_per_scene": 1000 * dt / scenes}
+
+
+@contextlib.contextmanager
+def _numpy_sampler(on: bool):
+    """Within the block (when ``on``), the table-scene sampler runs its numpy twins (the slide
+    loop, closing and hole filling), as before it was compiled: the same scenes, the time the
+    sampler took before. Version 1 is timed so: its stage times are the ones before."""
+    from cloudpose.data.synth import scenes
+
+    if not on:
+        yield
+        return
+    saved = scenes._slide, scenes._close
+    scenes._slide, scenes._close = scenes._slide_numpy, scenes._close_numpy
+    try:
+        yield
+    finally:
+        scenes._slide, scenes._close = saved
 
 
 def _agreement(a, b) -> tuple[int, float]:
@@ -96,7 +117,8 @@ def _versions_rate(batches: int) -> dict:
         got = {}
         for v, s in synths.items():
             t = time.perf_counter()
-            got[v] = s.batch(0, step, BATCH)
+            with _numpy_sampler(v == 1):
+                got[v] = s.batch(0, step, BATCH)
             dt[v] += time.perf_counter() - t
             scenes[v] += got[v].scenes
         classes_equal &= bool(np.array_equal(got[1].cls_id, got[2].cls_id))
@@ -138,7 +160,8 @@ def _scene_stages(synth, rng: np.random.Generator, parts: dict) -> None:
 
     v2 = synth.online_version >= 2
     t = time.perf_counter()
-    scene = synth.sample_scene(rng)
+    with _numpy_sampler(not v2):
+        scene = synth.sample_scene(rng)
     parts["scene"] += time.perf_counter() - t
     renderer = synth._gen.renderer
     if v2:
@@ -283,7 +306,8 @@ def run(quick: bool = False) -> dict:
         f"{k} {parts['v1'][f'{k}_ms']:.1f} -> {parts['v2'][f'{k}_ms']:.1f}" for k in (*PARTS, "all")
     )
     note = (
-        f"{v1:.0f} -> {v2:.0f} segments/s in one process ({speedup:.2f}x per segment); "
+        f"{v1:.0f} -> {v2:.0f} segments/s in one process ({speedup:.2f}x per segment, the "
+        f"load-robust part: met needs >= 8x as well); "
         f"per scene, version 1 -> 2, ms (the same scenes, alternating): {stages}; "
         f"{agree['same_points']} of {agree['segments']} segments the same points, the others "
         f"within {agree['others_mean_nearest_mm']:.2f} mm mean nearest-point distance"
@@ -298,7 +322,10 @@ def run(quick: bool = False) -> dict:
             "reference": {"name": "version 1 (the ray cast path)", "value": v1 / consume},
             "ratio": speedup,
             "target": ">= 1 at reuse 1 (8x version 1 per segment)",
-            "met": bool(v2 / consume >= 1.0),
+            # both: the supply ratio moves with the load on the machine (training's two threads
+            # wait on each other under load far more than one synthesis thread), the speedup
+            # per segment, measured alternately in one process, does not
+            "met": bool(v2 / consume >= 1.0 and speedup >= 8.0),
             "note": note,
             "detail": {
                 "train_segments_per_s": consume,

@@ -231,14 +231,20 @@ def _slide(
     step), else this numpy loop."""
     from cloudpose.kernels.backend import enabled
 
-    k_max = int(_START / _GRID)
-    if enabled():
-        from cloudpose.kernels.placement import slide_steps
+    if not enabled():
+        return _slide_numpy(cells, occupied, anchor, step)
+    from cloudpose.kernels.placement import slide_steps
 
-        k = slide_steps(cells, occupied, anchor, step, k_max, _GRID, _GRID_HALF)
-        return None if k < 0 else anchor + step * (k * _GRID)
+    k = slide_steps(cells, occupied, anchor, step, int(_START / _GRID), _GRID, _GRID_HALF)
+    return None if k < 0 else anchor + step * (k * _GRID)
+
+
+def _slide_numpy(
+    cells: np.ndarray, occupied: np.ndarray, anchor: np.ndarray, step: np.ndarray
+) -> np.ndarray | None:
+    """The numpy twin of :func:`_slide` (one fancy-indexing pass per step)."""
     xy = None
-    for k in range(k_max, -1, -1):
+    for k in range(int(_START / _GRID), -1, -1):
         cand = anchor + step * (k * _GRID)
         ij = cells + np.floor(cand / _GRID).astype(np.int64) + _GRID_HALF
         if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any():
