@@ -18,6 +18,18 @@ from cloudpose.cli.app import (
 from cloudpose.config import DEFAULT_PRESET
 
 
+def _committed_if_lacking(preset: str, lacking=None) -> None:
+    """Read the preset's committed store (``reports/PRESET/mlflow-store.tar.xz``, unpacked once
+    into ``stores/PRESET``) when no store is named and the project's own lacks the runs
+    (:mod:`cloudpose.report.committed`)."""
+    from cloudpose.report.committed import holds_preset, use_committed_store
+
+    project = Path.cwd()
+    use_committed_store(
+        preset, project, lacking or (lambda: not holds_preset(project, preset)), typer.echo
+    )
+
+
 @app.command()
 def report(
     ctx: typer.Context,
@@ -50,6 +62,7 @@ def report(
     from cloudpose.tracking import check_name
 
     check_name("--preset", preset)  # it names the output folder reports/PRESET
+    _committed_if_lacking(preset)
     groups = None if all_groups or not group else list(group)
     res = render_reports(
         preset,
@@ -79,6 +92,7 @@ def real_report(
     classical baselines, without and with ICP, from existing runs only (lists what is missing)."""
     from cloudpose.report.real import render_real_report
 
+    _committed_if_lacking(preset)
     report, files = render_real_report(
         preset, Path.cwd(), out_dir=out, command=recorded_command(ctx), seeds=seeds
     )
@@ -155,6 +169,10 @@ def occlusion_report(
     from cloudpose.plan import estimate_run_s, missing_report_runs, plan_runs
 
     variants = list(get_group(group).members) if group else ["shared-0"]
+    if not train_missing:
+        _committed_if_lacking(
+            preset, lambda: bool(missing_report_runs(variants, preset, seeds, Path.cwd()))
+        )
     if train_missing:
         title = f"occlusion report {preset}, seeds 1-{seeds}"
         title += f", group {group}" if group else ""

@@ -1,0 +1,79 @@
+"""The report commands read a preset's committed store when the project's own lacks its runs."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import pytest
+
+from cloudpose.report.committed import STORES, committed_store, use_committed_store
+from cloudpose.store_archive import pack_store
+from tests.conftest import cli
+
+
+@pytest.fixture
+def clone_with_a_committed_store(smoke_run, tmp_path, monkeypatch):
+    """A folder like a fresh clone: no store of its own, the smoke runs packed where a
+    committed preset keeps them (reports/smoke/mlflow-store.tar.xz)."""
+    from cloudpose.evaluate import evaluate
+
+    proj, out = smoke_run
+    src = tmp_path / "sweep"  # a copy: the session's smoke project stays as it is
+    shutil.copytree(proj, src, symlinks=True)
+    monkeypatch.chdir(src)
+    evaluate(out.run_id, project_dir=src, progress=False)
+    clone = tmp_path / "clone"
+    (clone / "reports" / "smoke").mkdir(parents=True)
+    pack_store(src, clone / "reports" / "smoke" / "mlflow-store.tar.xz")
+    monkeypatch.chdir(clone)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    return clone
+
+
+def test_occlusion_report_renders_from_the_committed_store(clone_with_a_committed_store):
+    clone = clone_with_a_committed_store
+    try:
+        res = cli("occlusion-report", "--preset", "smoke", "--seeds", "1", "--out", "out")
+        assert res.exit_code == 0, res.output
+        assert "reading the committed store (unpacked from reports/smoke/" in res.output
+        # rendered from the committed run (the smoke test set is too small for occlusion bins)
+        assert (clone / "out" / "table1_overall.md").is_file(), res.output
+        assert (clone / STORES / "smoke" / "mlflow.db").is_file()
+        assert not (clone / "mlflow.db").exists()  # the project's own store is not made
+        # a second call reads the unpacked copy in place
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
+        res = cli("occlusion-report", "--preset", "smoke", "--seeds", "1", "--out", "out")
+        assert res.exit_code == 0 and f"in {STORES}/smoke/;" in res.output, res.output
+    finally:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)  # the command set it for its process
+
+
+def test_a_named_store_or_one_that_holds_the_runs_is_used_as_it_is(
+    clone_with_a_committed_store, monkeypatch
+):
+    clone = clone_with_a_committed_store
+    said = []
+    assert not use_committed_store("smoke", clone, lambda: False, said.append)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{clone / 'own.db'}")
+    assert not use_committed_store("smoke", clone, lambda: True, said.append)
+    assert said == [] and not (clone / STORES).exists()
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    assert not use_committed_store("cpu-online", clone, lambda: True, said.append)  # none here
+
+
+def test_a_preset_without_a_committed_store_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="commits no store for preset 'smoke'"):
+        committed_store("smoke", tmp_path)
+
+
+def test_an_unpacked_committed_store_is_not_unpacked_again(clone_with_a_committed_store):
+    clone = clone_with_a_committed_store
+    folder = committed_store("smoke", clone)
+    marker = folder / "kept"
+    marker.write_text("")
+    (clone / "reports" / "smoke" / "mlflow-store.tar.xz").unlink()
+    shutil.copy(folder / "mlflow.db", clone / "copy.db")
+    # the archive is gone, the unpacked store stays and is found
+    (clone / "reports" / "smoke" / "mlflow-store.tar.xz").write_bytes(b"")
+    assert committed_store("smoke", clone) == folder and marker.is_file()
