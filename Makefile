@@ -10,13 +10,13 @@ VARIANT ?= shared-0
 SEED ?= 1
 
 .DEFAULT_GOAL := help
-.PHONY: help setup install demo test test-all test-slow lint format variants
+.PHONY: help setup install demo showcase test test-all test-slow lint format variants
 
 help: ## list the targets
 	@if [ -t 1 ]; then c='\033[36m'; r='\033[0m'; else c=; r=; fi; \
 	grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' -v c="$$c" -v r="$$r" '{printf "  %s%-18s%s %s\n", c, $$1, r, $$2}'
 
-setup: install demo ## fresh machine: system libraries, virtualenv, package; then the main job on the smoke preset
+setup: install demo showcase ## fresh machine: system libraries, virtualenv, package; the pipeline's plumbing check; the shipped network on real and synthetic frames
 
 install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package in editable mode with dev tools and Ray
 	@need=""; for lib in libusb-1.0.so.0 libtcmalloc_minimal.so.4; do \
@@ -31,8 +31,11 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 	$(PY) -m pip install "$(TORCH_SPEC)"
 	$(PY) -m pip install -c constraints.txt -e '.[dev,cluster]'
 
-demo: ## the main job on the smoke preset: synth -> prepare -> train -> evaluate (prints its plan first)
+demo: ## plumbing check of the main job on the smoke preset: synth -> prepare -> train (seconds) -> evaluate; its numbers are near zero by design
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
+
+showcase: ## the shipped network (shared-0, cpu-online) beside FPFH + RANSAC on the 61 real frames and 40 synthetic test frames, + an overlay picture (no training)
+	$(CLI) showcase --out runs/showcase
 
 test: ## the tests without the slow-marked ones (~4 min on 2 cores): the everyday loop
 	$(PY) -m pytest -q -n 2 -m "not slow" --durations=10

@@ -197,7 +197,8 @@ def _next_steps(preset: str) -> None:
     from cloudpose.config import presets
 
     meaning = {
-        "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing.",
+        "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing. "
+        "`cloudpose showcase` (make showcase) shows the shipped, trained network at work.",
     }.get(preset, f"preset {preset!r}: {presets().get(preset, '')}")
     from cloudpose.config import get_group, resolve
     from cloudpose.plan import estimate_run_s
