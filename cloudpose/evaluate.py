@@ -374,7 +374,8 @@ def evaluate(
             if full is None:
                 raise
             raise full from exc
-    source = f"run {run_id}, checkpoint {ckpt_label}, {len(segs)} instances of {data_label}"
+    who = f"run {run_id}" if run_id is not None else f"the shipped network {run!r}"
+    source = f"{who}, checkpoint {ckpt_label}, {len(segs)} instances of {data_label}"
     return EvalOutcome(table, metrics, run_id, name, source, split)
 
 

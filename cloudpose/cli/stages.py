@@ -150,7 +150,12 @@ def evaluate(
         out = evaluate_fn(
             run, data=data, frames=frames, name=name, segmentation=segmentation, **kwargs
         )
-    typer.echo(f"evaluated {out.source}; logged as {out.name}/... and {out.name}_icp/...")
+    where = (
+        f"logged as {out.name}/... and {out.name}_icp/..."
+        if out.run_id is not None
+        else "not logged (the shipped network has no MLflow run)"
+    )
+    typer.echo(f"evaluated {out.source}; {where}")
     _print_summary(out.metrics)
     if show_instances:
         typer.echo(out.table.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
