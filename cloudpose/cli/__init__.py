@@ -12,7 +12,7 @@ import importlib
 
 from cloudpose.cli.app import app, recorded_command
 
-COMMAND_MODULES = ("info", "data", "stages", "pretrained", "sweep", "serve", "reports")
+COMMAND_MODULES = ("info", "data", "stages", "pretrained", "sweep", "serve", "reports", "stress")
 """The modules whose commands register on :data:`app`, in the order ``--help`` lists them."""
 for _name in COMMAND_MODULES:
     importlib.import_module(f"cloudpose.cli.{_name}")

@@ -1,0 +1,171 @@
+"""``cloudpose stress``: the stress curves of :mod:`cloudpose.stress`, computed (resumable) and
+rendered into reports/PRESET/stress.md."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from cloudpose.cli.app import DryRunOpt, OutOpt, PresetOpt, ProgressOpt, app, recorded_command
+from cloudpose.config import DEFAULT_PRESET
+
+QUICK = {"instances": 24, "fpfh_instances": 12, "ppf_instances": 4, "synth_frames": 8}
+"""What ``--quick`` sets (a look at every curve in minutes, not a measurement)."""
+
+
+@app.command()
+def stress(
+    ctx: typer.Context,
+    preset: PresetOpt = DEFAULT_PRESET,
+    checkpoint: Annotated[
+        list[Path] | None,
+        typer.Option(help="A network checkpoint (model.pt) to stress (repeatable)."),
+    ] = None,
+    run: Annotated[
+        list[str] | None,
+        typer.Option(help="A trained run (folder, MLflow id or name) to stress (repeatable)."),
+    ] = None,
+    instances: Annotated[
+        int | None,
+        typer.Option(help="Evenly spaced instances per source (default all)."),
+    ] = None,
+    fpfh_instances: Annotated[
+        int | None,
+        typer.Option(help="FPFH + RANSAC on evenly spaced of those (default all; 0: none)."),
+    ] = None,
+    ppf_instances: Annotated[
+        int | None,
+        typer.Option(
+            help="Point-pair features on evenly spaced of those (~3.5 s an object; 0: none)."
+        ),
+    ] = None,
+    ppf_levels: Annotated[
+        str,
+        typer.Option(
+            help="Point-pair features at every level (all) or at the identity and each "
+            "perturbation's farthest level only (ends)."
+        ),
+    ] = "all",
+    synth_frames: Annotated[
+        int, typer.Option(help="Synthetic test frames 0..N-1 of the preset to draw from.")
+    ] = 60,
+    source: Annotated[
+        list[str] | None, typer.Option(help="real and/or synth (repeatable; default both).")
+    ] = None,
+    only: Annotated[
+        list[str] | None, typer.Option(help="Perturbations to run (repeatable; default all).")
+    ] = None,
+    icp_selection: Annotated[
+        int,
+        typer.Option(
+            help="Also compare how ICP starts are chosen (1 start; 24 / 60 by fitness or by the "
+            "depth, icp.select) on this many unperturbed instances per source (0: not).",
+        ),
+    ] = 0,
+    seed: Annotated[int, typer.Option(help="Seed of every random choice of the sweep.")] = 1,
+    quick: Annotated[
+        bool, typer.Option("--quick", help="A small subsample (a look, not a measurement).")
+    ] = False,
+    results: Annotated[
+        Path | None,
+        typer.Option(help="Folder of the sweep's results (default runs/stress/PRESET)."),
+    ] = None,
+    report: Annotated[
+        bool, typer.Option("--report/--no-report", help="Render the report after the sweep.")
+    ] = True,
+    report_only: Annotated[
+        bool, typer.Option("--report-only", help="Only render the report from the results.")
+    ] = False,
+    out: OutOpt = None,
+    dry_run: DryRunOpt = False,
+    progress: ProgressOpt = True,
+) -> None:
+    """Stress curves: real development and synthetic test segments perturbed in steps (mask
+    dilated / eroded, depth holes, noise, bias, a cut plane, point count, one side missing), the
+    network with and without ICP against FPFH + RANSAC and point-pair features at each step;
+    resumable, the plan and its time printed first."""
+    from cloudpose import stress as st
+    from cloudpose.config import resolve
+    from cloudpose.report.build import default_out_dir
+    from cloudpose.report.stress import render_stress_report
+    from cloudpose.tracking import check_name
+
+    check_name("--preset", preset)
+    project = Path.cwd()
+    results = results or project / "runs" / "stress" / preset
+    if not report_only:
+        if quick:
+            instances = instances or QUICK["instances"]
+            fpfh_instances = fpfh_instances or QUICK["fpfh_instances"]
+            ppf_instances = ppf_instances or QUICK["ppf_instances"]
+            synth_frames = QUICK["synth_frames"]
+        methods = _network_methods(checkpoint or [], run or [], project)
+        if ppf_levels not in ("all", "ends"):
+            raise typer.BadParameter(f"--ppf-levels {ppf_levels!r}: expected all or ends")
+        methods += [
+            st.Method(name, limit=limit, ends_only=ends)
+            for name, limit, ends in (
+                ("fpfh", fpfh_instances, False),
+                ("ppf", ppf_instances, ppf_levels == "ends"),
+            )
+            if limit != 0  # 0: left out
+        ]
+        if not methods:
+            raise typer.BadParameter("no method: give a --checkpoint or --run, or a baseline")
+        st.run_sweep(
+            results,
+            resolve("shared-0", preset, seed),
+            methods,
+            sources=tuple(source or st.SOURCES),
+            only=tuple(only or ()),
+            instances=instances,
+            synth_frames=synth_frames,
+            seed=seed,
+            progress=progress,
+            echo=typer.echo,
+            dry_run=dry_run,
+        )
+        if icp_selection and not dry_run:
+            st.run_icp_selection(
+                results,
+                resolve("shared-0", preset, seed),
+                methods,
+                sources=tuple(source or st.SOURCES),
+                instances=icp_selection,
+                synth_frames=synth_frames,
+                seed=seed,
+                progress=progress,
+                echo=typer.echo,
+            )
+    if dry_run or not (report or report_only):
+        return
+    files = render_stress_report(
+        results, out or default_out_dir(project, preset), command=recorded_command(ctx)
+    )
+    typer.echo(" ".join(str(f) for f in files))
+
+
+def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):
+    """One :class:`cloudpose.stress.Method` per checkpoint, named ``net-seed{S}`` by the seed in
+    its config (``net-seed{S}-{k}`` where two share a seed); none without any (a call that
+    adds a baseline to a sweep's results)."""
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.stress import Method
+
+    paths = list(checkpoints)
+    if runs:
+        from cloudpose import tracking
+        from cloudpose.runs import resolve_run
+
+        client = tracking.setup(project)
+        paths += [resolve_run(client, r)[1] for r in runs]
+    out: list[Method] = []
+    for path in paths:
+        _, cfg = load_checkpoint(path, "cpu")
+        name = f"net-seed{cfg.seed}"
+        if any(m.name == name for m in out):
+            name += f"-{len(out)}"
+        out.append(Method(name, Path(path)))
+    return out

@@ -1,0 +1,202 @@
+"""Stress curves (cloudpose.stress): each perturbation does what it says, level 0 is the identity,
+and the command runs end to end on a tiny subset."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from cloudpose import stress as st
+from tests.conftest import DATA, cli
+
+
+def _cloud(n=500, seed=0) -> np.ndarray:
+    """(n, 3) points of a 10 cm patch 0.8 m in front of the camera."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-0.05, 0.05, size=(n, 2))
+    z = 0.8 + 0.02 * np.sin(20 * xy[:, 0])
+    return np.column_stack([xy, z])
+
+
+def test_erosion_removes_the_boundary_band_and_dilation_adds_one():
+    mask = np.zeros((40, 40), dtype=bool)
+    mask[10:30, 10:30] = True
+    for k in (1, 2, 4):
+        eroded = st.erode_mask(mask, k)
+        assert eroded.sum() == (20 - 2 * k) ** 2  # a square loses k pixels on every side
+        assert not (eroded & ~mask).any()
+        dilated = st.dilate_mask(mask, k)
+        assert (dilated & mask).sum() == mask.sum()
+        assert dilated[10 - k, 20] and not dilated[10 - k - 1, 20]  # k pixels out, no more
+    point = np.zeros((11, 11), dtype=bool)
+    point[5, 5] = True
+    assert st.dilate_mask(point, 2).sum() == 13  # the disk of radius 2
+    assert np.array_equal(st.erode_mask(mask, 0), mask)
+    assert np.array_equal(st.dilate_mask(mask, 0), mask)
+
+
+def test_holes_drop_about_the_share_inside_the_mask_only():
+    depth = np.full((60, 60), 0.8)
+    mask = np.zeros((60, 60), dtype=bool)
+    mask[10:50, 10:50] = True
+    same = st.drop_depth_blobs(depth, mask, 0.0, np.random.default_rng(0))
+    assert np.array_equal(same, depth)
+    for share in (0.1, 0.35, 0.7):
+        out = st.drop_depth_blobs(depth, mask, share, np.random.default_rng(0))
+        gone = (out == 0) & mask
+        assert np.array_equal(out[~mask], depth[~mask])  # nothing outside the mask
+        assert share <= gone.sum() / mask.sum() <= share + 0.15  # up to one last blob more
+
+
+def test_depth_noise_and_bias_move_points_along_their_rays():
+    p = _cloud()
+    rng = np.random.default_rng(1)
+    for q in (st.depth_noise(p, 4.0, rng), st.depth_bias(p, 20.0)):
+        cross = np.linalg.norm(np.cross(p / np.linalg.norm(p, axis=1, keepdims=True), q), axis=1)
+        assert cross.max() < 1e-12  # same ray
+    dz = st.depth_noise(p, 4.0, np.random.default_rng(2))[:, 2] - p[:, 2]
+    assert 3.5e-3 < dz.std() < 4.5e-3
+    np.testing.assert_allclose(st.depth_bias(p, 20.0)[:, 2], p[:, 2] * 1.02)
+    np.testing.assert_array_equal(st.depth_noise(p, 0.0, rng), p)
+    np.testing.assert_array_equal(st.depth_bias(p, 0.0), p)
+
+
+@pytest.mark.parametrize("share", [0.1, 0.35, 0.7])
+def test_cut_plane_removes_the_share_on_one_side(share):
+    p = _cloud()
+    kept = st.cut_plane(p, share, np.random.default_rng(3))
+    n = np.random.default_rng(3).standard_normal(3)  # the plane's normal: the stream's first draw
+    n /= np.linalg.norm(n)
+    assert len(kept) == int(np.ceil(len(p) * (1 - share)))
+    gone = np.array([not (row == kept).all(axis=1).any() for row in p])
+    assert (kept @ n).max() <= (p[gone] @ n).min()  # all removed points beyond the plane
+    np.testing.assert_array_equal(st.cut_plane(p, 0.0, np.random.default_rng(3)), p)
+
+
+@pytest.mark.parametrize("shift_mm", [2.0, 8.0])
+def test_lateral_shift_moves_the_centroid_across_the_ray(shift_mm):
+    p = _cloud(2000)
+    kept = st.lateral_shift(p, shift_mm, np.random.default_rng(4))
+    move = kept.mean(axis=0) - p.mean(axis=0)
+    ray = p.mean(axis=0) / np.linalg.norm(p.mean(axis=0))
+    across = np.linalg.norm(move - (move @ ray) * ray)
+    assert shift_mm / 1000 <= across < shift_mm / 1000 + 1e-3
+    assert len(kept) < len(p)
+    np.testing.assert_array_equal(st.lateral_shift(p, 0.0, np.random.default_rng(4)), p)
+
+
+def test_resampling_scales_the_count_on_the_same_surface():
+    p = _cloud(400)
+    rng = np.random.default_rng(5)
+    assert len(st.resample_points(p, 0.25, rng)) == 100
+    more = st.resample_points(p, 2.0, rng)
+    assert len(more) == 800
+    np.testing.assert_array_equal(more[:400], p)
+    # the added points are midpoints of neighbours: within the patch, near its surface
+    assert np.abs(more[400:, :2]).max() <= 0.05
+    np.testing.assert_array_equal(st.resample_points(p, 1.0, rng), p)
+
+
+def _real_fixture():
+    from cloudpose.data.layout import open_dataset
+
+    ds = open_dataset(DATA / "ycb_real")
+    fid = "0000/000001"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ds, st.FrameData(ds.frame(fid), 0, None)
+
+
+def test_identity_level_is_the_project_segment():
+    """Level 0 of every perturbation gives the segment the project makes (same mask, filter,
+    count); a perturbed level changes it; the same call twice gives the same points."""
+    from cloudpose.data.segments import backproject, extract_segments
+
+    _, fd = _real_fixture()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = extract_segments(fd.frame, rng=np.random.default_rng(0))
+    f = fd.frame
+    full = backproject(f.depth, f.label == f.cls_ids[0], f.K).astype(np.float32)
+    full_set = {tuple(r) for r in full}
+    for name, p in st.PERTURBATIONS.items():
+        seg, _ = st.perturbed_segment(
+            fd, 0, p, st.identity_level(p), seed=1, source="real", n_fps=256
+        )
+        assert seg.count == ref[0].count, name
+        k = min(seg.count, 256)
+        assert {tuple(r) for r in seg.points[:k]} <= full_set, name
+    twice = [
+        st.perturbed_segment(fd, 0, st.PERTURBATIONS["cut"], 0.35, seed=1, source="real")[0]
+        for _ in range(2)
+    ]
+    np.testing.assert_array_equal(twice[0].points, twice[1].points)
+    assert twice[0].count < ref[0].count
+
+
+def test_pixel_statistics_follow_the_pixels():
+    _, fd = _real_fixture()
+    p = st.PERTURBATIONS
+    _, px0 = st.perturbed_segment(fd, 0, p["holes"], 0.0, seed=1, source="real")
+    _, px1 = st.perturbed_segment(fd, 0, p["holes"], 0.35, seed=1, source="real")
+    assert px1["no_depth"] >= px0["no_depth"] + 0.3
+    _, pd_ = st.perturbed_segment(fd, 0, p["dilate"], 4, seed=1, source="real")
+    _, pe = st.perturbed_segment(fd, 0, p["erode"], 4, seed=1, source="real")
+    assert pe["mask_px"] < px0["mask_px"] < pd_["mask_px"]
+
+
+def test_real_level_interpolates_the_synthetic_curve():
+    p = st.PERTURBATIONS["noise"]
+    stats = pd.DataFrame(
+        [{"source": "real", "perturbation": "noise", "level": 0.0, "noise": 3.0}]
+        + [
+            {"source": "synth", "perturbation": "noise", "level": lv, "noise": 1.0 + lv}
+            for lv in p.levels
+        ]
+    )
+    level, _ = st.real_level(p, stats)
+    assert level == pytest.approx(2.0)
+    stats.loc[0, "noise"] = 0.5  # cleaner than synthetic: the identity
+    assert st.real_level(p, stats)[0] == 0.0
+
+
+def test_conditions_hold_the_identity_once():
+    conds = st.conditions(list(st.PERTURBATIONS.values()))
+    identities = [c for c in conds if c[1] == st.identity_level(c[0])]
+    assert len(identities) == 1
+    n_levels = sum(len(p.levels) for p in st.PERTURBATIONS.values())
+    assert len(conds) == n_levels - len(st.PERTURBATIONS) + 1
+
+
+@pytest.mark.slow
+def test_stress_command_end_to_end(smoke_project, tmp_path):
+    """The command on two real instances and two synthetic ones, one perturbation: every
+    result file, a resumed call that computes nothing, the report and its figures."""
+    results = tmp_path / "res"
+    args = [
+        "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1", "--instances", "2",
+        "--fpfh-instances", "1", "--ppf-instances", "0", "--synth-frames", "1",
+        "--only", "cut", "--icp-selection", "2", "--results", str(results),
+        "--out", str(tmp_path / "rep"), "--no-progress",
+    ]  # fmt: skip
+    res = cli(*args)
+    assert res.exit_code == 0, res.output
+    assert "stress plan" in res.output
+    files = sorted(results.glob("results/*/*/*/*.csv"))
+    # (identity + 5 cut levels) x 2 sources x (stats, network, fpfh)
+    assert len(files) == 6 * 2 * 3
+    table = pd.read_csv(results / "results" / "real" / "cut" / "0.7" / "net-seed1.csv")
+    assert len(table) == 2 and {"net_ads", "icp_ads", "icp_rot_sym_err_deg"} <= set(table)
+    again = cli(*args)
+    assert again.exit_code == 0, again.output
+    assert "conditions left" not in again.output  # nothing left to compute
+    md = (tmp_path / "rep" / "stress.md").read_text()
+    assert "Where the real frames sit" in md and "### cut" in md
+    assert "starts24-depth" in md  # the ICP selection comparison, both sources
+    assert len(list(results.glob("icp_select/*/*/net-seed1.csv"))) == 2 * 5
+    assert (tmp_path / "rep" / "stress.png").stat().st_size > 0
+    summary = pd.read_csv(tmp_path / "rep" / "stress.csv")
+    assert set(summary.method) >= {"net-seed1", "fpfh", "network"}
