@@ -21,9 +21,13 @@ calls, so they run here as compiled loops:
   whose Delaunay neighbours are all farther from the query than itself has the query in its
   Voronoi cell: the walk's end is the exact nearest point.
 
-One more serves synthesis: ``sensor.object_pixel_geometry_kernel``, the depth jump and
-incidence cosine of every object pixel of an on-line scene in one pass (the version-2 sensor,
-:func:`cloudpose.data.synth.sensor.object_pixel_geometry`).
+Four serve on-line synthesis version 2 (``data.online_version = 2``,
+:mod:`cloudpose.data.synth.online`): ``sensor`` (the depth jump and incidence cosine of every
+object pixel, the exact edge distance and the readings of a scene in one pass), ``raster`` (a
+z-buffer of the object meshes: the depth a ray cast through the pixel centres gives),
+``segment_cut`` (each instance's pixels gathered and an exact FPS over a grid of buckets, the
+same order as ``fps``) and ``placement`` (the slide of a table scene's new object, which
+version 1's scenes use too: the same steps as the numpy loop).
 
 The structures they share: ``kdtree`` (a k-d tree of arrays and its bounded search) and
 ``graph`` (a model's k-d tree with its Delaunay graph, or each point's nearest points where a
