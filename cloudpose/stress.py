@@ -895,7 +895,9 @@ def _summary_of(table: pd.DataFrame, stage: str) -> dict[str, float]:
 def collect(out_dir: Path) -> pd.DataFrame:
     """One row per (source, perturbation, level, method, stage) found under ``out_dir``:
     :data:`SUMMARY_COLUMNS` and the instance count; the identity (computed once) is repeated
-    under every perturbation. Stage ``net`` is the method's own estimate, ``icp`` after ICP."""
+    under every perturbation. Stage ``net`` is the method's own estimate, ``icp`` after ICP.
+    Method ``NET@BASELINE``: network NET on the instances the baseline ran on (its
+    subsample), for paired comparisons."""
     meta = json.loads((out_dir / "sweep.json").read_text())
     rows = []
     for src in meta["sources"]:
@@ -905,11 +907,18 @@ def collect(out_dir: Path) -> pd.DataFrame:
                 folder_p, folder_lv = (
                     ("dilate", 0.0) if lv == identity_level(p) else (pname, float(lv))
                 )
+                tables = {}
                 for m in meta["methods"]:
                     path = result_path(out_dir, src, folder_p, folder_lv, m)
-                    if not path.is_file():
-                        continue
-                    table = pd.read_csv(path)
+                    if path.is_file():
+                        tables[m] = pd.read_csv(path)
+                for m, v in meta["methods"].items():  # each network on each baseline's rows
+                    for b in meta["methods"]:
+                        if v["checkpoint"] and not meta["methods"][b]["checkpoint"]:
+                            if m in tables and b in tables:
+                                keys = tables[b][["frame_id", "instance"]]
+                                tables[f"{m}@{b}"] = tables[m].merge(keys)
+                for m, table in tables.items():
                     for stage in ("net", "icp"):
                         rows.append(
                             {
@@ -958,7 +967,8 @@ def real_level(p: Perturbation, stats: pd.DataFrame) -> tuple[float, str]:
     level of ``p``, linearly interpolated; below the synthetic identity -> the identity (real
     frames show no more of it than synthetic ones); beyond the last level -> NaN. ``count``:
     the ratio of the medians; ``occlusion``: the extra share hidden,
-    1 - (1 - O_real) / (1 - O_synth), of the median occlusion factors.
+    1 - (1 - O_real) / (1 - O_synth), of the median occlusion factors. A statistic that moves
+    by less than a fifth of its identity value over the whole range places nothing (NaN).
     """
     ident = identity_level(p)
     real = stats[(stats.source == "real") & (stats.perturbation == p.name) & (stats.level == ident)]
@@ -982,6 +992,8 @@ def real_level(p: Perturbation, stats: pd.DataFrame) -> tuple[float, str]:
     words = f"{STATISTICS[p.stat]}: real {r:.3g}, synthetic {s0:.3g} at level {ident:g}"
     ok = np.isfinite(sv)
     lv, sv = lv[ok], sv[ok]
+    if len(sv) > 1 and np.ptp(sv) < 0.2 * max(abs(s0), 1e-9):
+        return np.nan, words + " (the statistic does not move with this perturbation: not placed)"
     increasing = len(sv) < 2 or sv[1] >= sv[0]  # the direction of the first step
     if (r <= s0) if increasing else (r >= s0):
         return ident, words + " (real frames show no more of it)"
