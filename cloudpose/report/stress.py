@@ -44,6 +44,11 @@ FRAGILE_PP = 3.0
 instances (FPFH's subsample; point-pair features run on too few instances here to decide)."""
 
 
+FRAGILE_MM = 2.0
+"""Translation-fragile: at the real frames' level on synthetic segments, the network's median
+translation error grows by this many millimetres more than FPFH + RANSAC + ICP's."""
+
+
 def with_network_mean(summary: pd.DataFrame) -> pd.DataFrame:
     """``summary`` with rows of method :data:`NETWORK`: the mean over the ``net-*`` methods."""
     nets = summary[summary.method.str.startswith("net-")].copy()
@@ -106,6 +111,17 @@ def fragility(summary: pd.DataFrame, levels: dict[str, float]) -> pd.DataFrame:
                 row[f"{method}_loss_real"] = 100 * (base - at_real)
                 row[f"{method}_loss_far"] = 100 * (base - at_far)
                 row[f"{method}_at_real"] = 100 * at_real
+            lv = levels.get(name, np.nan)
+            for method, stage in (
+                (NETWORK, "net"), (NETWORK, "icp"), (f"{NETWORK}@fpfh", "net"), ("fpfh", "icp"),
+            ):  # fmt: skip
+                col = "trans_median_mm"
+                row[f"{method}_{stage}_t0"] = _value(
+                    summary, source, name, ident, method, stage, col
+                )
+                row[f"{method}_{stage}_treal"] = _interp(
+                    summary, source, name, lv, method, stage, col
+                )
             gap = row[f"{NETWORK}@fpfh_loss_far"] - row["fpfh_loss_far"]
             row["fragile"] = bool(np.isfinite(gap) and gap > FRAGILE_PP)
             rows.append(row)
@@ -216,10 +232,39 @@ def markdown(
             f"{pair(r, NETWORK + '@fpfh')} | {pair(r, 'fpfh')} | {pair(r, NETWORK + '@ppf')} | "
             f"{pair(r, 'ppf')} | {gap:+.1f} | {'**fragile**' if r.fragile else ''} |"
         )
+    out += [
+        "",
+        "Synthetic segments brought to the real frames' level: median translation error (mm) "
+        "at the identity -> at that level (interpolated between the levels on each side). "
+        "**translation-fragile** = on FPFH's instances the network alone grows by more than "
+        f"{FRAGILE_MM:g} mm more than FPFH + RANSAC + ICP does.",
+        "",
+        "| perturbation | real level | network | network + ICP | FPFH + RANSAC + ICP | |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    t_fragile = []
+    for _, r in frag.iterrows():
+        if r.source != "synth" or not np.isfinite(r.real_level):
+            continue
+        grow = (r[f"{NETWORK}@fpfh_net_treal"] - r[f"{NETWORK}@fpfh_net_t0"]) - (
+            r["fpfh_icp_treal"] - r["fpfh_icp_t0"]
+        )
+        flag = bool(np.isfinite(grow) and grow > FRAGILE_MM)
+        if flag:
+            t_fragile.append(r.perturbation)
+        cells = [
+            f"{r[f'{m}_{s}_t0']:.1f} -> {r[f'{m}_{s}_treal']:.1f}"
+            for m, s in ((NETWORK, "net"), (NETWORK, "icp"), ("fpfh", "icp"))
+        ]
+        out.append(
+            f"| {r.perturbation} | {r.real_level:.3g} | " + " | ".join(cells)
+            + f" | {'**translation-fragile**' if flag else ''} |"
+        )  # fmt: skip
     fragile = sorted(set(frag[frag.fragile].perturbation))
     out += [
         "",
-        "Fragile (either source): " + (", ".join(fragile) if fragile else "none") + ".",
+        "Fragile on ADS AUC (either source): " + (", ".join(fragile) or "none") + ". "
+        "Translation-fragile at the real frames' level: " + (", ".join(t_fragile) or "none") + ".",
         "",
         "![ADS AUC per level](stress.png)",
         "",
