@@ -296,8 +296,10 @@ def test_fallback_keeps_the_start_when_icp_diverges(impl):
     np.testing.assert_array_equal(guarded.R, R0)
     np.testing.assert_array_equal(guarded.t, t0)
     assert guarded.fallback
-    # the figures of the rejected refinement stay, for the per-object log
-    assert (guarded.fitness, guarded.inlier_rmse) == (plain.fitness, plain.inlier_rmse)
+    # the figures of the rejected refinement stay, for the per-object log (Open3D's threaded
+    # sums may differ in the last bit between two calls)
+    assert guarded.fitness == plain.fitness
+    assert guarded.inlier_rmse == pytest.approx(plain.inlier_rmse, rel=1e-12)
     batch = icp_refine_batch(
         [obs], [model], R0[None], t0[None], ICPSettings(fallback=True, min_fitness=0.3)
     )
