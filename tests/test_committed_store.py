@@ -17,10 +17,15 @@ def clone_with_a_committed_store(smoke_run, tmp_path, monkeypatch):
     """A folder like a fresh clone: no store of its own, the smoke runs packed where a
     committed preset keeps them (reports/smoke/mlflow-store.tar.xz)."""
     from cloudpose.evaluate import evaluate
+    from cloudpose.store_archive import unpack_store
 
     proj, out = smoke_run
-    src = tmp_path / "sweep"  # a copy: the session's smoke project stays as it is
-    shutil.copytree(proj, src, symlinks=True)
+    # a sweep of its own: the session's smoke store, unpacked (artifacts rewritten to point
+    # here), its data copied, the run evaluated with ICP as a sweep does
+    src = tmp_path / "sweep"
+    pack_store(proj, tmp_path / "session.tar.xz", checkpoints=[out.run_id])
+    unpack_store(tmp_path / "session.tar.xz", src)
+    shutil.copytree(proj / "data", src / "data", symlinks=True)
     monkeypatch.chdir(src)
     evaluate(out.run_id, project_dir=src, progress=False)
     clone = tmp_path / "clone"
@@ -54,6 +59,7 @@ def test_a_named_store_or_one_that_holds_the_runs_is_used_as_it_is(
 ):
     clone = clone_with_a_committed_store
     said = []
+    (clone / "mlflow.db").write_bytes(b"")  # a store of its own, which lacking() asks about
     assert not use_committed_store("smoke", clone, lambda: False, said.append)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{clone / 'own.db'}")
     assert not use_committed_store("smoke", clone, lambda: True, said.append)
