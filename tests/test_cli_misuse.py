@@ -369,3 +369,8 @@ def test_a_report_preset_that_is_a_path_is_refused():
     res = cli("report", "--preset", "../../elsewhere", "--no-mlflow")
     one_line_error(res, "--preset '../../elsewhere'", "letters, digits")
     assert list(Path.cwd().iterdir()) == []
+
+
+def test_an_unknown_icp_selection_is_one_line_listing_the_known():
+    res = cli("evaluate", "--run", "pretrained", "--icp-select", "closest")
+    one_line_error(res, "--icp-select 'closest'", "fitness, depth")

@@ -91,6 +91,14 @@ def evaluate(
             "settings than the run's are logged as {name}-starts{N}.",
         ),
     ] = None,
+    icp_select: Annotated[
+        str | None,
+        typer.Option(
+            help="How the ICP starts are scored: fitness (ICP's) or depth (agreement with the "
+            "frame's depth: coverage and free-space violations; cloudpose.refine). Other "
+            "settings than the run's are logged as {name}-selectdepth.",
+        ),
+    ] = None,
     real: Annotated[
         bool,
         typer.Option(
@@ -138,9 +146,12 @@ def evaluate(
         raise ValueError(
             f"--icp-starts {icp_starts}: expected one of {', '.join(map(str, START_GROUPS))}"
         )
-    overrides = {
-        k: v for k, v in (("fallback", icp_fallback), ("starts", icp_starts)) if v is not None
-    }
+    from cloudpose.refine import SELECTIONS
+
+    if icp_select is not None and icp_select not in SELECTIONS:
+        raise ValueError(f"--icp-select {icp_select!r}: expected one of {', '.join(SELECTIONS)}")
+    pairs = (("fallback", icp_fallback), ("starts", icp_starts), ("select", icp_select))
+    overrides = {k: v for k, v in pairs if v is not None}
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
     kwargs = dict(icp=icp, icp_overrides=overrides, progress=progress, device=device)
