@@ -36,6 +36,7 @@ def clone_with_a_committed_store(smoke_run, tmp_path, monkeypatch):
     return clone
 
 
+@pytest.mark.slow
 def test_occlusion_report_renders_from_the_committed_store(clone_with_a_committed_store):
     clone = clone_with_a_committed_store
     try:
@@ -54,10 +55,18 @@ def test_occlusion_report_renders_from_the_committed_store(clone_with_a_committe
         os.environ.pop("MLFLOW_TRACKING_URI", None)  # the command set it for its process
 
 
+@pytest.fixture
+def clone_with_an_archive(tmp_path):
+    """A folder with a committed archive in place (its content is not read by these tests)."""
+    (tmp_path / "reports" / "smoke").mkdir(parents=True)
+    (tmp_path / "reports" / "smoke" / "mlflow-store.tar.xz").write_bytes(b"")
+    return tmp_path
+
+
 def test_a_named_store_or_one_that_holds_the_runs_is_used_as_it_is(
-    clone_with_a_committed_store, monkeypatch
+    clone_with_an_archive, monkeypatch
 ):
-    clone = clone_with_a_committed_store
+    clone = clone_with_an_archive
     said = []
     (clone / "mlflow.db").write_bytes(b"")  # a store of its own, which lacking() asks about
     assert not use_committed_store("smoke", clone, lambda: False, said.append)
@@ -73,13 +82,19 @@ def test_a_preset_without_a_committed_store_is_named(tmp_path):
         committed_store("smoke", tmp_path)
 
 
-def test_an_unpacked_committed_store_is_not_unpacked_again(clone_with_a_committed_store):
-    clone = clone_with_a_committed_store
-    folder = committed_store("smoke", clone)
-    marker = folder / "kept"
-    marker.write_text("")
-    (clone / "reports" / "smoke" / "mlflow-store.tar.xz").unlink()
-    shutil.copy(folder / "mlflow.db", clone / "copy.db")
-    # the archive is gone, the unpacked store stays and is found
-    (clone / "reports" / "smoke" / "mlflow-store.tar.xz").write_bytes(b"")
-    assert committed_store("smoke", clone) == folder and marker.is_file()
+def test_an_unpacked_committed_store_is_read_in_place(clone_with_an_archive, monkeypatch):
+    """Once unpacked, the store in stores/PRESET is used as it is (the archive, here empty, is
+    not opened again)."""
+    clone = clone_with_an_archive
+    folder = clone / STORES / "smoke"
+    folder.mkdir(parents=True)
+    (folder / "mlflow.db").write_bytes(b"")
+    assert committed_store("smoke", clone) == folder
+    said = []
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    try:
+        assert use_committed_store("smoke", clone, lambda: True, said.append)
+        assert os.environ["MLFLOW_TRACKING_URI"] == f"sqlite:///{(folder / 'mlflow.db').resolve()}"
+        assert said and f"in {STORES}/smoke/;" in said[0]
+    finally:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
