@@ -77,7 +77,7 @@ from cloudpose.data.synth.sensor import (
     background_depth_at,
     object_ring,
 )
-from cloudpose.data.synth.store import ChunkStore
+from cloudpose.data.synth.store import DEFAULT_N_POINTS, ChunkStore
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -226,7 +226,7 @@ class OnlineSynth:
         version: int = 2,
         *,
         noise: bool = True,
-        n_points: int = 256,
+        n_points: int = DEFAULT_N_POINTS,
         outlier_radius: float = 0.2,
         class_ids: tuple[int, ...] | None = None,
         scenes: str = "all",

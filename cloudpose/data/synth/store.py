@@ -37,7 +37,6 @@ import ast
 import functools
 import hashlib
 import importlib.metadata
-import inspect
 import json
 import warnings
 from pathlib import Path
@@ -47,6 +46,10 @@ import torch
 
 from cloudpose.conventions import resource_path
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_npz
+
+DEFAULT_N_POINTS = 256
+"""Points per on-line segment when the synthesis arguments do not say (``OnlineSynth``'s
+default, which is this constant)."""
 
 STORE_DIR = ("data", "cache", "online")
 """Where a project keeps its store, under the project folder."""
@@ -198,12 +201,7 @@ class ChunkStore:
 
     def _n_points(self) -> int:
         """Points per segment: the synthesis argument, or its default."""
-        synth = self.settings["synth"]
-        if "n_points" in synth:
-            return int(synth["n_points"])
-        from cloudpose.data.synth.online import OnlineSynth
-
-        return int(inspect.signature(OnlineSynth).parameters["n_points"].default)
+        return int(self.settings["synth"].get("n_points", DEFAULT_N_POINTS))
 
     def save(self, seed: int, j: int, chunk: Chunk) -> None:
         """Keep chunk ``j`` of ``seed`` (atomic: written to a temporary file, then renamed)."""
