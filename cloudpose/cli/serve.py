@@ -15,11 +15,34 @@ from cloudpose.cli.app import (
 
 def _serve_until_interrupted(cmd: list[str], env: dict[str, str], what: str) -> None:
     """Run a server that serves until interrupted (which ends this command too): any return of
-    its own is a failure, said in one line, with its exit code (1 if it gave none)."""
+    its own is a failure, said in one line, with its exit code (1 if it gave none).
+
+    The server runs in a process group of its own; Ctrl-C or SIGTERM to this command stops the
+    whole group (the server and its workers: SIGTERM, then SIGKILL after 10 s), so no server is
+    left serving after the command is gone.
+    """
     import os
+    import signal
     import subprocess
 
-    code = subprocess.run(cmd, env={**os.environ, **env}, check=False).returncode
+    from cloudpose.failures import sigterm_as_interrupt
+
+    proc = subprocess.Popen(cmd, env={**os.environ, **env}, start_new_session=True)
+    try:
+        with sigterm_as_interrupt():
+            code = proc.wait()
+    except KeyboardInterrupt:
+        for sig, wait_s in ((signal.SIGTERM, 10), (signal.SIGKILL, None)):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                proc.wait(timeout=wait_s)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        raise
     typer.secho(
         f"error: the {what} stopped (exit code {code}); its output above says why",
         fg=typer.colors.RED,

@@ -1,0 +1,55 @@
+"""The commands that serve MLflow stop their server, workers included, when they are stopped."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is gone for our purpose (no init reaps it in some containers)
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().split()[2] != "Z"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stopped_serve_command_stops_its_server_and_the_servers_workers(tmp_path, sig):
+    """A stand-in server: a shell that starts a worker and waits, as ``mlflow server`` starts
+    its gunicorn or uvicorn workers."""
+    pidfile = tmp_path / "worker.pid"
+    server = ["sh", "-c", f"sleep 300 & echo $! > {pidfile}; wait"]
+    code = (
+        "from cloudpose.cli.serve import _serve_until_interrupted\n"
+        f"_serve_until_interrupted({server!r}, {{}}, 'stand-in server')\n"
+    )
+    cmd = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not (pidfile.is_file() and pidfile.read_text().strip()):
+            assert time.monotonic() < deadline and cmd.poll() is None, cmd.stderr
+            time.sleep(0.1)
+        worker = int(pidfile.read_text())
+        assert _alive(worker)
+        cmd.send_signal(sig)
+        cmd.wait(timeout=30)
+        deadline = time.monotonic() + 15
+        while _alive(worker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(worker), "the server's worker outlived the command"
+    finally:
+        if cmd.poll() is None:
+            cmd.kill()
+        if pidfile.is_file() and pidfile.read_text().strip():
+            try:
+                os.kill(int(pidfile.read_text()), signal.SIGKILL)
+            except ProcessLookupError:
+                pass
