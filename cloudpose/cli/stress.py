@@ -25,7 +25,10 @@ def stress(
     ] = None,
     run: Annotated[
         list[str] | None,
-        typer.Option(help="A trained run (folder, MLflow id or name) to stress (repeatable)."),
+        typer.Option(
+            help="A trained run (folder, MLflow id or name, or pretrained: the shipped "
+            "network) to stress (repeatable)."
+        ),
     ] = None,
     instances: Annotated[
         int | None,
@@ -157,10 +160,11 @@ def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):
     paths = list(checkpoints)
     if runs:
         from cloudpose import tracking
+        from cloudpose.pretrained import is_pretrained, shipped
         from cloudpose.runs import resolve_run
 
         client = tracking.setup(project)
-        paths += [resolve_run(client, r)[1] for r in runs]
+        paths += [shipped(r).path if is_pretrained(r) else resolve_run(client, r)[1] for r in runs]
     out: list[Method] = []
     for path in paths:
         _, cfg = load_checkpoint(path, "cpu")
