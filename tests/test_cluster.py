@@ -270,7 +270,7 @@ def test_mlflow_server_refuses_a_port_in_use_before_announcing_it(monkeypatch):
     def never(*args, **kwargs):
         raise AssertionError("the server was started")
 
-    monkeypatch.setattr(subprocess, "run", never)
+    monkeypatch.setattr(subprocess, "Popen", never)
     with _listening() as s:
         port = s.getsockname()[1]
         res = CliRunner().invoke(app, ["mlflow-server", "--port", str(port)])
@@ -289,7 +289,14 @@ def test_mlflow_server_that_stops_by_itself_is_a_failure(monkeypatch):
     from cloudpose.cli import app
 
     # MLflow's server exits 0 when it cannot bind (a port taken after the check)
-    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 0))
+    class Exited:  # the server process, gone by itself with exit code 0
+        def __init__(self, cmd, **kw):
+            self.pid = -1
+
+        def wait(self, timeout=None):
+            return 0
+
+    monkeypatch.setattr(subprocess, "Popen", Exited)
     (port,) = free_ports(1)
     res = CliRunner().invoke(app, ["mlflow-server", "--port", str(port)])
     assert res.exit_code == 1
