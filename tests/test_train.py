@@ -20,6 +20,17 @@ from cloudpose.train import TrainingInterrupted, split_frames
 from tests.conftest import make_project
 
 
+def _first_checkpoint(proc, proj: Path, seed: int, timeout_s: float = 120.0) -> Path:
+    """The first ``last.pt`` a training subprocess of shared-0/smoke writes (polled)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        found = list((proj / "runs").glob(f"shared-0/smoke/seed{seed}-*/last.pt"))
+        if found:
+            return found[0]
+        time.sleep(0.05)
+    raise AssertionError("training wrote no checkpoint before it ended")
+
+
 def _project(tmp_path: Path, smoke_data: Path, monkeypatch) -> Path:
     return make_project(tmp_path / "proj", smoke_data, monkeypatch)
 
@@ -112,15 +123,7 @@ def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
     )
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     proc = subprocess.Popen([sys.executable, "-c", code], env=env)
-    deadline = time.monotonic() + 120
-    last = None
-    while time.monotonic() < deadline and proc.poll() is None:
-        found = list((proj / "runs").glob("shared-0/smoke/seed5-*/last.pt"))
-        if found:
-            last = found[0]
-            break
-        time.sleep(0.05)
-    assert last is not None, "training wrote no checkpoint before it ended"
+    last = _first_checkpoint(proc, proj, seed=5)
     proc.send_signal(signal.SIGKILL)
     assert proc.wait() == -signal.SIGKILL, "training ended before it could be killed"
     resumed = train_run(cfg, project_dir=proj, progress=False)
@@ -319,15 +322,7 @@ def test_sigterm_stops_training_as_ctrl_c_does(tmp_path, smoke_data, smoke_run, 
     )
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     proc = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 120
-    last = None
-    while time.monotonic() < deadline and proc.poll() is None:
-        found = list((proj / "runs").glob("shared-0/smoke/seed1-*/last.pt"))
-        if found:
-            last = found[0]
-            break
-        time.sleep(0.05)
-    assert last is not None, "training wrote no checkpoint before it ended"
+    last = _first_checkpoint(proc, proj, seed=1)
     proc.send_signal(signal.SIGTERM)
     rc = proc.wait()
     assert rc != -signal.SIGTERM, "training was killed by SIGTERM, not stopped"

@@ -86,11 +86,4 @@ def holds_preset(project_dir: Path, preset: str) -> bool:
     db = tracking.sqlite_path(uri)
     if db is not None and not db.is_file():
         return False
-    client = tracking.setup(project_dir)
-    ids = [e.experiment_id for e in client.search_experiments()]
-    if not ids:
-        return False
-    found = client.search_runs(
-        ids, f"tags.preset = '{preset}' and attributes.status = 'FINISHED'", max_results=1
-    )
-    return len(found) > 0
+    return bool(tracking.find_runs(tracking.setup(project_dir), preset=preset))
