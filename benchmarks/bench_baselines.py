@@ -33,7 +33,7 @@ from benchmarks.bench_infer import N_POINTS, _trained_like
 from benchmarks.common import quick_main
 from cloudpose.baselines import METHODS, NotRegistered, make
 from cloudpose.conventions import resource_path
-from cloudpose.data.surfaces import load_packaged_models
+from cloudpose.data.synth.surfaces import load_packaged_models
 from cloudpose.data.ycb import load_classes
 from cloudpose.kernels.model_index import ModelIndex
 from cloudpose.metrics import rotation_error_deg

@@ -37,7 +37,7 @@ TARGET_RATIO = 0.75
 
 def _sweep(project: Path, variants: list[str], executor: str, ray=None) -> float:
     """Wall seconds of ``ensure_runs`` over ``variants`` (smoke, seed 1) in ``project``."""
-    from cloudpose.ablate import ensure_runs
+    from cloudpose.suite.ablate import ensure_runs
 
     t0 = time.perf_counter()
     statuses = ensure_runs(
@@ -57,7 +57,7 @@ def _sweep(project: Path, variants: list[str], executor: str, ray=None) -> float
 
 
 def _test_metrics(project: Path) -> dict[str, dict[str, float]]:
-    from cloudpose import tracking
+    from cloudpose.store import tracking
 
     runs = tracking.find_runs(tracking.setup(project), preset="smoke")
     return {
@@ -71,9 +71,9 @@ def _test_metrics(project: Path) -> dict[str, dict[str, float]]:
 def run(quick: bool = False) -> dict[str, Any]:
     """Sweep with both executors; the figure ``ray_executor_wall_s``."""
     from benchmarks.loopback import Loopback
-    from cloudpose.cluster import RayOptions
-    from cloudpose.config import get_group, resolve
     from cloudpose.data.dataset import prepare_data
+    from cloudpose.registry import get_group, resolve
+    from cloudpose.suite.cluster import RayOptions
 
     variants = list(get_group(GROUP).members)[: 1 if quick else None]
     cores = len(os.sched_getaffinity(0))

@@ -39,10 +39,10 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import quick_main
-from cloudpose.config import resolve
 from cloudpose.models import build_model
 from cloudpose.models.folded import fold_for_inference
 from cloudpose.models.fused import fuse_model
+from cloudpose.registry import resolve
 from cloudpose.runtime import cpu_features, describe_cpu
 
 N_POINTS = 256

@@ -1,7 +1,7 @@
 """On-line synthesis against the rate training consumes segments (``online_supply_ratio``).
 
 Measured in one run, on the same cores, at the default preset's settings
-(:data:`cloudpose.config.DEFAULT_PRESET`; generator version, batch size, n and
+(:data:`cloudpose.registry.DEFAULT_PRESET`; generator version, batch size, n and
 ``online_reuse`` read from the preset):
 
 - training: segments/s of shared-0 fused training steps at batch 32 on ready tensors
@@ -47,7 +47,7 @@ if __package__ in (None, ""):
 
 from benchmarks.bench_train import make_step
 from benchmarks.common import quick_main
-from cloudpose.config import DEFAULT_PRESET, resolve
+from cloudpose.registry import DEFAULT_PRESET, resolve
 
 _ONLINE = resolve("shared-0", DEFAULT_PRESET)
 BATCH, N_POINTS = _ONLINE.train.batch_size, _ONLINE.train.n_points

@@ -42,11 +42,11 @@ import torch
 from torch import nn
 
 from benchmarks.common import describe_machine, gemm_peak, gemm_rate, summarize
-from cloudpose.config import resolve, variants
 from cloudpose.geometry.rotations import rotvec_to_rotmat
 from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
 from cloudpose.models.fused import fuse_model
+from cloudpose.registry import resolve, variants
 from cloudpose.runtime import (
     active_allocator,
     configure_threads,

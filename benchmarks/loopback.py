@@ -1,5 +1,5 @@
 """A Ray cluster and an MLflow tracking server on this machine's loopback, for the cluster test
-(tests/test_cluster.py) and the Ray executor's benchmark (benchmarks/bench_cluster.py).
+(tests/suite/test_cluster.py) and the Ray executor's benchmark (benchmarks/bench_cluster.py).
 
 Every process is started in a process group of its own (``ray start`` leaves its daemons in
 it; Ray's workers, which put themselves in groups of their own, are the raylet's children), so
@@ -22,7 +22,7 @@ import time
 import urllib.request
 from pathlib import Path
 
-from cloudpose import tracking
+from cloudpose.store import tracking
 
 VENV_BIN = Path(sys.executable).parent
 PORTS = (18000, 19000)

@@ -228,7 +228,7 @@ def cpu_variant_from_store(project_dir: Path | None = None) -> dict[str, Any]:
     segment preparation are not in it.
     """
     try:
-        from cloudpose import tracking
+        from cloudpose.store import tracking
 
         client = tracking.setup(project_dir)
         runs = tracking.find_runs(client, preset="cpu")

@@ -29,7 +29,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True)
 
 
 def _variants() -> list[str]:
-    from cloudpose.config import variants
+    from cloudpose.registry import variants
 
     return list(variants())
 

@@ -1,9 +1,8 @@
-"""Configuration: frozen dataclasses for the base system, and the registry that applies deltas.
+"""The configuration schema: frozen dataclasses for the base system (the paper's network and
+its training settings), their choices, and the fields a stored config may lack.
 
-The base config is the paper's proposed system with its training settings. A variant
-(``ablations/variants.toml``) and a preset (``ablations/presets.toml``) each list only the fields
-they change. :func:`resolve` applies preset, then variant, then explicit overrides, and returns
-one :class:`Config` that every checkpoint and every MLflow run stores in full.
+A variant or a preset changes some fields of it (:mod:`cloudpose.registry`); the result is one
+:class:`Config` that every checkpoint and every MLflow run stores in full.
 """
 
 from __future__ import annotations
@@ -11,12 +10,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import tomllib
 from dataclasses import dataclass, field
-from functools import cache
 from typing import Any
-
-from ablations import PRESETS_FILE, VARIANTS_FILE
 
 ROTATIONS = ("axis_angle", "quaternion", "rot6d")
 ROTATION_LOSSES = ("geodesic", "l2")
@@ -32,11 +27,6 @@ ONLINE_SCENE_MIN_CLASSES = 3
 """Classes on-line scenes of the kept classes only need: a table scene holds at least this many
 distinct objects (the scene sampler's ``N_OBJECTS[0]``, :mod:`cloudpose.data.synth.scenes`)."""
 KERNELS = ("fused", "plain")
-
-DEFAULT_PRESET = "cpu-online"
-"""The preset a command trains and reports when none is named: on-line synthesis, symmetry
-table 2 and depth-noise augmentation, ~15 min a run on a 2-core CPU
-(``ablations/presets.toml``; ``reports/diagnostics/online_training.md`` says why)."""
 
 GENERATOR_VERSIONS = (1, 2)
 """The generators frames can be made with (``DataConfig.synth_version``; stored in
@@ -189,7 +179,7 @@ class TrainConfig:
         kernel: "fused" = the last per-point layer, its BatchNorm, ReLU and the max pool as one
             exact autograd function (:mod:`cloudpose.models.fused`, same numerics, 2-2.5x the
             training throughput on CPU; on a GPU, where it is slower, the plain modules run
-            instead: :func:`cloudpose.train.fused_kernel`); "plain" = the textbook modules.
+            instead: :func:`cloudpose.train.loop.fused_kernel`); "plain" = the textbook modules.
         bn_recalibrate: before each validation and before the final save, re-estimate every
             BatchNorm's running statistics as the plain average over this many training
             batches (no gradient step; 0 = keep the running averages). Fixes eval mode in
@@ -203,7 +193,7 @@ class TrainConfig:
             data: a camera rolled about its optical axis sees the same surface points. 0 = off.
         augment_depth_noise_mm: move each training point along its viewing ray by a normal
             draw whose standard deviation is uniform in [0, this] mm, one level per segment
-            (:func:`cloudpose.train.jitter_along_rays`). 0 = off.
+            (:func:`cloudpose.train.loop.jitter_along_rays`). 0 = off.
         threads: intra-op CPU threads of training (``torch.set_num_threads``), whatever the
             machine has. CPU kernels split their sums by thread (BatchNorm statistics, the
             reduction dimension of a GEMM), so the thread count changes a run's numbers: it is
@@ -460,7 +450,7 @@ class Config:
                 raise ValueError(f"unknown config key {key!r}; expected one of {sorted(sections)}")
             if key in _SECTIONS:
                 value = {**IMPLIED_FIELDS.get(key, {}), **value}
-                value = _SECTIONS[key](**_check_delta("config", {key: value})[key])
+                value = _SECTIONS[key](**check_delta("config", {key: value})[key])
             kwargs[key] = value
         return cls(**kwargs)
 
@@ -508,30 +498,9 @@ without depth-noise augmentation.
 value, so those runs keep their identity."""
 
 
-@dataclass(frozen=True)
-class Variant:
-    """One registry entry: a name, why it exists, and the fields it changes."""
-
-    name: str
-    why: str
-    delta: dict[str, dict[str, Any]]
-
-    def describe(self) -> str:
-        """``model.shared_layers=3, loss.rotation=l2``; "(base)" for no change."""
-        parts = [f"{s}.{k}={v}" for s, fields in self.delta.items() for k, v in fields.items()]
-        return ", ".join(parts) or "(base)"
-
-
-@dataclass(frozen=True)
-class Group:
-    """An ablation group: one MLflow experiment and one report table."""
-
-    name: str
-    members: tuple[str, ...]
-    labels: dict[str, str]
-
-
-def _check_delta(where: str, delta: dict[str, Any]) -> dict[str, dict[str, Any]]:
+def check_delta(where: str, delta: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``delta`` ({section: {field: value}}) checked against the config's sections and
+    fields; ValueError naming ``where`` and the unknown section or field."""
     out: dict[str, dict[str, Any]] = {}
     for section, fields in delta.items():
         if section not in _SECTIONS or not isinstance(fields, dict):
@@ -542,145 +511,3 @@ def _check_delta(where: str, delta: dict[str, Any]) -> dict[str, dict[str, Any]]
                 raise ValueError(f"{where}: unknown field {section}.{key}; valid: {sorted(valid)}")
         out[section] = dict(fields)
     return out
-
-
-@cache
-def _load_variants() -> tuple[dict[str, Variant], dict[str, Group]]:
-    raw = tomllib.loads(VARIANTS_FILE.read_text())
-    variants = {}
-    for name, entry in raw.get("variant", {}).items():
-        entry = dict(entry)
-        why = entry.pop("why", "")
-        if not why:
-            raise ValueError(f"{VARIANTS_FILE}: variant {name!r} has no 'why'")
-        variants[name] = Variant(name, why, _check_delta(f"{VARIANTS_FILE} [{name}]", entry))
-    groups = {}
-    for name, entry in raw.get("group", {}).items():
-        missing = [m for m in entry["members"] if m not in variants]
-        if missing:
-            raise ValueError(f"{VARIANTS_FILE}: group {name!r} names unknown variants {missing}")
-        groups[name] = Group(name, tuple(entry["members"]), dict(entry.get("labels", {})))
-    return variants, groups
-
-
-@cache
-def _load_presets() -> dict[str, tuple[str, dict[str, dict[str, Any]]]]:
-    raw = tomllib.loads(PRESETS_FILE.read_text())
-    presets = {}
-    for name, entry in raw.get("preset", {}).items():
-        entry = dict(entry)
-        why = entry.pop("why", "")
-        presets[name] = (why, _check_delta(f"{PRESETS_FILE} [{name}]", entry))
-    return presets
-
-
-def variants() -> dict[str, Variant]:
-    """All registered variants by name, in registry order."""
-    return _load_variants()[0]
-
-
-def groups() -> dict[str, Group]:
-    """All ablation groups by name."""
-    return _load_variants()[1]
-
-
-def presets() -> dict[str, str]:
-    """Preset name -> its one-line why."""
-    return {name: why for name, (why, _) in _load_presets().items()}
-
-
-def get_variant(name: str) -> Variant:
-    """The registered variant ``name``; unknown names raise with the list of valid ones."""
-    table = variants()
-    if name not in table:
-        raise ValueError(f"unknown variant {name!r}; valid variants: {', '.join(table)}")
-    return table[name]
-
-
-def get_group(name: str) -> Group:
-    """The ablation group ``name``; unknown names raise with the list of valid ones."""
-    table = groups()
-    if name not in table:
-        raise ValueError(f"unknown group {name!r}; valid groups: {', '.join(table)}")
-    return table[name]
-
-
-def groups_of(variant: str) -> list[str]:
-    """Names of the groups that list ``variant``."""
-    return [g.name for g in groups().values() if variant in g.members]
-
-
-def _apply(cfg: Config, delta: dict[str, dict[str, Any]]) -> Config:
-    changes = {s: dataclasses.replace(getattr(cfg, s), **f) for s, f in delta.items()}
-    return dataclasses.replace(cfg, **changes)
-
-
-def parse_overrides(items: list[str] | None) -> dict[str, dict]:
-    """The ``--set`` grammar: ``["train.epochs=3", "data.classes=['011_banana']"]`` ->
-    ``{"train": {"epochs": 3}, "data": {"classes": ["011_banana"]}}``, for :func:`resolve`.
-
-    Values are TOML (numbers, true/false, quoted strings, arrays); a bare word is a string.
-    """
-    import tomllib
-
-    out: dict[str, dict] = {}
-    for item in items or []:
-        key, sep, text = item.partition("=")
-        section, dot, name = key.strip().partition(".")
-        if not sep or not dot or not name:
-            raise ValueError(f"--set {item!r}: expected section.field=value, e.g. train.epochs=3")
-        try:
-            value = tomllib.loads(f"v = {text.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = text.strip()
-        out.setdefault(section, {})[name] = value
-    return out
-
-
-def resolve(
-    variant: str = "shared-0",
-    preset: str = DEFAULT_PRESET,
-    seed: int = 1,
-    overrides: dict[str, dict[str, Any]] | None = None,
-) -> Config:
-    """The full config of ``variant`` trained with ``preset`` and ``seed``.
-
-    Order: base defaults, then the preset's delta, then the variant's, then ``overrides``
-    (``{"train": {"epochs": 3}}``).
-    """
-    table = _load_presets()
-    if preset not in table:
-        raise ValueError(f"unknown preset {preset!r}; valid presets: {', '.join(table)}")
-    cfg = Config(variant=variant, preset=preset, seed=seed)
-    cfg = _apply(cfg, table[preset][1])
-    cfg = _apply(cfg, get_variant(variant).delta)
-    if overrides:
-        cfg = _apply(cfg, _check_types("overrides", _check_delta("overrides", overrides)))
-    return cfg
-
-
-_TYPES = {
-    "int": (int,),
-    "float": (int, float),
-    "str": (str,),
-    "bool": (bool,),
-    "None": (type(None),),
-}
-
-
-def _check_types(where: str, delta: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """``delta`` if each value has its field's type (``train.epochs`` an integer, ``train.lr``
-    a number, a tuple field a list), else ``ValueError`` naming the field."""
-    for section, fields in delta.items():
-        annotations = {f.name: str(f.type) for f in dataclasses.fields(_SECTIONS[section])}
-        for key, value in fields.items():
-            kind = annotations[key]
-            if kind.startswith("tuple"):
-                ok = isinstance(value, list | tuple)
-            else:
-                parts = [_TYPES.get(p.strip(), (object,)) for p in kind.split("|")]
-                allowed = tuple(t for types in parts for t in types)
-                ok = isinstance(value, allowed) and (bool in allowed or not isinstance(value, bool))
-            if not ok:
-                raise ValueError(f"{where}: {section}.{key}={value!r}: expected {kind}")
-    return delta

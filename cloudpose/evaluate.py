@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from cloudpose import runs, runtime, tracking
+from cloudpose import runtime
 from cloudpose.conventions import resource_path
 from cloudpose.data.cache import segments_for
 from cloudpose.data.dataset import Prepared, folder_segments, only_classes, prepare_data
@@ -30,12 +30,13 @@ from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.headline import headline
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics import flatten_summary, pose_errors, summarize
-from cloudpose.pretrained import is_pretrained
 from cloudpose.refine import ICPSettings, segment_views
-from cloudpose.runs import local_checkpoint
+from cloudpose.store import runs, tracking
+from cloudpose.store.headline import headline
+from cloudpose.store.pretrained import is_pretrained
+from cloudpose.store.runs import local_checkpoint
 
 OWN_TEST = "test"
 """Metric prefix of a run's evaluation on its own test set (``test/...``, ``test_icp/...``).
@@ -254,7 +255,7 @@ def evaluate(
     """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
 
     Args:
-        run: run folder, MLflow run id, or run name (:func:`cloudpose.runs.resolve_run`).
+        run: run folder, MLflow run id, or run name (:func:`cloudpose.store.runs.resolve_run`).
         data: dataset root in either layout (YCB-Video or BOP ycbv,
             :mod:`cloudpose.data.layout`); None = the run's own test set.
         frames: with ``data``: frame list to read ("keyframe" = YCB-Video's keyframes or the
@@ -396,7 +397,7 @@ def log_evaluation(
 ) -> None:
     """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.csv``
     (what the reports read) and the finite metrics; on the run's own test set
-    (:data:`OWN_TEST`) also its headline metrics (:data:`cloudpose.headline.HEADLINE`)."""
+    (:data:`OWN_TEST`) also its headline metrics (:data:`cloudpose.store.headline.HEADLINE`)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "instances.csv"
         table.to_csv(path, index=False)

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cloudpose import tracking
 from cloudpose.conventions import YCB_INTRINSICS, transform_points
 from cloudpose.data.cache import SegmentSet
 from cloudpose.data.segments import check_depth_scale, extract_segments
 from cloudpose.data.ycb import YCBVideo, read_frame
 from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
 from cloudpose.refine import ICPSettings
-from cloudpose.runs import local_checkpoint
+from cloudpose.store import tracking
+from cloudpose.store.runs import local_checkpoint
 
 
 @dataclass(frozen=True)

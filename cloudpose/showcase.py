@@ -1,6 +1,6 @@
 """The shipped network at work (``cloudpose showcase``, the end of ``make setup``).
 
-The shipped network (:mod:`cloudpose.pretrained`) and FPFH + RANSAC, each without and with the
+The shipped network (:mod:`cloudpose.store.pretrained`) and FPFH + RANSAC, each without and with the
 network's ICP, on the same instances: the 61 packaged real development frames and the first
 ``synthetic_frames`` test frames of the network's preset (frame i of a synthetic split depends
 on the scene seed, the split and i alone, so these are the preset's own first test frames),
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from cloudpose.pretrained import PRETRAINED, shipped
+from cloudpose.store.pretrained import PRETRAINED, shipped
 
 COLUMNS = {
     "ads_auc": "ADS AUC",

@@ -8,7 +8,7 @@ each pixel's ray, a cut plane, the number of points, one side of the visible par
 segment is then made as :func:`cloudpose.data.segments.extract_segments` makes it (the 0.2 m
 outlier filter, FPS of ``n_fps`` points), and each method estimates the pose from it: the
 network of each checkpoint without and with the run's ICP, FPFH + RANSAC and point-pair
-features (``ablations/baselines.toml``), each also followed by the same ICP. The errors are the
+features (``cloudpose/resources/registry/baselines.toml``), each also followed by the same ICP. The errors are the
 evaluation's (:func:`cloudpose.evaluate.instance_table`): ADS AUC, rotation < 10 deg modulo
 symmetry, translation < 1 cm, median translation.
 
@@ -487,8 +487,8 @@ def open_source(
         alone = ds.alone_pixels(f.frame_id) if hasattr(ds, "alone_pixels") else None
         if alone is None:
             if renderer is None:
-                from cloudpose.data.render import Renderer
                 from cloudpose.data.segments import ALONE_SURFACE_VERSION
+                from cloudpose.data.synth.render import Renderer
 
                 renderer = Renderer(
                     {c: p.copy() for c, p in ds.models().items()},
@@ -571,7 +571,7 @@ def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict
     else:
         from cloudpose.baselines import load_settings, make
         from cloudpose.baselines.base import NotRegistered
-        from cloudpose.config import DEFAULT_PRESET, resolve
+        from cloudpose.registry import DEFAULT_PRESET, resolve
 
         key = ("estimator", method.name)
         if key not in cache:  # per-model state (features, PPF's hash tables) built once

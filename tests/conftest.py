@@ -150,10 +150,10 @@ def _in_a_scratch_folder(tmp_path_factory, monkeypatch):
 @pytest.fixture(scope="session")
 def smoke_data(tmp_path_factory) -> Path:
     """``data/`` folder holding the smoke preset's synthetic set and its segment caches."""
-    from cloudpose.config import resolve
     from cloudpose.data.cache import segments_for
     from cloudpose.data.dataset import prepare_data
     from cloudpose.evaluate import real_dev_root
+    from cloudpose.registry import resolve
 
     root = tmp_path_factory.mktemp("smoke-data")
     cfg = resolve("shared-0", "smoke").data
@@ -174,8 +174,8 @@ def make_project(path: Path, smoke_data: Path, monkeypatch) -> Path:
 @pytest.fixture(scope="session")
 def smoke_run(tmp_path_factory, smoke_data):
     """(project folder, TrainOutcome) of shared-0 trained on the smoke preset."""
-    from cloudpose.config import resolve
-    from cloudpose.pipeline import train_run
+    from cloudpose.registry import resolve
+    from cloudpose.suite.pipeline import train_run
 
     mp = pytest.MonkeyPatch()
     try:
@@ -199,7 +199,7 @@ def smoke_project(smoke_run, monkeypatch):
 def empty_store(tmp_path_factory) -> Path:
     """An empty, migrated MLflow SQLite store, made once per module (migrating one takes
     seconds); copy its ``mlflow.db`` into a test's folder."""
-    from cloudpose import tracking
+    from cloudpose.store import tracking
 
     root = tmp_path_factory.mktemp("template")
     with pytest.MonkeyPatch.context() as mp:

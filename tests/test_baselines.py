@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from cloudpose.baselines import METHODS, NotRegistered, load_settings, make
 from cloudpose.conventions import resource_path
-from cloudpose.data.surfaces import load_packaged_models
+from cloudpose.data.synth.surfaces import load_packaged_models
 from cloudpose.data.ycb import load_classes
 from cloudpose.metrics import rotation_error_deg
 
@@ -108,8 +108,8 @@ def test_settings_are_data_with_a_why():
 def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project):
     """`cloudpose baseline` on the smoke preset: a finished MLflow run in cloudpose-baselines
     with the instance table and the same metrics as a network's evaluation."""
-    from cloudpose import tracking
     from cloudpose.baselines.run import run_baseline, subsample
+    from cloudpose.store import tracking
 
     proj, _ = smoke_project
     out = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=8, progress=False)
@@ -137,8 +137,8 @@ def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project):
 
 
 def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
-    from cloudpose import tracking
     from cloudpose.baselines.run import run_baseline
+    from cloudpose.store import tracking
 
     proj, _ = smoke_project
     out = run_baseline(
@@ -220,14 +220,14 @@ def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, t
 
     from typer.testing import CliRunner
 
-    from cloudpose import tracking
     from cloudpose.baselines.base import settings_fingerprint
     from cloudpose.cli import app
-    from cloudpose.config import resolve
     from cloudpose.data.bop import export_bop
     from cloudpose.data.cache import cache_key
     from cloudpose.data.layout import describe_split
     from cloudpose.evaluate import evaluation_name, real_dev_root
+    from cloudpose.registry import resolve
+    from cloudpose.store import tracking
 
     if layout == "ycb":
         root, limit = real_dev_root(), 4  # the 61 packaged real frames, 4 videos

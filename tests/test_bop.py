@@ -25,7 +25,7 @@ from cloudpose.data.bop import (
 )
 from cloudpose.data.cache import segments_for
 from cloudpose.data.layout import describe_split, detect_layout, open_dataset
-from cloudpose.data.surfaces import load_packaged_models
+from cloudpose.data.synth.surfaces import load_packaged_models
 from cloudpose.data.ycb import YCBVideo
 
 REAL = Path(__file__).parent / "data" / "ycb_real"
@@ -309,7 +309,7 @@ def test_results_csv_check_finds_each_rule(tmp_path, line, problem):
 def test_smoke_run_bop_csv_and_both_layouts_agree(smoke_project, bop_real, tmp_path):
     """The BOP results CSV of a smoke run passes the format check; the real frame evaluated
     from the BOP export gives the YCB-Video layout's errors, and each names its split."""
-    from cloudpose import tracking
+    from cloudpose.store import tracking
 
     proj, out = smoke_project
     csv = tmp_path / "smoke_ycbv-test.csv"

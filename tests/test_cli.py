@@ -36,7 +36,7 @@ def test_cli_predict_and_evaluate_errors(smoke_project, tmp_path):
 
 
 def test_cli_variants_lists_the_registry():
-    from cloudpose.config import variants
+    from cloudpose.registry import variants
 
     res = CliRunner().invoke(app, ["variants"])
     assert res.exit_code == 0, res.output

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cloudpose import tracking
+from cloudpose.store import tracking
 from tests.conftest import cli, one_line_error
 
 DATA = Path(__file__).parent / "data"
@@ -171,7 +171,7 @@ def test_an_empty_frame_list_is_an_error(project, tmp_path):
 def test_a_run_name_resolves_to_the_presets_own_config(project):
     proj, out = project
     name = "shared-0/smoke/seed1"
-    from cloudpose.runs import resolve_run_id
+    from cloudpose.store.runs import resolve_run_id
 
     client = tracking.setup(proj)
     assert resolve_run_id(client, name) == out.run_id
@@ -301,12 +301,12 @@ def test_export_onto_a_file_is_one_line(tmp_path):
 
 
 def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
-    import cloudpose.ablate
+    import cloudpose.suite.ablate
 
     def unreachable(*args, **kwargs):
         raise ConnectionError("Could not find any running Ray instance. Please specify ...")
 
-    monkeypatch.setattr(cloudpose.ablate, "run_group", unreachable)
+    monkeypatch.setattr(cloudpose.suite.ablate, "run_group", unreachable)
     res = cli("ablate", "--group", "shared", "--preset", "smoke", "--executor", "ray")
     assert res.exit_code == 2 and "Traceback" not in res.output, res.output
     last = res.output.strip().splitlines()[-1]  # after the sweep's plan
@@ -318,9 +318,9 @@ def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
 
 @pytest.mark.slow
 def test_a_run_that_fails_is_marked_failed_and_resumes(tmp_path, smoke_data, monkeypatch):
-    import cloudpose.train
-    from cloudpose.config import resolve
-    from cloudpose.pipeline import train_run
+    import cloudpose.train.loop
+    from cloudpose.registry import resolve
+    from cloudpose.suite.pipeline import train_run
     from tests.conftest import make_project
 
     proj = make_project(tmp_path / "proj", smoke_data, monkeypatch)
@@ -330,14 +330,14 @@ def test_a_run_that_fails_is_marked_failed_and_resumes(tmp_path, smoke_data, mon
         terms = real_loss(*args, **kwargs)
         return type(terms)(*(t * float("nan") for t in terms))
 
-    real_loss = cloudpose.train.pose_loss
-    monkeypatch.setattr(cloudpose.train, "pose_loss", nan_loss)
+    real_loss = cloudpose.train.loop.pose_loss
+    monkeypatch.setattr(cloudpose.train.loop, "pose_loss", nan_loss)
     with pytest.raises(FloatingPointError, match="loss became nan"):
         train_run(cfg, project_dir=proj, progress=False)
     client = tracking.setup(proj)
     (run,) = tracking.find_runs(client, variant="shared-0", status=None)
     assert run.info.status == "FAILED"
-    monkeypatch.setattr(cloudpose.train, "pose_loss", real_loss)
+    monkeypatch.setattr(cloudpose.train.loop, "pose_loss", real_loss)
     out = train_run(cfg, project_dir=proj, progress=False)  # the same command again
     assert out.run_id == run.info.run_id
     assert client.get_run(out.run_id).info.status == "FINISHED"

@@ -1,4 +1,4 @@
-"""The config dataclasses and the variant/preset registry (ablations/*.toml)."""
+"""The config dataclasses and the variant/preset registry (cloudpose/resources/registry/*.toml)."""
 
 from __future__ import annotations
 
@@ -9,21 +9,9 @@ import textwrap
 import pytest
 
 import cloudpose.config as config
-from cloudpose.config import (
-    Config,
-    DataConfig,
-    ICPConfig,
-    LossConfig,
-    ModelConfig,
-    TrainConfig,
-    get_group,
-    get_variant,
-    groups,
-    groups_of,
-    presets,
-    resolve,
-    variants,
-)
+import cloudpose.registry as registry_module
+from cloudpose.config import Config, DataConfig, ICPConfig, LossConfig, ModelConfig, TrainConfig
+from cloudpose.registry import get_group, get_variant, groups, groups_of, presets, resolve, variants
 
 SECTIONS = {
     "model": ModelConfig,
@@ -41,14 +29,14 @@ def registry(tmp_path, monkeypatch):
     def write(variants_toml: str, presets_toml: str = "") -> None:
         (tmp_path / "variants.toml").write_text(textwrap.dedent(variants_toml))
         (tmp_path / "presets.toml").write_text(textwrap.dedent(presets_toml))
-        config._load_variants.cache_clear()
-        config._load_presets.cache_clear()
+        registry_module._load_variants.cache_clear()
+        registry_module._load_presets.cache_clear()
 
-    monkeypatch.setattr(config, "VARIANTS_FILE", tmp_path / "variants.toml")
-    monkeypatch.setattr(config, "PRESETS_FILE", tmp_path / "presets.toml")
+    monkeypatch.setattr(registry_module, "VARIANTS_FILE", tmp_path / "variants.toml")
+    monkeypatch.setattr(registry_module, "PRESETS_FILE", tmp_path / "presets.toml")
     yield write
-    config._load_variants.cache_clear()
-    config._load_presets.cache_clear()
+    registry_module._load_variants.cache_clear()
+    registry_module._load_presets.cache_clear()
 
 
 # --- resolve: base, then preset, then variant, then overrides ----------------------------------
@@ -298,7 +286,7 @@ def test_new_training_fields_are_checked():
 
 
 def test_cli_set_parses_toml_values():
-    from cloudpose.config import parse_overrides
+    from cloudpose.registry import parse_overrides
 
     got = parse_overrides(
         [

@@ -42,7 +42,7 @@ def _tiny_root(path: Path, train=("0000/000001",), test=("0000/000002",)) -> Pat
 
 
 def _smoke_data():
-    from cloudpose.config import resolve
+    from cloudpose.registry import resolve
 
     return resolve("shared-0", "smoke").data
 

@@ -7,10 +7,10 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from cloudpose import tracking
 from cloudpose.cli import app
-from cloudpose.config import resolve
+from cloudpose.registry import resolve
 from cloudpose.report.curves import curves_csv, fetch_curves, plot_curves
+from cloudpose.store import tracking
 
 ROT = {"cpu": [1.9, 1.7, 1.6], "smoke": [2.0, 1.2, 0.8, 0.5, 0.4]}
 SEGMENTS = {"cpu": 3550, "smoke": 447}

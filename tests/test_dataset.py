@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cloudpose.config import DataConfig, resolve
+from cloudpose.config import DataConfig
 from cloudpose.data.dataset import (
     data_fingerprint,
     dataset_root,
@@ -18,6 +18,7 @@ from cloudpose.data.dataset import (
     synthetic_root,
 )
 from cloudpose.data.layout import open_dataset
+from cloudpose.registry import resolve
 from tests.conftest import make_project
 
 REAL = Path(__file__).parent / "data" / "ycb_real"

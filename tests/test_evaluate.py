@@ -34,7 +34,7 @@ def test_evaluate_own_test_set_logs_table_and_metrics(project):
             assert 0.0 <= ev.metrics[f"{prefix}/{key}"] <= 1.0
             assert 0.0 <= ev.metrics[f"{prefix}/class_mean/{key}"] <= 1.0
 
-    from cloudpose import tracking
+    from cloudpose.store import tracking
 
     client = tracking.setup(proj)
     run = client.get_run(out.run_id)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from cloudpose.config import resolve
+from cloudpose.registry import resolve
 from cloudpose.report.experiments import (
     collect,
     config_changes,

@@ -6,10 +6,10 @@ import pytest
 import torch
 from torch import nn
 
-from cloudpose.config import resolve, variants
 from cloudpose.models import build_model
 from cloudpose.models.folded import FoldedPoseNet, fold_bn, fold_for_inference
 from cloudpose.models.fused import fuse_model
+from cloudpose.registry import resolve, variants
 
 
 def trained_like(variant: str, dtype: torch.dtype = torch.float32, overrides=None) -> nn.Module:

@@ -7,7 +7,6 @@ import copy
 import pytest
 import torch
 
-from cloudpose.config import resolve
 from cloudpose.geometry.rotations import rotvec_to_rotmat
 from cloudpose.losses import pose_loss
 from cloudpose.models import PointLayerMaxPool, build_model
@@ -17,6 +16,7 @@ from cloudpose.models.fused import (
     fused_point_max_pool,
     unfuse_model,
 )
+from cloudpose.registry import resolve
 
 
 def _randomise_bn(m: PointLayerMaxPool | FusedPointLayerMaxPool, seed: int) -> None:
@@ -296,7 +296,7 @@ def test_bad_input_raises() -> None:
 )
 def test_training_fuses_on_the_cpu_only(kernel: str, device: str, fused: bool) -> None:
     """The fused kernel is the CPU's; on a GPU training runs the plain modules (faster there)."""
-    from cloudpose.train import fused_kernel
+    from cloudpose.train.loop import fused_kernel
 
     cfg = resolve("shared-0", "smoke", overrides={"train": {"kernel": kernel}})
     assert fused_kernel(cfg, torch.device(device)) is fused

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from cloudpose.config import resolve
 from cloudpose.geometry import random_rotmat
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
 from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
 from cloudpose.models.folded import fold_for_inference
 from cloudpose.models.fused import fuse_model
+from cloudpose.registry import resolve
 
 pytestmark = pytest.mark.gpu
 
@@ -46,7 +46,7 @@ def _batch(num_classes: int, B: int = 32, n: int = 64):
 
 
 def _step(model, cfg, batch, device: str):
-    """One training step as :func:`cloudpose.train.train` takes it: outputs, the loss, the
+    """One training step as :func:`cloudpose.train.loop.train` takes it: outputs, the loss, the
     gradients, then the weights and BatchNorm statistics after Adam's update."""
     pts, cls_id, R_gt, t_gt = (x.to(device) for x in batch)
     symmetry = None
@@ -166,7 +166,7 @@ def test_smoke_run_on_cuda_matches_cpu(tmp_path, smoke_data, monkeypatch):
     rounding in near-zero gradients, so the weights themselves are not compared."""
     from cloudpose.data.dataset import prepare_data
     from cloudpose.infer import estimate_poses, load_checkpoint
-    from cloudpose.pipeline import train_run
+    from cloudpose.suite.pipeline import train_run
     from tests.conftest import make_project
 
     outcomes, test = [], None

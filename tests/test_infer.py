@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from cloudpose.config import resolve
 from cloudpose.data.segment_set import SegmentSet
-from cloudpose.data.surfaces import load_packaged_models
+from cloudpose.data.synth.surfaces import load_packaged_models
 from cloudpose.infer import (
     Estimates,
     estimate_poses,
@@ -18,6 +17,7 @@ from cloudpose.infer import (
 )
 from cloudpose.models import build_model
 from cloudpose.models.folded import FoldedPoseNet
+from cloudpose.registry import resolve
 
 
 def _trained_like(variant: str = "shared-0"):

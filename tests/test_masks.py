@@ -59,8 +59,8 @@ def test_unknown_segmentation_lists_the_valid_ones():
 def test_evaluate_under_degraded_masks_is_its_own_evaluation(smoke_project):
     """Evaluating under degraded masks logs beside, never over, the run's own results; the
     instances are the same, with the missed detections as misses."""
-    from cloudpose import tracking
     from cloudpose.evaluate import evaluate
+    from cloudpose.store import tracking
 
     proj, out = smoke_project
     own = evaluate(str(out.run_dir), progress=False, icp=False)

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from cloudpose.config import ModelConfig, get_variant, groups_of, resolve, variants
+from cloudpose.config import ModelConfig
 from cloudpose.conventions import resource_path
 from cloudpose.geometry import rotvec_to_rotmat
 from cloudpose.losses import pose_loss
@@ -26,6 +26,7 @@ from cloudpose.models import (
     scaled_width,
     variant_table,
 )
+from cloudpose.registry import get_variant, groups_of, resolve, variants
 
 VARIANTS = list(variants())
 K = 21  # YCB-Video classes

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from cloudpose.config import resolve
 from cloudpose.conventions import YCB_INTRINSICS
 from cloudpose.data.dataset import prepare_data
 from cloudpose.data.segments import extract_segments
 from cloudpose.data.synth.frames import generate_frame
 from cloudpose.data.synth.online import OnlineStream, OnlineSynth
 from cloudpose.data.ycb import Frame
-from cloudpose.pipeline import train_run
-from cloudpose.train import TrainingInterrupted, split_frames
+from cloudpose.registry import resolve
+from cloudpose.suite.pipeline import train_run
+from cloudpose.train.loop import TrainingInterrupted, split_frames
 from tests.conftest import make_project
 
 ONLINE = {
@@ -156,7 +156,7 @@ def test_cut_segments_is_extract_segments():
 def test_online_version_is_a_setting_of_its_own():
     """data.online_version 1 leaves fingerprints and chunk-store arguments as they were;
     2 changes both; others are refused."""
-    from cloudpose.train import online_synth_kwargs
+    from cloudpose.train.loop import online_synth_kwargs
 
     cfg = resolve("shared-0", "cpu-online")
     d = cfg.to_dict()

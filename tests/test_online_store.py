@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from cloudpose import tracking
-from cloudpose.config import resolve
 from cloudpose.data.synth import store as store_module
 from cloudpose.data.synth.online import OnlineChunks, OnlineStream, OnlineSynth, store_chunks
 from cloudpose.data.synth.store import ChunkStore, store_settings
-from cloudpose.pipeline import train_run
-from cloudpose.train import ONLINE_STORE_ENV, online_chunks, online_store_root
+from cloudpose.registry import resolve
+from cloudpose.store import tracking
+from cloudpose.suite.pipeline import train_run
+from cloudpose.train.loop import ONLINE_STORE_ENV, online_chunks, online_store_root
 from tests.conftest import make_project
 
 KW = {"version": 2, "n_points": 32}

@@ -102,9 +102,9 @@ def test_evaluate_with_posecnn_masks_counts_undetected_objects_as_misses(
     every error and AUC; the others are scored as with ground-truth masks."""
     from typer.testing import CliRunner
 
-    from cloudpose import tracking
     from cloudpose.cli import app
     from cloudpose.evaluate import evaluate
+    from cloudpose.store import tracking
 
     proj, out = smoke_project
     folder = write_results(tmp_path / "results_PoseCNN_RSS2018", frame, [8, 21], line=0)

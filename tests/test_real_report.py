@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cloudpose.config import resolve
+from cloudpose.registry import resolve
 
 PRESET = "smoke"
 DATA = "f00dfeed1234567890"
@@ -54,9 +54,9 @@ def _log(client, exp, tags, name, evaluations: dict[str, pd.DataFrame], ms=(2.0,
 
 
 def _store(root: Path, seeds=(1, 2), baselines=("fpfh",)) -> dict:
-    from cloudpose import tracking
     from cloudpose.baselines import load_settings
     from cloudpose.baselines.base import settings_fingerprint
+    from cloudpose.store import tracking
 
     client = tracking.setup(root)
     rng = np.random.default_rng(5)
@@ -105,8 +105,8 @@ def _share(table: pd.DataFrame, col: str, limit: float, video: str | None) -> fl
 
 @pytest.mark.slow  # a fresh MLflow store: ~40 s on 2 shared cores
 def test_real_report_per_video_and_pooled(tmp_path):
-    from cloudpose import tracking
     from cloudpose.report.real import render_real_report
+    from cloudpose.store import tracking
 
     logged = _store(tmp_path)
     client = tracking.setup(tmp_path)

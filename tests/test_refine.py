@@ -328,7 +328,8 @@ def test_icp_config_section_keeps_stored_runs_identity():
     """A config stored before the ``icp`` section existed reads back with the guard off and
     the same fingerprint; turning the guard on is another config; the paper presets keep it
     off."""
-    from cloudpose.config import Config, resolve
+    from cloudpose.config import Config
+    from cloudpose.registry import resolve
 
     cfg = resolve("shared-0", "cpu", 1)
     stored = cfg.to_dict()
@@ -400,7 +401,8 @@ def test_a_start_without_correspondences_is_passed_over_quietly():
 
 
 def test_icp_starts_keep_stored_runs_identity():
-    from cloudpose.config import Config, ICPConfig, resolve
+    from cloudpose.config import Config, ICPConfig
+    from cloudpose.registry import resolve
 
     cfg = resolve("shared-0", "cpu-online", 1)
     stored = cfg.to_dict()
@@ -466,7 +468,8 @@ def test_depth_agreement_sees_a_model_in_front_of_the_observed_surface():
 def test_depth_selection_recovers_the_turned_estimate_and_needs_the_depth():
     """Scored by the depth, the 24 starts find the true pose of the quarter-turned drill as the
     fitness does; without a view the setting is refused, and it is checked by name."""
-    from cloudpose.config import Config, ICPConfig, resolve
+    from cloudpose.config import Config, ICPConfig
+    from cloudpose.registry import resolve
 
     model = load_model("035_power_drill")
     obs, _, _, R, t = visible_case(np.random.default_rng(5), model)

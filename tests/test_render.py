@@ -9,8 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import YCB_INTRINSICS
-from cloudpose.data.render import Renderer, camera_rays
-from cloudpose.data.surfaces import load_packaged_models
+from cloudpose.data.synth.render import Renderer, camera_rays
+from cloudpose.data.synth.surfaces import load_packaged_models
 from cloudpose.data.ycb import YCBVideo
 
 REAL = Path(__file__).parent / "data" / "ycb_real"

@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 from scipy import stats as sps
 
-from cloudpose.config import get_group, resolve
+from cloudpose.registry import get_group, resolve
 from cloudpose.report import stats
 from cloudpose.report.claims import claims_frame, evaluate_claims
 
@@ -111,7 +111,7 @@ def _make_store(root: Path) -> dict:
     """Synthetic runs of every variant of every group; returns what was logged."""
     from mlflow.entities import Metric, Param
 
-    from cloudpose import tracking
+    from cloudpose.store import tracking
 
     client = tracking.setup(root)
     rng = np.random.default_rng(1234)
@@ -676,8 +676,8 @@ def test_readme_index_lists_every_file(rendered):
 
 def test_report_runs_logged_and_replaced(rendered):
     root, _, result = rendered
-    from cloudpose import tracking
     from cloudpose.report import render_reports
+    from cloudpose.store import tracking
 
     client = tracking.setup(root)
     exp = client.get_experiment_by_name("cloudpose-shared")

@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from cloudpose import tracking
-from cloudpose.config import resolve
+from cloudpose.registry import resolve
 from cloudpose.report.runs import TEST_KEY, load_runs
+from cloudpose.store import tracking
 
 
 @pytest.fixture

@@ -150,9 +150,9 @@ def test_open3d_threads_limits_open3d_inside_the_block_only() -> None:
 def _three_steps(project: Path, process_threads: int, variant: str = "shared-0") -> dict:
     """Model weights of the smoke run after 3 steps, trained in a process that has
     ``process_threads`` intra-op threads when training starts."""
-    from cloudpose.config import resolve
-    from cloudpose.pipeline import train_run
-    from cloudpose.train import TrainingInterrupted
+    from cloudpose.registry import resolve
+    from cloudpose.suite.pipeline import train_run
+    from cloudpose.train.loop import TrainingInterrupted
 
     cfg = resolve(variant, "smoke", 1)
     before = torch.get_num_threads()
@@ -186,8 +186,9 @@ def test_one_and_two_threads_give_other_numbers_after_one_step() -> None:
 def test_the_thread_count_is_part_of_a_runs_identity(tmp_path) -> None:
     """``train.threads`` names the run: another count is another run folder and config, and a
     run stored before the setting existed (trained with 2 threads) keeps its identity."""
-    from cloudpose.config import Config, resolve
-    from cloudpose.runs import display_name, run_dir
+    from cloudpose.config import Config
+    from cloudpose.registry import resolve
+    from cloudpose.store.runs import display_name, run_dir
 
     default = resolve("shared-0", "smoke", 1)
     assert default.train.threads == 2

@@ -274,8 +274,9 @@ def test_frame_streams_reproduce_one_stream_per_frame():
 
 
 def test_the_committed_cpu_presets_keep_one_stream_per_frame():
-    from cloudpose.config import Config, resolve
+    from cloudpose.config import Config
     from cloudpose.data import cache
+    from cloudpose.registry import resolve
 
     for preset in ("cpu", "cpu-paper", "cpu-long", "memorize", "cpu-4k"):
         cfg = resolve("shared-0", preset, 1)
@@ -326,7 +327,7 @@ def test_segmentation_sources():
 
 
 def test_real_frame_segments_lie_on_the_posed_models():
-    from cloudpose.data.render import Renderer
+    from cloudpose.data.synth.render import Renderer
 
     ds = YCBVideo(REAL)
     frame = ds.frame("0000/000001")
@@ -387,7 +388,7 @@ def test_synthetic_training_segments_match_their_labels(smoke_data):
 def test_depth_unit_check_raises_or_with_the_override_warns(monkeypatch, scale, looks):
     """Segments of a whole model at 0.8 m pass; scaled by 10 either way (depth read in another
     unit) they stop with one line, or warn under CLOUDPOSE_NO_UNIT_CHECK=1."""
-    from cloudpose.data.surfaces import load_packaged_models
+    from cloudpose.data.synth.surfaces import load_packaged_models
 
     models = load_packaged_models()
     points = [(models[c] + [0, 0, 0.8]) * scale for c in (1, 2, 3)]

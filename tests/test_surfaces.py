@@ -9,9 +9,9 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import YCB_INTRINSICS
-from cloudpose.data import surfaces
-from cloudpose.data.render import Renderer
-from cloudpose.data.surfaces import load_packaged_models, surface_key
+from cloudpose.data.synth import surfaces
+from cloudpose.data.synth.render import Renderer
+from cloudpose.data.synth.surfaces import load_packaged_models, surface_key
 
 
 def test_packaged_surfaces_are_current():

@@ -324,7 +324,7 @@ def test_frames_of_another_renderer_raise(small_root, tmp_path, monkeypatch):
     import json
     import shutil
 
-    from cloudpose.data import surfaces
+    from cloudpose.data.synth import surfaces
 
     root = tmp_path / "copy"
     shutil.copytree(small_root, root)
@@ -400,7 +400,7 @@ def frame_digest(f) -> str:
 
 
 def test_version1_frames_are_byte_identical():
-    from cloudpose.data import surfaces
+    from cloudpose.data.synth import surfaces
 
     gen = synth.frames._generator(1)
     for (split, i, seed, uniform), digest in V1_FRAME_DIGESTS.items():
@@ -428,7 +428,8 @@ def test_versions_never_share_a_root(small_root, tmp_path):
 
 
 def test_presets_of_the_committed_sweep_pin_version1():
-    from cloudpose.config import Config, resolve
+    from cloudpose.config import Config
+    from cloudpose.registry import resolve
 
     for preset in ("cpu", "cpu-paper", "cpu-long", "cpu-4k", "memorize"):
         assert resolve("shared-0", preset).data.synth_version == 1

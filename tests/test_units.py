@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cloudpose.config import resolve
 from cloudpose.data.bop import export_bop
 from cloudpose.data.cache import SegmentSet, prepare, segments_for
 from cloudpose.data.segments import UNIT_CHECK_OFF, UnitWarning
+from cloudpose.registry import resolve
 from tests.conftest import cli, one_line_error
 
 REAL = Path(__file__).parent / "data" / "ycb_real"

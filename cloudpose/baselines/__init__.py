@@ -9,7 +9,7 @@ exactly as a network's estimate: the same ICP refinement after, the same per-ins
 - ``ppf``: point-pair features (Drost et al., CVPR 2010), OpenCV's ``ppf_match_3d``: a hash
   table of the model's point pairs, votes of the segment's pairs.
 
-Settings are data (``ablations/baselines.toml``), each with a one-line why.
+Settings are data (``cloudpose/resources/registry/baselines.toml``), each with a one-line why.
 """
 
 from __future__ import annotations

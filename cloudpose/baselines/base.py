@@ -1,4 +1,4 @@
-"""What every baseline shares: its settings (from ``ablations/baselines.toml``), its result, and
+"""What every baseline shares: its settings (from ``cloudpose/resources/registry/baselines.toml``), its result, and
 the checks of its input."""
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ class BaselineSettings:
 
 
 def load_settings(method: str, path: Path | None = None) -> BaselineSettings:
-    """The settings of ``method`` from ``ablations/baselines.toml``."""
-    from ablations import BASELINES_FILE
+    """The settings of ``method`` from ``cloudpose/resources/registry/baselines.toml``."""
+    from cloudpose.registry import BASELINES_FILE
 
     raw = tomllib.loads((path or BASELINES_FILE).read_text())
     table = raw.get("baseline", {})
@@ -110,7 +110,7 @@ def check_segment(points: np.ndarray, cls_id: int, models: dict, min_points: int
     if len(pts) < min_points:
         raise NotRegistered(
             f"segment of class {cls_id}: {len(pts)} finite points, a baseline needs at least "
-            f"{min_points} (min_points in ablations/baselines.toml)"
+            f"{min_points} (min_points in cloudpose/resources/registry/baselines.toml)"
         )
     if int(cls_id) not in models:
         raise ValueError(f"class {cls_id}: no model points (have classes {sorted(models)})")

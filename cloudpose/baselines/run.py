@@ -34,10 +34,8 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from cloudpose import runs, tracking
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import NotRegistered, settings_fingerprint
-from cloudpose.config import DEFAULT_PRESET, resolve
 from cloudpose.data.cache import segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.layout import describe_split, open_dataset
@@ -51,8 +49,10 @@ from cloudpose.evaluate import (
 )
 from cloudpose.files import atomic_write
 from cloudpose.infer import Estimates, refine_poses
-from cloudpose.runs import run_folder
-from cloudpose.train import split_frames
+from cloudpose.registry import DEFAULT_PRESET, resolve
+from cloudpose.store import runs, tracking
+from cloudpose.store.runs import run_folder
+from cloudpose.train.loop import split_frames
 
 GROUP = "baselines"
 SAVE_EVERY_S = 60.0
@@ -102,7 +102,7 @@ class BaselineCall:
 
     def progress_path(self) -> Path:
         """Where this run keeps its partial estimates: ``progress.npz`` in the run folder of
-        variant ``baseline-{method}`` (:func:`cloudpose.runs.run_folder`), one subfolder per
+        variant ``baseline-{method}`` (:func:`cloudpose.store.runs.run_folder`), one subfolder per
         other split or subsample."""
         folder = run_folder(
             f"baseline-{self.method}",

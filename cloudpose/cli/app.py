@@ -18,7 +18,7 @@ class _Commands(TyperGroup):
     """Every command with one error handler: bad input is one line on stderr, exit 2.
 
     The library raises ``ValueError`` / ``FileNotFoundError`` / ``FileExistsError`` naming the
-    file, field or name and what was expected (:class:`~cloudpose.tracking.StoreError` for a
+    file, field or name and what was expected (:class:`~cloudpose.store.tracking.StoreError` for a
     store that cannot be opened, ``ConnectionError`` for a service such as Ray that cannot be
     reached);
     ``cloudpose --debug ...`` shows the traceback instead.
@@ -26,7 +26,7 @@ class _Commands(TyperGroup):
 
     def invoke(self, ctx: click.Context):
         from cloudpose.failures import DiskFullError
-        from cloudpose.tracking import StoreError
+        from cloudpose.store.tracking import StoreError
 
         try:
             return super().invoke(ctx)
@@ -177,7 +177,9 @@ app = typer.Typer(
 VariantOpt = Annotated[str, typer.Option(help="Variant name (`cloudpose variants` lists them).")]
 PresetOpt = Annotated[
     str,
-    typer.Option(help="Preset (`cloudpose presets` lists them; ablations/presets.toml)."),
+    typer.Option(
+        help="Preset (`cloudpose presets` lists them; cloudpose/resources/registry/presets.toml)."
+    ),
 ]
 SeedOpt = Annotated[int, typer.Option(help="Training seed.")]
 DataOpt = Annotated[
@@ -217,7 +219,7 @@ SetOpt = Annotated[
 
 def group_names() -> str:
     """The registered ablation groups, for help texts: ``shared, rotation, loss or symmetry``."""
-    from cloudpose.config import groups
+    from cloudpose.registry import groups
 
     names = list(groups())
     return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else "".join(names)
@@ -269,13 +271,13 @@ def recorded_command(ctx: typer.Context) -> str:
 def _shown(value) -> str:
     """An option's value as the provenance line writes it (paths: :func:`tracking.shown_path`;
     the command still runs as written from the same folder)."""
-    from cloudpose.tracking import shown_path
+    from cloudpose.store.tracking import shown_path
 
     return shown_path(value) if isinstance(value, Path) else str(value)
 
 
 def config_of(variant: str, preset: str, seed: int, data: str = "", sets=None, **train):
-    from cloudpose.config import parse_overrides, resolve
+    from cloudpose.registry import parse_overrides, resolve
 
     overrides: dict = parse_overrides(sets)
     if data:

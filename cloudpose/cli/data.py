@@ -17,7 +17,8 @@ from cloudpose.cli.app import (
     config_of,
     recorded_command,
 )
-from cloudpose.config import DEFAULT_PRESET, Config
+from cloudpose.config import Config
+from cloudpose.registry import DEFAULT_PRESET
 
 
 @app.command()
@@ -171,7 +172,7 @@ def _store_seeds(
 ):
     from cloudpose.data.synth.online import store_chunks
     from cloudpose.data.synth.store import ChunkStore
-    from cloudpose.train import ONLINE_STORE_ENV, online_chunks, online_store_root
+    from cloudpose.train.loop import ONLINE_STORE_ENV, online_chunks, online_store_root
 
     if cfg.data.train_source != "online":
         raise ValueError(

@@ -31,8 +31,8 @@ def variants() -> None:
 
 @app.command()
 def presets() -> None:
-    """Print the presets (ablations/presets.toml) with what each is for."""
-    from cloudpose.config import presets as registered
+    """Print the presets (cloudpose/resources/registry/presets.toml) with what each is for."""
+    from cloudpose.registry import presets as registered
 
     for name, why in registered().items():
         typer.echo(f"{name:<14} {why}")

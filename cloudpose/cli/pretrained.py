@@ -52,15 +52,15 @@ def ship(
 ) -> None:
     """Package a finished run's network as the shipped one (weights, config and a record of the
     run, its data key and metrics, with a checksum), from this folder's MLflow store."""
-    from cloudpose import tracking
     from cloudpose.conventions import resource_path
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import open_dataset
     from cloudpose.evaluate import real_dev_root
     from cloudpose.infer import load_checkpoint
-    from cloudpose.pretrained import SHIPPED
-    from cloudpose.pretrained import ship as write
-    from cloudpose.runs import local_checkpoint
+    from cloudpose.store import tracking
+    from cloudpose.store.pretrained import SHIPPED
+    from cloudpose.store.pretrained import ship as write
+    from cloudpose.store.runs import local_checkpoint
 
     if name not in SHIPPED:
         raise ValueError(f"--name {name!r}: expected one of {', '.join(SHIPPED)}")

@@ -15,7 +15,7 @@ from cloudpose.cli.app import (
     app,
     recorded_command,
 )
-from cloudpose.config import DEFAULT_PRESET
+from cloudpose.registry import DEFAULT_PRESET
 
 
 def _committed_if_lacking(preset: str, lacking=None) -> None:
@@ -59,7 +59,7 @@ def report(
 ) -> None:
     """Render the tables, claims and figures of a preset from existing MLflow runs only."""
     from cloudpose.report import render_reports
-    from cloudpose.tracking import check_name
+    from cloudpose.store.tracking import check_name
 
     check_name("--preset", preset)  # it names the output folder reports/PRESET
     _committed_if_lacking(preset)
@@ -121,8 +121,8 @@ def curves(
     x: Annotated[str, typer.Option(help="x axis: epoch, or step (Adam steps).")] = "epoch",
 ) -> None:
     """Per-epoch curves of any runs side by side (one panel per metric), from MLflow."""
-    from cloudpose import tracking
     from cloudpose.report.curves import curves_csv, fetch_curves, plot_curves
+    from cloudpose.store import tracking
 
     metrics = list(metric or ["train/loss_rot", "val/rot_err_median_deg"])
     command = f"`{recorded_command(ctx)}`"
@@ -164,9 +164,9 @@ def occlusion_report(
 
     Renders from the runs in MLflow only: with a run missing it names the runs and the command
     that trains them, and exits 1."""
-    from cloudpose.ablate import occlusion_report as occlusion_fn
-    from cloudpose.config import get_group, resolve
-    from cloudpose.plan import estimate_run_s, missing_report_runs, plan_runs
+    from cloudpose.registry import get_group, resolve
+    from cloudpose.suite.ablate import occlusion_report as occlusion_fn
+    from cloudpose.suite.plan import estimate_run_s, missing_report_runs, plan_runs
 
     variants = list(get_group(group).members) if group else ["shared-0"]
     if not train_missing:

@@ -70,8 +70,8 @@ def mlflow_server(
     """An MLflow tracking server (SQL backend, artifacts served through it) for several
     machines; clients set MLFLOW_TRACKING_URI=http://HOST:PORT."""
 
-    from cloudpose.cluster import check_port_free
-    from cloudpose.tracking import server_command
+    from cloudpose.store.tracking import server_command
+    from cloudpose.suite.cluster import check_port_free
 
     check_port_free(host, port)
     server = server_command(backend, artifacts, host, port)
@@ -97,14 +97,14 @@ def mlflow_ui(
     experiment's address."""
     import os
 
-    from cloudpose import headline, tracking
+    from cloudpose.store import headline, tracking
 
     if backend:
         os.environ["MLFLOW_TRACKING_URI"] = backend
     uri = tracking.tracking_uri()
     remote = tracking.is_remote(uri)
     if serve and not remote:
-        from cloudpose.cluster import check_port_free
+        from cloudpose.suite.cluster import check_port_free
 
         check_port_free(host, port)
     base = uri.rstrip("/") if remote else f"http://{host}:{port}"
@@ -145,7 +145,7 @@ def store_pack(
 ) -> None:
     """Pack this folder's MLflow store (mlflow.db and mlartifacts/) into one .tar.xz with
     artifact addresses relative to the folder; checkpoints only of the runs named."""
-    from cloudpose.store_archive import pack_store
+    from cloudpose.store.archive import pack_store
 
     s = pack_store(Path.cwd(), out, checkpoint or [], force=force)
     typer.echo(
@@ -169,8 +169,8 @@ def store_unpack(
 ) -> None:
     """Unpack a store packed by store-pack (or by hand) and point its artifacts to this folder:
     then report, mlflow-ui and ablate work there on its runs."""
-    from cloudpose.store_archive import unpack_store
-    from cloudpose.tracking import ARTIFACT_DIR, STORE_DB
+    from cloudpose.store.archive import unpack_store
+    from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 
     n = unpack_store(archive, into)
     typer.echo(f"{into / STORE_DB}: {n} runs; artifacts under {into / ARTIFACT_DIR}")
@@ -187,8 +187,8 @@ def store_rekey(
 ) -> None:
     """Give the runs of PRESET made on data keyed OLD (a key of an earlier definition) today's
     keys of that data, so that the runner and the reports find them; each old key stays as a
-    tag rekeyed/.... Check first that OLD is the same data (cloudpose.store_rekey says how)."""
-    from cloudpose.store_rekey import rekey_runs
+    tag rekeyed/.... Check first that OLD is the same data (cloudpose.store.rekey says how)."""
+    from cloudpose.store.rekey import rekey_runs
 
     changes = rekey_runs(preset, old, Path.cwd(), dry_run=dry_run)
     for c in changes:

@@ -21,7 +21,7 @@ from cloudpose.cli.app import (
     config_of,
     recorded_command,
 )
-from cloudpose.config import DEFAULT_PRESET
+from cloudpose.registry import DEFAULT_PRESET
 
 
 @app.command()
@@ -46,9 +46,9 @@ def train(
     ] = 1,
 ) -> None:
     """Train one variant (resumes an interrupted run of the same settings)."""
-    from cloudpose import distributed
-    from cloudpose.pipeline import train_run
-    from cloudpose.runs import display_name
+    from cloudpose.store.runs import display_name
+    from cloudpose.suite.pipeline import train_run
+    from cloudpose.train.loop import distributed
 
     cfg = config_of(
         variant, preset, seed, data, set_, epochs=epochs, precision=precision, device=device
@@ -210,14 +210,14 @@ def _print_summary(metrics: dict[str, float]) -> None:
 
 def _next_steps(preset: str) -> None:
     """What the numbers mean for ``preset``, and where to look next."""
-    from cloudpose.config import presets
+    from cloudpose.registry import presets
 
     meaning = {
         "smoke": "a plumbing check: a few seconds of training, its numbers mean nothing. "
         "`cloudpose showcase` (make showcase) shows the shipped, trained network at work.",
     }.get(preset, f"preset {preset!r}: {presets().get(preset, '')}")
-    from cloudpose.config import get_group, resolve
-    from cloudpose.plan import estimate_run_s
+    from cloudpose.registry import get_group, resolve
+    from cloudpose.suite.plan import estimate_run_s
 
     typer.echo(f"\nWhat this is: {meaning}")
     runs = len(get_group("shared").members) * 3
@@ -282,13 +282,13 @@ def run(
     """The main job: synthesize + prepare (if needed), train, evaluate with and without ICP.
 
     Prints its plan first: frames to render, whether the run is trained already, time."""
-    from cloudpose.pipeline import train_and_evaluate
-    from cloudpose.plan import plan_configs
-    from cloudpose.runs import display_name
+    from cloudpose.store.runs import display_name
+    from cloudpose.suite.pipeline import train_and_evaluate
+    from cloudpose.suite.plan import plan_configs
 
     cfg = config_of(variant, preset, seed, data, set_)
     if group is not None:
-        from cloudpose.tracking import check_name
+        from cloudpose.store.tracking import check_name
 
         check_name("group", group)
     plan = plan_configs(
@@ -380,7 +380,7 @@ def baseline(
     A finished run of the same method, preset, seed, data, settings, split and subsample is
     shown, not computed again (``--rerun`` computes a new one)."""
     from cloudpose.baselines.run import run_baseline
-    from cloudpose.config import parse_overrides
+    from cloudpose.registry import parse_overrides
 
     overrides = {
         k: v

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from cloudpose.cli.app import DryRunOpt, OutOpt, PresetOpt, ProgressOpt, app, recorded_command
-from cloudpose.config import DEFAULT_PRESET
+from cloudpose.registry import DEFAULT_PRESET
 
 QUICK = {"instances": 24, "fpfh_instances": 12, "ppf_instances": 4, "synth_frames": 8}
 """What ``--quick`` sets (a look at every curve in minutes, not a measurement)."""
@@ -90,10 +90,10 @@ def stress(
     network with and without ICP against FPFH + RANSAC and point-pair features at each step;
     resumable, the plan and its time printed first."""
     from cloudpose import stress as st
-    from cloudpose.config import resolve
+    from cloudpose.registry import resolve
     from cloudpose.report.build import default_out_dir
     from cloudpose.report.stress import render_stress_report
-    from cloudpose.tracking import check_name
+    from cloudpose.store.tracking import check_name
 
     check_name("--preset", preset)
     project = Path.cwd()
@@ -159,9 +159,9 @@ def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):
 
     paths = list(checkpoints)
     if runs:
-        from cloudpose import tracking
-        from cloudpose.pretrained import is_pretrained, shipped
-        from cloudpose.runs import resolve_run
+        from cloudpose.store import tracking
+        from cloudpose.store.pretrained import is_pretrained, shipped
+        from cloudpose.store.runs import resolve_run
 
         client = tracking.setup(project)
         paths += [shipped(r).path if is_pretrained(r) else resolve_run(client, r)[1] for r in runs]

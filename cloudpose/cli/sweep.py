@@ -17,7 +17,7 @@ from cloudpose.cli.app import (
     group_names,
     recorded_command,
 )
-from cloudpose.config import DEFAULT_PRESET
+from cloudpose.registry import DEFAULT_PRESET
 
 
 @app.command()
@@ -59,10 +59,10 @@ def ablate(
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report.
 
     Prints its plan first: frames to render, runs to train and those finished before, time."""
-    from cloudpose.ablate import resolve_claims, run_group
-    from cloudpose.cluster import RayOptions
-    from cloudpose.config import parse_overrides
-    from cloudpose.plan import plan_group
+    from cloudpose.registry import parse_overrides
+    from cloudpose.suite.ablate import resolve_claims, run_group
+    from cloudpose.suite.cluster import RayOptions
+    from cloudpose.suite.plan import plan_group
 
     overrides = parse_overrides(set_) or None
     plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
@@ -123,8 +123,8 @@ def ablate_masks(
     are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
     in reports/PRESET/ and the MLflow run report/masks/PRESET. Prints its plan first.
     """
-    from cloudpose.ablate_masks import mask_ablation
-    from cloudpose.plan import plan_masks
+    from cloudpose.suite.masks import mask_ablation
+    from cloudpose.suite.plan import plan_masks
 
     typer.echo(plan_masks(preset, seeds, Path.cwd(), out_dir=out).text())
     if dry_run:

@@ -247,7 +247,7 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
             alone = ds.alone_pixels(fid)
             if alone is None:
                 if "renderer" not in _worker:
-                    from cloudpose.data.render import Renderer
+                    from cloudpose.data.synth.render import Renderer
 
                     # copies: the reader's arrays are read-only, Open3D wants writeable ones
                     _worker["renderer"] = Renderer(

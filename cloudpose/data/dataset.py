@@ -3,7 +3,7 @@
 - :func:`dataset_root`: ``DataConfig.root``, or the synthetic default under the project folder
   (:func:`synthetic_root`, one folder per synthesis setting).
 - :func:`prepare_data`: the (train, test) segments of a config as one :class:`Prepared`, what
-  ``train`` and ``evaluate`` receive from the pipeline (:mod:`cloudpose.pipeline`). The
+  ``train`` and ``evaluate`` receive from the pipeline (:mod:`cloudpose.suite.pipeline`). The
   synthetic default is rendered or completed first (resumable), a real root is only read (its
   caches go to ``project_dir/data/cache``); the dataset is opened once and the object passed
   on to the caches, the class filter and the stages.

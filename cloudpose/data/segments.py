@@ -25,7 +25,7 @@ from cloudpose import kernels
 from cloudpose.data.mask_sources import get_mask_source
 
 if TYPE_CHECKING:
-    from cloudpose.data.render import Renderer
+    from cloudpose.data.synth.render import Renderer
     from cloudpose.data.ycb import Frame
 
 
@@ -207,7 +207,7 @@ def instance_streams(rng: np.random.Generator, cls_ids) -> list[np.random.Genera
 
 
 ALONE_SURFACE_VERSION = 2
-"""Surfaces (:class:`cloudpose.data.render.Renderer`) that render the object-alone pixel counts
+"""Surfaces (:class:`cloudpose.data.synth.render.Renderer`) that render the object-alone pixel counts
 of the occlusion factor for frames that do not carry them (real YCB-Video): version 2 keeps the
 holes of handles, which version 1 fills (a mug's or pitcher's occlusion came out too low). Part
 of the cache key of such data only: synthetic and BOP frames carry their own counts."""

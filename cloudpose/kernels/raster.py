@@ -7,7 +7,7 @@ the depth of the hit is the depth of the triangle's plane along that ray. So eac
 projected once and tested at the pixel centres of its bounding box; the depth is the plane's,
 interpolated perspective-correctly (1/z is affine in the image over a planar triangle: the
 barycentric weights of the pixel centre applied to 1/z of the vertices). Equal to Open3D's ray cast (the twin,
-:meth:`cloudpose.data.render.Renderer.render_instanced`) to float rounding: micrometres of
+:meth:`cloudpose.data.synth.render.Renderer.render_instanced`) to float rounding: micrometres of
 depth, and a pixel centre within rounding of a silhouette edge may flip between hit and miss.
 No face is culled (rays hit both sides); edge-on triangles (zero projected area) are skipped,
 as a ray grazing them sees the neighbouring faces.

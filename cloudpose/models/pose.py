@@ -27,9 +27,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cloudpose.config import ModelConfig, groups_of, resolve, variants
+from cloudpose.config import ModelConfig
 from cloudpose.geometry import normalize_quat, rot6d_to_rotmat, rotvec_to_rotmat, unitquat_to_rotmat
 from cloudpose.models.basenet import BaseNet, point_stages
+from cloudpose.registry import groups_of, resolve, variants
 
 ROTATION_SIZES = {"axis_angle": 3, "quaternion": 4, "rot6d": 6}
 """Raw output size of each rotation representation."""

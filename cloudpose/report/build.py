@@ -24,9 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
-from cloudpose import runs as run_records
-from cloudpose import tracking
-from cloudpose.config import get_group, groups
+from cloudpose.registry import get_group, groups
 from cloudpose.report import plots, segmentation
 from cloudpose.report.claims import (
     ClaimResult,
@@ -43,6 +41,8 @@ from cloudpose.report.tables import (
     table3_shared_layers,
     table4_rotation,
 )
+from cloudpose.store import runs as run_records
+from cloudpose.store import tracking
 
 TABLE4_GROUPS = ("rotation", "loss", "symmetry")
 """The groups whose rows Table IV holds, one section each."""

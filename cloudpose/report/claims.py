@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.config import get_group
+from cloudpose.registry import get_group
 from cloudpose.report.formats import Provenance
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import (

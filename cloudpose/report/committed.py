@@ -37,8 +37,8 @@ def committed_store(preset: str, project_dir: Path) -> Path:
     Raises:
         FileNotFoundError: the checkout commits no store for ``preset``.
     """
-    from cloudpose.store_archive import unpack_store
-    from cloudpose.tracking import STORE_DB
+    from cloudpose.store.archive import unpack_store
+    from cloudpose.store.tracking import STORE_DB
 
     archive = committed_archive(preset, project_dir)
     if archive is None:
@@ -58,7 +58,7 @@ def use_committed_store(
     """Point this process's MLflow client at the preset's committed store when the user named
     no store, ``lacking()`` says the project's own store lacks the runs, and the checkout
     commits one; says so in one line through ``echo``. Returns whether it did."""
-    from cloudpose.tracking import STORE_DB
+    from cloudpose.store.tracking import STORE_DB
 
     if os.environ.get("MLFLOW_TRACKING_URI") or committed_archive(preset, project_dir) is None:
         return False
@@ -80,7 +80,7 @@ def use_committed_store(
 def holds_preset(project_dir: Path, preset: str) -> bool:
     """Whether the project's own store (``MLFLOW_TRACKING_URI`` or ``./mlflow.db``) holds a
     finished run of ``preset``; False without a store (nothing is created to ask)."""
-    from cloudpose import tracking
+    from cloudpose.store import tracking
 
     uri = tracking.tracking_uri(project_dir)
     db = tracking.sqlite_path(uri)

@@ -67,7 +67,7 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
     Raises:
         ValueError: a run that cannot be found, or a metric none of the runs logged.
     """
-    from cloudpose.runs import resolve_run_id
+    from cloudpose.store.runs import resolve_run_id
 
     out = []
     for spec in runs:

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from cloudpose import tracking
-from cloudpose.config import Config, resolve
+from cloudpose.config import Config
+from cloudpose.registry import resolve
+from cloudpose.store import tracking
 
 COLUMNS = {
     "steps": "Adam steps",

@@ -31,8 +31,8 @@ from scipy import ndimage
 
 from cloudpose.config import check_synth_version
 from cloudpose.conventions import YCB_INTRINSICS, packaged_classes
-from cloudpose.data.render import Renderer
 from cloudpose.data.synth.frames import _generator, generate_frame
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import (
     REAL_DROPOUT,
     DropoutModel,
@@ -130,7 +130,7 @@ def object_pixels(frames: Sequence[Frame], renderer=None) -> PixelSamples:
 
     Args:
         frames: real frames.
-        renderer: :class:`~cloudpose.data.render.Renderer` for frames with poses (default one
+        renderer: :class:`~cloudpose.data.synth.render.Renderer` for frames with poses (default one
             over the packaged models, version-2 surfaces).
     """
     if renderer is None:

@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import tracking
 from cloudpose.report.runs import run_instance_table
+from cloudpose.store import tracking
 
 REAL = "real"
 """The metric prefix of an evaluation on the real development frames
@@ -119,7 +119,7 @@ def find_evaluations(
     """Every real-frame evaluation of ``preset``'s network and baselines in the store.
 
     The network: the newest FINISHED ``shared-0`` run per seed trained with the preset's own
-    config (:func:`cloudpose.runs.is_preset_config`). Baselines: the newest FINISHED run per
+    config (:func:`cloudpose.store.runs.is_preset_config`). Baselines: the newest FINISHED run per
     seed of ``baseline-{method}`` on split ``real`` with the method's default settings.
 
     Returns:
@@ -129,7 +129,7 @@ def find_evaluations(
     """
     from cloudpose.baselines import load_settings
     from cloudpose.baselines.base import settings_fingerprint
-    from cloudpose.runs import is_preset_config
+    from cloudpose.store.runs import is_preset_config
 
     found: list[Evaluation] = []
     missing: list[str] = []
@@ -346,7 +346,7 @@ def markdown(report: RealReport, preset: str, command: str, store: str = "the st
         f"{preset} preset, trained on synthetic frames only, evaluated by `cloudpose evaluate "
         "--real` (ICP + fallback: `--icp-fallback`, the guard of `icp.fallback`). Baselines: "
         f"`cloudpose baseline --method fpfh|ppf --preset {preset} --split real` (default "
-        "settings of ablations/baselines.toml). ICP: the paper's schedule (10 iterations, "
+        "settings of cloudpose/resources/registry/baselines.toml). ICP: the paper's schedule (10 iterations, "
         "1 cm shrinking by 10%). Percent of instances (ADS AUC: area under the ADS accuracy "
         "curve up to 10 cm); a miss counts as a failure. Several seeds: mean ± sample std over "
         "seeds. ms per object: the method (+ ICP), on the machine that ran it.",

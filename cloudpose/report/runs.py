@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import tracking
 from cloudpose.files import CorruptFileError, why
-from cloudpose.runs import is_preset_config
+from cloudpose.store import tracking
+from cloudpose.store.runs import is_preset_config
 
 INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
 """Columns every evaluation's instance table has (:func:`cloudpose.evaluate.instance_table`)."""
@@ -246,7 +246,7 @@ def load_runs(
     Args:
         preset: the training preset (tag ``preset``).
         data: data fingerprint to keep; default the one with the most (variant, seed) pairs.
-        client: an ``MlflowClient``; default :func:`cloudpose.tracking.setup` of ``project_dir``.
+        client: an ``MlflowClient``; default :func:`cloudpose.store.tracking.setup` of ``project_dir``.
         project_dir: folder of the default MLflow store (cwd).
     """
     client = client or tracking.setup(project_dir)

@@ -13,9 +13,9 @@ import math
 import numpy as np
 import pandas as pd
 
-from cloudpose.config import get_group, resolve
 from cloudpose.conventions import resource_path
 from cloudpose.models import build_model, count_parameters
+from cloudpose.registry import get_group, resolve
 from cloudpose.report.formats import Table
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import format_mean_std, mean_std

@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import tracking
 from cloudpose.metrics.summaries import AUC_MAX_THRESHOLD, voc_ap_auc
+from cloudpose.store import tracking
 
 BINS = (0.0, 10.0, 30.0, np.inf)
 LABELS = ("< 10", "10-30", ">= 30")

@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import tracking
 from cloudpose.baselines.run import split_segments
-from cloudpose.config import resolve
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, refine_poses
 from cloudpose.refine import ICPSettings
+from cloudpose.registry import resolve
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
+from cloudpose.store import tracking
 
 KEY = ["frame_id", "instance"]
 

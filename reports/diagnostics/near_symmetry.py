@@ -25,10 +25,10 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
-from cloudpose import tracking
-from cloudpose.config import resolve
 from cloudpose.data.dataset import prepare_data
 from cloudpose.infer import estimate_poses, load_checkpoint
+from cloudpose.registry import resolve
+from cloudpose.store import tracking
 
 CLASSES = (
     "021_bleach_cleanser",

@@ -24,7 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import pandas as pd
 
-from cloudpose.config import resolve
+from cloudpose.registry import resolve
 
 _PRESET = resolve("shared-0", "cpu-online")
 BATCH, REUSE = _PRESET.train.batch_size, _PRESET.data.online_reuse

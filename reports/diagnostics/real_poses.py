@@ -38,11 +38,11 @@ import numpy as np
 import open3d as o3d
 import pandas as pd
 
-from cloudpose import tracking
 from cloudpose.conventions import resource_path
 from cloudpose.data.layout import open_dataset
 from cloudpose.data.synth.resting import resting_poses
 from cloudpose.data.synth.scenes import CAMERA_DISTANCE, CAMERA_ELEVATION_DEG
+from cloudpose.store import tracking
 
 PLANE_DISTANCE = 0.01
 """RANSAC inlier distance of the table plane, metres."""

@@ -3,7 +3,7 @@ sensor and the masks?
 
 For every frame of a real YCB-Video-layout folder (default: the 61 annotated frames of
 ``cloudpose/resources/real_dev``, videos 0000-0003) the scene is rendered with our renderer
-(:class:`cloudpose.data.render.Renderer`, the surfaces of the network's generator version) at
+(:class:`cloudpose.data.synth.render.Renderer`, the surfaces of the network's generator version) at
 the ground-truth poses and intrinsics. The same network then sees each instance under these
 conditions:
 
@@ -51,13 +51,13 @@ from cloudpose.conventions import resource_path
 from cloudpose.data.cache import FPS_SEED, SegmentSet
 from cloudpose.data.dataset import only_classes
 from cloudpose.data.layout import open_dataset
-from cloudpose.data.render import Renderer
 from cloudpose.data.segments import extract_segments
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics.summaries import voc_ap_auc
-from cloudpose.tracking import shown_path
+from cloudpose.store.tracking import shown_path
 
 CONDITIONS = (
     "real",

@@ -37,10 +37,10 @@ from scipy.spatial import cKDTree
 from cloudpose.conventions import resource_path
 from cloudpose.data.cache import FPS_SEED
 from cloudpose.data.layout import open_dataset
-from cloudpose.data.render import Renderer
 from cloudpose.data.segments import extract_segments, farthest_point_sampling, instance_streams
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import edge_distance
-from cloudpose.tracking import shown_path
+from cloudpose.store.tracking import shown_path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from real_twins import _conditions, _markdown

@@ -43,11 +43,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import tracking
 from cloudpose.conventions import resource_path
 from cloudpose.data.ycb import load_classes
 from cloudpose.geometry.rigid import rotation_error_deg
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
+from cloudpose.store import tracking
 
 REPO = Path(__file__).resolve().parents[2]
 STORE = REPO / "reports" / "cpu" / "mlflow-store.tar.xz"

@@ -19,7 +19,7 @@ from cloudpose.data.bop.format import (
     model_origin,
     write_ply,
 )
-from cloudpose.data.render import Renderer
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, SegmentWarning, extract_segments
 from cloudpose.data.ycb import YCBVideo

@@ -35,7 +35,7 @@ quantisation to 1/8 pixel (focal 580 px, baseline 7.5 cm: 2.9 mm steps at 1 m), 
 Pixels without a reading have depth 0.
 Version 2 replaces the dropout on object pixels by :data:`REAL_DROPOUT`, a model fitted to the
 real frames (edges, grazing angles, a rate per class, in blobs), and renders surfaces that keep
-through-holes (:mod:`cloudpose.data.surfaces`, surface version 2). ``cloudpose synth
+through-holes (:mod:`cloudpose.data.synth.surfaces`, surface version 2). ``cloudpose synth
 --compare-real`` (:mod:`~cloudpose.report.fidelity`) measures both versions against real
 frames.
 

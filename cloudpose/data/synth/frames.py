@@ -66,8 +66,8 @@ class _Generator:
     resting poses); build it with :func:`_generator` (one per process and version)."""
 
     def __init__(self, version: int = GENERATOR_VERSION) -> None:
-        from cloudpose.data.render import Renderer
-        from cloudpose.data.surfaces import load_packaged_models
+        from cloudpose.data.synth.render import Renderer
+        from cloudpose.data.synth.surfaces import load_packaged_models
 
         self.version = check_synth_version(version)
         self.models = load_packaged_models()

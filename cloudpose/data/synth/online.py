@@ -6,7 +6,7 @@ The frame generator (:func:`~cloudpose.data.synth.frames.generate_frame`) render
 draws a table scene with the same sampler (:func:`~cloudpose.data.synth.scenes.sample_table_scene`:
 resting poses, clustering, stacking, the camera ranges), casts each object's rays only through
 the pixels of its own projection, against its class's surface kept in its model frame (one BVH
-per class for the whole run, :meth:`~cloudpose.data.render.Renderer.render_instanced`), adds
+per class for the whole run, :meth:`~cloudpose.data.synth.render.Renderer.render_instanced`), adds
 the version's sensor model on the object pixels of the box around them (the version-2 sensor
 computed where a segment can take a point, :func:`~cloudpose.data.synth.sensor.add_sensor_noise_v2_objects`,
 with the background planes on the ring of pixels around the objects, so depth edges at object
@@ -29,7 +29,7 @@ Version 2 (``data.online_version = 2``, :data:`~cloudpose.config.ONLINE_VERSIONS
 scenes, random draws and computations, by compiled kernels where version 1 used Open3D and
 numpy. The scene sampler's slide loop is compiled for both versions (the same scenes, so the
 frames do not change); version 2 then draws each object into a z-buffer of its mesh
-(:meth:`~cloudpose.data.render.Renderer.render_raster`, :mod:`cloudpose.kernels.raster`:
+(:meth:`~cloudpose.data.synth.render.Renderer.render_raster`, :mod:`cloudpose.kernels.raster`:
 each triangle tested at the pixel centres of its projection, the plane's depth: what the ray
 cast through those centres hits), computes the sensor's edge distance and correlated
 missing-depth field by compiled kernels (the field only at the object pixels, from the same
@@ -304,7 +304,7 @@ class OnlineSynth:
         from ``rng`` when the source has noise. None when no object is in the image.
 
         Each object is ray cast in its own window only, against its class's surface kept in
-        its model frame (:meth:`~cloudpose.data.render.Renderer.render_instanced`); the
+        its model frame (:meth:`~cloudpose.data.synth.render.Renderer.render_instanced`); the
         frame's window is the box around them. The background depth is the version's planes
         (on the ring of pixels around the objects only where only the objects' readings are
         needed: the version-2 sensor, :func:`add_sensor_noise_v2_objects`).

@@ -113,7 +113,7 @@ _LOST = (
 
 
 def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, version: int) -> None:
-    from cloudpose.data.surfaces import surface_settings
+    from cloudpose.data.synth.surfaces import surface_settings
 
     # Frames depend on the generator and on the rendered surfaces: both versions are recorded,
     # so frames made by another generator or renderer are never mixed on resume.

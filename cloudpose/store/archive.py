@@ -1,0 +1,434 @@
+"""A project's MLflow store as one file: packed to commit beside its reports, unpacked anywhere.
+
+A project's store is its SQLite ``mlflow.db`` and its artifact folder ``mlartifacts/``
+(:func:`cloudpose.store.tracking.experiment_id`). MLflow records every run's artifact folder as an
+absolute ``file://`` address, so a store copied to another folder or machine points back to the
+one it came from. :func:`pack_store` writes ``mlflow.db`` (a consistent SQLite backup: runs
+may be writing) and every run's artifacts into a ``.tar.xz``, with every address made relative
+to the project (``mlartifacts/GROUP/RUN/artifacts``), and checkpoints (``*.pt``, the bulk of a
+store) left out but for the runs named. A run's artifacts are taken from where its address
+points when that is not under ``mlartifacts/`` (MLflow's ``./mlruns`` of a store named by
+``MLFLOW_TRACKING_URI=sqlite:///...``); a store whose artifacts are not on this machine's disk
+(a tracking server's, an object store's) is refused, never packed without them. An existing
+archive is replaced only when asked (``force``, ``--force``).
+
+:func:`unpack_store` extracts such an archive into a hidden folder inside the target, points
+every address into the target's ``mlartifacts/`` (whatever machine the addresses came from:
+archives packed by hand, with absolute addresses, included) and only then moves the store into
+place, ``mlflow.db`` last: an unpack that is stopped (Ctrl-C, SIGTERM, an error) leaves no
+store behind, and its rerun is not refused. An archive with a member outside the folder (``../``,
+an absolute path, a link leading out) is refused before anything is written. Then
+``cloudpose report``, ``cloudpose mlflow-ui`` and ``cloudpose ablate`` work in that folder as
+in the original project.
+"""
+
+from __future__ import annotations
+
+import lzma
+import os
+import shutil
+import sqlite3
+import tarfile
+import tempfile
+import warnings
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from cloudpose.failures import disk_full, sigterm_as_interrupt
+from cloudpose.files import atomic_write
+from cloudpose.store import tracking
+from cloudpose.store.tracking import ARTIFACT_DIR, EXPERIMENT_PREFIX, STORE_DB
+
+CHECKPOINT_SUFFIX = ".pt"
+"""Files left out of a packed store but for the runs named to keep them."""
+
+UNPACK_PREFIX = ".store-unpack-"
+"""The hidden folder inside the target that an unpack extracts into before moving in
+(``.store-unpack-PID-XXXX``)."""
+
+PACK_PREFIX = "cloudpose-store-pack-"
+"""The temporary folder of a pack's database copy (``cloudpose-store-pack-PID-XXXX``)."""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
+
+
+def _remove_stale(folder: Path, pattern: str, prefix: str) -> None:
+    """Remove what a killed (``kill -9``) pack or unpack left in ``folder``: the entries
+    matching ``pattern`` whose name, after ``prefix``, starts with the id of a process that is
+    gone. Every other exit path removes its own."""
+    for entry in folder.glob(pattern) if folder.is_dir() else []:
+        pid = entry.name[len(prefix) :].split(".")[0].split("-")[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+
+
+@dataclass(frozen=True)
+class PackSummary:
+    """What :func:`pack_store` wrote: runs in the store, artifact files packed, checkpoints kept
+    and left out, the archive's size in bytes, and the runs whose artifact folder is missing
+    (ids; report runs, which have no artifacts, not counted)."""
+
+    runs: int
+    files: int
+    checkpoints_kept: int
+    checkpoints_left_out: int
+    bytes: int
+    without_artifacts: tuple[str, ...] = ()
+
+
+def _relative(uri: str) -> str | None:
+    """``mlartifacts/...`` of an address under some project's artifact folder, else None."""
+    if uri.startswith(f"{ARTIFACT_DIR}/"):
+        return uri
+    i = uri.find(f"/{ARTIFACT_DIR}/")
+    return uri[i + 1 :] if i >= 0 else None
+
+
+def _rewrite(db: Path, to: Callable[[str], str | None]) -> int:
+    """Replace each run's artifact address and each experiment's artifact location ``uri`` by
+    ``to(uri)`` where that is not None; returns how many runs the store holds."""
+    con = sqlite3.connect(db)
+    try:
+        with con:
+            for table, key, column in (
+                ("runs", "run_uuid", "artifact_uri"),
+                ("experiments", "experiment_id", "artifact_location"),
+            ):
+                rows = con.execute(f"SELECT {key}, {column} FROM {table}").fetchall()
+                for k, uri in rows:
+                    new = to(uri or "")
+                    if new is not None and new != uri:
+                        con.execute(f"UPDATE {table} SET {column} = ? WHERE {key} = ?", (new, k))
+        return con.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+    finally:
+        con.close()
+
+
+def _under_artifacts(base: str) -> Callable[[str], str | None]:
+    """``to`` of :func:`_rewrite`: an address under an artifact folder moved under ``base``
+    (the ``mlartifacts`` folder's URI, or ``mlartifacts`` itself for relative addresses)."""
+
+    def to(uri: str) -> str | None:
+        rel = _relative(uri)
+        return None if rel is None else base + rel.removeprefix(ARTIFACT_DIR)
+
+    return to
+
+
+def _run_ids(db: Path, names: list[str]) -> set[str]:
+    """Run ids of ``names``: each a run id, or a run name (its newest active run)."""
+    con = sqlite3.connect(db)
+    try:
+        ids = set()
+        for name in names:
+            row = con.execute("SELECT run_uuid FROM runs WHERE run_uuid = ?", (name,)).fetchone()
+            row = (
+                row
+                or con.execute(
+                    "SELECT run_uuid FROM runs WHERE name = ? AND lifecycle_stage = 'active' "
+                    "ORDER BY start_time DESC LIMIT 1",
+                    (name,),
+                ).fetchone()
+            )
+            if row is None:
+                raise ValueError(f"{db}: no run with the id or name {name!r}")
+            ids.add(row[0])
+        return ids
+    finally:
+        con.close()
+
+
+@dataclass(frozen=True)
+class _RunArtifacts:
+    """Where one run's artifacts are read from and where they go in the archive."""
+
+    run_id: str
+    source: Path
+    """The run's artifact folder on this machine (it may not exist: a run without artifacts)."""
+    member: str
+    """``mlartifacts/GROUP/RUN_ID/artifacts``: the folder in the archive and its new address."""
+    expected: bool = True
+    """Whether the run should have artifacts (a report run, ``kind=report``, has none)."""
+
+
+def _artifact_plan(db: Path, project: Path) -> tuple[list[_RunArtifacts], dict[str, str]]:
+    """Every run's artifacts, and the addresses to rewrite (old -> ``mlartifacts/...``).
+
+    An address under an artifact folder is read from this project's ``mlartifacts/`` (where a
+    store copied from elsewhere has them), else from where it points; any other local address
+    (MLflow's ``./mlruns``) from where it points, packed under
+    ``mlartifacts/{group}/{run}/artifacts``. A remote address (``s3://``, a tracking server's
+    ``mlflow-artifacts:``) is refused: its files are not on this disk.
+    """
+    con = sqlite3.connect(db)
+    try:
+        exps = dict(con.execute("SELECT experiment_id, name FROM experiments").fetchall())
+        rows = con.execute(
+            "SELECT run_uuid, experiment_id, artifact_uri FROM runs ORDER BY run_uuid"
+        ).fetchall()
+        reports = {
+            r
+            for (r,) in con.execute(
+                "SELECT run_uuid FROM tags WHERE key = 'kind' AND value = 'report'"
+            )
+        }
+    finally:
+        con.close()
+    plan, moved = [], {}
+    for run_id, exp_id, uri in rows:
+        uri = uri or ""
+        rel = _relative(uri)
+        local = tracking.local_artifact(uri, "") if uri else None
+        if rel is not None:
+            source = project / rel
+            if not source.exists() and local is not None:
+                source = local
+        elif local is not None:
+            name = str(exps.get(exp_id, "")).removeprefix(EXPERIMENT_PREFIX)
+            try:
+                group = tracking.check_name("group", name)
+            except ValueError:
+                group = f"experiment-{exp_id}"
+            rel = f"{ARTIFACT_DIR}/{group}/{run_id}/artifacts"
+            source = local if local.is_absolute() else project / local
+            moved[uri] = rel
+        else:
+            raise ValueError(
+                f"{db}: run {run_id} keeps its artifacts at {uri!r}, which store-pack cannot "
+                "read (not a folder on this machine); packing would leave them out, so nothing "
+                "was packed: download them first, or pack on the machine that holds them"
+            )
+        plan.append(_RunArtifacts(run_id, source, rel, run_id not in reports))
+    return plan, moved
+
+
+def store_database(project_dir: Path) -> Path:
+    """The SQLite store of ``project_dir``: the one ``MLFLOW_TRACKING_URI`` names when it is
+    set (``sqlite:///...``), else ``project_dir/mlflow.db``; ``ValueError`` for a store that is
+    not a local SQLite file (a tracking server)."""
+    if not os.environ.get("MLFLOW_TRACKING_URI"):
+        return Path(project_dir) / STORE_DB
+    uri = tracking.tracking_uri(project_dir)
+    db = tracking.sqlite_path(uri)
+    if db is None:
+        raise ValueError(
+            f"MLFLOW_TRACKING_URI={uri} is not a local SQLite store: store-pack packs an "
+            "mlflow.db and its artifact folders (unset MLFLOW_TRACKING_URI to pack this "
+            "folder's, or pack on the tracking server's machine)"
+        )
+    return db if db.is_absolute() else Path.cwd() / db
+
+
+def pack_store(
+    project_dir: Path, out: Path, checkpoints: Sequence[str] = (), force: bool = False
+) -> PackSummary:
+    """Pack the store of ``project_dir`` into ``out`` (``.tar.xz``), written atomically.
+
+    Args:
+        project_dir: the folder holding ``mlflow.db`` and ``mlartifacts/`` (the store
+            ``MLFLOW_TRACKING_URI`` names instead, when it names a ``sqlite:///`` file:
+            :func:`store_database`).
+        out: the archive to write.
+        checkpoints: runs (ids or names; a name means its newest active run) whose ``*.pt``
+            files are packed; every other run's are left out.
+        force: replace ``out`` if it exists (else ``FileExistsError``).
+    """
+    out = Path(out)
+    if out.exists() and not force:
+        raise FileExistsError(f"{out} exists: pass --force to replace it")
+    db = store_database(Path(project_dir))
+    project = db.parent
+    if not db.is_file():
+        raise FileNotFoundError(f"{db}: no MLflow store to pack (expected a project's {STORE_DB})")
+    _remove_stale(Path(tempfile.gettempdir()), f"{PACK_PREFIX}*", PACK_PREFIX)
+    _remove_stale(out.parent, f".{out.name}.*.tmp*", f".{out.name}.")  # files.atomic_write's
+    prefix = f"{PACK_PREFIX}{os.getpid()}-"
+    with sigterm_as_interrupt(), tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        copy = Path(tmp) / STORE_DB
+        src = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        dst = sqlite3.connect(copy)
+        try:
+            src.backup(dst)
+        finally:
+            src.close()
+            dst.close()
+        keep = _run_ids(copy, list(checkpoints))
+        plan, moved = _artifact_plan(copy, project)
+        runs = _rewrite(copy, lambda uri: moved.get(uri) or _under_artifacts(ARTIFACT_DIR)(uri))
+        files = kept = left = 0
+        without = tuple(r.run_id for r in plan if r.expected and not r.source.is_dir())
+
+        def write(path: Path) -> None:
+            nonlocal files, kept, left
+            files = kept = left = 0
+            with tarfile.open(path, "w:xz", preset=6, dereference=True) as tar:
+                tar.add(copy, arcname=STORE_DB)
+                for r in plan:
+                    if not r.source.is_dir():
+                        continue
+                    for f in sorted(r.source.rglob("*")):
+                        if not f.is_file():
+                            continue
+                        if f.suffix == CHECKPOINT_SUFFIX:
+                            if r.run_id not in keep:
+                                left += 1
+                                continue
+                            kept += 1
+                        tar.add(f, arcname=f"{r.member}/{f.relative_to(r.source).as_posix()}")
+                        files += 1
+
+        try:
+            atomic_write(out, write, suffix=".tar.xz")
+        except OSError as exc:
+            full = disk_full(exc, out, then=f"pack again (cloudpose store-pack {out})")
+            if full is None:
+                raise
+            raise full from exc
+    return PackSummary(runs, files, kept, left, out.stat().st_size, without)
+
+
+def _unreadable(archive: Path, exc: BaseException) -> ValueError:
+    if archive.stat().st_size == 0:
+        why = "empty: 0 bytes"
+    else:
+        reason = " ".join(str(exc).split())
+        reason = reason if len(reason) <= 100 else reason[:100] + "..."
+        why = f"{type(exc).__name__}: {reason}; truncated, or not a .tar.xz"
+    return ValueError(
+        f"{archive} is not a readable store archive ({why}): pack it again (cloudpose "
+        "store-pack) or fetch it whole"
+    )
+
+
+_ARCHIVE_ERRORS = (tarfile.TarError, EOFError, lzma.LZMAError, zlib.error)
+"""What reading a truncated, empty or foreign archive raises (gzip's and bzip2's too)."""
+
+
+def _checked_members(archive: Path, tar: tarfile.TarFile, staging: str) -> list[tarfile.TarInfo]:
+    """The archive's members, each checked: ``mlflow.db`` or under ``mlartifacts/``, and
+    nothing that :func:`tarfile.data_filter` refuses (a path or link outside the folder, a
+    device); ``ValueError`` naming the first bad one, before anything is written."""
+    members, has_db = [], False
+    for m in tar.getmembers():
+        name = m.name.removeprefix("./")
+        if name in ("", "."):
+            continue
+        if name != STORE_DB and name.split("/")[0] != ARTIFACT_DIR:
+            raise ValueError(
+                f"{archive}: member {m.name!r} is neither {STORE_DB} nor under {ARTIFACT_DIR}/ "
+                "(not a packed cloudpose store)"
+            )
+        try:
+            tarfile.data_filter(m, staging)
+        except tarfile.FilterError as exc:
+            raise ValueError(
+                f"{archive}: member {m.name!r} refused ({exc}): a packed store holds only files "
+                "inside its own folder, no path or link outside it; nothing unpacked"
+            ) from None
+        has_db |= name == STORE_DB
+        members.append(m)
+    if not has_db:
+        raise ValueError(f"{archive}: no {STORE_DB} in the archive (not a packed cloudpose store)")
+    return members
+
+
+def _move_in(staging: Path, into: Path) -> None:
+    """Move an unpacked store from ``staging`` into ``into``: the artifacts (one rename, or
+    file by file into an artifact folder already there), then ``mlflow.db``, last."""
+    art, dest = staging / ARTIFACT_DIR, into / ARTIFACT_DIR
+    if art.is_dir() and not dest.exists():
+        os.replace(art, dest)
+    elif art.is_dir():
+        for f in sorted(art.rglob("*")):
+            target = dest / f.relative_to(art)
+            if f.is_dir() and not f.is_symlink():
+                target.mkdir(parents=True, exist_ok=True)
+            else:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(f, target)
+    os.replace(staging / STORE_DB, into / STORE_DB)
+
+
+def _outside_addresses(db: Path) -> list[str]:
+    """Run artifact addresses that are not under an artifact folder (the archive lacks them)."""
+    con = sqlite3.connect(db)
+    try:
+        rows = con.execute("SELECT artifact_uri FROM runs").fetchall()
+    finally:
+        con.close()
+    return [u for (u,) in rows if u and _relative(u) is None]
+
+
+def unpack_store(archive: Path, into: Path) -> int:
+    """Extract a packed store into ``into`` and point its artifact addresses there.
+
+    Args:
+        archive: a ``.tar.xz`` of ``mlflow.db`` and ``mlartifacts/`` (from :func:`pack_store`,
+            or packed by hand with absolute addresses of another machine).
+        into: the folder to hold the store; it must not hold an ``mlflow.db`` yet.
+
+    Returns:
+        The number of runs in the store. Nothing is left in ``into`` when it fails or is
+        stopped (:data:`UNPACK_PREFIX`).
+    """
+    archive, into = Path(archive), Path(into)
+    if (into / STORE_DB).exists():
+        raise FileExistsError(
+            f"{into / STORE_DB} exists: unpack into a folder without a store (this one's runs would be "
+            "replaced)"
+        )
+    if not archive.is_file():
+        raise FileNotFoundError(f"{archive}: no such store archive")
+    made = not into.exists()
+    staging = None
+    with sigterm_as_interrupt():
+        try:
+            try:
+                with tarfile.open(archive, "r:*") as tar:
+                    members = _checked_members(archive, tar, str(into / UNPACK_PREFIX))
+                    into.mkdir(parents=True, exist_ok=True)
+                    _remove_stale(into, f"{UNPACK_PREFIX}*", UNPACK_PREFIX)
+                    prefix = f"{UNPACK_PREFIX}{os.getpid()}-"
+                    staging = Path(tempfile.mkdtemp(prefix=prefix, dir=into))
+                    tar.extractall(staging, members=members, filter="data")
+            except _ARCHIVE_ERRORS as exc:
+                raise _unreadable(archive, exc) from exc
+            except OSError as exc:
+                full = disk_full(exc, into, then="unpack again")
+                if full is None:
+                    raise
+                raise full from exc
+            base = (into.resolve() / ARTIFACT_DIR).as_uri()
+            try:
+                n = _rewrite(staging / STORE_DB, _under_artifacts(base))
+            except sqlite3.DatabaseError as exc:
+                raise ValueError(
+                    f"{archive}: its {STORE_DB} is not an MLflow store ({exc}); nothing unpacked"
+                ) from exc
+            outside = _outside_addresses(staging / STORE_DB)
+            _move_in(staging, into)
+        finally:
+            if staging is not None:
+                shutil.rmtree(staging, ignore_errors=True)
+            if made and into.is_dir() and not any(into.iterdir()):
+                into.rmdir()  # made here for a store that did not come
+    if outside:
+        warnings.warn(
+            f"{len(outside)} of {n} runs in {archive} keep their artifacts outside it (e.g. "
+            f"{outside[0]}): their artifacts are not in {into / ARTIFACT_DIR}",
+            stacklevel=2,
+        )
+    return n

@@ -1,0 +1,359 @@
+"""MLflow tracking: where runs live, how they are named, tagged and found again.
+
+- Store: an embedded SQLite database ``mlflow.db`` in the project folder (the current directory),
+  artifacts under ``mlartifacts/``; ``MLFLOW_TRACKING_URI`` points it anywhere else, e.g. a shared
+  tracking server (:func:`server_command`, ``make mlflow-server``), through which the artifacts
+  then go too.
+- One experiment per ablation group (``cloudpose-shared``, ``cloudpose-rotation``, ...). A run
+  lives in the experiment of the group it was trained for; a variant listed in several groups
+  (``shared-0``) is trained once and found by tags from every group's report.
+- Tags ``variant``, ``group``, ``preset``, ``seed``, ``data`` (the data fingerprint), ``config``
+  (:meth:`Config.fingerprint`), ``git_commit``; names and identity in :mod:`cloudpose.store.runs`.
+  Metric keys are split-prefixed (``train/loss``, ``val/ads_auc``, ``test/ads_auc``,
+  ``test_icp/ads_auc``).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import re
+import shlex
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+from typing import Any, NamedTuple
+
+EXPERIMENT_PREFIX = "cloudpose-"
+_KEY_BAD = re.compile(r"[^A-Za-z0-9_\-./ ]")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+
+
+def check_name(what: str, name: str) -> str:
+    """``name`` if it is safe as one path component, an experiment name and a metric prefix:
+    1-100 letters, digits, ``_ - .``, starting with a letter or digit (so never ``.``, ``..``,
+    a path separator or an absolute path). Else ``ValueError`` naming ``what`` (``--group``).
+    """
+    if not isinstance(name, str) or _NAME.fullmatch(name) is None:
+        raise ValueError(
+            f"{what} {name!r}: expected 1-100 letters, digits, '_', '-' or '.', starting with "
+            "a letter or digit (it names a folder and an MLflow experiment or metric prefix)"
+        )
+    return name
+
+
+STORE_DB = "mlflow.db"
+"""A project's SQLite store of runs, in the project folder."""
+
+ARTIFACT_DIR = "mlartifacts"
+"""A project's artifact folder, beside :data:`STORE_DB` (one subfolder per group)."""
+
+
+def tracking_uri(project_dir: Path | None = None) -> str:
+    """``MLFLOW_TRACKING_URI`` if set, else SQLite ``mlflow.db`` in ``project_dir`` (cwd)."""
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    if env:
+        return env
+    root = (project_dir or Path.cwd()).resolve()
+    return f"sqlite:///{root / STORE_DB}"
+
+
+SERVER_FOLDER = "mlflow-server"
+"""The folder (in the working directory) of a tracking server's default SQLite store and
+artifacts."""
+
+
+class ServerCommand(NamedTuple):
+    """An ``mlflow server`` invocation: argv, environment variables to add, and its store."""
+
+    argv: list[str]
+    env: dict[str, str]
+    backend: str
+
+
+def server_command(
+    backend: str | None = None,
+    artifacts: str | Path | None = None,
+    host: str = "127.0.0.1",
+    port: int = 5000,
+    workers: int = 2,
+    root: Path | None = None,
+) -> ServerCommand:
+    """The ``mlflow server`` command line of a tracking server for several machines.
+
+    Args:
+        backend: where runs, params and metrics are kept: any SQLAlchemy URI
+            (``sqlite:///abs/path.db``, ``postgresql://user:pw@host/db``); default SQLite
+            ``ROOT/mlflow-server/mlflow.db`` (the folder is made).
+        artifacts: where artifacts are kept (a folder, or an object-store URI such as
+            ``s3://bucket/prefix``); the server serves them (``--serve-artifacts``), so clients
+            need no access to it. Default ``ROOT/mlflow-server/artifacts``.
+        host: interface to bind (127.0.0.1: this machine only; 0.0.0.0: every interface).
+        port: TCP port.
+        workers: server processes.
+        root: where the default store lies; default the working directory.
+
+    Returns:
+        argv (this interpreter's MLflow), the environment variables to add to the server's
+        (MLflow's GenAI job runner off: it starts 8 processes that tracking never uses) and
+        the backend. Clients then set ``MLFLOW_TRACKING_URI=http://HOST:PORT``.
+    """
+    folder = (root or Path.cwd()) / SERVER_FOLDER
+    if backend is None:
+        folder.mkdir(parents=True, exist_ok=True)
+        backend = f"sqlite:///{folder / STORE_DB}"
+    if artifacts is None:
+        artifacts = folder / "artifacts"
+    if "://" not in backend:
+        raise ValueError(
+            f"--backend {backend!r}: expected an SQLAlchemy URI such as sqlite:///abs/path.db "
+            "or postgresql://user:password@host/db"
+        )
+    argv = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "server",
+        "--backend-store-uri",
+        backend,
+        "--artifacts-destination",
+        str(artifacts),
+        "--serve-artifacts",
+        "--host",
+        host,
+        "--port",
+        str(port),
+        "--workers",
+        str(workers),
+    ]
+    return ServerCommand(argv, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, backend)
+
+
+def is_remote(uri: str) -> bool:
+    """Whether ``uri`` is a tracking server (``http://``, ``https://``, ``databricks``), whose
+    runs and artifacts other machines reach without this machine's disk."""
+    return uri.split(":", 1)[0] in ("http", "https", "databricks")
+
+
+def setup(project_dir: Path | None = None):
+    """An ``MlflowClient`` on the store of :func:`tracking_uri`.
+
+    The process-wide ``mlflow.set_tracking_uri`` is never called: it also writes
+    ``MLFLOW_TRACKING_URI`` into the environment, which would then pin every later project
+    folder of the same process to this one's store.
+    """
+    import logging
+
+    import mlflow
+
+    # Alembic prints every schema migration of a new SQLite store at INFO.
+    for name in ("alembic", "mlflow.store.db.utils"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", module="mlflow")
+    uri = tracking_uri(project_dir)
+    db = sqlite_path(uri)
+    if db is None:
+        return mlflow.MlflowClient(tracking_uri=uri)
+    # The first client of a new SQLite store creates its tables and runs every schema
+    # migration; two processes doing that at once leave a store that no command can open again
+    # (alembic's `_alembic_tmp_* already exists`). One process at a time, then every later one
+    # finds the schema current and only reads it.
+    from filelock import FileLock
+
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(str(db) + ".lock"):
+        try:
+            client = mlflow.MlflowClient(tracking_uri=uri)
+            client.search_experiments(max_results=1)
+        except Exception as e:
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise StoreError(
+                f"the MLflow store {db} cannot be opened ({type(e).__name__}: {first}); "
+                f"if it is broken, move it aside (mv {db} {db}.broken) and rerun, or set "
+                "MLFLOW_TRACKING_URI to another store"
+            ) from e
+    return client
+
+
+class StoreError(RuntimeError):
+    """The MLflow store exists but cannot be opened (the message says how to recover)."""
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` tracking URI, else None."""
+    prefix = "sqlite:///"
+    return Path(uri[len(prefix) :]) if uri.startswith(prefix) else None
+
+
+def experiment_id(client, group: str, project_dir: Path | None = None) -> str:
+    """Id of the group's experiment, created (with a local artifact folder) if missing.
+
+    Several processes may ask at once (the tasks of a sweep): when another one created it
+    first, that experiment is the answer.
+    """
+    from mlflow.exceptions import MlflowException
+
+    name = EXPERIMENT_PREFIX + check_name("group", group)
+    exp = client.get_experiment_by_name(name)
+    if exp is not None:
+        return exp.experiment_id
+    location = None
+    if not os.environ.get("MLFLOW_TRACKING_URI"):
+        location = ((project_dir or Path.cwd()).resolve() / ARTIFACT_DIR / group).as_uri()
+    try:
+        return client.create_experiment(name, artifact_location=location, tags={"group": group})
+    except MlflowException:
+        exp = client.get_experiment_by_name(name)
+        if exp is None:
+            raise
+        return exp.experiment_id
+
+
+def metric_key(*parts: str) -> str:
+    """Join parts with ``/`` and replace characters MLflow keys do not allow."""
+    return _KEY_BAD.sub("_", "/".join(parts))
+
+
+def command_line() -> str:
+    """The command line of this process, as a user would type it (``cloudpose report ...``), with
+    absolute paths inside the working folder written relative to it (:func:`shown_path`)."""
+    argv = list(sys.argv)
+    prog = Path(argv[0]).name if argv else "python"
+    return shlex.join([prog, *map(_shown_arg, argv[1:])])
+
+
+def _shown_arg(arg: str) -> str:
+    """One argument as :func:`command_line` writes it: ``/abs/x`` and ``--opt=/abs/x`` inside
+    the working folder become relative; anything else is kept."""
+    head, sep, value = arg.partition("=") if arg.startswith("--") else ("", "", arg)
+    if not value.startswith("/"):
+        return arg
+    return f"{head}{sep}{shown_path(value)}"
+
+
+def shown_path(path: str | Path) -> str:
+    """A path as a provenance line writes it: relative to the working folder when inside it, so a
+    committed report names the project's files, not one machine's folders; as given otherwise."""
+    path = Path(path)
+    if path.is_absolute():
+        try:
+            return str(path.relative_to(Path.cwd()))
+        except ValueError:
+            pass
+    return str(path)
+
+
+@functools.cache
+def git_commit(repo: Path | None = None) -> str:
+    """Short commit of the code, ``+dirty`` when the tree has changes; "unknown" outside git.
+
+    Asked once per process: a process runs the code it imported when it started, so a long
+    sweep process stamps every run with the tree as it was then, not with later commits or
+    edits of the checkout that it never loads."""
+    cwd = repo or Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short=10", "HEAD"], cwd=cwd, capture_output=True, text=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            # Code only: rendered reports and data under the repository are not the code.
+            [
+                "git",
+                "status",
+                "--porcelain",
+                "--untracked-files=no",
+                "--",
+                ":/cloudpose",
+                ":/ablations",
+                ":/pyproject.toml",
+            ],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    except OSError:
+        return "unknown"
+    return (sha + ("+dirty" if dirty else "")) if sha else "unknown"
+
+
+def find_runs(
+    client,
+    *,
+    variant: str | None = None,
+    preset: str | None = None,
+    seed: int | None = None,
+    data: str | None = None,
+    status: str | None = "FINISHED",
+    extra_filter: str = "",
+) -> list[Any]:
+    """Runs of every cloudpose experiment matching the given tags, newest first."""
+    exps = [
+        e.experiment_id for e in client.search_experiments() if e.name.startswith(EXPERIMENT_PREFIX)
+    ]
+    if not exps:
+        return []
+    clauses = []
+    for tag, value in (("variant", variant), ("preset", preset), ("seed", seed), ("data", data)):
+        if value is not None:
+            clauses.append(f"tags.{tag} = '{value}'")
+    if status:
+        clauses.append(f"attributes.status = '{status}'")
+    if extra_filter:
+        clauses.append(extra_filter)
+    return list(
+        client.search_runs(exps, " and ".join(clauses), order_by=["attributes.start_time DESC"])
+    )
+
+
+def newest_run_named(client, name: str) -> Any | None:
+    """The newest finished run whose MLflow run name is ``name`` (e.g.
+    ``shared-0/cpu-online/seed1``), or None."""
+    runs = [r for r in find_runs(client) if r.data.tags.get("mlflow.runName") == name]
+    return runs[0] if runs else None  # find_runs: newest first
+
+
+def local_artifact(uri: str, rel: str) -> Path | None:
+    """The file ``rel`` of a local (``file:`` or plain path) artifact store; None if remote."""
+    from urllib.parse import unquote, urlparse
+
+    if uri.startswith("file:"):
+        return Path(unquote(urlparse(uri).path)) / rel
+    if uri and "://" not in uri:
+        return Path(uri) / rel
+    return None
+
+
+def read_csv_artifact(client, run, rel: str):
+    """The run's CSV artifact ``rel`` as a DataFrame: read in place from a local store,
+    downloaded from a remote one."""
+    import tempfile
+
+    import pandas as pd
+
+    local = local_artifact(run.info.artifact_uri, rel)
+    if local is not None:
+        return pd.read_csv(local)
+    with tempfile.TemporaryDirectory() as tmp:
+        return pd.read_csv(client.download_artifacts(run.info.run_id, rel, tmp))
+
+
+def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:
+    """MLflow ``Metric`` entities of ``metrics`` at ``step``, stamped now (for ``log_batch``);
+    ``finite_only`` leaves out NaN and infinite values."""
+    import math
+    import time
+
+    from mlflow.entities import Metric
+
+    now = int(time.time() * 1000)
+    return [
+        Metric(k, float(v), now, step)
+        for k, v in metrics.items()
+        if not finite_only or math.isfinite(v)
+    ]
+
+
+def flat_params(d: dict[str, Any]) -> dict[str, str]:
+    """MLflow params from a flat config dict: values as strings, keys sanitised."""
+    return {metric_key(k): str(v) for k, v in d.items()}

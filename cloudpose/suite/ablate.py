@@ -1,0 +1,437 @@
+"""The ablation runner: train and evaluate every variant of a group over seeds, then report.
+
+For each member variant and seed, a run that already finished *and* was evaluated in MLflow for
+the same variant, preset, seed, data fingerprint and config is skipped; anything else is trained
+(:func:`cloudpose.train.loop.train` resumes an interrupted run from its checkpoint) and evaluated
+(:func:`cloudpose.evaluate.evaluate`). So an interrupted suite, rerun, continues where it stopped.
+One line per run goes to ``runs/ablate-{group}-{preset}.log``. Executors: ``local`` trains the
+runs here, one after another; ``ray`` submits each as a Ray task to a cluster and collects them as
+they finish (:mod:`cloudpose.suite.cluster`).
+
+Built on the runner: :func:`run_group` (a group, then its reports), :func:`resolve_claims`
+(seeds added until the paper's claims are decided) and :func:`occlusion_report`. The mask
+ablation is :mod:`cloudpose.suite.masks`; what a suite will do, before it starts, is
+:mod:`cloudpose.suite.plan`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cloudpose.config import Config
+from cloudpose.data import dataset
+from cloudpose.registry import get_group, resolve
+from cloudpose.report import render_reports
+from cloudpose.report.claims import evaluate_claims, paper_claims, seeds_wanted
+from cloudpose.report.runs import load_runs
+from cloudpose.report.stats import MAX_SEEDS, UNRESOLVED
+from cloudpose.store import tracking
+from cloudpose.store.runs import TEST_KEY, finished_run, run_dir, run_name
+from cloudpose.suite import pipeline
+from cloudpose.suite.cluster import EXECUTORS, RayOptions, RaySweep, check_cluster, import_ray
+from cloudpose.suite.plan import format_seconds, missing_report_runs, seed_list
+
+
+@dataclass(frozen=True)
+class RunStatus:
+    """What happened to one (variant, seed) of a suite.
+
+    Attributes:
+        status: "skipped" (finished and evaluated before), "trained" (trained and/or evaluated
+            in this call) or "failed".
+        seconds: wall time spent on it in this call.
+    """
+
+    variant: str
+    seed: int
+    status: str
+    run_id: str | None
+    seconds: float
+    error: str = ""
+
+
+@dataclass
+class SuiteResult:
+    """The runs of a suite and the report it rendered."""
+
+    group: str
+    preset: str
+    runs: list[RunStatus] = field(default_factory=list)
+    report: object | None = None
+    log: Path | None = None
+
+
+def _seconds_per_run_before(client, preset: str, epochs: int) -> float | None:
+    """Estimated training seconds of one run from earlier runs' ``time/epoch_s`` (last epoch)."""
+    per_epoch = [
+        r.data.metrics["time/epoch_s"]
+        for r in tracking.find_runs(client, preset=preset)
+        if "time/epoch_s" in r.data.metrics
+    ]
+    return sum(per_epoch) / len(per_epoch) * epochs if per_epoch else None
+
+
+def ensure_runs(
+    variants: list[str],
+    preset: str,
+    seeds: int | Iterable[int],
+    *,
+    group: str,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    keep_going: bool = False,
+    overrides: dict | None = None,
+    echo: Callable[[str], None] | None = None,
+    executor: str = "local",
+    ray: RayOptions | None = None,
+) -> list[RunStatus]:
+    """Train and evaluate every (variant, seed) that has no finished, evaluated run yet.
+
+    Args:
+        variants: variant names.
+        preset: training preset.
+        seeds: S (seeds 1..S) or a list of seeds.
+        group: the experiment a new run goes to.
+        project_dir: folder of ``data/``, ``runs/`` and the default MLflow store (cwd).
+        progress: per-epoch progress bars (from training) and ICP bars.
+        keep_going: after a failed run, log it and go on with the next (default: raise).
+        overrides: config overrides (``{"train": {"epochs": 1}}``), as in ``resolve``.
+        echo: where the per-run progress lines go (default: print).
+        executor: "local" (here, one run after another) or "ray" (a Ray task per run).
+        ray: the cluster and each task's resources, for the ray executor.
+
+    Returns:
+        One status per (variant, seed), in order.
+    """
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor {executor!r}: expected one of {', '.join(EXECUTORS)}")
+    if executor == "ray":
+        # before any data is made: without Ray, say how to install it; a cluster that does not
+        # answer is said before a long data preparation, not after
+        import_ray()
+        check_cluster(ray or RayOptions())
+    project_dir = (project_dir or Path.cwd()).resolve()
+    echo = echo or (lambda s: print(s, flush=True))
+    seeds = seed_list(seeds)
+    client = tracking.setup(project_dir)
+    log_path = project_dir / "runs" / f"ablate-{group}-{preset}.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    todo = [resolve(v, preset, s, overrides) for v in variants for s in seeds]
+    prepared: dict[str, dataset.Prepared] = {}
+
+    def data_of(cfg: Config) -> dataset.Prepared:
+        key = repr(cfg.data)
+        if key not in prepared:  # made once per data config, shared by its runs
+            prepared[key] = dataset.prepare_data(cfg.data, project_dir, progress=progress)
+        return prepared[key]
+
+    def fingerprint(cfg: Config) -> str:
+        return data_of(cfg).key
+
+    pending = [cfg for cfg in todo if finished_run(client, cfg, fingerprint(cfg)) is None]
+    prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
+    durations: list[float] = []
+    out: dict[int, RunStatus] = {}
+    echo(
+        f"ablation {group}/{preset}: {len(todo)} runs ({len(variants)} variants x "
+        f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run "
+        f"({executor}); log {log_path}"
+    )
+
+    def failed(k: int, cfg: Config, exc: BaseException, seconds: float) -> None:
+        name = run_name(cfg.variant, cfg.preset, cfg.seed)
+        st = RunStatus(
+            cfg.variant, cfg.seed, "failed", None, seconds, f"{type(exc).__name__}: {exc}"
+        )
+        out[k] = st
+        _log(log_path, k, len(todo), name, st, None)
+        echo(f"[{k}/{len(todo)}] {name}: FAILED ({st.error})")
+
+    def trained(
+        k: int, cfg: Config, run_id: str, auc: float | None, seconds: float, whole: bool = True
+    ) -> None:
+        name = run_name(cfg.variant, cfg.preset, cfg.seed)
+        if whole:  # a run resumed from its checkpoint says nothing about a run's time
+            durations.append(seconds)
+        st = RunStatus(cfg.variant, cfg.seed, "trained", run_id, seconds)
+        out[k] = st
+        _log(log_path, k, len(todo), name, st, auc)
+        echo(
+            f"[{k}/{len(todo)}] {name}: done in {format_seconds(seconds)}; test ADS AUC "
+            f"{100 * (math.nan if auc is None else auc):.1f}"
+        )
+
+    sweep = None
+    if executor == "ray" and pending:
+        tracking.experiment_id(client, group, project_dir)  # made here, not by racing tasks
+        sweep = RaySweep(ray or RayOptions(), project_dir, group)
+    try:
+        for k, cfg in enumerate(todo, 1):
+            name = run_name(cfg.variant, cfg.preset, cfg.seed)
+            data = fingerprint(cfg)
+            done = finished_run(client, cfg, data)
+            if done is not None:
+                st = RunStatus(cfg.variant, cfg.seed, "skipped", done.info.run_id, 0.0)
+                out[k] = st
+                _log(log_path, k, len(todo), name, st, done.data.metrics.get(TEST_KEY))
+                echo(f"[{k}/{len(todo)}] {name}: finished before, skipped")
+                continue
+            if sweep is not None:
+                sweep.submit(k, cfg)
+                echo(f"[{k}/{len(todo)}] {name}: submitted to Ray")
+                continue
+            left = len(pending) - pending.index(cfg) if cfg in pending else 1
+            per_run = sum(durations) / len(durations) if durations else prior
+            echo(
+                f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
+                f"estimated {format_seconds(per_run * left if per_run else None)} to go"
+            )
+            resumed = (run_dir(cfg, data, project_dir) / "last.pt").is_file()
+            t0 = time.monotonic()
+            try:
+                result = pipeline.train_and_evaluate(
+                    cfg, project_dir=project_dir, group=group, progress=progress, data=data_of(cfg)
+                )
+            except KeyboardInterrupt:
+                st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
+                _log(log_path, k, len(todo), name, st, None)
+                raise
+            except Exception as exc:
+                failed(k, cfg, exc, time.monotonic() - t0)
+                if not keep_going:
+                    raise
+                continue
+            auc = result.evaluation.metrics.get(TEST_KEY)
+            trained(k, cfg, result.train.run_id, auc, time.monotonic() - t0, not resumed)
+        for k, cfg, res, exc in sweep.results() if sweep is not None else ():
+            if exc is not None:
+                failed(k, cfg, exc, math.nan)
+                if not keep_going:
+                    raise exc
+                continue
+            trained(k, cfg, res["run_id"], res["test_ads_auc"], res["seconds"])
+    finally:
+        if sweep is not None:
+            sweep.close()
+    return [out[k] for k in sorted(out)]
+
+
+def _log(path: Path, k: int, n: int, name: str, st: RunStatus, ads_auc: float | None) -> None:
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+    auc = f"{100 * ads_auc:.1f}" if ads_auc is not None else "-"
+    line = (
+        f"{stamp}\t{k}/{n}\t{name}\t{st.status}\t{st.seconds:.1f}s\t"
+        f"run_id={st.run_id or '-'}\ttest_ads_auc={auc}"
+    )
+    if st.error:
+        line += f"\terror={st.error}"
+    with path.open("a", encoding="utf-8") as f:
+        f.write(line + "\n")
+
+
+def run_group(
+    group: str,
+    preset: str,
+    seeds: int | list[int] = 3,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    *,
+    keep_going: bool = False,
+    report: bool = True,
+    command: str | None = None,
+    overrides: dict | None = None,
+    echo: Callable[[str], None] | None = None,
+    executor: str = "local",
+    ray: RayOptions | None = None,
+    out_dir: Path | None = None,
+) -> SuiteResult:
+    """Train and evaluate every member of ``group`` over ``seeds``, then render its reports.
+
+    Args:
+        group: ablation group (``cloudpose/resources/registry/variants.toml``; :func:`cloudpose.registry.groups`).
+        preset: training preset (``cloudpose/resources/registry/presets.toml``).
+        seeds: S (seeds 1..S) or a list of seeds.
+        project_dir: folder of ``data/``, ``runs/``, ``reports/`` and the MLflow store (cwd).
+        progress: progress bars.
+        keep_going: go on after a failed run (it is logged); default: stop.
+        report: render the group's reports afterwards (:func:`cloudpose.report.render_reports`).
+        command: the command line the reports name (default: this process's).
+        overrides: config overrides for every run.
+        echo: where progress lines go (default: print).
+        executor, ray: where the runs train (:func:`ensure_runs`).
+        out_dir: the reports' folder (default :func:`cloudpose.report.build.default_out_dir`).
+    """
+    g = get_group(group)
+    project_dir = (project_dir or Path.cwd()).resolve()
+    statuses = ensure_runs(
+        list(g.members),
+        preset,
+        seeds,
+        group=group,
+        project_dir=project_dir,
+        progress=progress,
+        keep_going=keep_going,
+        overrides=overrides,
+        echo=echo,
+        executor=executor,
+        ray=ray,
+    )
+    result = SuiteResult(
+        group, preset, statuses, log=project_dir / "runs" / f"ablate-{group}-{preset}.log"
+    )
+    if report:
+        result.report = render_reports(
+            preset, [group], project_dir=project_dir, command=command, out_dir=out_dir
+        )
+    return result
+
+
+@dataclass
+class ResolveRound:
+    """One round of :func:`resolve_claims`: the seeds it asked for and what the claims said."""
+
+    wanted: dict[str, int]
+    unresolved: int
+    claims: int
+    runs: list[RunStatus] = field(default_factory=list)
+
+
+def resolve_claims(
+    group: str,
+    preset: str,
+    project_dir: Path | None = None,
+    *,
+    max_seeds: int = MAX_SEEDS,
+    step: int = 2,
+    overrides: dict | None = None,
+    echo: Callable[[str], None] | None = None,
+    replicates: int = 500,
+    **ensure_kwargs,
+) -> list[ResolveRound]:
+    """Add seeds to the variants of ``group``'s claims until each is decided or at the cap.
+
+    Each round measures the paper's claims whose two sides are both members of ``group``
+    (:func:`cloudpose.report.claims.evaluate_claims` on the preset's runs), asks
+    :func:`cloudpose.report.claims.seeds_wanted` which variants need more seeds for a claim that
+    is "not resolved" but would be decided at some count up to the cap if its mean stayed,
+    trains at most ``step`` more seeds of each through :func:`ensure_runs` (finished runs
+    skipped, the same executors), and measures again. It stops when no claim wants seeds, or
+    every variant that wants them has ``max_seeds``.
+
+    Args:
+        group: ablation group whose claims to decide.
+        preset: training preset.
+        project_dir: the project folder (cwd).
+        max_seeds: the cap on seeds per variant.
+        step: most seeds added to a variant per round (the estimate of
+            :func:`~cloudpose.report.claims.seeds_wanted` can overshoot; a verdict reached
+            earlier saves the rest).
+        overrides: config overrides of every run.
+        echo: where progress lines go (default: print).
+        replicates: bootstrap replicates per claim in the rounds' measurements.
+        **ensure_kwargs: passed to :func:`ensure_runs` (progress, keep_going, executor, ray).
+
+    Returns:
+        One :class:`ResolveRound` per measurement, the last one with nothing wanted or capped.
+    """
+    if max_seeds < 1 or step < 1:
+        raise ValueError(f"max_seeds and step must be >= 1, got {max_seeds} and {step}")
+    members = set(get_group(group).members)
+    claims = [c for c in paper_claims() if {c.favoured[0], c.other[0]} <= members]
+    project_dir = (project_dir or Path.cwd()).resolve()
+    echo = echo or (lambda s: print(s, flush=True))
+    client = tracking.setup(project_dir)
+    rounds: list[ResolveRound] = []
+    while True:
+        runs = load_runs(preset, client=client)
+        results = evaluate_claims(runs, claims, replicates=replicates)
+        unresolved = sum(r.diff.verdict == UNRESOLVED for r in results)
+        have = {v: len(runs.of(v)) for v in members}
+        wanted = {
+            v: min(n, have.get(v, 0) + step)
+            for v, n in seeds_wanted(results, cap=max_seeds).items()
+            if v in members
+        }
+        rnd = ResolveRound(wanted, unresolved, len(results))
+        rounds.append(rnd)
+        echo(
+            f"claims of {group}/{preset}: {unresolved} of {len(results)} not resolved; "
+            + (
+                "more seeds for " + ", ".join(f"{v} -> {n}" for v, n in wanted.items())
+                if wanted
+                else f"more seeds (cap {max_seeds}) would decide no other claim"
+            )
+        )
+        if not wanted:
+            return rounds
+        if (
+            len(rounds) > 1
+            and rounds[-2].wanted == wanted
+            and not any(st.status == "trained" for st in rounds[-2].runs)
+        ):
+            raise RuntimeError(
+                f"claims of {group}/{preset}: the last round trained no run and the same seeds "
+                f"are still wanted ({wanted}); see the log in {project_dir / 'runs'}"
+            )
+        for variant, n in wanted.items():
+            rnd.runs += ensure_runs(
+                [variant],
+                preset,
+                n,
+                group=group,
+                project_dir=project_dir,
+                overrides=overrides,
+                echo=echo,
+                **ensure_kwargs,
+            )
+
+
+def occlusion_report(
+    preset: str,
+    seeds: int | list[int] = 3,
+    project_dir: Path | None = None,
+    progress: bool = True,
+    *,
+    group: str | None = None,
+    train_missing: bool = False,
+    command: str | None = None,
+    echo: Callable[[str], None] | None = None,
+    out_dir: Path | None = None,
+):
+    """The occlusion plot: shared-0 without and with ICP (and a group's variants if asked).
+
+    Renders from the runs in MLflow only. With ``train_missing`` the runs it needs that the
+    store lacks are trained and evaluated first; without, a missing run raises
+    :class:`MissingRuns` naming them.
+    """
+    project_dir = (project_dir or Path.cwd()).resolve()
+    variants = list(get_group(group).members) if group else ["shared-0"]
+    if not train_missing:
+        missing = missing_report_runs(variants, preset, seeds, project_dir)
+        if missing:
+            raise MissingRuns(missing)
+    else:
+        ensure_runs(
+            variants,
+            preset,
+            seeds,
+            group=group or "shared",
+            project_dir=project_dir,
+            progress=progress,
+            echo=echo,
+        )
+    return render_reports(
+        preset, [group] if group else [], project_dir=project_dir, command=command, out_dir=out_dir
+    )
+
+
+class MissingRuns(ValueError):
+    """A report needs runs that the store does not hold (:attr:`names`)."""
+
+    def __init__(self, names: list[str]):
+        self.names = names
+        super().__init__(f"{len(names)} run(s) missing from the store: {', '.join(names)}")

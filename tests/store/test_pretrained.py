@@ -1,0 +1,164 @@
+"""The shipped network: checked on load, found by name, right on real frames; ship and showcase."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cloudpose.conventions import resource_path
+from cloudpose.evaluate import real_dev_root
+from cloudpose.store.pretrained import (
+    PRETRAINED,
+    SHIPPED,
+    half_state,
+    is_pretrained,
+    pose_difference,
+    ship,
+    shipped,
+)
+
+
+def test_the_shipped_network_is_checked_and_recorded():
+    net = shipped()
+    assert net.path.is_file() and net.info["dtype"] in ("float16", "float32")
+    assert net.info["run_name"] == "shared-0/cpu-online/seed1"
+    assert len(net.info["data_key"]) == 16 and len(net.info["run_id"]) == 32
+    assert net.info["metrics"]["real/count"] == 264.0  # every instance of the 61 frames
+    assert "shared-0/cpu-online/seed1" in net.describe()
+    assert is_pretrained(PRETRAINED) and not is_pretrained("shared-0/cpu-online/seed1")
+    assert not is_pretrained(Path("pretrained"))  # a path is a checkpoint file, not the name
+
+
+def test_a_damaged_or_missing_shipped_file_is_named(tmp_path):
+    folder = tmp_path / "pretrained"
+    shutil.copytree(resource_path("pretrained"), folder)
+    weights = folder / f"{SHIPPED[PRETRAINED]}.pt"
+    data = bytearray(weights.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    weights.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"{weights}: its SHA-256 is not the one"):
+        shipped(folder=folder)
+    weights.unlink()
+    with pytest.raises(ValueError, match="is missing"):
+        shipped(folder=folder)
+    with pytest.raises(ValueError, match="known: pretrained"):
+        shipped("pretrained-2")
+
+
+def test_the_shipped_network_puts_each_object_of_a_real_frame_within_a_centimetre():
+    """``predict --checkpoint pretrained`` on a real frame it never saw in training (the
+    development frames are real; it trained on synthetic scenes): ADS of every object."""
+    from cloudpose.data.ycb import YCBVideo
+    from cloudpose.metrics.errors import adds_distance
+    from cloudpose.predict import predict
+
+    ds = YCBVideo(real_dev_root())
+    frame = ds.frame("0001/000001")
+    stem = real_dev_root() / "data" / "0001" / "000001"
+    res = predict(
+        Path(f"{stem}-depth.png"),
+        Path(f"{stem}-label.png"),
+        PRETRAINED,
+        meta=Path(f"{stem}-meta.mat"),
+    )
+    assert sorted(p.cls_id for p in res.poses) == sorted(frame.cls_ids.tolist())
+    for p in res.poses:
+        k = frame.cls_ids.tolist().index(p.cls_id)
+        R, t = frame.poses[k][:, :3], frame.poses[k][:, 3]
+        ads = float(adds_distance(ds.models()[p.cls_id], R, t, p.R, p.t))
+        assert ads < 0.015, (p.name, ads)  # 2.6-6.2 mm measured
+
+
+def test_ship_keeps_half_precision_only_within_the_tolerance(smoke_run, tmp_path):
+    """A run's checkpoint shipped: the record names the run and a checksum that
+    :func:`shipped` accepts; half precision ships only if every pose stays within 0.01 deg."""
+    from cloudpose.data.segment_set import SegmentSet
+    from cloudpose.infer import estimate_poses, load_checkpoint
+
+    _, out = smoke_run
+    ckpt = Path(out.run_dir) / "model.pt"
+    _, cfg = load_checkpoint(ckpt)
+    rng = np.random.default_rng(0)
+    pts = rng.normal(scale=0.03, size=(8, cfg.data.n_fps, 3)).astype(np.float32)
+    pts[..., 2] += 0.8
+    m = len(pts)
+    segs = SegmentSet(
+        points=pts,
+        count=np.full(m, cfg.data.n_fps, np.int32),
+        cls_id=np.arange(1, m + 1, dtype=np.int16),
+        R=np.full((m, 3, 3), np.nan, np.float32),
+        t=np.full((m, 3), np.nan, np.float32),
+        occlusion=np.full(m, np.nan, np.float32),
+        frame_id=np.array(["0000/000001"] * m),
+        instance=np.arange(m, dtype=np.int16),
+        valid=np.ones(m, bool),
+    )
+    path = ship(
+        ckpt,
+        tmp_path,
+        SHIPPED[PRETRAINED],
+        run_name="shared-0/smoke/seed1",
+        run_id="0" * 32,
+        data_key="0" * 16,
+        fingerprint="0" * 16,
+        metrics={"test/ads_auc": 0.5, "other": 1.0},
+        command="test",
+        check_segments=[("noise", segs)],
+    )
+    net = shipped(folder=tmp_path)
+    assert net.path == path and net.info["metrics"] == {"test/ads_auc": 0.5}
+    rot, trans = net.info["half_vs_float32"]["noise"].values()
+    assert net.info["dtype"] == ("float16" if rot <= 0.01 and trans <= 0.01 else "float32")
+    a = estimate_poses(load_checkpoint(ckpt)[0], segs, cfg.train.n_points)
+    b = estimate_poses(load_checkpoint(path)[0], segs, cfg.train.n_points)
+    assert pose_difference(a, b, segs.valid) <= (rot + 1e-9, trans + 1e-9)
+    state = torch.load(path, weights_only=True)["model"]
+    floats = {v.dtype for v in state.values() if v.is_floating_point()}
+    assert floats == {torch.float16 if net.info["dtype"] == "float16" else torch.float32}
+    assert json.loads(path.with_suffix(".json").read_text())["sha256"] == net.info["sha256"]
+
+
+def test_half_state_keeps_integer_buffers():
+    state = {"w": torch.ones(2, dtype=torch.float32), "n": torch.tensor(3)}
+    out = half_state(state)
+    assert out["w"].dtype == torch.float16 and out["n"].dtype == torch.int64
+
+
+def test_evaluate_the_shipped_network_logs_nothing(smoke_data, tmp_path):
+    """``evaluate --run pretrained`` works without an MLflow run: nothing is logged."""
+    from cloudpose.evaluate import evaluate
+    from cloudpose.store import tracking
+
+    synth = next(p for p in smoke_data.iterdir() if p.name.startswith("synth"))
+    out = evaluate(PRETRAINED, data=str(synth), frames="keyframe", project_dir=tmp_path)
+    assert out.run_id is None and len(out.table) > 0
+    assert "resources/pretrained" in out.source
+    assert 0.0 < out.metrics[f"{out.name}/ads_auc"] <= 1.0
+    runs = tracking.setup(tmp_path).search_runs(
+        [e.experiment_id for e in tracking.setup(tmp_path).search_experiments()]
+    )
+    assert runs == []
+
+
+@pytest.mark.slow
+def test_showcase_prints_the_network_beside_fpfh_and_draws_a_real_frame(tmp_path):
+    from cloudpose.showcase import COLUMNS, format_table, run_showcase
+
+    shown = run_showcase(tmp_path / "out", synthetic_frames=2, progress=False)
+    t = shown.table
+    assert set(t["data"]) == {"real development frames", "synthetic test frames of cpu-online"}
+    assert len(t) == 8  # 2 data x (network, fpfh) x (without, with ICP)
+    real = t[t["data"] == "real development frames"].set_index("method")
+    net = shipped().info["metrics"]
+    # the run logged these for the same 264 instances; ICP and FPS on another CPU move a few
+    assert abs(real.loc["network (shared-0)", "ADS AUC"] - 100 * net["real/ads_auc"]) < 0.5
+    assert (
+        abs(real.loc["network (shared-0) + ICP", "ADS AUC"] - 100 * net["real_icp/ads_auc"]) < 1.0
+    )
+    assert shown.overlay.is_file() and shown.overlay.stat().st_size > 10_000
+    assert all(c in format_table(t) for c in COLUMNS.values())
