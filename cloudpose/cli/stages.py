@@ -48,7 +48,7 @@ def train(
     """Train one variant (resumes an interrupted run of the same settings)."""
     from cloudpose.store.runs import display_name
     from cloudpose.suite.pipeline import train_run
-    from cloudpose.train.loop import distributed
+    from cloudpose.train import distributed
 
     cfg = config_of(
         variant, preset, seed, data, set_, epochs=epochs, precision=precision, device=device

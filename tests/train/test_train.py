@@ -278,7 +278,7 @@ def test_a_full_disk_is_one_line_and_the_resumed_run_logs_each_epoch_once(
     import errno
 
     from cloudpose.store import runs, tracking
-    from cloudpose.train.loop import loop as train_module
+    from cloudpose.train import loop as train_module
     from tests.conftest import cli, one_line_error
 
     _, ref = smoke_run
@@ -367,7 +367,7 @@ def test_a_run_stopped_after_its_last_checkpoint_ends_with_its_metrics(
 ):
     """Stopped between the last epoch's checkpoint and model.pt: the rerun trains nothing and
     ends with the metrics the run logged (they were lost: {})."""
-    from cloudpose.train.loop import loop as train_module
+    from cloudpose.train import loop as train_module
 
     _, ref = smoke_run
     cfg = resolve("shared-0", "smoke", seed=1)
