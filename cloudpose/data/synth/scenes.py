@@ -1,8 +1,8 @@
 """Synthetic scenes: objects on a table (in their resting poses, some stacked) or floating.
 
-Both scene kinds stay in one file over ~450 lines on purpose: they share the :class:`Scene` and
+Both scene kinds stay in one file of ~650 lines on purpose: they share the :class:`Scene` and
 :class:`Plane` types and the object-count and in-image rules, and most of the length is the table
-sampler, whose placement and stacking work on one footprint raster.
+sampler, whose placement and stacking steps work on one footprint raster (:class:`_Layout`).
 
 See :mod:`cloudpose.data.synth` for the whole generator; this module samples where the objects
 are and where the camera is, with no rendering. The stable resting poses the table scenes draw
@@ -325,6 +325,188 @@ def _try_stack(
     return None
 
 
+@dataclass
+class _Layout:
+    """The objects placed so far on the table, on the footprint raster.
+
+    Attributes:
+        occupied: (G, G) bool grid cells covered by a placed object's footprint.
+        height_map: (G, G) highest point of the placed objects per grid cell, metres (kept only
+            when stacking).
+        placed_xy: (2,) table position of each placed object's origin, metres.
+        poses: (class id, (3, 4) model->world pose) of each placed object.
+        supports: the objects on the table that nothing rests on yet (stacking only).
+        resting_on: index of the object each placed one rests on, -1 = the table (stacking
+            only).
+    """
+
+    occupied: np.ndarray
+    height_map: np.ndarray
+    placed_xy: list[np.ndarray]
+    poses: list[tuple[int, np.ndarray]]
+    supports: list[_Support]
+    resting_on: list[int]
+
+    @classmethod
+    def empty(cls) -> _Layout:
+        occupied = np.zeros((2 * _GRID_HALF, 2 * _GRID_HALF), dtype=bool)
+        return cls(occupied, np.zeros(occupied.shape), [], [], [], [])
+
+    def raise_heights(self, cells: np.ndarray, top: float) -> None:
+        """Mark the (C, 2) grid indices ``cells`` occupied, reaching at least ``top`` metres."""
+        self.occupied[cells[:, 0], cells[:, 1]] = True
+        self.height_map[cells[:, 0], cells[:, 1]] = np.maximum(
+            self.height_map[cells[:, 0], cells[:, 1]], top
+        )
+
+
+def _draw_resting_pose(rng: np.random.Generator, rp: RestingPoses) -> tuple[int, np.ndarray]:
+    """(index of the stable pose, (3, 3) model->table rotation with a uniform random yaw)."""
+    if rng.random() < UPRIGHT_SHARE:
+        s = int(np.argmax(rp.heights_up))
+    else:
+        s = int(rng.choice(len(rp.probabilities), p=rp.probabilities))
+    return s, _yaw(rng.uniform(0.0, 2.0 * np.pi)) @ rp.rotations[s]
+
+
+def _stack_object(
+    rng: np.random.Generator,
+    layout: _Layout,
+    c: int,
+    R: np.ndarray,
+    local: np.ndarray,
+    rp: RestingPoses,
+    s: int,
+) -> bool:
+    """Put object ``c`` (rotation ``R``, points ``local`` = model @ R.T, stable pose ``s``) on
+    the top of one of ``layout.supports`` (:func:`_try_stack`); False if it finds no place."""
+    found = _try_stack(rng, local, rp.heights[s], layout.supports, layout.height_map)
+    if found is None:
+        return False
+    k, origin, foot = found
+    layout.raise_heights(foot, origin[2] - rp.heights[s] + rp.heights_up[s])
+    layout.resting_on.append(layout.supports.pop(k).index)
+    layout.placed_xy.append(origin[:2])
+    layout.poses.append((c, np.concatenate([R, origin[:, None]], axis=1)))
+    return True
+
+
+def _slide_object(
+    rng: np.random.Generator,
+    layout: _Layout,
+    c: int,
+    R: np.ndarray,
+    local: np.ndarray,
+    rp: RestingPoses,
+    s: int,
+    stacking: bool,
+) -> None:
+    """Put object ``c`` on the table: slide it in from a random direction towards the cluster
+    centre until its footprint would touch, then out by a random gap; left out when the gap
+    pushes it into another object or off the grid. With ``stacking``, it becomes a support."""
+    cells = _footprint_cells(local[:, :2])
+    direction = rng.uniform(0.0, 2.0 * np.pi)
+    gap = rng.exponential(GAP_MEAN) if rng.random() > FAR_SHARE else rng.uniform(*FAR_GAP)
+    anchor = np.mean(layout.placed_xy, axis=0) if layout.placed_xy else np.zeros(2)
+    step = np.array([np.cos(direction), np.sin(direction)])
+    xy = _slide(cells, layout.occupied, anchor, step)
+    if xy is None:
+        return
+    xy = xy + step * gap
+    ij = cells + np.floor(xy / _GRID).astype(np.int64) + _GRID_HALF
+    if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any() or layout.occupied[ij[:, 0], ij[:, 1]].any():
+        return
+    pose = np.concatenate([R, np.array([*xy, rp.heights[s]])[:, None]], axis=1)
+    layout.placed_xy.append(xy)
+    layout.poses.append((c, pose))
+    if not stacking:
+        layout.occupied[ij[:, 0], ij[:, 1]] = True
+        return
+    layout.raise_heights(ij, rp.heights_up[s])
+    world = local + pose[:, 3]
+    top = world[world[:, 2] >= world[:, 2].max() - STACK_CONTACT, :2]
+    layout.supports.append(
+        _Support(len(layout.poses) - 1, float(world[:, 2].max()), _raster_cells(top, False))
+    )
+    layout.resting_on.append(-1)
+
+
+def _place_objects(
+    rng: np.random.Generator,
+    ids: np.ndarray,
+    models: dict[int, np.ndarray],
+    resting: dict[int, RestingPoses],
+    stack_share: float,
+) -> _Layout:
+    """Draw the classes of a table scene and place them one by one (some may not fit)."""
+    n = min(int(rng.integers(N_OBJECTS[0], N_OBJECTS[1] + 1)), len(ids))
+    layout = _Layout.empty()
+    for c in rng.choice(ids, size=n, replace=False):
+        rp = resting[int(c)]
+        s, R = _draw_resting_pose(rng, rp)
+        local = models[int(c)] @ R.T
+        if stack_share > 0 and layout.supports and rng.random() < stack_share:
+            if _stack_object(rng, layout, int(c), R, local, rp, s):
+                continue
+        _slide_object(rng, layout, int(c), R, local, rp, s, stack_share > 0)
+    return layout
+
+
+def _view_table(
+    rng: np.random.Generator,
+    objects: Scene,
+    models: dict[int, np.ndarray],
+    K: np.ndarray,
+    shape: tuple[int, int],
+    tries: int = 20,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Draw a camera looking down at the placed ``objects`` (their camera fields unused) that
+    keeps at least ``N_OBJECTS[0]`` of them mostly in the image.
+
+    Returns:
+        ((3, 4) world->camera extrinsics, (3,) look-at point, (N,) bool objects kept: in the
+        image, with what they rest on), or None after ``tries`` cameras.
+    """
+    centre_xy = objects.model_to_world[:, :2, 3].mean(axis=0)
+    for _ in range(tries):
+        target = np.array([*(centre_xy + rng.normal(0.0, 0.03, 2)), rng.uniform(0.0, 0.05)])
+        dist = rng.uniform(*CAMERA_DISTANCE)
+        elev = np.deg2rad(rng.uniform(*CAMERA_ELEVATION_DEG))
+        azim = rng.uniform(0.0, 2.0 * np.pi)
+        eye = target + dist * np.array(
+            [np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)]
+        )
+        world_to_camera = look_at_camera(eye, target, roll=np.deg2rad(rng.normal(0.0, 5.0)))
+        Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
+        in_image = np.array(
+            [
+                _in_image_fraction((models[int(c)] @ P[:, :3].T + P[:, 3]) @ Rc.T + tc, K, shape)
+                >= MIN_IN_IMAGE
+                for c, P in zip(objects.cls_ids, objects.model_to_world, strict=True)
+            ]
+        )
+        keep = objects.supported(in_image)  # what rests on an object out of the image goes too
+        if keep.sum() >= N_OBJECTS[0]:
+            return world_to_camera, target, keep
+    return None
+
+
+def _table_and_floor(rng: np.random.Generator, placed_xy: np.ndarray) -> list[Plane]:
+    """The table, a rectangle of random size and yaw around the (N, 2) object positions
+    ``placed_xy`` (metres), and the floor below it."""
+    lo = placed_xy.min(axis=0) - 0.15
+    hi = placed_xy.max(axis=0) + 0.15
+    half = np.maximum((hi - lo) / 2.0, 0.0) + rng.uniform(0.1, 0.4, 2)
+    table_yaw = _yaw(rng.uniform(0.0, np.pi))
+    # a yawed rectangle must still cover the cluster: take the half-diagonal as extent
+    half = np.full(2, np.linalg.norm(half))
+    table = Plane(
+        np.array([*((lo + hi) / 2.0), 0.0]), np.array([0.0, 0.0, 1.0]), table_yaw[:2, :3], half
+    )
+    floor = Plane(np.array([0.0, 0.0, -rng.uniform(0.7, 0.8)]), np.array([0.0, 0.0, 1.0]))
+    return [table, floor]
+
+
 def sample_table_scene(
     rng: np.random.Generator,
     models: dict[int, np.ndarray],
@@ -341,7 +523,7 @@ def sample_table_scene(
     object first tries, with that probability, to rest on the top of an object standing on the
     table (:func:`_try_stack`; one object per support). Objects mostly outside the image are
     taken out of the scene (with what rests on them); if fewer than 3 remain, the camera is
-    drawn again.
+    drawn again, and after 20 cameras the objects too.
 
     Args:
         rng: random generator (the only source of randomness).
@@ -363,111 +545,30 @@ def sample_table_scene(
             f"{len(ids)} classes {ids.tolist()}"
         )
     while True:
-        n = min(int(rng.integers(N_OBJECTS[0], N_OBJECTS[1] + 1)), len(ids))
-        cls_ids = rng.choice(ids, size=n, replace=False)
-        occupied = np.zeros((2 * _GRID_HALF, 2 * _GRID_HALF), dtype=bool)
-        height_map = np.zeros(occupied.shape)
-        placed_xy: list[np.ndarray] = []
-        poses = []
-        supports: list[_Support] = []
-        resting_on: list[int] = []
-        for c in cls_ids:
-            rp = resting[int(c)]
-            if rng.random() < UPRIGHT_SHARE:
-                s = int(np.argmax(rp.heights_up))
-            else:
-                s = int(rng.choice(len(rp.probabilities), p=rp.probabilities))
-            R = _yaw(rng.uniform(0.0, 2.0 * np.pi)) @ rp.rotations[s]
-            local = models[int(c)] @ R.T
-            cells = _footprint_cells(local[:, :2])
-            if stack_share > 0 and supports and rng.random() < stack_share:
-                found = _try_stack(rng, local, rp.heights[s], supports, height_map)
-                if found is not None:
-                    k, origin, foot = found
-                    occupied[foot[:, 0], foot[:, 1]] = True
-                    top = origin[2] - rp.heights[s] + rp.heights_up[s]
-                    height_map[foot[:, 0], foot[:, 1]] = np.maximum(
-                        height_map[foot[:, 0], foot[:, 1]], top
-                    )
-                    resting_on.append(supports.pop(k).index)
-                    placed_xy.append(origin[:2])
-                    poses.append((int(c), np.concatenate([R, origin[:, None]], axis=1)))
-                    continue
-            direction = rng.uniform(0.0, 2.0 * np.pi)
-            gap = rng.exponential(GAP_MEAN) if rng.random() > FAR_SHARE else rng.uniform(*FAR_GAP)
-            anchor = np.mean(placed_xy, axis=0) if placed_xy else np.zeros(2)
-            step = np.array([np.cos(direction), np.sin(direction)])
-            # slide in from afar towards the cluster centre until the next step would touch
-            xy = _slide(cells, occupied, anchor, step)
-            if xy is not None:
-                xy = xy + step * gap
-            if xy is None:
-                continue
-            ij = cells + np.floor(xy / _GRID).astype(np.int64) + _GRID_HALF
-            if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any() or occupied[ij[:, 0], ij[:, 1]].any():
-                continue  # the gap pushed it into another object or off the grid
-            occupied[ij[:, 0], ij[:, 1]] = True
-            placed_xy.append(xy)
-            pose = np.concatenate([R, np.array([*xy, rp.heights[s]])[:, None]], axis=1)
-            poses.append((int(c), pose))
-            if stack_share > 0:
-                height_map[ij[:, 0], ij[:, 1]] = np.maximum(
-                    height_map[ij[:, 0], ij[:, 1]], rp.heights_up[s]
-                )
-                world = local + pose[:, 3]
-                top = world[world[:, 2] >= world[:, 2].max() - STACK_CONTACT, :2]
-                supports.append(
-                    _Support(len(poses) - 1, float(world[:, 2].max()), _raster_cells(top, False))
-                )
-                resting_on.append(-1)
-        if len(poses) < N_OBJECTS[0]:
+        layout = _place_objects(rng, ids, models, resting, stack_share)
+        if len(layout.poses) < N_OBJECTS[0]:
             continue
-        cls_ids = np.array([c for c, _ in poses], dtype=np.int64)
-        model_to_world = np.stack([p for _, p in poses])
-        support = np.array(resting_on, dtype=np.int64) if stack_share > 0 else None
-        centre_xy = np.asarray(placed_xy).mean(axis=0)
-        lo = np.asarray(placed_xy).min(axis=0) - 0.15
-        hi = np.asarray(placed_xy).max(axis=0) + 0.15
-        for _ in range(20):
-            target = np.array([*(centre_xy + rng.normal(0.0, 0.03, 2)), rng.uniform(0.0, 0.05)])
-            dist = rng.uniform(*CAMERA_DISTANCE)
-            elev = np.deg2rad(rng.uniform(*CAMERA_ELEVATION_DEG))
-            azim = rng.uniform(0.0, 2.0 * np.pi)
-            eye = target + dist * np.array(
-                [np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)]
-            )
-            world_to_camera = look_at_camera(eye, target, roll=np.deg2rad(rng.normal(0.0, 5.0)))
-            Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
-            in_image = np.array(
-                [
-                    _in_image_fraction(
-                        (models[int(c)] @ P[:, :3].T + P[:, 3]) @ Rc.T + tc, K, shape
-                    )
-                    >= MIN_IN_IMAGE
-                    for c, P in zip(cls_ids, model_to_world, strict=True)
-                ]
-            )
-            keep = in_image
-            if support is not None:  # what rests on an object out of the image goes too
-                keep = Scene(cls_ids, model_to_world, world_to_camera, target, [], support)
-                keep = keep.supported(in_image)
-            if keep.sum() >= N_OBJECTS[0]:
-                break
-        else:
-            continue
-        # the table: a rectangle around the cluster with random size and yaw; the floor below
-        half = np.maximum((hi - lo) / 2.0, 0.0) + rng.uniform(0.1, 0.4, 2)
-        table_yaw = _yaw(rng.uniform(0.0, np.pi))
-        # a yawed rectangle must still cover the cluster: take the half-diagonal as extent
-        half = np.full(2, np.linalg.norm(half))
-        table = Plane(
-            np.array([*((lo + hi) / 2.0), 0.0]),
-            np.array([0.0, 0.0, 1.0]),
-            table_yaw[:2, :3],
-            half,
+        objects = Scene(
+            np.array([c for c, _ in layout.poses], dtype=np.int64),
+            np.stack([p for _, p in layout.poses]),
+            np.zeros((3, 4)),
+            np.zeros(3),
+            [],
+            np.array(layout.resting_on, dtype=np.int64) if stack_share > 0 else None,
         )
-        floor = Plane(np.array([0.0, 0.0, -rng.uniform(0.7, 0.8)]), np.array([0.0, 0.0, 1.0]))
-        scene = Scene(cls_ids, model_to_world, world_to_camera, target, [table, floor], support)
+        view = _view_table(rng, objects, models, K, shape)
+        if view is None:
+            continue
+        world_to_camera, look_at, keep = view
+        background = _table_and_floor(rng, np.asarray(layout.placed_xy))
+        scene = Scene(
+            objects.cls_ids,
+            objects.model_to_world,
+            world_to_camera,
+            look_at,
+            background,
+            objects.support,
+        )
         return scene.subset(keep)
 
 
