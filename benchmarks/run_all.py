@@ -25,14 +25,14 @@ load). Figures (JSON keys):
   (``benchmarks.bench_cluster``).
 
 ``--merge`` puts the figures run now into the report already in ``--out`` and leaves every
-other figure, and the header of the run that made them, as they are; a merged figure carries
-its own command, commit, time and CPU (JSON ``measured``, and its line under "What each figure
-is"), so a report merged from several machines says which CPU each figure came from.
+other figure as it is; a merged figure carries its own command, commit, time and CPU (JSON
+``measured``). The Markdown report is one table in which each row names its machine (each
+machine described once) and the date it was measured on.
 
 The process sets itself up as the CLI does (``cloudpose.runtime``: tcmalloc re-exec, threads).
 
 Usage: ``python -m benchmarks.run_all [--quick] [--only NAME[,NAME]] [--cpu-variant]
-[--out reports] [--merge]``; ``make bench``.
+[--out reports] [--merge] [--render]``; ``make bench``.
 """
 
 from __future__ import annotations
@@ -348,29 +348,61 @@ def _fmt(v: Any) -> str:
 
 
 DESCRIPTIONS = "## What each figure is"
+MACHINES = "## Machines"
+NOT_RECORDED = "not recorded (figures merged before the report recorded each one's CPU)"
+END = "Details (per size, per variant, every repeat) are in benchmarks.json."
+"""The last line of the rendered part of benchmarks.md: what follows it (hand-written sections,
+such as the GPU figures) is kept as it is by :func:`merge_report`."""
 
 
-def _row(key: str, f: dict[str, Any]) -> str:
-    """A figure's table row."""
+def _cpu_and_load(machine: dict[str, Any] | str) -> tuple[str, str | None]:
+    """(the CPU a figure was measured on, the load average it saw) from a run's machine dict,
+    or from the text a merged figure stores (``measured.machine``)."""
+    text = machine if isinstance(machine, str) else _machine_line(machine)
+    cpu, _, load = text.partition("; load average at start ")
+    return cpu, load or None
+
+
+def _where(report: dict[str, Any], f: dict[str, Any]) -> dict[str, Any]:
+    """Where and when ``f`` was measured: its own ``measured`` record if it was merged from
+    another run, else the report's run."""
+    m = f.get("measured") or {
+        k: report.get(k) for k in ("command", "commit", "started", "quick", "machine")
+    }
+    cpu, load = _cpu_and_load(m["machine"]) if m.get("machine") else (NOT_RECORDED, None)
+    return {**m, "cpu": cpu, "load": load, "date": str(m.get("started") or "")[:10]}
+
+
+def _machine_ids(report: dict[str, Any], keys: list[str]) -> dict[str, str]:
+    """CPU description -> a short name (M1, M2, ...), in the order the table meets them."""
+    ids: dict[str, str] = {}
+    for k in keys:
+        cpu = _where(report, report["figures"][k])["cpu"]
+        ids.setdefault(cpu, f"M{len(ids) + 1}")
+    return ids
+
+
+def _row(key: str, f: dict[str, Any], machine: str = "-", date: str = "-") -> str:
+    """A figure's table row: value, reference and ratio (both measured in the same run on the
+    same machine), target, and the machine and date it was measured on."""
     ref = f.get("reference") or {}
     ref_s = f"{_fmt(ref.get('value'))} ({ref.get('name', '')})" if ref else "-"
     return (
         f"| `{key}` | {_fmt(f.get('value'))} | {f.get('unit', '')} | {ref_s} | "
-        f"{_fmt(f.get('ratio'))} | {f.get('target') or '-'} | {_fmt(f.get('met'))} |"
+        f"{_fmt(f.get('ratio'))} | {f.get('target') or '-'} | {_fmt(f.get('met'))} | "
+        f"{machine} | {date} |"
     )
 
 
-def _description(key: str, f: dict[str, Any]) -> str:
-    """A figure's line under "What each figure is"."""
+def _description(key: str, f: dict[str, Any], where: dict[str, Any] | None = None) -> str:
+    """A figure's line under "What each figure is": what it measures, its note, and the
+    command, commit and load it was measured with."""
     note = f" Note: {f['note'].rstrip('.')}." if f.get("note") else ""
-    m = f.get("measured")
-    where = f", on {m['machine']}" if m and m.get("machine") else ""
-    when = (
-        f" Measured apart: `{m['command']}`, {m['started']}, commit `{m['commit']}`{where}."
-        if m
-        else ""
-    )
-    return f"- `{key}`: {f.get('what', '')}.{note}{when}"
+    how = ""
+    if where:
+        load = f", load average at start {where['load']}" if where.get("load") else ""
+        how = f" Measured by `{where.get('command')}`, commit `{where.get('commit')}`{load}."
+    return f"- `{key}`: {f.get('what', '')}.{note}{how}"
 
 
 def _machine_line(machine: dict[str, Any]) -> str:
@@ -385,11 +417,11 @@ def _machine_line(machine: dict[str, Any]) -> str:
 
 def merge_report(out: Path, report: dict[str, Any]) -> dict[str, Any]:
     """Put ``report``'s figures into the report in ``out`` (its ``benchmarks.json`` and
-    ``benchmarks.md``), keeping every other figure and line as it is.
+    ``benchmarks.md``), keeping every other figure as it is.
 
     Each merged figure gets ``measured`` (``report``'s command, commit, start, quick flag and
-    machine: CPU and load);
-    its table row and description line are replaced, or inserted in report order.
+    machine: CPU and load). ``benchmarks.md`` is rendered again from the merged JSON; what
+    follows its rendered part (:data:`END`) is kept.
 
     Returns:
         The merged report (as written to ``benchmarks.json``).
@@ -401,65 +433,59 @@ def merge_report(out: Path, report: dict[str, Any]) -> dict[str, Any]:
     figures = {**old["figures"], **new}
     old["figures"] = {k: figures[k] for k in FIGURES if k in figures}
     old.setdefault("errors", {}).update(report["errors"])
-    lines = (out / "benchmarks.md").read_text().split("\n")
-    for key, f in new.items():
-        for text, after in ((_row(key, f), "|---"), (_description(key, f), DESCRIPTIONS)):
-            prefix = text[: text.index("`", 3) + 1]  # "| `key`" or "- `key`"
-            at = next((i for i, line in enumerate(lines) if line.startswith(prefix)), None)
-            if at is not None:
-                lines[at] = text
-                continue
-            # after the last line of a figure listed before it in the same block (the first
-            # table, the list under DESCRIPTIONS; not a hand-written table further down),
-            # else at the block's top
-            earlier = {prefix[:3] + k + "`" for k in FIGURES[: FIGURES.index(key)]}
-            start = next(i for i, line in enumerate(lines) if line.startswith(after))
-            top = start + (after == DESCRIPTIONS)  # a blank line follows the list's header
-            end = next(
-                (i for i in range(top + 1, len(lines)) if not lines[i].startswith(prefix[:2])),
-                len(lines),
-            )
-            spot = [
-                i for i in range(top + 1, end) if lines[i][: lines[i].find("`", 3) + 1] in earlier
-            ]
-            lines.insert(max(spot, default=top) + 1, text)
     (out / "benchmarks.json").write_text(json.dumps(old, indent=2, default=_json_default))
-    (out / "benchmarks.md").write_text("\n".join(lines))
+    render_again(out)
     return old
 
 
-def render_markdown(report: dict[str, Any]) -> str:
-    """The human-readable report: command, machine, commit, and one row per figure."""
-    from cloudpose.runtime import describe_cpu
+def render_again(out: Path) -> None:
+    """Render ``out/benchmarks.md`` from ``out/benchmarks.json`` (no measurement), keeping what
+    follows its rendered part."""
+    md = out / "benchmarks.md"
+    text = md.read_text() if md.exists() else ""
+    tail = text.partition(END)[2] if END in text else ""
+    report = json.loads((out / "benchmarks.json").read_text())
+    md.write_text(render_markdown(report) + tail.removeprefix("\n"))
 
+
+def render_markdown(report: dict[str, Any]) -> str:
+    """The human-readable report: one table where each row names the machine (described once
+    under "Machines") and the date it was measured on, then what each figure is."""
     m = report["machine"]
-    cpu = m["cpu"]
+    shown = [k for k in FIGURES if report["figures"].get(k) is not None]
+    ids = _machine_ids(report, shown)
+    own_cpu = _cpu_and_load(m)[0]
     lines = [
         "# Benchmarks",
         "",
-        f"- command: `{report['command']}`",
-        f"- commit: `{report['commit']}`",
-        f"- when: {report['started']} (took {report['seconds']:.0f} s)",
-        f"- machine (of every figure not measured apart): {describe_cpu(cpu)}; "
-        f"torch {m['torch']}, {m['torch_threads']} threads; "
-        f"allocator {m['allocator']}; numba {m.get('numba') or 'no'}",
-        f"- load average (1/5/15 min) at start {m['load_average_1_5_15min']}, at end "
-        f"{report.get('load_average_at_end')}",
+        f"The last full run: `{report['command']}`, commit `{report['commit']}`, "
+        f"{report['started']} (took {report.get('seconds', 0):.0f} s) on "
+        f"{ids.get(own_cpu, own_cpu)}; torch {m['torch']}, {m['torch_threads']} threads, "
+        f"allocator {m['allocator']}, numba {m.get('numba') or 'no'}. A figure measured in "
+        "another run (`--merge`) names its own machine and date.",
         "",
         "Ratio = reference / value for times (higher is faster), value / reference for rates "
-        "and fractions. Every reference is measured in the same run, interleaved where cheap.",
+        "and fractions. A figure and its reference are measured in the same run on the same "
+        "machine, interleaved where cheap; figures of different machines are never put in one "
+        "ratio.",
         "",
-        "| figure | value | unit | reference | ratio | target | met |",
-        "|---|---|---|---|---|---|---|",
+        MACHINES,
+        "",
+        *[f"- {name}: {cpu}" for cpu, name in ids.items()],
+        "",
+        "| figure | value | unit | reference | ratio | target | met | machine | measured |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    shown = [k for k in FIGURES if report["figures"].get(k) is not None]
-    lines += [_row(k, report["figures"][k]) for k in shown]
+    wheres = {k: _where(report, report["figures"][k]) for k in shown}
+    lines += [
+        _row(k, report["figures"][k], ids[wheres[k]["cpu"]], wheres[k]["date"]) for k in shown
+    ]
     lines += ["", DESCRIPTIONS, ""]
-    lines += [_description(k, report["figures"][k]) for k in shown]
+    lines += [_description(k, report["figures"][k], wheres[k]) for k in shown]
     if report.get("errors"):
         lines += ["", "## Errors", ""]
         lines += [f"- `{k}`: {v}" for k, v in report["errors"].items()]
-    lines += ["", "Details (per size, per variant, every repeat) are in benchmarks.json.", ""]
+    lines += ["", END, ""]
     return "\n".join(lines)
 
 
@@ -582,14 +608,23 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="put these figures into the report in --out, keeping the others as they are",
     )
+    ap.add_argument(
+        "--render",
+        action="store_true",
+        help="measure nothing: render benchmarks.md again from benchmarks.json in --out",
+    )
     args = ap.parse_args(argv)
+    out = args.out or ROOT / "reports"
+    if args.render:
+        render_again(out)
+        print((out / "benchmarks.md").read_text())
+        return
     names = [n.strip() for n in args.only.split(",") if n.strip()] or None
     try:
         select_groups(names)
     except ValueError as exc:
         ap.error(str(exc))
     report = run(names, quick=args.quick, out_dir=args.out, args=args, merge=args.merge)
-    out = args.out or ROOT / "reports"
     print((out / "benchmarks.md").read_text())
     if report["errors"]:
         sys.exit(1)

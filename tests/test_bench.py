@@ -127,12 +127,12 @@ def _listed(lines: list[str]) -> tuple[list[str], list[str]]:
 
 
 def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
-    """--merge: the figures run now go into the existing report in report order; every other
-    line of it, header included, stays as it was."""
+    """--merge: the figures run now go into the existing report in report order, each row
+    naming the machine (described once) and the date it was measured on; the other figures keep
+    theirs."""
 
     first = _report_to_merge_into(tmp_path, monkeypatch)
-    md = run_all.render_markdown(first).replace("# Benchmarks", "# Benchmarks (hand-edited)")
-    (tmp_path / "benchmarks.md").write_text(md)
+    (tmp_path / "benchmarks.md").write_text(run_all.render_markdown(first))
 
     run_all.run(["fps"], quick=True, out_dir=tmp_path, merge=True)
     saved = json.loads((tmp_path / "benchmarks.json").read_text())
@@ -142,20 +142,49 @@ def test_merge_replaces_or_inserts_only_the_figures_run(tmp_path, monkeypatch):
     merged = (tmp_path / "benchmarks.md").read_text().splitlines()
     rows, described = _listed(merged)
     assert rows == described == ["infer_ms_per_object", "fps_ms_20k", "cpu_variant_wall_s"]
-    assert [line for line in merged if "fps_ms_20k" not in line] == md.splitlines()
-    # merging again replaces its lines in place
+    # one machine here: described once, named by every row, with the date of each run
+    machines = [line for line in merged if line.startswith("- M")]
+    assert len(machines) == 1 and machines[0].startswith("- M1: ")
+    for line in merged:
+        if line.startswith("| `"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            assert cells[-2] == "M1" and cells[-1] == first["started"][:10]
+    # merging again gives the same lines
     run_all.run(["fps"], quick=True, out_dir=tmp_path, merge=True)
-    again = (tmp_path / "benchmarks.md").read_text().splitlines()
-    assert len(again) == len(merged)
-    assert [i for i, line in enumerate(again) if "fps_ms_20k" in line] == [
-        i for i, line in enumerate(merged) if "fps_ms_20k" in line
-    ]
+    assert (tmp_path / "benchmarks.md").read_text().splitlines() == merged
 
 
-def test_merge_inserts_into_the_first_table_not_a_hand_written_one(tmp_path, monkeypatch):
-    """A later section that quotes an older run's table and notes (rows and lines of figures
-    listed before the new one) keeps them; the new figure joins the report's own table and
-    list."""
+def test_rows_of_other_machines_name_theirs(tmp_path, monkeypatch):
+    """A figure merged from a run on another CPU names that CPU's own entry; a figure stored
+    without its CPU says so instead of borrowing the report's."""
+    first = _report_to_merge_into(tmp_path, monkeypatch)
+    first["figures"]["infer_ms_per_object"]["measured"] = {
+        "command": "x",
+        "commit": "c",
+        "started": "2026-01-02 03:04:05 UTC",
+        "quick": False,
+        "machine": "Another CPU (flags avx2); load average at start [1.0, 1.0, 1.0]",
+    }
+    first["figures"]["cpu_variant_wall_s"]["measured"] = {
+        "command": "y",
+        "commit": "d",
+        "started": "2026-01-03 00:00:00 UTC",
+        "quick": False,
+    }
+    lines = run_all.render_markdown(first).splitlines()
+    machines = [line for line in lines if line.startswith("- M")]
+    assert machines[0] == "- M1: Another CPU (flags avx2)"
+    assert machines[1].startswith("- M2: not recorded")
+    assert len(machines) == 2
+    row = next(line for line in lines if line.startswith("| `infer_ms_per_object`"))
+    assert row.rstrip(" |").endswith("M1 | 2026-01-02")
+    described = next(line for line in lines if line.startswith("- `infer_ms_per_object`"))
+    assert "[1.0, 1.0, 1.0]" in described
+
+
+def test_merge_keeps_the_sections_written_after_the_table(tmp_path, monkeypatch):
+    """Hand-written sections after the rendered part (its last line :data:`END`) stay as they
+    are; the new figure joins the rendered table and list."""
 
     first = _report_to_merge_into(tmp_path, monkeypatch)
     older = [
@@ -218,6 +247,6 @@ def test_merged_figures_name_the_cpu_they_came_from(tmp_path, monkeypatch):
     from cloudpose.runtime import cpu_features
 
     model = cpu_features()["model"]
-    assert f"- machine (of every figure not measured apart): {model}" in md
-    line = next(x for x in md.splitlines() if x.startswith("- `fps_ms_20k`"))
-    assert f"on {model}" in line
+    assert f"- M1: {model}" in md
+    row = next(x for x in md.splitlines() if x.startswith("| `fps_ms_20k`"))
+    assert "| M1 |" in row
