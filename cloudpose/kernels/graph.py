@@ -119,11 +119,9 @@ def build_nn_index(points: np.ndarray, n_neighbours: int = 32, leaf_size: int = 
 
 
 @njit(cache=True, inline="always")
-def _nearest_from(
-    P, box, left, right, start, end, nbr, nbr_d2, n_walk, x, y, z, c, bound_d2, stack, stack_d2
-):
-    """Nearest stored point with squared distance < bound_d2, searched from stored point c,
-    with the neighbour lists (models without a Delaunay graph):
+def _nearest_from(tree, nbr, nbr_d2, n_walk, x, y, z, c, bound_d2, stack, stack_d2):
+    """Nearest stored point of ``tree`` with squared distance < bound_d2, searched from stored
+    point c, with the neighbour lists ``nbr``, ``nbr_d2`` (models without a Delaunay graph):
 
     1. Walk downhill: move to the nearest of the current point's first ``n_walk`` neighbours
        while one is nearer to the query.
@@ -134,6 +132,7 @@ def _nearest_from(
 
     Returns (squared distance, stored index) or (bound_d2, -1) when none is that near.
     """
+    P = tree.points
     best = _d2(P, c, x, y, z)
     n_walk = min(n_walk, nbr.shape[1])
     L = nbr.shape[1]
@@ -164,7 +163,33 @@ def _nearest_from(
             lim = s * s * (1.0 + 1e-9)
         j += 1
     if j == L and lim >= nbr_d2[c, L - 1]:
-        target, bi = _nearest_call(
-            P, box, left, right, start, end, x, y, z, target, bi, stack, stack_d2
-        )
+        target, bi = _nearest_call(tree, x, y, z, target, bi, stack, stack_d2)
     return target, bi
+
+
+@njit(cache=True, inline="always")
+def _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, c, best, with_slack):
+    """Exact nearest point by a downhill walk over the Delaunay graph from stored point c,
+    whose squared distance to the query is ``best``.
+
+    Returns its squared distance, its stored index, and (``with_slack``; else inf) how far the
+    query may move before it can leave the point's Voronoi cell: the distance to the nearest
+    bisector plane with a Delaunay neighbour z, ``(|q - z|^2 - |q - c|^2) / (2 |z - c|)``
+    (metres). ``with_slack`` is a constant at each call site, so the compiler drops the unused
+    branch.
+    """
+    while True:
+        cc = c
+        b0 = best
+        slack = np.inf  # valid when this step finds nothing nearer (b0 is then c's distance)
+        for j in range(adj_ptr[c], adj_ptr[c + 1]):
+            q = adj[j]
+            d2 = _d2(P, q, x, y, z)
+            # a duplicate of c (edge length 0) is as near as c wherever the query goes
+            if with_slack and adj_len[j] > 0:
+                slack = min(slack, (d2 - b0) / (2.0 * adj_len[j]))
+            if d2 < best:
+                best, cc = d2, q
+        if cc == c:
+            return best, c, slack
+        c = cc

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
-from cloudpose.kernels.graph import NNIndex, _nearest_from
+from cloudpose.kernels.graph import NNIndex, _delaunay_walk, _nearest_from
 from cloudpose.kernels.kdtree import _STACK, _d2, _nearest
 
 __all__ = ["icp_model_frame"]
@@ -42,54 +42,43 @@ def _umeyama_moments(S):
 
 
 @njit(cache=True, inline="always")
-def _match(P, box, left, right, start, end, nbr, nbr_d2, x, y, z, prev, r2, stack, stack_d2):
-    """Nearest model point within the radius (squared r2), with the neighbour lists: from last
-    iteration's match where there was one (the points moved little), else a bounded k-d tree
-    search."""
-    if prev >= 0:
-        return _nearest_from(
-            P, box, left, right, start, end, nbr, nbr_d2, 8, x, y, z, prev, r2, stack, stack_d2
-        )
-    return _nearest(P, box, left, right, start, end, x, y, z, r2, -1, stack, stack_d2)
+def _affine_rows(T):
+    """The first three rows of an affine map T, (3, 4) or (4, 4), as twelve scalars, row by
+    row (held in registers through a loop over points)."""
+    return (
+        T[0, 0], T[0, 1], T[0, 2], T[0, 3],
+        T[1, 0], T[1, 1], T[1, 2], T[1, 3],
+        T[2, 0], T[2, 1], T[2, 2], T[2, 3],
+    )  # fmt: skip
 
 
 @njit(cache=True, inline="always")
-def _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, c):
-    """Exact nearest point by a downhill walk over the Delaunay graph from c.
-
-    Returns its squared distance, its stored index, and how far the query may move before it
-    can leave the point's Voronoi cell: the distance to the nearest bisector plane with a
-    Delaunay neighbour z, ``(|q - z|^2 - |q - c|^2) / (2 |z - c|)`` (metres).
-    """
-    best = _d2(P, c, x, y, z)
-    while True:
-        cc = c
-        b0 = best
-        slack = np.inf  # valid when this step finds nothing nearer (b0 is then c's distance)
-        for j in range(adj_ptr[c], adj_ptr[c + 1]):
-            q = adj[j]
-            d2 = _d2(P, q, x, y, z)
-            if adj_len[j] > 0:  # a duplicate of c is as near as c wherever the query goes
-                slack = min(slack, (d2 - b0) / (2.0 * adj_len[j]))
-            if d2 < best:
-                best, cc = d2, q
-        if cc == c:
-            return best, c, slack
-        c = cc
+def _affine_apply(A, x, y, z):
+    """``T @ (x, y, z, 1)`` for ``A = _affine_rows(T)``."""
+    a00, a01, a02, b0, a10, a11, a12, b1, a20, a21, a22, b2 = A
+    return (
+        a00 * x + a01 * y + a02 * z + b0,
+        a10 * x + a11 * y + a12 * z + b1,
+        a20 * x + a21 * y + a22 * z + b2,
+    )
 
 
 @njit(cache=True)
-def _icp_graph_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, cur, radii):
-    """The ICP loop for a model with a Delaunay graph.
+def _icp_kernel(tree, adj_ptr, adj, adj_len, nbr, nbr_d2, cur, radii):
+    """The ICP loop.
 
-    ``nn[k]`` is point k's exact nearest model point (any distance) when last searched,
-    ``slack[k]`` its distance then to the boundary of that point's Voronoi cell (the nearest
-    bisector plane with a Delaunay neighbour), ``moved[k]`` how far it has moved since. While
-    it has moved less than the slack its nearest point cannot have changed, so no search is
-    needed (late ICP iterations move points by micrometres); otherwise a Delaunay walk from
-    ``nn[k]``, or a bounded k-d tree search for a point with no neighbour yet. Written as one
-    flat loop body: with the searches behind helper layers it ran 2x slower.
+    ``nn[k]`` is point k's nearest model point when last searched (-1: none yet, or none
+    within the radius on the lists); a point without one gets a bounded k-d tree search.
+    Where the model has a Delaunay graph (adj_ptr not empty), ``nn[k]`` is exact at any
+    distance, ``slack[k]`` its distance then to the boundary of that point's Voronoi cell (the
+    nearest bisector plane with a Delaunay neighbour), ``moved[k]`` how far it has moved since:
+    while it has moved less than the slack its nearest point cannot have changed, so no search
+    is needed (late ICP iterations move points by micrometres); otherwise a Delaunay walk from
+    ``nn[k]``. Without a graph, a search over the neighbour lists from ``nn[k]``. The moments
+    are sixteen scalars, so they stay in registers through the loop over points.
     """
+    P = tree.points
+    graph = adj_ptr.shape[0] > 0
     N = cur.shape[0]
     n_it = radii.shape[0]
     T_acc = np.eye(4)
@@ -107,19 +96,21 @@ def _icp_graph_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, cu
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
             j = nn[k]
-            if j >= 0 and moved[k] < slack[k]:  # still in j's Voronoi cell: j is nearest
-                d2 = _d2(P, j, x, y, z)
-            else:
+            if j < 0:  # none yet: a bounded k-d tree search
+                d2, j = _nearest(tree, x, y, z, r2, -1, stack, stack_d2)
                 if j < 0:
-                    d2, j = _nearest(
-                        P, box, left, right, start, end, x, y, z, r2, -1, stack, stack_d2
-                    )
-                    if j < 0:
-                        continue
-                d2, j, sl = _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, j)
+                    continue
                 nn[k] = j
-                moved[k] = 0.0
-                slack[k] = sl * (1.0 - 1e-9) - 1e-13 if sl < np.inf else 0.0
+            elif not graph:  # the lists, from the last match (the points moved little)
+                d2, j = _nearest_from(tree, nbr, nbr_d2, 8, x, y, z, j, r2, stack, stack_d2)
+                nn[k] = j
+            if graph:
+                d2 = _d2(P, j, x, y, z)
+                if moved[k] >= slack[k]:  # it may have left j's Voronoi cell
+                    d2, j, sl = _delaunay_walk(P, adj_ptr, adj, adj_len, x, y, z, j, d2, True)
+                    nn[k] = j
+                    moved[k] = 0.0
+                    slack[k] = sl * (1.0 - 1e-9) - 1e-13 if sl < np.inf else 0.0
             if d2 < r2:
                 mx, my, mz = P[j, 0], P[j, 1], P[j, 2]
                 s00 += mx * x
@@ -148,68 +139,13 @@ def _icp_graph_kernel(P, box, left, right, start, end, adj_ptr, adj, adj_len, cu
         S[2, 0], S[2, 1], S[2, 2], S[2, 3] = s20, s21, s22, s23
         S[3, 0], S[3, 1], S[3, 2], S[3, 3] = s30, s31, s32, s33
         T = _umeyama_moments(S)
+        A = _affine_rows(T)
         for k in range(N):
             x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            nx = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-            ny = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
-            nz = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
-            moved[k] += math.sqrt((nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2)
+            nx, ny, nz = _affine_apply(A, x, y, z)
+            if graph:
+                moved[k] += math.sqrt((nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2)
             cur[k, 0], cur[k, 1], cur[k, 2] = nx, ny, nz
-        T_acc = T @ T_acc
-    return T_acc, 0, 0.0  # not reached
-
-
-@njit(cache=True)
-def _icp_kernel(P, box, left, right, start, end, nbr, nbr_d2, cur, radii):
-    """The ICP loop with the neighbour lists (models without a Delaunay graph): each point's
-    correspondence searched from its previous match (``_match``)."""
-    N = cur.shape[0]
-    n_it = radii.shape[0]
-    T_acc = np.eye(4)
-    stack = np.empty(_STACK, np.int64)
-    stack_d2 = np.empty(_STACK)
-    S = np.empty((4, 4))
-    match = np.full(N, -1, np.int64)
-    for it in range(n_it + 1):  # the last pass only scores the final pose
-        r2 = radii[min(it, n_it - 1)] ** 2
-        S[:] = 0.0
-        sum_d2 = 0.0
-        for k in range(N):
-            x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            d2, j = _match(
-                P,
-                box,
-                left,
-                right,
-                start,
-                end,
-                nbr,
-                nbr_d2,
-                x,
-                y,
-                z,
-                match[k],
-                r2,
-                stack,
-                stack_d2,
-            )
-            match[k] = j
-            if j >= 0:
-                m = (P[j, 0], P[j, 1], P[j, 2], 1.0)
-                c = (x, y, z, 1.0)
-                for a in range(4):
-                    for b in range(4):
-                        S[a, b] += m[a] * c[b]
-                sum_d2 += d2
-        if it == n_it:
-            return T_acc, int(S[3, 3]), sum_d2
-        if it == 0 and S[3, 3] == 0:
-            return T_acc, -1, 0.0
-        T = _umeyama_moments(S)
-        for k in range(N):
-            x, y, z = cur[k, 0], cur[k, 1], cur[k, 2]
-            for a in range(3):
-                cur[k, a] = T[a, 0] * x + T[a, 1] * y + T[a, 2] * z + T[a, 3]
         T_acc = T @ T_acc
     return T_acc, 0, 0.0  # not reached
 
@@ -220,9 +156,10 @@ def icp_model_frame(
     """The ICP loop of refine._icp_model_frame, compiled.
 
     Each correspondence is the exact nearest model point within the radius: a bounded k-d
-    tree search for a point without one yet, then a Delaunay walk from its previous nearest
-    point, skipped while the point has moved less than half the gap to its second nearest
-    (``_match`` and ``_delaunay_walk``).
+    tree search for a point without one yet, then a walk from its previous nearest point:
+    over the Delaunay graph, skipped while the point cannot have left that point's Voronoi
+    cell (``_delaunay_walk``), or over the neighbour lists where the model has no graph
+    (``_nearest_from``).
 
     Args:
         index: ``build_nn_index`` of the model points, metres.
@@ -236,9 +173,6 @@ def icp_model_frame(
     """
     cur = np.array(observed_model_frame, dtype=np.float64, order="C", copy=True)
     radii = np.ascontiguousarray(radii, dtype=np.float64)
-    t = index.tree
-    if len(index.adj_ptr):
-        return _icp_graph_kernel(
-            t.points, *t[2:], index.adj_ptr, index.adj, index.adj_len, cur, radii
-        )
-    return _icp_kernel(t.points, *t[2:], index.nbr, index.nbr_d2, cur, radii)
+    return _icp_kernel(
+        index.tree, index.adj_ptr, index.adj, index.adj_len, index.nbr, index.nbr_d2, cur, radii
+    )

@@ -134,8 +134,10 @@ def _box_d2(box, node, x, y, z):
 
 
 @njit(cache=True, inline="always")
-def _nearest(P, box, left, right, start, end, x, y, z, best_d2, best_i, stack, stack_d2):
-    """Nearest stored point with squared distance < best_d2; else (best_d2, best_i) unchanged."""
+def _nearest(tree, x, y, z, best_d2, best_i, stack, stack_d2):
+    """Nearest stored point of ``tree`` (a :class:`KDTree`) with squared distance < best_d2;
+    else (best_d2, best_i) unchanged."""
+    P, box, left, start, end = tree.points, tree.box, tree.left, tree.start, tree.end
     sp = 0
     stack[0] = 0
     stack_d2[0] = _box_d2(box, 0, x, y, z)
@@ -177,35 +179,21 @@ def _nearest(P, box, left, right, start, end, x, y, z, best_d2, best_i, stack, s
 
 
 @njit(cache=True)
-def _nearest_call(P, box, left, right, start, end, x, y, z, best_d2, best_i, stack, stack_d2):
+def _nearest_call(tree, x, y, z, best_d2, best_i, stack, stack_d2):
     """``_nearest`` as a real call: for rare fallbacks, where inlining its loops into a hot
     loop only costs registers."""
-    return _nearest(P, box, left, right, start, end, x, y, z, best_d2, best_i, stack, stack_d2)
+    return _nearest(tree, x, y, z, best_d2, best_i, stack, stack_d2)
 
 
 @njit(cache=True)
-def _nearest_many(P, box, left, right, start, end, Q, bound_d2):
+def _nearest_many(tree, Q, bound_d2):
     n = Q.shape[0]
     d2 = np.empty(n)
     idx = np.empty(n, np.int64)
     stack = np.empty(_STACK, np.int64)
     stack_d2 = np.empty(_STACK)
     for k in range(n):
-        d2[k], idx[k] = _nearest(
-            P,
-            box,
-            left,
-            right,
-            start,
-            end,
-            Q[k, 0],
-            Q[k, 1],
-            Q[k, 2],
-            bound_d2,
-            -1,
-            stack,
-            stack_d2,
-        )
+        d2[k], idx[k] = _nearest(tree, Q[k, 0], Q[k, 1], Q[k, 2], bound_d2, -1, stack, stack_d2)
     return d2, idx
 
 
@@ -224,7 +212,7 @@ def nearest_bounded(
         none).
     """
     Q = np.ascontiguousarray(queries, dtype=np.float64)
-    d2, i = _nearest_many(*tree[0:1], *tree[2:], Q, float(bound) ** 2)
+    d2, i = _nearest_many(tree, Q, float(bound) ** 2)
     found = i >= 0
     return d2, np.where(found, tree.index[np.maximum(i, 0)], -1)
 
