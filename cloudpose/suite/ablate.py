@@ -75,6 +75,152 @@ def _seconds_per_run_before(client, preset: str, epochs: int) -> float | None:
     return sum(per_epoch) / len(per_epoch) * epochs if per_epoch else None
 
 
+@dataclass
+class _Progress:
+    """What one :func:`ensure_runs` call tells: each run's status, its log line and its echo.
+
+    Attributes:
+        n: runs in the suite.
+        log_path: the suite's log (one line per run).
+        echo: where the progress lines go.
+        prior: estimated seconds of one run from earlier runs in the store, or None.
+        durations: seconds of the runs trained whole in this call.
+        statuses: {1-based run number: its status}.
+    """
+
+    n: int
+    log_path: Path
+    echo: Callable[[str], None]
+    prior: float | None
+    durations: list[float] = field(default_factory=list)
+    statuses: dict[int, RunStatus] = field(default_factory=dict)
+
+    def _record(self, k: int, cfg: Config, st: RunStatus, ads_auc: float | None, what: str) -> None:
+        name = run_name(cfg.variant, cfg.preset, cfg.seed)
+        self.statuses[k] = st
+        _log(self.log_path, k, self.n, name, st, ads_auc)
+        self.echo(f"[{k}/{self.n}] {name}: {what}")
+
+    def say(self, k: int, cfg: Config, what: str) -> None:
+        """A progress line about run ``k`` that records nothing."""
+        self.echo(f"[{k}/{self.n}] {run_name(cfg.variant, cfg.preset, cfg.seed)}: {what}")
+
+    def skipped(self, k: int, cfg: Config, done) -> None:
+        """Run ``k`` finished and was evaluated before (``done``: its MLflow run)."""
+        st = RunStatus(cfg.variant, cfg.seed, "skipped", done.info.run_id, 0.0)
+        self._record(k, cfg, st, done.data.metrics.get(TEST_KEY), "finished before, skipped")
+
+    def starting(self, k: int, cfg: Config, left: int) -> None:
+        """Run ``k`` starts here, ``left`` runs to go with it: the time they may take."""
+        per_run = sum(self.durations) / len(self.durations) if self.durations else self.prior
+        self.say(
+            k,
+            cfg,
+            f"training + evaluation; {left} run(s) left, "
+            f"estimated {format_seconds(per_run * left if per_run else None)} to go",
+        )
+
+    def trained(
+        self,
+        k: int,
+        cfg: Config,
+        run_id: str,
+        auc: float | None,
+        seconds: float,
+        whole: bool = True,
+    ) -> None:
+        """Run ``k`` was trained and evaluated in ``seconds``; ``whole``: not resumed from its
+        checkpoint (only such runs tell how long a run takes)."""
+        if whole:
+            self.durations.append(seconds)
+        st = RunStatus(cfg.variant, cfg.seed, "trained", run_id, seconds)
+        self._record(
+            k,
+            cfg,
+            st,
+            auc,
+            f"done in {format_seconds(seconds)}; test ADS AUC "
+            f"{100 * (math.nan if auc is None else auc):.1f}",
+        )
+
+    def failed(self, k: int, cfg: Config, exc: BaseException, seconds: float) -> None:
+        """Run ``k`` raised ``exc`` after ``seconds``."""
+        error = f"{type(exc).__name__}: {exc}"
+        st = RunStatus(cfg.variant, cfg.seed, "failed", None, seconds, error)
+        self._record(k, cfg, st, None, f"FAILED ({error})")
+
+    def interrupted(self, k: int, cfg: Config, seconds: float) -> None:
+        """Run ``k`` was interrupted (Ctrl-C): logged, the suite stops."""
+        st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, seconds)
+        _log(self.log_path, k, self.n, run_name(cfg.variant, cfg.preset, cfg.seed), st, None)
+
+
+def _check_executor(executor: str, ray: RayOptions | None) -> None:
+    """Raise for an unknown executor; for ``ray``, before any data is made, say how to install
+    Ray where it is missing and whether the cluster answers (not after a long data
+    preparation)."""
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor {executor!r}: expected one of {', '.join(EXECUTORS)}")
+    if executor == "ray":
+        import_ray()
+        check_cluster(ray or RayOptions())
+
+
+def _data_once(project_dir: Path, progress: bool) -> Callable[[Config], dataset.Prepared]:
+    """``data_of(cfg)``: the prepared data of a config, made once per data config and shared by
+    its runs."""
+    prepared: dict[str, dataset.Prepared] = {}
+
+    def data_of(cfg: Config) -> dataset.Prepared:
+        config = repr(cfg.data)
+        if config not in prepared:
+            prepared[config] = dataset.prepare_data(cfg.data, project_dir, progress=progress)
+        return prepared[config]
+
+    return data_of
+
+
+def _train_here(
+    book: _Progress,
+    k: int,
+    cfg: Config,
+    data: dataset.Prepared,
+    *,
+    project_dir: Path,
+    group: str,
+    progress: bool,
+    keep_going: bool,
+) -> None:
+    """Train and evaluate run ``k`` in this process; a failure raises unless ``keep_going``."""
+    resumed = (run_dir(cfg, data.key, project_dir) / "last.pt").is_file()
+    t0 = time.monotonic()
+    try:
+        result = pipeline.train_and_evaluate(
+            cfg, project_dir=project_dir, group=group, progress=progress, data=data
+        )
+    except KeyboardInterrupt:
+        book.interrupted(k, cfg, time.monotonic() - t0)
+        raise
+    except Exception as exc:
+        book.failed(k, cfg, exc, time.monotonic() - t0)
+        if not keep_going:
+            raise
+        return
+    auc = result.evaluation.metrics.get(TEST_KEY)
+    book.trained(k, cfg, result.train.run_id, auc, time.monotonic() - t0, not resumed)
+
+
+def _collect(book: _Progress, sweep: RaySweep, keep_going: bool) -> None:
+    """Record the Ray runs as they finish; a failure raises unless ``keep_going``."""
+    for k, cfg, res, exc in sweep.results():
+        if exc is not None:
+            book.failed(k, cfg, exc, math.nan)
+            if not keep_going:
+                raise exc
+            continue
+        book.trained(k, cfg, res["run_id"], res["test_ads_auc"], res["seconds"])
+
+
 def ensure_runs(
     variants: list[str],
     preset: str,
@@ -107,13 +253,7 @@ def ensure_runs(
     Returns:
         One status per (variant, seed), in order.
     """
-    if executor not in EXECUTORS:
-        raise ValueError(f"executor {executor!r}: expected one of {', '.join(EXECUTORS)}")
-    if executor == "ray":
-        # before any data is made: without Ray, say how to install it; a cluster that does not
-        # answer is said before a long data preparation, not after
-        import_ray()
-        check_cluster(ray or RayOptions())
+    _check_executor(executor, ray)
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))
     seeds = seed_list(seeds)
@@ -121,103 +261,45 @@ def ensure_runs(
     log_path = project_dir / "runs" / f"ablate-{group}-{preset}.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
     todo = [resolve(v, preset, s, overrides) for v in variants for s in seeds]
-    prepared: dict[str, dataset.Prepared] = {}
-
-    def data_of(cfg: Config) -> dataset.Prepared:
-        key = repr(cfg.data)
-        if key not in prepared:  # made once per data config, shared by its runs
-            prepared[key] = dataset.prepare_data(cfg.data, project_dir, progress=progress)
-        return prepared[key]
-
-    def fingerprint(cfg: Config) -> str:
-        return data_of(cfg).key
-
-    pending = [cfg for cfg in todo if finished_run(client, cfg, fingerprint(cfg)) is None]
+    data_of = _data_once(project_dir, progress)
+    pending = [cfg for cfg in todo if finished_run(client, cfg, data_of(cfg).key) is None]
     prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
-    durations: list[float] = []
-    out: dict[int, RunStatus] = {}
+    book = _Progress(len(todo), log_path, echo, prior)
     echo(
         f"ablation {group}/{preset}: {len(todo)} runs ({len(variants)} variants x "
         f"{len(seeds)} seeds), {len(todo) - len(pending)} already done, {len(pending)} to run "
         f"({executor}); log {log_path}"
     )
-
-    def failed(k: int, cfg: Config, exc: BaseException, seconds: float) -> None:
-        name = run_name(cfg.variant, cfg.preset, cfg.seed)
-        st = RunStatus(
-            cfg.variant, cfg.seed, "failed", None, seconds, f"{type(exc).__name__}: {exc}"
-        )
-        out[k] = st
-        _log(log_path, k, len(todo), name, st, None)
-        echo(f"[{k}/{len(todo)}] {name}: FAILED ({st.error})")
-
-    def trained(
-        k: int, cfg: Config, run_id: str, auc: float | None, seconds: float, whole: bool = True
-    ) -> None:
-        name = run_name(cfg.variant, cfg.preset, cfg.seed)
-        if whole:  # a run resumed from its checkpoint says nothing about a run's time
-            durations.append(seconds)
-        st = RunStatus(cfg.variant, cfg.seed, "trained", run_id, seconds)
-        out[k] = st
-        _log(log_path, k, len(todo), name, st, auc)
-        echo(
-            f"[{k}/{len(todo)}] {name}: done in {format_seconds(seconds)}; test ADS AUC "
-            f"{100 * (math.nan if auc is None else auc):.1f}"
-        )
-
     sweep = None
     if executor == "ray" and pending:
         tracking.experiment_id(client, group, project_dir)  # made here, not by racing tasks
         sweep = RaySweep(ray or RayOptions(), project_dir, group)
     try:
         for k, cfg in enumerate(todo, 1):
-            name = run_name(cfg.variant, cfg.preset, cfg.seed)
-            data = fingerprint(cfg)
-            done = finished_run(client, cfg, data)
+            done = finished_run(client, cfg, data_of(cfg).key)
             if done is not None:
-                st = RunStatus(cfg.variant, cfg.seed, "skipped", done.info.run_id, 0.0)
-                out[k] = st
-                _log(log_path, k, len(todo), name, st, done.data.metrics.get(TEST_KEY))
-                echo(f"[{k}/{len(todo)}] {name}: finished before, skipped")
-                continue
-            if sweep is not None:
+                book.skipped(k, cfg, done)
+            elif sweep is not None:
                 sweep.submit(k, cfg)
-                echo(f"[{k}/{len(todo)}] {name}: submitted to Ray")
-                continue
-            left = len(pending) - pending.index(cfg) if cfg in pending else 1
-            per_run = sum(durations) / len(durations) if durations else prior
-            echo(
-                f"[{k}/{len(todo)}] {name}: training + evaluation; {left} run(s) left, "
-                f"estimated {format_seconds(per_run * left if per_run else None)} to go"
-            )
-            resumed = (run_dir(cfg, data, project_dir) / "last.pt").is_file()
-            t0 = time.monotonic()
-            try:
-                result = pipeline.train_and_evaluate(
-                    cfg, project_dir=project_dir, group=group, progress=progress, data=data_of(cfg)
+                book.say(k, cfg, "submitted to Ray")
+            else:
+                book.starting(k, cfg, len(pending) - pending.index(cfg) if cfg in pending else 1)
+                _train_here(
+                    book,
+                    k,
+                    cfg,
+                    data_of(cfg),
+                    project_dir=project_dir,
+                    group=group,
+                    progress=progress,
+                    keep_going=keep_going,
                 )
-            except KeyboardInterrupt:
-                st = RunStatus(cfg.variant, cfg.seed, "interrupted", None, time.monotonic() - t0)
-                _log(log_path, k, len(todo), name, st, None)
-                raise
-            except Exception as exc:
-                failed(k, cfg, exc, time.monotonic() - t0)
-                if not keep_going:
-                    raise
-                continue
-            auc = result.evaluation.metrics.get(TEST_KEY)
-            trained(k, cfg, result.train.run_id, auc, time.monotonic() - t0, not resumed)
-        for k, cfg, res, exc in sweep.results() if sweep is not None else ():
-            if exc is not None:
-                failed(k, cfg, exc, math.nan)
-                if not keep_going:
-                    raise exc
-                continue
-            trained(k, cfg, res["run_id"], res["test_ads_auc"], res["seconds"])
+        if sweep is not None:
+            _collect(book, sweep, keep_going)
     finally:
         if sweep is not None:
             sweep.close()
-    return [out[k] for k in sorted(out)]
+    return [book.statuses[k] for k in sorted(book.statuses)]
 
 
 def _log(path: Path, k: int, n: int, name: str, st: RunStatus, ads_auc: float | None) -> None:
