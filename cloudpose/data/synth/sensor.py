@@ -29,9 +29,22 @@ def background_depth(
         (H, W) float64 depth (z, metres); 0 where no patch is hit within :data:`MAX_RANGE`.
     """
     H, W = shape
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # (H, W, 3), z = 1
-    return _plane_depth(rays, world_to_camera, planes)
+    v, u = np.mgrid[0:H, 0:W]
+    return _plane_depth(pixel_rays(np.linalg.inv(K), v, u), world_to_camera, planes)
+
+
+def pixel_rays(K_inv: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Rays through the pixel centres ``(v, u)`` (any shape, alike), scaled to z = 1.
+
+    Args:
+        K_inv: (3, 3) inverse intrinsics.
+        v, u: pixel rows and columns.
+
+    Returns:
+        (..., 3) float64 ``K^-1 (u, v, 1)``.
+    """
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64)
+    return pix @ K_inv.T
 
 
 def _plane_depth(
@@ -111,35 +124,49 @@ def _readings(
         and (H, W) bool edge and random dropout (not yet applied).
     """
     z = np.asarray(depth, dtype=np.float64)
-    valid = z > 0
     H, W = z.shape
     pad = np.pad(z, 1)
-    vpad = np.pad(valid, 1)
     nbs = np.stack([pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]], axis=-1)
-    nvalid = np.stack([vpad[:-2, 1:-1], vpad[2:, 1:-1], vpad[1:-1, :-2], vpad[1:-1, 2:]], axis=-1)
-    diff = np.where(nvalid & valid[..., None], nbs - z[..., None], 0.0)  # (H, W, 4)
-    k = np.abs(diff).argmax(axis=-1)
-    jump = np.take_along_axis(diff, k[..., None], axis=-1)[..., 0]
-    edge = np.abs(jump) > model.edge_jump
+    jump = _depth_jump(z, nbs)
     normal = rng.standard_normal((H, W))
     u_edge = rng.random((H, W))
-    noisy = _noisy(z, valid, jump, edge, normal, u_edge, rng.random((H, W)), model)
+    noisy = _noisy(z, jump, normal, u_edge, rng.random((H, W)), model)
+    edge = np.abs(jump) > model.edge_jump
     drop = (edge & (u_edge > 1.0 - model.edge_dropout)) | (rng.random((H, W)) < model.dropout)
-    noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
     return noisy, drop
 
 
-def _noisy(z, valid, jump, edge, normal, u_edge, mix, model: NoiseModel) -> np.ndarray:
-    """Readings from clean depth ``z`` (any shape) and the draws of one pixel each: Gaussian
-    axial noise growing with depth (``normal``), a flying pixel on a depth edge mixed towards
-    the neighbour across it (``u_edge`` < ``edge_flying``, by the share ``mix``), and the
-    disparity quantisation."""
+def _depth_jump(z: np.ndarray, nbs: np.ndarray) -> np.ndarray:
+    """The depth jump of each pixel: the signed difference to the 4-neighbour that differs
+    most (the first on ties), over neighbours with depth; 0 where the pixel has none.
+
+    Args:
+        z: (...) clean depth, metres, 0 = none.
+        nbs: (..., 4) the clean depth of the neighbours up, down, left, right (0 = none).
+
+    Returns:
+        (...) float64 jumps, metres.
+    """
+    diff = np.where((nbs > 0) & (z > 0)[..., None], nbs - z[..., None], 0.0)  # (..., 4)
+    k = np.abs(diff).argmax(axis=-1)
+    return np.take_along_axis(diff, k[..., None], axis=-1)[..., 0]
+
+
+def _noisy(z, jump, normal, u_edge, mix, model: NoiseModel) -> np.ndarray:
+    """Readings from clean depth ``z`` (any shape, metres, 0 = none), its depth jump and the
+    draws of one pixel each: Gaussian axial noise growing with depth (``normal``), a flying
+    pixel on a depth edge mixed towards the neighbour across it (``u_edge`` < ``edge_flying``,
+    by the share ``mix``), and the disparity quantisation; 0 where there is no surface or the
+    reading is out of range."""
+    valid = z > 0
     noisy = z + normal * (model.sigma0 + model.sigma2 * (z - 0.4) ** 2)
-    flying = edge & (u_edge < model.edge_flying)
+    flying = (np.abs(jump) > model.edge_jump) & (u_edge < model.edge_flying)
     noisy = np.where(flying, noisy + mix * jump, noisy)
     disparity = model.focal_baseline / np.where(valid, noisy, 1.0)
     disparity = np.maximum(np.round(disparity / model.subpixel), 1.0) * model.subpixel
-    return model.focal_baseline / disparity
+    noisy = model.focal_baseline / disparity
+    noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
+    return noisy
 
 
 # --------------------------------------------------------------------------- missing depth
@@ -283,8 +310,8 @@ def incidence_cosine(
     """
     z = np.asarray(depth, dtype=np.float64)
     H, W = z.shape
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # (H, W, 3), z = 1
+    v, u = np.mgrid[0:H, 0:W]
+    rays = pixel_rays(np.linalg.inv(K), v, u)  # (H, W, 3)
     X = rays * z[..., None]
     gx = np.zeros_like(X)
     gy = np.zeros_like(X)
@@ -301,6 +328,18 @@ def incidence_cosine(
             & (lab[2:, 1:-1] == c)
             & (lab[:-2, 1:-1] == c)
         )
+    return _ray_cosine(gx, gy, rays, ok)
+
+
+def _ray_cosine(gx: np.ndarray, gy: np.ndarray, rays: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """|cos| of the angle between each ray and the surface normal ``gx x gy``, in [0, 1]; 1
+    (facing the camera) where not ``ok`` or the normal vanishes.
+
+    Args:
+        gx, gy: (..., 3) surface tangents (central differences of back-projected points).
+        rays: (..., 3) pixel rays.
+        ok: (...) bool, where the tangents are valid.
+    """
     n = np.cross(gx, gy)
     norm = np.linalg.norm(n, axis=-1) * np.linalg.norm(rays, axis=-1)
     cos = np.abs((n * rays).sum(axis=-1)) / np.where(norm > 0, norm, 1.0)
@@ -324,10 +363,7 @@ def correlated_uniform(
     from scipy.special import ndtr
 
     z = ndimage.gaussian_filter(rng.standard_normal(shape), sigma, mode="wrap")
-    delta = np.zeros((int(8 * sigma) + 3,) * 2)
-    delta[len(delta) // 2, len(delta) // 2] = 1.0
-    std = np.sqrt((ndimage.gaussian_filter(delta, sigma, mode="constant") ** 2).sum())
-    return ndtr(z / std)
+    return ndtr(z / _smoothed_std(float(sigma)))
 
 
 def _gaussian_weights(sigma: float, truncate: float = 4.0) -> np.ndarray:
@@ -432,8 +468,7 @@ def background_depth_at(
 ) -> np.ndarray:
     """:func:`background_depth` at the pixels ``(v, u)`` only: (m,) float64 metres, 0 where
     no patch is hit within :data:`MAX_RANGE`."""
-    pix = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64)
-    return _plane_depth(pix @ np.linalg.inv(K).T, world_to_camera, planes)
+    return _plane_depth(pixel_rays(np.linalg.inv(K), v, u), world_to_camera, planes)
 
 
 def object_ring(label: np.ndarray) -> np.ndarray:
@@ -500,9 +535,7 @@ def add_sensor_noise_v2_objects(
     pad = np.pad(z_all, 1)
     lpad = np.pad(lab, 1)
     z = z_all[v, u]
-    valid = z > 0
     jump, cos = object_pixel_geometry(pad, lpad, v, u, K)
-    edge = np.abs(jump) > model.edge_jump
     m = len(z)
     normal = rng.standard_normal(m)
     u_edge = rng.random(m)
@@ -535,8 +568,7 @@ def add_sensor_noise_v2_objects(
             MAX_RANGE,
         )
         return out
-    noisy = _noisy(z, valid, jump, edge, normal, u_edge, rng.random(m), model)
-    noisy[~valid | (noisy <= 0) | (noisy > MAX_RANGE)] = 0.0
+    noisy = _noisy(z, jump, normal, u_edge, rng.random(m), model)
     if compiled:
         p = dropout.probability(edge_distance_compiled(lab)[v, u], cos, c)
         field = correlated_uniform_at(rng, (H, W), dropout.blob_sigma, v, u)
@@ -575,16 +607,11 @@ def object_pixel_geometry(
         return object_pixel_geometry_kernel(pad, lpad, v, u, Kinv)
     H, W = pad.shape[0] - 2, pad.shape[1] - 2
     vp, up = v + 1, u + 1
-    z = pad[vp, up]
     nb = np.stack([pad[vp - 1, up], pad[vp + 1, up], pad[vp, up - 1], pad[vp, up + 1]], axis=-1)
-    nvalid = nb > 0
-    diff = np.where(nvalid & (z > 0)[:, None], nb - z[:, None], 0.0)
-    k = np.abs(diff).argmax(axis=-1)
-    jump = np.take_along_axis(diff, k[:, None], axis=-1)[:, 0]
+    jump = _depth_jump(pad[vp, up], nb)
 
     def point(dv: int, du: int) -> np.ndarray:
-        pix = np.stack([u + du, v + dv, np.ones_like(u)], axis=-1).astype(np.float64)
-        return (pix @ Kinv.T) * pad[vp + dv, up + du][:, None]
+        return pixel_rays(Kinv, v + dv, u + du) * pad[vp + dv, up + du][:, None]
 
     gx = point(0, 1) - point(0, -1)
     gy = point(1, 0) - point(-1, 0)
@@ -596,9 +623,5 @@ def object_pixel_geometry(
         & (lpad[vp + 1, up] == c)
         & (lpad[vp - 1, up] == c)
     )
-    ok = inner & nvalid.all(axis=-1) & same
-    rays = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64) @ Kinv.T
-    n = np.cross(gx, gy)
-    norm = np.linalg.norm(n, axis=-1) * np.linalg.norm(rays, axis=-1)
-    cos = np.abs((n * rays).sum(axis=-1)) / np.where(norm > 0, norm, 1.0)
-    return jump, np.where(ok & (norm > 0), np.clip(cos, 0.0, 1.0), 1.0)
+    ok = inner & (nb > 0).all(axis=-1) & same
+    return jump, _ray_cosine(gx, gy, pixel_rays(Kinv, v, u), ok)
