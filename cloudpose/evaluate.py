@@ -7,7 +7,7 @@ YCB-Video toolbox counts it). Every evaluation names its frame list in words (ML
 images)``).
 Summaries (:func:`cloudpose.metrics.summarize`) are logged as metrics ``{name}/...`` for the
 network alone and ``{name}_icp/...`` after ICP; the per-instance table is an artifact
-``eval/{name}/instances.csv``.
+``eval/{name}/instances.parquet``.
 """
 
 from __future__ import annotations
@@ -395,12 +395,14 @@ def _disk_full(exc: BaseException, client, run_id: str) -> DiskFullError | None:
 def log_evaluation(
     client, run_id: str, name: str, table: pd.DataFrame, metrics: dict[str, float]
 ) -> None:
-    """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.csv``
-    (what the reports read) and the finite metrics; on the run's own test set
-    (:data:`OWN_TEST`) also its headline metrics (:data:`cloudpose.store.headline.HEADLINE`)."""
+    """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.parquet``
+    (what the reports read; float32, :mod:`cloudpose.store.instances`) and the finite metrics;
+    on the run's own test set (:data:`OWN_TEST`) also its headline metrics
+    (:data:`cloudpose.store.headline.HEADLINE`)."""
+    from cloudpose.store import instances
+
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "instances.csv"
-        table.to_csv(path, index=False)
+        path = instances.write_table(table, Path(tmp) / instances.PARQUET)
         client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
     if name == OWN_TEST:
         metrics = {**metrics, **headline(metrics)}

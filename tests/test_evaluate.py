@@ -40,7 +40,7 @@ def test_evaluate_own_test_set_logs_table_and_metrics(project):
     run = client.get_run(out.run_id)
     assert run.data.metrics["test/ads_auc"] == pytest.approx(ev.metrics["test/ads_auc"])
     arts = [a.path for a in client.list_artifacts(out.run_id, "eval/test")]
-    assert arts == ["eval/test/instances.csv"]
+    assert arts == ["eval/test/instances.parquet"]
 
 
 @pytest.mark.slow

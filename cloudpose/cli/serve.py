@@ -1,5 +1,6 @@
 """Commands that serve MLflow (a tracking server for several machines, the UI over the local
-store) and move a store: packed into one file beside the reports, unpacked anywhere."""
+store) and move a store: packed beside the reports (a compact folder, or one file), unpacked
+anywhere."""
 
 from __future__ import annotations
 
@@ -136,21 +137,33 @@ def mlflow_ui(
 
 @app.command("store-pack")
 def store_pack(
-    out: Annotated[Path, typer.Argument(help="The archive to write (.tar.xz).")],
+    out: Annotated[
+        Path,
+        typer.Argument(
+            help="The compact store's folder to write (reports/PRESET/mlflow-store), or an "
+            "archive (a name ending in .tar.xz)."
+        ),
+    ],
     checkpoint: Annotated[
         list[str] | None,
         typer.Option(help="Run (id or name) whose checkpoints (*.pt) to pack (repeatable)."),
     ] = None,
-    force: Annotated[bool, typer.Option("--force", help="Replace an existing archive.")] = False,
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Replace an existing archive, or update a compact folder."),
+    ] = False,
 ) -> None:
-    """Pack this folder's MLflow store (mlflow.db and mlartifacts/) into one .tar.xz with
-    artifact addresses relative to the folder; checkpoints only of the runs named."""
-    from cloudpose.store.archive import pack_store
+    """Pack this folder's MLflow store (mlflow.db and mlartifacts/) with artifact addresses
+    relative to the folder, checkpoints only of the runs named: as a compact folder that git
+    stores run by run (one folder per run, the database as text, instance tables as Parquet
+    float32; a repack rewrites only what changed), or as one .tar.xz."""
+    from cloudpose.store.archive import is_archive_name, pack_store
 
     s = pack_store(Path.cwd(), out, checkpoint or [], force=force)
+    what = "" if is_archive_name(out) else " (compact form)"
     typer.echo(
-        f"{out}: {s.runs} runs, {s.files} artifact files ({s.checkpoints_kept} checkpoints "
-        f"packed, {s.checkpoints_left_out} left out), {s.bytes / 1e6:.1f} MB"
+        f"{out}{what}: {s.runs} runs, {s.files} artifact files ({s.checkpoints_kept} "
+        f"checkpoints packed, {s.checkpoints_left_out} left out), {s.bytes / 1e6:.1f} MB"
     )
     if s.without_artifacts:
         typer.secho(
@@ -162,13 +175,16 @@ def store_pack(
 
 @app.command("store-unpack")
 def store_unpack(
-    archive: Annotated[Path, typer.Argument(help="A packed store (.tar.xz).")],
+    archive: Annotated[
+        Path, typer.Argument(help="A compact store's folder, or a packed store (.tar.xz).")
+    ],
     into: Annotated[
         Path, typer.Option(help="Folder to hold the store (must not hold an mlflow.db).")
     ] = Path("."),
 ) -> None:
-    """Unpack a store packed by store-pack (or by hand) and point its artifacts to this folder:
-    then report, mlflow-ui and ablate work there on its runs."""
+    """Unpack a store packed by store-pack (a compact folder, every file checked against its
+    index and mlflow.db rebuilt; or a .tar.xz, also one packed by hand) and point its artifacts
+    to this folder: then report, mlflow-ui and ablate work there on its runs."""
     from cloudpose.store.archive import unpack_store
     from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 

@@ -1,33 +1,55 @@
 """The committed store of a preset: what the report commands read when the project's own
 store lacks the preset's runs (a fresh clone).
 
-A preset whose sweep the repository commits keeps its MLflow store packed at
-``reports/PRESET/mlflow-store.tar.xz`` (``cloudpose store-pack``). The commands that render
-from runs (``report``, ``real-report``, ``occlusion-report``) use it when the user named no
-store (``MLFLOW_TRACKING_URI`` unset) and the project's own store holds none of the runs they
-need: it is unpacked once into ``stores/PRESET/`` (ignored by git; :func:`unpack_store` moves it
-into place only when complete) and read there, so a user's own runs and the committed ones
-never mix. To work on the committed runs with any other command, point at it:
-``MLFLOW_TRACKING_URI=sqlite:///stores/PRESET/mlflow.db``.
+A preset whose sweep the repository commits keeps its MLflow store at ``reports/PRESET/``: the
+compact form ``mlflow-store/`` (:data:`COMPACT`, one folder per run, :mod:`cloudpose.store.compact`,
+written by ``cloudpose store-pack reports/PRESET/mlflow-store --force``), or an archive
+``mlflow-store.tar.xz`` (:data:`ARCHIVE`), read when there is no compact form. The commands
+that render from runs (``report``, ``real-report``, ``occlusion-report``) use it when the user
+named no store (``MLFLOW_TRACKING_URI`` unset) and the project's own store holds none of the
+runs they need: it is unpacked once into ``stores/PRESET/`` (ignored by git; :func:`unpack_store`
+moves it into place only when complete) and read there, so a user's own runs and the committed
+ones never mix. ``stores/PRESET/`` remembers the index of the compact form it came from
+(:data:`SOURCE`); when the committed store has changed since (a pull brought new runs), the
+command says so and reads the copy it has. To work on the committed runs with any other
+command, point at it: ``MLFLOW_TRACKING_URI=sqlite:///stores/PRESET/mlflow.db``.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable
 from pathlib import Path
 
+COMPACT = "mlflow-store"
+"""The compact store's folder name in ``reports/PRESET/``."""
+
 ARCHIVE = "mlflow-store.tar.xz"
-"""The packed store's name in ``reports/PRESET/``."""
+"""The packed store's name in ``reports/PRESET/`` (read when there is no :data:`COMPACT`)."""
 
 STORES = "stores"
 """Folder of the project where committed stores are unpacked, one sub-folder per preset."""
 
+SOURCE = ".committed-index"
+"""File in ``stores/PRESET/``: the SHA-256 of the compact store's index it was unpacked from."""
+
 
 def committed_archive(preset: str, project_dir: Path) -> Path | None:
-    """``reports/PRESET/mlflow-store.tar.xz`` of the project, if the checkout has one."""
-    path = Path(project_dir) / "reports" / preset / ARCHIVE
-    return path if path.is_file() else None
+    """The preset's committed store in the checkout: ``reports/PRESET/mlflow-store/`` (the
+    compact form), else ``reports/PRESET/mlflow-store.tar.xz``; None if it has neither."""
+    base = Path(project_dir) / "reports" / preset
+    if (base / COMPACT).is_dir():
+        return base / COMPACT
+    return base / ARCHIVE if (base / ARCHIVE).is_file() else None
+
+
+def _index_digest(store: Path) -> str | None:
+    """SHA-256 of a compact store's index (None for an archive, or a folder without one)."""
+    from cloudpose.store.compact import INDEX
+
+    index = store / INDEX
+    return hashlib.sha256(index.read_bytes()).hexdigest() if index.is_file() else None
 
 
 def committed_store(preset: str, project_dir: Path) -> Path:
@@ -43,13 +65,27 @@ def committed_store(preset: str, project_dir: Path) -> Path:
     archive = committed_archive(preset, project_dir)
     if archive is None:
         raise FileNotFoundError(
-            f"{Path(project_dir) / 'reports' / preset / ARCHIVE}: the checkout commits no store "
+            f"{Path(project_dir) / 'reports' / preset / COMPACT}: the checkout commits no store "
             f"for preset {preset!r}"
         )
     folder = Path(project_dir) / STORES / preset
     if not (folder / STORE_DB).is_file():
         unpack_store(archive, folder)
+        digest = _index_digest(archive)
+        if digest is not None:
+            (folder / SOURCE).write_text(digest + "\n")
     return folder
+
+
+def is_stale(preset: str, project_dir: Path) -> bool:
+    """Whether ``stores/PRESET`` was unpacked from a compact store whose index has changed
+    since (the checkout commits other runs now)."""
+    archive = committed_archive(preset, project_dir)
+    source = Path(project_dir) / STORES / preset / SOURCE
+    if archive is None or not source.is_file():
+        return False
+    digest = _index_digest(archive)
+    return digest is not None and source.read_text().strip() != digest
 
 
 def use_committed_store(
@@ -69,11 +105,17 @@ def use_committed_store(
     folder = committed_store(preset, project_dir)
     os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{(folder / STORE_DB).resolve()}"
     shown = Path(STORES) / preset
-    how = f"unpacked from reports/{preset}/{ARCHIVE} into {shown}/" if fresh else f"in {shown}/"
+    name = committed_archive(preset, project_dir).name
+    how = f"unpacked from reports/{preset}/{name} into {shown}/" if fresh else f"in {shown}/"
     echo(
         f"this project's store lacks the {preset} runs: reading the committed store ({how}; "
         f"MLFLOW_TRACKING_URI=sqlite:///{shown}/{STORE_DB} to use it with other commands)"
     )
+    if is_stale(preset, project_dir):
+        echo(
+            f"note: reports/{preset}/{name} has changed since {shown}/ was unpacked from it; "
+            f"remove {shown}/ to read the committed runs as they are now"
+        )
     return True
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.files import CorruptFileError, why
-from cloudpose.store import tracking
+from cloudpose.store import instances, tracking
 from cloudpose.store.runs import is_preset_config
 
 INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
@@ -58,7 +58,8 @@ class RunRecord:
         return float(self.metrics.get(key, math.nan))
 
     def instances(self, name: str = "test") -> pd.DataFrame | None:
-        """The per-instance table ``eval/{name}/instances.csv``, or None if it is missing.
+        """The per-instance table ``eval/{name}/instances.parquet`` (or, logged before, its
+        ``instances.csv``), or None if it is missing.
 
         Raises:
             CorruptFileError: the table is empty, truncated (its last row cut, or fewer rows
@@ -68,16 +69,18 @@ class RunRecord:
         """
         key = ("instances", name)
         if key not in self._cache:
-            rel = f"eval/{name}/instances.csv"
-            local = tracking.local_artifact(self.artifact_uri, rel)
+            local = instances.local_table(self.artifact_uri, name)
             if local is not None:
                 self._cache[key] = self._checked(local, name) if local.exists() else None
             else:
                 with tempfile.TemporaryDirectory() as tmp:
-                    try:
-                        path = self.client.download_artifacts(self.run_id, rel, tmp)
-                    except Exception:
-                        path = None
+                    path = None
+                    for rel in instances.artifact_names(name):
+                        try:
+                            path = self.client.download_artifacts(self.run_id, rel, tmp)
+                            break
+                        except Exception:
+                            continue
                     self._cache[key] = None if path is None else self._checked(path, name)
         return self._cache[key]
 
@@ -101,8 +104,9 @@ def read_instance_table(
     preset: str,
     count: float | None = None,
 ) -> pd.DataFrame:
-    """An evaluation's instance table ``eval/{name}/instances.csv`` of a run, checked: whole (it
-    ends with a line end, as pandas writes every row), with the columns an evaluation writes
+    """An evaluation's instance table ``eval/{name}/instances.parquet`` or ``.csv`` of a run
+    (:func:`cloudpose.store.instances.read_table`), checked: whole (a CSV ends with a line end,
+    as pandas writes every row; a Parquet file is read whole), with the columns an evaluation writes
     (:data:`INSTANCE_COLUMNS`) and, when the run logged its metric ``{name}/count``, as many
     rows.
 
@@ -129,11 +133,11 @@ def read_instance_table(
     raw = path.read_bytes()
     if not raw.strip():
         raise damaged("is empty")
-    if not raw.endswith(b"\n"):
+    if path.suffix == ".csv" and not raw.endswith(b"\n"):
         raise damaged("is cut short in its last row")
     try:
-        df = pd.read_csv(path)
-    except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        df = instances.read_table(path)
+    except (ValueError, OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
         raise damaged(f"is unreadable ({why(e)})") from e
     missing = [c for c in INSTANCE_COLUMNS if c not in df.columns]
     if missing:
@@ -144,14 +148,14 @@ def read_instance_table(
 
 
 def run_instance_table(client, run, name: str) -> pd.DataFrame:
-    """The instance table ``eval/{name}/instances.csv`` of an MLflow ``run``, read in place
-    from a local store or downloaded, and checked (:func:`read_instance_table`).
+    """The instance table ``eval/{name}/instances.parquet`` (or ``.csv``) of an MLflow
+    ``run``, read in place from a local store or downloaded, and checked
+    (:func:`read_instance_table`).
 
     Raises:
         FileNotFoundError, MlflowException: the run has no such table.
         CorruptFileError: as :func:`read_instance_table`.
     """
-    rel = f"eval/{name}/instances.csv"
     tags = run.data.tags
     args = (
         name,
@@ -161,13 +165,18 @@ def run_instance_table(client, run, name: str) -> pd.DataFrame:
         tags.get("preset", "?"),
         run.data.metrics.get(tracking.metric_key(name, "count")),
     )
-    local = tracking.local_artifact(run.info.artifact_uri, rel)
+    local = instances.local_table(run.info.artifact_uri, name)
     if local is not None:
         if not local.is_file():
             raise FileNotFoundError(f"{local}: no such instance table")
         return read_instance_table(local, *args)
+    parquet, csv = instances.artifact_names(name)
     with tempfile.TemporaryDirectory() as tmp:
-        return read_instance_table(client.download_artifacts(run.info.run_id, rel, tmp), *args)
+        try:
+            path = client.download_artifacts(run.info.run_id, parquet, tmp)
+        except Exception:  # logged as CSV (before Parquet), or missing: the CSV name says
+            path = client.download_artifacts(run.info.run_id, csv, tmp)
+        return read_instance_table(path, *args)
 
 
 def metric_history(client, run_id: str, key: str) -> pd.Series:

@@ -1,4 +1,7 @@
-"""A project's MLflow store as one file: packed to commit beside its reports, unpacked anywhere.
+"""A project's MLflow store packed to commit beside its reports, unpacked anywhere: as one
+``.tar.xz``, or as a folder in the compact form that git stores run by run
+(:mod:`cloudpose.store.compact`; :func:`pack_store` writes it for any name not ending in
+``.tar.xz``, :func:`unpack_store` reads both).
 
 A project's store is its SQLite ``mlflow.db`` and its artifact folder ``mlartifacts/``
 (:func:`cloudpose.store.tracking.experiment_id`). MLflow records every run's artifact folder as an
@@ -24,6 +27,7 @@ in the original project.
 
 from __future__ import annotations
 
+import contextlib
 import lzma
 import os
 import shutil
@@ -232,23 +236,42 @@ def store_database(project_dir: Path) -> Path:
     return db if db.is_absolute() else Path.cwd() / db
 
 
+ARCHIVE_SUFFIX = ".tar.xz"
+"""The ending of an archive's name; :func:`pack_store` writes any other name as a folder in
+the compact form (:mod:`cloudpose.store.compact`)."""
+
+
+def is_archive_name(path: Path) -> bool:
+    """Whether ``path`` names a ``.tar.xz`` archive (else a compact store's folder)."""
+    return Path(path).name.endswith(ARCHIVE_SUFFIX)
+
+
 def pack_store(
     project_dir: Path, out: Path, checkpoints: Sequence[str] = (), force: bool = False
 ) -> PackSummary:
-    """Pack the store of ``project_dir`` into ``out`` (``.tar.xz``), written atomically.
+    """Pack the store of ``project_dir`` into ``out``: a ``.tar.xz`` archive written
+    atomically, or under any other name a folder in the compact form
+    (:func:`cloudpose.store.compact.write_compact`: one folder per run, instance tables as
+    Parquet float32), in which only what changed is rewritten.
 
     Args:
         project_dir: the folder holding ``mlflow.db`` and ``mlartifacts/`` (the store
             ``MLFLOW_TRACKING_URI`` names instead, when it names a ``sqlite:///`` file:
             :func:`store_database`).
-        out: the archive to write.
+        out: the archive or compact folder to write.
         checkpoints: runs (ids or names; a name means its newest active run) whose ``*.pt``
             files are packed; every other run's are left out.
-        force: replace ``out`` if it exists (else ``FileExistsError``).
+        force: replace (update, for a compact folder) ``out`` if it exists (else
+            ``FileExistsError``).
     """
     out = Path(out)
+    compact = not is_archive_name(out)
     if out.exists() and not force:
         raise FileExistsError(f"{out} exists: pass --force to replace it")
+    if compact and out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} is a file: a compact store is a folder (or name a .tar.xz)")
+    if not compact and out.is_dir():
+        raise FileExistsError(f"{out} is a folder: an archive is a file")
     db = store_database(Path(project_dir))
     project = db.parent
     if not db.is_file():
@@ -270,6 +293,20 @@ def pack_store(
         runs = _rewrite(copy, lambda uri: moved.get(uri) or _under_artifacts(ARTIFACT_DIR)(uri))
         files = kept = left = 0
         without = tuple(r.run_id for r in plan if r.expected and not r.source.is_dir())
+        if compact:
+            from cloudpose.store.compact import RunSource, write_compact
+
+            sources = [RunSource(r.run_id, r.source, r.run_id in keep) for r in plan]
+            try:
+                c = write_compact(copy, sources, out)
+            except OSError as exc:
+                full = disk_full(exc, out, then=f"pack again (cloudpose store-pack {out} --force)")
+                if full is None:
+                    raise
+                raise full from exc
+            return PackSummary(
+                runs, c.files, c.checkpoints_kept, c.checkpoints_left_out, c.bytes, without
+            )
 
         def write(path: Path) -> None:
             nonlocal files, kept, left
@@ -377,34 +414,48 @@ def unpack_store(archive: Path, into: Path) -> int:
 
     Args:
         archive: a ``.tar.xz`` of ``mlflow.db`` and ``mlartifacts/`` (from :func:`pack_store`,
-            or packed by hand with absolute addresses of another machine).
+            or packed by hand with absolute addresses of another machine), or a folder in the
+            compact form (:mod:`cloudpose.store.compact`; every file checked against its index
+            before anything is written, and ``mlflow.db`` rebuilt).
         into: the folder to hold the store; it must not hold an ``mlflow.db`` yet.
 
     Returns:
         The number of runs in the store. Nothing is left in ``into`` when it fails or is
         stopped (:data:`UNPACK_PREFIX`).
     """
+    from cloudpose.store import compact
+
     archive, into = Path(archive), Path(into)
     if (into / STORE_DB).exists():
         raise FileExistsError(
             f"{into / STORE_DB} exists: unpack into a folder without a store (this one's runs would be "
             "replaced)"
         )
-    if not archive.is_file():
-        raise FileNotFoundError(f"{archive}: no such store archive")
+    folder = archive.is_dir()
+    if not folder and not archive.is_file():
+        raise FileNotFoundError(f"{archive}: no such store archive or compact store folder")
     made = not into.exists()
     staging = None
     with sigterm_as_interrupt():
         try:
             try:
-                with tarfile.open(archive, "r:*") as tar:
-                    members = _checked_members(archive, tar, str(into / UNPACK_PREFIX))
+                with contextlib.ExitStack() as stack:
+                    if folder:
+                        entries = compact.check_compact(archive)
+                    else:
+                        tar = stack.enter_context(tarfile.open(archive, "r:*"))
+                        members = _checked_members(archive, tar, str(into / UNPACK_PREFIX))
                     into.mkdir(parents=True, exist_ok=True)
                     _remove_stale(into, f"{UNPACK_PREFIX}*", UNPACK_PREFIX)
                     prefix = f"{UNPACK_PREFIX}{os.getpid()}-"
                     staging = Path(tempfile.mkdtemp(prefix=prefix, dir=into))
-                    tar.extractall(staging, members=members, filter="data")
+                    if folder:
+                        compact.extract_compact(archive, entries, staging)
+                    else:
+                        tar.extractall(staging, members=members, filter="data")
             except _ARCHIVE_ERRORS as exc:
+                if folder:
+                    raise
                 raise _unreadable(archive, exc) from exc
             except OSError as exc:
                 full = disk_full(exc, into, then="unpack again")

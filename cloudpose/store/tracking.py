@@ -326,16 +326,11 @@ def local_artifact(uri: str, rel: str) -> Path | None:
 
 def read_csv_artifact(client, run, rel: str):
     """The run's CSV artifact ``rel`` as a DataFrame: read in place from a local store,
-    downloaded from a remote one."""
-    import tempfile
+    downloaded from a remote one; an instance table (``eval/NAME/instances.csv``) is read
+    from its Parquet form where the run has that (:mod:`cloudpose.store.instances`)."""
+    from cloudpose.store.instances import read_artifact_table
 
-    import pandas as pd
-
-    local = local_artifact(run.info.artifact_uri, rel)
-    if local is not None:
-        return pd.read_csv(local)
-    with tempfile.TemporaryDirectory() as tmp:
-        return pd.read_csv(client.download_artifacts(run.info.run_id, rel, tmp))
+    return read_artifact_table(client, run, rel)
 
 
 def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:

@@ -47,7 +47,7 @@ from cloudpose.conventions import resource_path
 from cloudpose.data.ycb import load_classes
 from cloudpose.geometry.rigid import rotation_error_deg
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.store import tracking
+from cloudpose.store import instances, tracking
 
 REPO = Path(__file__).resolve().parents[2]
 STORE = REPO / "reports" / "cpu" / "mlflow-store.tar.xz"
@@ -113,13 +113,14 @@ def artifact_dir(uri: str, root: Path) -> Path:
 
 
 def eval_tables(uri: str, root: Path) -> dict[str, Path]:
-    """Evaluation name -> instances.csv of one run (validation tables left out)."""
+    """Evaluation name -> instance table (instances.parquet, else instances.csv) of one run
+    (validation tables left out)."""
     base = artifact_dir(uri, root) / "eval"
     if not base.is_dir():
         return {}
     return {
         p.parent.name: p
-        for p in sorted(base.glob("*/instances.csv"))
+        for p in sorted(base.glob("*/instances.csv")) + sorted(base.glob("*/instances.parquet"))
         if p.parent.name == "test"
         or p.parent.name.startswith("test-degraded")
         or p.parent.name.startswith("real")
@@ -127,7 +128,10 @@ def eval_tables(uri: str, root: Path) -> dict[str, Path]:
 
 
 def read_table(path: Path) -> pd.DataFrame:
-    df = pd.read_csv(path, dtype={"net_R": str, "icp_R": str, "frame_id": str})
+    if path.suffix == ".parquet":
+        df = instances.read_table(path)
+    else:
+        df = pd.read_csv(path, dtype={"net_R": str, "icp_R": str, "frame_id": str})
     for col in ("net_R", "icp_R"):
         if col in df:
             df[col] = df[col].fillna("")

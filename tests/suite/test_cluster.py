@@ -228,7 +228,7 @@ def test_sweep_on_ray_survives_a_killed_node(loopback, smoke_data, tmp_path, mon
         assert {"variant", "group", "preset", "seed", "data", "config"} <= set(run.data.tags)
         artifacts = {f.path for f in client.list_artifacts(run.info.run_id)}
         assert "model.pt" in artifacts and "checkpoint" not in artifacts
-        assert "eval/test/instances.csv" in {
+        assert "eval/test/instances.parquet" in {
             f.path for f in client.list_artifacts(run.info.run_id, "eval/test")
         }
     # the group's report, rendered by the driver from the server's runs

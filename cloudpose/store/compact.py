@@ -1,0 +1,470 @@
+"""A project's MLflow store as a folder of small files, which git stores run by run.
+
+A packed ``.tar.xz`` (:mod:`cloudpose.store.archive`) is one blob: every repack adds the whole
+store to a repository's history again. The compact form keeps each run in a folder of its own
+and the database as text, so a new sweep round adds only its new runs' files (and a few lines
+of the index) and git stores nothing again of the runs it had::
+
+    DIR/index.tsv                  a format line, then path, bytes and SHA-256 of every file
+    DIR/experiments.json           the experiments (ids kept) and their tags
+    DIR/runs/RUN_ID/run.json       the run's row (name, status, times, experiment), tags, params
+    DIR/runs/RUN_ID/metrics.tsv    every logged value of every metric (key, step, timestamp,
+                                   value as Python's shortest exact repr, is_nan), sorted
+    DIR/runs/RUN_ID/artifacts/     the run's artifacts; instance tables as Parquet float32
+                                   (:mod:`cloudpose.store.instances`), checkpoints only of the
+                                   runs named
+
+:func:`write_compact` writes it from a packed database copy (addresses made relative by
+:func:`cloudpose.store.archive.pack_store`); a file whose content did not change keeps its
+bytes (an instance table is compared by its values, so a repack with another pyarrow leaves it
+as it is). :func:`check_compact` verifies every file the index lists, before anything is
+written, and names the first missing or damaged one; :func:`extract_compact` rebuilds
+``mlflow.db``: an empty store made by the installed MLflow (its schema, whatever its version),
+then the stored rows written into it with their run and experiment ids, and each metric's
+latest value derived as MLflow derives it (highest step, then timestamp, then value).
+
+What the form keeps of a store: experiments and their tags, runs, tags, params, metrics
+(``latest_metrics`` follows from them). Rows of other tables (datasets, traces, registered
+models: the suite logs none) are left out with a warning.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import sqlite3
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from cloudpose.files import CorruptFileError, atomic_text, why
+from cloudpose.store import instances
+from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
+
+FORMAT = "# cloudpose MLflow store, compact form 1"
+"""First line of :data:`INDEX`."""
+
+INDEX = "index.tsv"
+EXPERIMENTS = "experiments.json"
+RUNS = "runs"
+RUN_FILE = "run.json"
+METRICS_FILE = "metrics.tsv"
+ARTIFACTS = "artifacts"
+METRIC_COLUMNS = ("key", "step", "timestamp", "value", "is_nan")
+"""Columns of :data:`METRICS_FILE` (its header line)."""
+
+_KEPT = {"experiments", "experiment_tags", "runs", "tags", "params", "metrics", "latest_metrics"}
+_MADE_BY_MLFLOW = {"alembic_version", "workspaces"}
+
+
+@dataclass(frozen=True)
+class RunSource:
+    """One run's artifacts to pack: where they are read from, and which checkpoints to keep."""
+
+    run_id: str
+    source: Path
+    keep_checkpoints: bool
+
+
+@dataclass(frozen=True)
+class CompactSummary:
+    """Files written (artifact files packed, checkpoints kept and left out) and the folder's
+    size in bytes."""
+
+    files: int
+    checkpoints_kept: int
+    checkpoints_left_out: int
+    bytes: int
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _rows(con: sqlite3.Connection, sql: str, args: Sequence = ()) -> list[dict]:
+    cur = con.execute(sql, args)
+    names = [d[0] for d in cur.description]
+    return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+
+
+def _json(obj) -> str:
+    return json.dumps(obj, indent=1, sort_keys=True, ensure_ascii=False) + "\n"
+
+
+def _metrics_text(rows: Iterable[tuple]) -> str:
+    """:data:`METRICS_FILE` of a run's metric rows ``(key, step, timestamp, value, is_nan)``."""
+    lines = ["\t".join(METRIC_COLUMNS)]
+    for key, step, ts, value, is_nan in sorted(rows, key=lambda r: (r[0], r[1], r[2], r[3])):
+        if "\t" in key or "\n" in key:
+            raise ValueError(f"metric key {key!r} holds a tab or a line end: not storable")
+        lines.append(f"{key}\t{int(step)}\t{int(ts)}\t{float(value)!r}\t{int(bool(is_nan))}")
+    return "\n".join(lines) + "\n"
+
+
+def _left_out(con: sqlite3.Connection) -> list[str]:
+    """``table (N rows)`` of each non-empty table the compact form does not keep."""
+    tables = [t for (t,) in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+    out = []
+    for t in sorted(set(tables) - _KEPT - _MADE_BY_MLFLOW):
+        if t.startswith("sqlite_"):
+            continue
+        n = con.execute(f'SELECT COUNT(*) FROM "{t}"').fetchone()[0]
+        if n:
+            out.append(f"{t} ({n} rows)")
+    return out
+
+
+def _stage_artifacts(run: RunSource, dest: Path) -> tuple[int, int, int]:
+    """Copy a run's artifacts into ``dest``, instance tables as Parquet; returns (files,
+    checkpoints kept, checkpoints left out)."""
+    from cloudpose.store.archive import CHECKPOINT_SUFFIX
+
+    files = kept = left = 0
+    if not run.source.is_dir():
+        return files, kept, left
+    for f in sorted(run.source.rglob("*")):
+        if not f.is_file():
+            continue
+        rel = f.relative_to(run.source)
+        if f.suffix == CHECKPOINT_SUFFIX:
+            if not run.keep_checkpoints:
+                left += 1
+                continue
+            kept += 1
+        target = dest / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if f.name == instances.CSV and not (f.parent / instances.PARQUET).is_file():
+            try:
+                instances.csv_to_parquet(f, target.with_name(instances.PARQUET))
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise CorruptFileError(
+                    f,
+                    f"instance table of run {run.run_id} is unreadable ({why(exc)}); nothing "
+                    "packed: evaluate the run again, or leave the run out",
+                ) from exc
+        else:
+            shutil.copyfile(f, target)
+        files += 1
+    return files, kept, left
+
+
+def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int, int]:
+    """The compact form of the store ``db`` (addresses relative) and its runs' artifacts,
+    written into ``staging`` (no index yet)."""
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        left_out = _left_out(con)
+        if left_out:
+            warnings.warn(
+                f"{db}: the compact form keeps experiments, runs, tags, params and metrics; "
+                f"left out: {', '.join(left_out)}",
+                stacklevel=3,
+            )
+        exps = _rows(con, "SELECT * FROM experiments ORDER BY experiment_id")
+        for e in exps:
+            e["tags"] = dict(
+                con.execute(
+                    "SELECT key, value FROM experiment_tags WHERE experiment_id = ?",
+                    (e["experiment_id"],),
+                ).fetchall()
+            )
+        atomic_text(staging / EXPERIMENTS, _json({"experiments": exps}))
+        by_id = {r.run_id: r for r in runs}
+        files = kept = left = 0
+        for row in _rows(con, "SELECT * FROM runs ORDER BY run_uuid"):
+            rid = row["run_uuid"]
+            folder = staging / RUNS / rid
+            record = {
+                "run": row,
+                "tags": dict(con.execute("SELECT key, value FROM tags WHERE run_uuid = ?", (rid,))),
+                "params": dict(
+                    con.execute("SELECT key, value FROM params WHERE run_uuid = ?", (rid,))
+                ),
+            }
+            atomic_text(folder / RUN_FILE, _json(record))
+            metrics = con.execute(
+                "SELECT key, step, timestamp, value, is_nan FROM metrics WHERE run_uuid = ?",
+                (rid,),
+            )
+            atomic_text(folder / METRICS_FILE, _metrics_text(metrics))
+            if rid in by_id:
+                n, k, lo = _stage_artifacts(by_id[rid], folder / ARTIFACTS)
+                files, kept, left = files + n, kept + k, left + lo
+        return files, kept, left
+    finally:
+        con.close()
+
+
+def _listed(folder: Path) -> list[str]:
+    """The store's files in ``folder`` (experiments and runs), relative, sorted."""
+    out = [EXPERIMENTS] if (folder / EXPERIMENTS).is_file() else []
+    if (folder / RUNS).is_dir():
+        out += [p.relative_to(folder).as_posix() for p in (folder / RUNS).rglob("*") if p.is_file()]
+    return sorted(out)
+
+
+def _same(new: Path, old: Path) -> bool:
+    if not old.is_file():
+        return False
+    if new.stat().st_size == old.stat().st_size and new.read_bytes() == old.read_bytes():
+        return True
+    return new.suffix == ".parquet" and instances.same_table(new, old)
+
+
+def _sync(staging: Path, out: Path) -> None:
+    """Make ``out`` hold what ``staging`` holds, keeping each file whose content is the same;
+    the index goes first (an interrupted sync leaves none: unpacking refuses, a new pack mends)
+    and is written last."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / INDEX).unlink(missing_ok=True)
+    new = _listed(staging)
+    keep = set(new)
+    for rel in _listed(out):
+        if rel not in keep:
+            (out / rel).unlink()
+    for rel in new:
+        if not _same(staging / rel, out / rel):
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(staging / rel, out / rel)
+    for d in sorted((out / RUNS).rglob("*"), key=lambda p: -len(p.parts)):
+        if d.is_dir() and not any(d.iterdir()):
+            d.rmdir()
+    lines = [FORMAT]
+    lines += [f"{rel}\t{(out / rel).stat().st_size}\t{_sha256(out / rel)}" for rel in new]
+    atomic_text(out / INDEX, "\n".join(lines) + "\n")
+
+
+def write_compact(db: Path, runs: Sequence[RunSource], out: Path) -> CompactSummary:
+    """Write the compact form of the store ``db`` (a copy whose addresses are relative) and
+    the artifacts of ``runs`` into the folder ``out``, created or brought up to date.
+
+    Everything is written into a hidden folder beside ``out`` first (removed whatever
+    happens), then moved in file by file where it changed.
+    """
+    import tempfile
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", dir=out.parent))
+    try:
+        files, kept, left = _stage(db, runs, staging)
+        _sync(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    size = sum((out / rel).stat().st_size for rel in [INDEX, *_listed(out)])
+    return CompactSummary(files, kept, left, size)
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+def _restore(path: Path) -> str:
+    return f"restore it (git checkout -- {path}) or pack the store again (cloudpose store-pack)"
+
+
+def check_compact(folder: Path) -> list[tuple[str, int, str]]:
+    """The files the index of ``folder`` lists, each checked to be there whole (size and
+    SHA-256), as ``(path, bytes, sha256)``.
+
+    Raises:
+        FileNotFoundError: no index, or a listed file is missing (the message names it).
+        CorruptFileError: the index is not one, or a file differs from what it lists.
+    """
+    folder = Path(folder)
+    index = folder / INDEX
+    if not index.is_file():
+        raise FileNotFoundError(
+            f"{index}: missing, so {folder} is not a compact store (or its pack was stopped): "
+            + _restore(index)
+        )
+    try:
+        lines = index.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise CorruptFileError(index, f"not a store index ({why(exc)}); {_restore(index)}") from exc
+    if not lines or lines[0] != FORMAT:
+        first = lines[0][:60] if lines else "nothing"
+        raise CorruptFileError(index, f"starts with {first!r}, not {FORMAT!r}; {_restore(index)}")
+    entries = []
+    for n, line in enumerate(lines[1:], start=2):
+        parts = line.split("\t")
+        bad = len(parts) != 3 or not parts[1].isdigit() or len(parts[2]) != 64
+        rel = parts[0]
+        if not bad:
+            bad = rel.startswith("/") or ".." in rel.split("/") or "\\" in rel
+        if bad:
+            raise CorruptFileError(
+                index,
+                f"line {n} is not 'PATH<tab>BYTES<tab>SHA-256' inside the folder; "
+                + _restore(index),
+            )
+        entries.append((rel, int(parts[1]), parts[2]))
+    if not any(rel == EXPERIMENTS for rel, _, _ in entries):
+        raise CorruptFileError(index, f"lists no {EXPERIMENTS}; {_restore(index)}")
+    for rel, size, sha in entries:
+        path = folder / rel
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: missing (listed in {index}); {_restore(path)}")
+        if path.stat().st_size != size or _sha256(path) != sha:
+            raise CorruptFileError(
+                path,
+                f"damaged: {path.stat().st_size} bytes, not the {size} bytes of SHA-256 "
+                f"{sha[:12]}... that {INDEX} lists; {_restore(path)}",
+            )
+    return entries
+
+
+def _new_database(db: Path) -> None:
+    """An empty MLflow store at ``db``, with the schema of the installed MLflow."""
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    for name in ("alembic", "mlflow.store.db.utils"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        store = SqlAlchemyStore(f"sqlite:///{db}", (db.parent.resolve() / "mlruns").as_uri())
+        store.engine.dispose()
+
+
+def _insert(con: sqlite3.Connection, table: str, rows: list[dict], replace: bool = False) -> None:
+    """Insert ``rows`` (column -> value) into ``table``: the columns the table has; a stored
+    column it lacks (a schema of another MLflow) is dropped, with a warning when it holds
+    values."""
+    if not rows:
+        return
+    have = [r[1] for r in con.execute(f'PRAGMA table_info("{table}")')]
+    cols = [c for c in rows[0] if c in have]
+    lost = {c for r in rows for c, v in r.items() if c not in have and v is not None}
+    if lost:
+        warnings.warn(
+            f"this MLflow's {table} table has no columns {sorted(lost)}: their values are not "
+            "in the rebuilt store",
+            stacklevel=3,
+        )
+    verb = "INSERT OR REPLACE" if replace else "INSERT"
+    names = ", ".join(f'"{c}"' for c in cols)
+    marks = ", ".join("?" for _ in cols)
+    con.executemany(
+        f'{verb} INTO "{table}" ({names}) VALUES ({marks})',
+        [[r.get(c) for c in cols] for r in rows],
+    )
+
+
+def _read_json(path: Path, what: str):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CorruptFileError(
+            path, f"{what} is not readable JSON ({why(exc)}); {_restore(path)}"
+        ) from exc
+
+
+def _metric_rows(path: Path, run_id: str) -> list[tuple]:
+    lines = path.read_text(encoding="utf-8").splitlines()
+    if not lines or tuple(lines[0].split("\t")) != METRIC_COLUMNS:
+        raise CorruptFileError(path, f"lacks its header {METRIC_COLUMNS}; {_restore(path)}")
+    rows = []
+    for n, line in enumerate(lines[1:], start=2):
+        try:
+            key, step, ts, value, is_nan = line.split("\t")
+            rows.append((key, float(value), int(ts), run_id, int(step), int(is_nan)))
+        except ValueError:
+            raise CorruptFileError(
+                path,
+                f"line {n} is not {len(METRIC_COLUMNS)} tab-separated fields; " + _restore(path),
+            ) from None
+    return rows
+
+
+def _runs_of(entries: list[tuple[str, int, str]]) -> list[str]:
+    return sorted(
+        {
+            rel.split("/")[1]
+            for rel, _, _ in entries
+            if rel.startswith(f"{RUNS}/") and rel.endswith(f"/{RUN_FILE}")
+        }
+    )
+
+
+def extract_compact(folder: Path, entries: list[tuple[str, int, str]], staging: Path) -> int:
+    """Rebuild the store of the compact ``folder`` in ``staging``: its artifacts under
+    ``mlartifacts/`` where each run's (relative) address points, and ``mlflow.db``.
+
+    Args:
+        folder: the compact store.
+        entries: its files, as :func:`check_compact` returned them (checked).
+        staging: an empty folder.
+
+    Returns:
+        The number of runs.
+    """
+    folder, staging = Path(folder), Path(staging)
+    run_ids = _runs_of(entries)
+    exps = _read_json(folder / EXPERIMENTS, "experiment list")["experiments"]
+    records = {r: _read_json(folder / RUNS / r / RUN_FILE, "run record") for r in run_ids}
+    listed = {rel for rel, _, _ in entries}
+    for rid, rec in records.items():
+        member = rec["run"].get("artifact_uri") or ""
+        prefix = f"{RUNS}/{rid}/{ARTIFACTS}/"
+        files = [rel for rel in listed if rel.startswith(prefix)]
+        if files and not member.startswith(f"{ARTIFACT_DIR}/"):
+            raise CorruptFileError(
+                folder / RUNS / rid / RUN_FILE,
+                f"its artifact_uri {member!r} is not under {ARTIFACT_DIR}/; {_restore(folder)}",
+            )
+        for rel in files:
+            target = staging / member / rel[len(prefix) :]
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(folder / rel, target)
+    db = staging / STORE_DB
+    _new_database(db)
+    con = sqlite3.connect(db)
+    try:
+        with con:
+            exp_rows = [{k: v for k, v in e.items() if k != "tags"} for e in exps]
+            _insert(con, "experiments", exp_rows, replace=True)
+            con.execute("DELETE FROM experiment_tags")
+            _insert(
+                con,
+                "experiment_tags",
+                [
+                    {"key": k, "value": v, "experiment_id": e["experiment_id"]}
+                    for e in exps
+                    for k, v in sorted(e["tags"].items())
+                ],
+            )
+            _insert(con, "runs", [records[r]["run"] for r in run_ids])
+            for what in ("tags", "params"):
+                _insert(
+                    con,
+                    what,
+                    [
+                        {"key": k, "value": v, "run_uuid": r}
+                        for r in run_ids
+                        for k, v in sorted(records[r][what].items())
+                    ],
+                )
+            for r in run_ids:
+                con.executemany(
+                    "INSERT INTO metrics (key, value, timestamp, run_uuid, step, is_nan) "
+                    "VALUES (?, ?, ?, ?, ?, ?)",
+                    _metric_rows(folder / RUNS / r / METRICS_FILE, r),
+                )
+            # MLflow's latest value of a metric: highest step, then timestamp, then value
+            con.execute(
+                "INSERT INTO latest_metrics (key, value, timestamp, step, is_nan, run_uuid) "
+                "SELECT key, value, timestamp, step, is_nan, run_uuid FROM ("
+                " SELECT *, ROW_NUMBER() OVER (PARTITION BY run_uuid, key"
+                "  ORDER BY step DESC, timestamp DESC, value DESC) AS n FROM metrics"
+                ") WHERE n = 1"
+            )
+    finally:
+        con.close()
+    return len(run_ids)
