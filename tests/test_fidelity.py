@@ -1,5 +1,5 @@
-"""The synthetic frames' fidelity to real ones: the missing-depth fit and the side-by-side
-report (``cloudpose synth --compare-real``)."""
+"""The synthetic frames' fidelity to real ones: the side-by-side report (``cloudpose synth
+--compare-real``)."""
 
 from __future__ import annotations
 
@@ -9,39 +9,10 @@ import numpy as np
 import pytest
 
 from cloudpose.conventions import YCB_INTRINSICS
-from cloudpose.data.synth import sensor
 from cloudpose.data.ycb import Frame
 from cloudpose.report import fidelity
 
 DATA = Path(__file__).parent / "data"
-
-
-def test_fit_dropout_recovers_a_known_model():
-    truth = sensor.DropoutModel(0.45, 3.0, 0.15, 0.06, ((2, 0.0), (15, 0.1)), 0.05)
-    rng = np.random.default_rng(0)
-    n = 100_000
-    edge = 1.0 + np.floor(rng.exponential(8.0, n))
-    cos = rng.uniform(0.0, 1.0, n)
-    cls = rng.choice([2, 15], n)
-    missing = rng.random(n) < truth.probability(edge, cos, cls)
-    fit = fidelity.fit_dropout(fidelity.PixelSamples(missing, edge, cos, cls))
-    assert abs(fit.edge_rate - 0.45) < 0.03 and abs(fit.edge_scale - 3.0) < 0.3
-    assert abs(fit.graze_cos - 0.15) < 0.02 and abs(fit.graze_width - 0.06) < 0.015
-    assert abs(fit.class_rate(15) - 0.1) < 0.01 and fit.class_rate(2) < 0.01
-
-
-@pytest.mark.slow
-def test_shipped_dropout_is_the_fit_on_the_real_frames():
-    real = fidelity.read_real_frames([DATA / "ycb_real", DATA / "demo_no_gt"])
-    fit = fidelity.fit_dropout(fidelity.object_pixels(real))
-    shipped = sensor.REAL_DROPOUT
-    for name in ("edge_rate", "edge_scale", "graze_cos", "graze_width", "default_rate"):
-        assert getattr(fit, name) == pytest.approx(getattr(shipped, name), abs=2e-3), name
-    for c, r in fit.class_rates:
-        assert r == pytest.approx(shipped.class_rate(c), abs=2e-3), c
-
-
-# --------------------------------------------------------------------------- against real
 
 
 def test_frame_set_stats_on_a_drawn_frame():

@@ -1,7 +1,8 @@
-"""Synthetic frames against real ones: the missing-depth fit and the side-by-side table.
+"""Synthetic frames against real ones: the side-by-side table.
 
-It stays one file over ~450 lines on purpose: the frame statistics, the per-object fidelity and
-the missing-depth fit are all measured on the same real frames and go into one report.
+The frame statistics, the per-object fidelity and a refit of the missing-depth model
+(:mod:`cloudpose.data.synth.sensor_fit`) are all measured on the same real frames and go into
+one report.
 
 ``cloudpose synth --compare-real DIR`` (:func:`compare_real`) measures the same statistics on
 real frames and on synthetic frames of each generator version:
@@ -15,8 +16,6 @@ real frames and on synthetic frames of each generator version:
 
 Real frames are read from YCB-Video roots (every ``data/SEQ/FRAME-meta.mat``; annotated) and
 from loose folders holding ``depth.png`` and ``label.png`` (unannotated, YCB-Video intrinsics).
-
-:func:`fit_dropout` fits :class:`~cloudpose.data.synth.sensor.DropoutModel` to real frames.
 """
 
 from __future__ import annotations
@@ -35,23 +34,19 @@ from cloudpose.data.synth.frames import _generator, generate_frame
 from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import (
     REAL_DROPOUT,
-    DropoutModel,
     add_sensor_noise,
     add_sensor_noise_v2,
     edge_distance,
-    incidence_cosine,
 )
+from cloudpose.data.synth.sensor_fit import fit_dropout, object_pixels
 from cloudpose.data.ycb import Frame, YCBVideo, read_frame
 
 __all__ = [
     "FrameSetStats",
     "ObjectFidelity",
-    "PixelSamples",
     "compare_real",
-    "fit_dropout",
     "frame_set_stats",
     "object_fidelity",
-    "object_pixels",
     "read_real_frames",
 ]
 
@@ -87,126 +82,6 @@ def read_real_frames(paths: Sequence[str | Path]) -> list[Frame]:
         for m in metas:
             frames.append(ds.frame(f"{m.parent.name}/{m.name[: -len('-meta.mat')]}"))
     return frames
-
-
-@dataclass
-class PixelSamples:
-    """Object pixels of real frames with what the missing-depth model conditions on.
-
-    Attributes:
-        missing: (M,) bool, no depth reading.
-        edge: (M,) pixels to the nearest pixel of another label.
-        cos: (M,) |cos| of the incidence angle.
-        cls: (M,) class ids.
-    """
-
-    missing: np.ndarray
-    edge: np.ndarray
-    cos: np.ndarray
-    cls: np.ndarray
-
-
-def _filled_depth(depth: np.ndarray, label: np.ndarray) -> np.ndarray:
-    """Depth with each missing pixel given its nearest reading of the same label, then a 5x5
-    median: a surface for normals where the frame has no rendering."""
-    out = depth.astype(np.float64).copy()
-    for c in np.unique(label):
-        m = label == c
-        have = m & (depth > 0)
-        if not have.any():
-            continue
-        _, (iy, ix) = ndimage.distance_transform_edt(~have, return_indices=True)
-        fill = m & ~have
-        out[fill] = depth[iy[fill], ix[fill]]
-    return ndimage.median_filter(out, size=5)
-
-
-def object_pixels(frames: Sequence[Frame], renderer=None) -> PixelSamples:
-    """The object pixels of real frames, with edge distance and incidence cosine.
-
-    The incidence angle comes from the rendering at the ground-truth pose where a frame has
-    poses and the rendering agrees with the label, else from the frame's own depth (gaps
-    filled from the nearest reading of the same object, median-filtered).
-
-    Args:
-        frames: real frames.
-        renderer: :class:`~cloudpose.data.synth.render.Renderer` for frames with poses (default one
-            over the packaged models, version-2 surfaces).
-    """
-    if renderer is None:
-        renderer = Renderer(surface_version=2)
-    parts = []
-    for f in frames:
-        obj = f.label > 0
-        cos = incidence_cosine(_filled_depth(f.depth, f.label), f.K, f.label)
-        if f.poses is not None:
-            r = renderer.render(f.K, f.depth.shape, f.cls_ids, f.poses)
-            agree = (r.label == f.label) & obj
-            cos = np.where(agree, incidence_cosine(r.depth, f.K, r.label), cos)
-        d = edge_distance(f.label)
-        parts.append((f.depth[obj] == 0, d[obj], cos[obj], f.label[obj].astype(np.int64)))
-    return PixelSamples(*(np.concatenate(x) for x in zip(*parts, strict=True)))
-
-
-def _sigmoid(x):
-    return 1.0 / (1.0 + np.exp(-x))
-
-
-def fit_dropout(samples: PixelSamples) -> DropoutModel:
-    """Maximum-likelihood :class:`DropoutModel` of real object pixels.
-
-    All parameters are fitted jointly (Bernoulli likelihood, L-BFGS); each class seen gets its
-    own rate, and the default rate is the pixel-weighted mean of those (so a class the frames
-    do not show gets the rate of the average object).
-
-    Args:
-        samples: :func:`object_pixels` of real frames.
-    """
-    from scipy.optimize import minimize
-
-    # the likelihood over bins of (class, edge distance, cosine to 0.01): same optimum to
-    # within the binning, ~100x fewer terms than pixels
-    classes, idx = np.unique(samples.cls, return_inverse=True)
-    d_bin = np.minimum(samples.edge, 64.0)
-    c_bin = np.round(samples.cos, 2)
-    keys = np.stack([idx, d_bin, c_bin], axis=1)
-    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    n = np.bincount(inv).astype(np.float64)
-    k = np.bincount(inv, weights=samples.missing.astype(np.float64))
-    cls_b, d, cos = uniq[:, 0].astype(np.int64), uniq[:, 1], uniq[:, 2]
-
-    def unpack(th):
-        return (
-            _sigmoid(th[0]),
-            np.exp(th[1]),
-            th[2],
-            np.exp(th[3]),
-            _sigmoid(th[4:]),
-        )
-
-    def nll(th):
-        a, lam, c50, w, rates = unpack(th)
-        p_edge = a * np.exp(-(d - 1.0) / lam)
-        p_graze = _sigmoid(-(cos - c50) / w)
-        p = 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - rates[cls_b])
-        p = np.clip(p, 1e-9, 1.0 - 1e-9)
-        return -np.sum(k * np.log(p) + (n - k) * np.log1p(-p))
-
-    th0 = np.concatenate([[0.0, np.log(3.0), 0.3, np.log(0.1)], np.full(len(classes), -3.0)])
-    res = minimize(nll, th0, method="L-BFGS-B")
-    a, lam, c50, w, rates = unpack(res.x)
-    counts = np.bincount(idx.reshape(-1), minlength=len(classes))
-    return DropoutModel(
-        edge_rate=round(float(a), 4),
-        edge_scale=round(float(lam), 3),
-        graze_cos=round(float(c50), 4),
-        graze_width=round(float(w), 4),
-        class_rates=tuple(
-            (int(c), round(float(r), 4)) for c, r in zip(classes, rates, strict=True)
-        ),
-        default_rate=round(float((rates * counts).sum() / counts.sum()), 4),
-    )
 
 
 # --------------------------------------------------------------------------- statistics

@@ -48,7 +48,8 @@ holding frames of another version, or of other surfaces, is refused.
 alone at its pose (the occlusion factor's nu, docs/design.md "Metrics"). The real dataset has
 no such field; the segment pipeline renders it when it is absent.
 Modules: ``scenes`` (resting poses, table and floating arrangements, stacking), ``sensor``
-(background depth, noise, missing depth), ``frames`` (one frame from its seed and version),
+(background depth, noise, missing depth), ``sensor_fit`` (the missing-depth model fitted to
+real frames), ``frames`` (one frame from its seed and version),
 ``write`` (the resumable writer, :func:`synthesize`), ``compare`` (against real frames).
 """
 

@@ -186,9 +186,9 @@ class DropoutModel:
     - ``p_class``: a rate per class for dark or specular surfaces (``class_rates``), the
       ``default_rate`` for classes the fit did not see.
 
-    The defaults are :func:`cloudpose.report.fidelity.fit_dropout` on the two real frames
-    the repository carries (see that function; ``cloudpose synth --compare-real`` prints the
-    fit beside these values).
+    The defaults are :func:`cloudpose.data.synth.sensor_fit.fit_dropout` on the two real
+    frames the repository carries (see that function; ``cloudpose synth --compare-real``
+    prints the fit beside these values).
 
     Attributes:
         edge_rate: missing share on the boundary ring.
@@ -258,12 +258,13 @@ REAL_DROPOUT = DropoutModel(
     default_rate=0.0269,
     blob_sigma=4.0,
 )
-"""The missing-depth model of the version-2 sensor: :func:`~cloudpose.report.fidelity.
-fit_dropout` on the two real frames in tests/data (ycb_real, annotated: 009_gelatin_box,
-025_mug, 061_foam_brick; demo_no_gt, unannotated: 003_cracker_box, 005_tomato_soup_can,
-006_mustard_bottle, 011_banana, 035_power_drill), 141,656 object pixels, 10.7% of them without
-depth. Two frames support the edge and grazing terms and a rate for these eight classes (the
-black drill 9.5%, the glossy mug 4.5%); the other 13 classes get the pixel-weighted mean rate.
+"""The missing-depth model of the version-2 sensor:
+:func:`~cloudpose.data.synth.sensor_fit.fit_dropout` on the two real frames in tests/data
+(ycb_real, annotated: 009_gelatin_box, 025_mug, 061_foam_brick; demo_no_gt, unannotated:
+003_cracker_box, 005_tomato_soup_can, 006_mustard_bottle, 011_banana, 035_power_drill),
+141,656 object pixels, 10.7% of them without depth. Two frames support the edge and grazing
+terms and a rate for these eight classes (the black drill 9.5%, the glossy mug 4.5%); the
+other 13 classes get the pixel-weighted mean rate.
 ``blob_sigma`` is chosen, not fitted: at 4 px the chance that an object pixel next to a
 missing one misses too is 0.84-0.86 on synthetic frames, 0.86 and 0.90 on the two real ones
 (independent draws give 0.33)."""
