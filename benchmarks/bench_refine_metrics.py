@@ -122,18 +122,18 @@ def error_poses(rng, M):
 def bench_ads(models, repeats: int, M: int, ref_instances: int) -> dict:
     rng = np.random.default_rng(1)
     cls = rng.integers(1, len(models) + 1, M)
-    poses = error_poses(rng, M)
+    poses = dict(zip(("R_gt", "t_gt", "R_est", "t_est"), error_poses(rng, M), strict=True))
     groups = [(c, np.flatnonzero(cls == c)) for c in models]
     for c, _ in groups:  # build (cache) each model's tree once, as an evaluation run does
         ModelIndex.of(models[c])
-        adds_distance(models[c], *[p[:1] for p in poses])
+        adds_distance(models[c], **{k: p[:1] for k, p in poses.items()})
 
     def fast():
         ad, ads = np.empty(M), np.empty(M)
         for c, sel in groups:
-            args = [p[sel] for p in poses]
-            ad[sel] = add_distance(models[c], *args)
-            ads[sel] = adds_distance(models[c], *args)
+            args = {k: p[sel] for k, p in poses.items()}
+            ad[sel] = add_distance(models[c], **args)
+            ads[sel] = adds_distance(models[c], **args)
         return ad, ads
 
     sub = rng.choice(M, ref_instances, replace=False)
@@ -141,9 +141,9 @@ def bench_ads(models, repeats: int, M: int, ref_instances: int) -> dict:
     def reference():
         ad, ads = np.empty(len(sub)), np.empty(len(sub))
         for k, i in enumerate(sub):
-            args = [p[i : i + 1] for p in poses]
-            ad[k] = add_distance_reference(models[cls[i]], *args)[0]
-            ads[k] = adds_distance_reference(models[cls[i]], *args)[0]
+            args = {k: p[i : i + 1] for k, p in poses.items()}
+            ad[k] = add_distance_reference(models[cls[i]], **args)[0]
+            ads[k] = adds_distance_reference(models[cls[i]], **args)[0]
         return ad, ads
 
     ad, ads = fast()

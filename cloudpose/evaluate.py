@@ -73,10 +73,10 @@ def instance_table(
         err = pose_errors(
             models_by_class,
             segs.cls_id.astype(int),
-            segs.R.astype(np.float64),
-            segs.t.astype(np.float64),
-            R_est,
-            t_est,
+            R_est=R_est,
+            t_est=t_est,
+            R_gt=segs.R.astype(np.float64),
+            t_gt=segs.t.astype(np.float64),
             miss=miss,
         )
         for key in ("ad", "ads", "rot_err_deg", "trans_err"):

@@ -39,10 +39,17 @@ def load_model(name: str) -> np.ndarray:
 
 
 def random_poses(rng, M, deg, mm):
+    """M ground-truth poses and estimates off by about ``deg`` and ``mm``, as the metrics'
+    keyword arguments."""
     R_gt = Rotation.random(M, random_state=rng).as_matrix()
     t_gt = rng.normal(0, 0.1, (M, 3)) + np.array([0, 0, 0.9])
     dR = Rotation.from_rotvec(rng.normal(size=(M, 3)) * np.deg2rad(deg)).as_matrix()
-    return R_gt, t_gt, dR @ R_gt, t_gt + rng.normal(0, mm / 1000, (M, 3))
+    R_est, t_est = dR @ R_gt, t_gt + rng.normal(0, mm / 1000, (M, 3))
+    return {"R_est": R_est, "t_est": t_est, "R_gt": R_gt, "t_gt": t_gt}
+
+
+def poses_of(R_est, t_est, R_gt, t_gt):
+    return {"R_est": R_est, "t_est": t_est, "R_gt": R_gt, "t_gt": t_gt}
 
 
 def symmetric_ring(n_fold=12, rings=5):
@@ -67,10 +74,13 @@ def test_fast_matches_reference(name, deg, mm):
     rng = np.random.default_rng([len(name), int(deg)])
     poses = random_poses(rng, 12, deg, mm)
     np.testing.assert_allclose(
-        add_distance(model, *poses), add_distance_reference(model, *poses), rtol=1e-12, atol=1e-15
+        add_distance(model, **poses), add_distance_reference(model, **poses), rtol=1e-12, atol=1e-15
     )
     np.testing.assert_allclose(
-        adds_distance(model, *poses), adds_distance_reference(model, *poses), rtol=1e-12, atol=1e-15
+        adds_distance(model, **poses),
+        adds_distance_reference(model, **poses),
+        rtol=1e-12,
+        atol=1e-15,
     )
 
 
@@ -79,34 +89,32 @@ def test_chunks_and_prebuilt_tree_give_the_same_values(monkeypatch):
 
     model = load_model("011_banana")
     poses = random_poses(np.random.default_rng(0), 30, 10, 10)
-    ad, ads = add_distance(model, *poses), adds_distance(model, *poses)
+    ad, ads = add_distance(model, **poses), adds_distance(model, **poses)
     monkeypatch.setattr(metrics, "_AD_CHUNK_POINTS", 3 * len(model))
     monkeypatch.setattr(metrics, "_ADS_CHUNK_POINTS", 7 * len(model))
-    np.testing.assert_allclose(add_distance(model, *poses), ad, rtol=1e-13)
+    np.testing.assert_allclose(add_distance(model, **poses), ad, rtol=1e-13)
     np.testing.assert_allclose(
-        adds_distance(model, *poses, index=ModelIndex(model)), ads, rtol=1e-13
+        adds_distance(model, **poses, index=ModelIndex(model)), ads, rtol=1e-13
     )
 
 
 def test_single_pose_and_float32():
     model = load_model("025_mug")
-    R_gt, t_gt, R_est, t_est = random_poses(np.random.default_rng(1), 1, 5, 5)
-    one = adds_distance(model, R_gt[0], t_gt[0], R_est[0], t_est[0])
+    poses = random_poses(np.random.default_rng(1), 1, 5, 5)
+    one = adds_distance(model, **{k: a[0] for k, a in poses.items()})
     assert one.shape == ()
-    assert float(one) == pytest.approx(
-        adds_distance_reference(model, R_gt, t_gt, R_est, t_est)[0], rel=1e-12
-    )
+    assert float(one) == pytest.approx(adds_distance_reference(model, **poses)[0], rel=1e-12)
     # float32 inputs are computed in float64: the same values as the float64 copies
     m32 = model.astype(np.float32)
-    f32 = [a.astype(np.float32) for a in (R_gt, t_gt, R_est, t_est)]
-    f64 = [a.astype(np.float64) for a in f32]
+    f32 = {k: a.astype(np.float32) for k, a in poses.items()}
+    f64 = {k: a.astype(np.float64) for k, a in f32.items()}
     np.testing.assert_allclose(
-        add_distance(m32, *f32), add_distance_reference(m32.astype(float), *f64), rtol=1e-12
+        add_distance(m32, **f32), add_distance_reference(m32.astype(float), **f64), rtol=1e-12
     )
     # ADS maps into the estimate's frame with R^T, exact only for an orthonormal R: float32
     # rounding of a rotation (~1e-7) moves it by about that much, relatively
     np.testing.assert_allclose(
-        adds_distance(m32, *f32), adds_distance_reference(m32.astype(float), *f64), rtol=1e-6
+        adds_distance(m32, **f32), adds_distance_reference(m32.astype(float), **f64), rtol=1e-6
     )
 
 
@@ -114,10 +122,12 @@ def test_identity_and_pure_translation():
     model = load_model("006_mustard_bottle")
     R = Rotation.random(3, random_state=2).as_matrix()
     t = np.array([[0, 0, 1.0], [0.1, 0, 0.8], [0, -0.1, 1.2]])
-    np.testing.assert_allclose(add_distance(model, R, t, R, t), 0, atol=1e-15)
-    np.testing.assert_allclose(adds_distance(model, R, t, R, t), 0, atol=1e-15)
+    same = poses_of(R, t, R, t)
+    np.testing.assert_allclose(add_distance(model, **same), 0, atol=1e-15)
+    np.testing.assert_allclose(adds_distance(model, **same), 0, atol=1e-15)
     shift = np.array([0.003, -0.004, 0.0])  # 5 mm
-    np.testing.assert_allclose(add_distance(model, R, t, R, t + shift), 0.005, rtol=1e-12)
+    moved = poses_of(R, t + shift, R, t)
+    np.testing.assert_allclose(add_distance(model, **moved), 0.005, rtol=1e-12)
 
 
 def test_symmetric_object_ads_is_zero_for_a_symmetry_and_below_ad():
@@ -125,25 +135,26 @@ def test_symmetric_object_ads_is_zero_for_a_symmetry_and_below_ad():
     R_gt = np.eye(3)[None]
     t_gt = np.array([[0, 0, 1.0]])
     R_sym = Rotation.from_euler("z", 360 / 12 * 5, degrees=True).as_matrix()[None]
-    assert add_distance(ring, R_gt, t_gt, R_sym, t_gt)[0] > 0.02
-    assert adds_distance(ring, R_gt, t_gt, R_sym, t_gt)[0] == pytest.approx(0, abs=1e-12)
-    assert adds_distance_reference(ring, R_gt, t_gt, R_sym, t_gt)[0] == pytest.approx(0, abs=1e-12)
+    turned = poses_of(R_sym, t_gt, R_gt, t_gt)
+    assert add_distance(ring, **turned)[0] > 0.02
+    assert adds_distance(ring, **turned)[0] == pytest.approx(0, abs=1e-12)
+    assert adds_distance_reference(ring, **turned)[0] == pytest.approx(0, abs=1e-12)
     # ADS <= AD on any pose (the corresponding point is one of the candidates)
     for name in ("024_bowl", "002_master_chef_can", "035_power_drill"):
         model = load_model(name)
         poses = random_poses(np.random.default_rng(3), 20, 30, 20)
-        assert (adds_distance(model, *poses) <= add_distance(model, *poses) + 1e-15).all()
+        assert (adds_distance(model, **poses) <= add_distance(model, **poses) + 1e-15).all()
 
 
 def test_bad_shapes_raise():
     model = load_model("025_mug")
     R, t = np.eye(3)[None], np.zeros((1, 3))
     with pytest.raises(ValueError, match="model_points"):
-        add_distance(model[:, :2], R, t, R, t)
+        add_distance(model[:, :2], **poses_of(R, t, R, t))
     with pytest.raises(ValueError, match="t_est"):
-        adds_distance(model, R, t, R, np.zeros((2, 3)))
+        adds_distance(model, **poses_of(R, np.zeros((2, 3)), R, t))
     with pytest.raises(ValueError, match="index: built on"):
-        adds_distance(model, R, t, R, t, index=ModelIndex(model[:100]))
+        adds_distance(model, **poses_of(R, t, R, t), index=ModelIndex(model[:100]))
 
 
 # --- rotation / translation errors ----------------------------------------------------------
@@ -169,8 +180,58 @@ def test_rotation_error_matches_scipy_batched():
 
 
 def test_translation_error():
-    assert translation_error([0, 0, 1], [0.003, 0.004, 1]) == pytest.approx(0.005)
-    np.testing.assert_allclose(translation_error(np.zeros((2, 3)), np.eye(3)[:2]), [1, 1])
+    assert translation_error([0.003, 0.004, 1], [0, 0, 1]) == pytest.approx(0.005)
+    np.testing.assert_allclose(translation_error(np.eye(3)[:2], np.zeros((2, 3))), [1, 1])
+
+
+def _bop_adi(R_est, t_est, R_gt, t_gt, pts):
+    """bop_toolkit_lib/pose_error.py ``adi``, transliterated."""
+    from scipy.spatial import cKDTree
+
+    pts_est = (R_est.dot(pts.T) + t_est.reshape((3, 1))).T
+    pts_gt = (R_gt.dot(pts.T) + t_gt.reshape((3, 1))).T
+    nn_dists, _ = cKDTree(pts_est).query(pts_gt, k=1)
+    return nn_dists.mean()
+
+
+def _bop_add(R_est, t_est, R_gt, t_gt, pts):
+    """bop_toolkit_lib/pose_error.py ``add``, transliterated."""
+    pts_est = (R_est.dot(pts.T) + t_est.reshape((3, 1))).T
+    pts_gt = (R_gt.dot(pts.T) + t_gt.reshape((3, 1))).T
+    return np.linalg.norm(pts_est - pts_gt, axis=1).mean()
+
+
+def test_argument_order_is_bop_toolkits():
+    """ADS of a pose pair where swapping estimate and ground truth gives another number: the
+    keyword arguments mean what bop_toolkit's positions mean, estimate first; positional poses
+    are refused."""
+    rng = np.random.default_rng(11)
+    # a rod whose points thin out along x, the estimate 1 cm along it: the mean distance from
+    # the ground-truth copy to the estimate's is not the mean distance back
+    x = 0.1 * rng.random(600) ** 3
+    model = np.c_[x, rng.normal(0, 0.003, (600, 2))]
+    R_est = Rotation.from_rotvec([0.3, 0.1, 0.0]).as_matrix()
+    t_est, R_gt, t_gt = np.array([0.01, 0.0, 0.9]), np.eye(3), np.array([0.0, 0.0, 0.9])
+    bop = _bop_adi(R_est, t_est, R_gt, t_gt, model)
+    swapped = _bop_adi(R_gt, t_gt, R_est, t_est, model)
+    assert abs(bop - swapped) > 0.5 * swapped  # the case tells the orders apart (4.9, 2.4 mm)
+    poses = poses_of(R_est, t_est, R_gt, t_gt)
+    assert float(adds_distance(model, **poses)) == pytest.approx(bop, rel=1e-12)
+    assert float(adds_distance_reference(model, **poses)) == pytest.approx(bop, rel=1e-12)
+    assert float(add_distance(model, **poses)) == pytest.approx(
+        _bop_add(R_est, t_est, R_gt, t_gt, model), rel=1e-12
+    )
+    M = {1: model}
+    out = pose_errors(M, [1], **{k: a[None] for k, a in poses.items()})
+    assert out["ads"][0] == pytest.approx(bop, rel=1e-12)
+    for f in (add_distance, adds_distance, add_distance_reference, adds_distance_reference):
+        with pytest.raises(TypeError):
+            f(model, R_est, t_est, R_gt, t_gt)
+    with pytest.raises(TypeError):
+        pose_errors(M, [1], R_est[None], t_est[None], R_gt[None], t_gt[None])
+    # the symmetric errors take bop's order positionally; a swap gives the same number
+    assert translation_error(t_est, t_gt) == translation_error(t_gt, t_est)
+    assert rotation_error_deg(R_est, R_gt) == rotation_error_deg(R_gt, R_est)
 
 
 # --- pose_errors over mixed classes ---------------------------------------------------------
@@ -180,34 +241,35 @@ def test_pose_errors_mixed_classes_with_misses():
     models = {5: load_model("006_mustard_bottle"), 13: load_model("024_bowl")}
     rng = np.random.default_rng(7)
     cls = np.array([5, 13, 5, 13, 13, 5])
-    R_gt, t_gt, R_est, t_est = random_poses(rng, 6, 10, 10)
+    poses = random_poses(rng, 6, 10, 10)
     miss = np.array([False, False, True, False, True, False])
-    R_est[miss] = np.nan  # estimates of misses are ignored
-    out = pose_errors(models, cls, R_gt, t_gt, R_est, t_est, miss=miss)
+    poses["R_est"][miss] = np.nan  # estimates of misses are ignored
+    out = pose_errors(models, cls, **poses, miss=miss)
     assert set(out) == {"cls_id", "miss", "ad", "ads", "rot_err_deg", "trans_err"}
     for key in ("ad", "ads", "rot_err_deg", "trans_err"):
         assert np.isinf(out[key][miss]).all()
         assert np.isfinite(out[key][~miss]).all()
     for i in np.flatnonzero(~miss):
-        args = (R_gt[i : i + 1], t_gt[i : i + 1], R_est[i : i + 1], t_est[i : i + 1])
+        one = {k: a[i : i + 1] for k, a in poses.items()}
         assert out["ad"][i] == pytest.approx(
-            add_distance_reference(models[cls[i]], *args)[0], rel=1e-12
+            add_distance_reference(models[cls[i]], **one)[0], rel=1e-12
         )
         assert out["ads"][i] == pytest.approx(
-            adds_distance_reference(models[cls[i]], *args)[0], rel=1e-12
+            adds_distance_reference(models[cls[i]], **one)[0], rel=1e-12
         )
-    np.testing.assert_allclose(out["trans_err"][~miss], np.linalg.norm(t_gt - t_est, axis=1)[~miss])
+    dt = np.linalg.norm(poses["t_gt"] - poses["t_est"], axis=1)
+    np.testing.assert_allclose(out["trans_err"][~miss], dt[~miss])
     assert len(pd.DataFrame(out)) == 6
 
 
 def test_pose_errors_rejects_bad_input():
     models = {1: load_model("002_master_chef_can")}
-    R_gt, t_gt, R_est, t_est = random_poses(np.random.default_rng(8), 2, 5, 5)
+    poses = random_poses(np.random.default_rng(8), 2, 5, 5)
     with pytest.raises(ValueError, match=r"classes \[7\]"):
-        pose_errors(models, [1, 7], R_gt, t_gt, R_est, t_est)
-    R_est[1] = np.nan
+        pose_errors(models, [1, 7], **poses)
+    poses["R_est"][1] = np.nan
     with pytest.raises(ValueError, match="not marked as misses"):
-        pose_errors(models, [1, 1], R_gt, t_gt, R_est, t_est)
+        pose_errors(models, [1, 1], **poses)
 
 
 # --- VOCap AUC -------------------------------------------------------------------------------
@@ -378,10 +440,10 @@ def test_compiled_ads_equals_the_pykdtree_path(deg, mm, monkeypatch):
     poses = random_poses(np.random.default_rng(int(deg) + 1), 40, deg, mm)
     index = ModelIndex(model)
     assert index.compiled is not None
-    fast = adds_distance(model, *poses, index=index)
-    slow = adds_distance(model, *poses, index=ModelIndex(model, compiled=False))  # pykdtree
+    fast = adds_distance(model, **poses, index=index)
+    slow = adds_distance(model, **poses, index=ModelIndex(model, compiled=False))  # pykdtree
     np.testing.assert_allclose(fast, slow, rtol=1e-13, atol=1e-17)
-    ref = adds_distance_reference(model, *[p[:8] for p in poses])
+    ref = adds_distance_reference(model, **{k: a[:8] for k, a in poses.items()})
     np.testing.assert_allclose(fast[:8], ref, rtol=1e-12, atol=1e-15)
 
 

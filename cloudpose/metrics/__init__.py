@@ -8,6 +8,10 @@ docs/design.md "Metrics":
 - AUC = the toolbox's VOCap of the accuracy-threshold curve up to 0.1 m (``voc_ap_auc``).
 - "<1cm" = share of instances with ADS < 0.01 m; rotation / translation shares likewise.
 
+Arguments come in bop_toolkit's order, estimate first; AD, ADS and ``pose_errors`` take the
+poses by keyword (``R_est=, t_est=, R_gt=, t_gt=``: ADS is not symmetric in them), see
+``errors``.
+
 A miss (an instance without a usable segment or estimate) is never dropped: its errors are
 infinite and it counts in every denominator, as in the toolbox.
 

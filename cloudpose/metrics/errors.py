@@ -4,6 +4,18 @@ translation error (formula functions with plain arguments; fast and reference tw
 - AD  = mean over model points x of |(R x + t) - (R^ x + t^)| (Hinterstoisser et al., ACCV 2012)
 - ADS = mean over x1 of min over x2 of |(R x1 + t) - (R^ x2 + t^)| (ibid.; the toolbox's ADD-S)
 - rotation error = geodesic angle between R and R^ (degrees); translation error = |t - t^|.
+
+(R, t) is the ground truth, (R^, t^) the estimate. Arguments come in bop_toolkit's order,
+estimate first: ``add(R_est, t_est, R_gt, t_gt, pts)``, ``adi(...)``, ``te(t_est, t_gt)``
+(bop_toolkit_lib/pose_error.py). ADS is not symmetric in the two poses (each ground-truth-posed
+point's nearest estimate-posed point): swapped poses have the same shapes and give another
+number, which no check can catch. So AD, ADS, their twins and :func:`pose_errors` take the
+poses as keyword-only arguments, ``R_est=, t_est=, R_gt=, t_gt=``, and every call says which
+pose is which (AD is symmetric, but it is called beside ADS with the same arguments, so it takes
+them the same way). The model points come first and positional: no pose can stand in for them
+unnoticed ((P, 3) points against (M, 3, 3) rotations). :func:`translation_error` (here) and
+:func:`~cloudpose.geometry.rigid.rotation_error_deg` are symmetric (a swap gives the same
+number, tested), so they stay positional: ``translation_error(t_est, t_gt)``.
 """
 
 from __future__ import annotations
@@ -32,17 +44,17 @@ def _check_model(model_points: np.ndarray) -> np.ndarray:
 
 
 def _check_poses(
-    R_gt: np.ndarray, t_gt: np.ndarray, R_est: np.ndarray, t_est: np.ndarray
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
-    """Return (M, 3, 3), (M, 3), (M, 3, 3), (M, 3) float64 arrays and whether the input was a
-    single unbatched pose."""
-    arrays = [np.asarray(a, dtype=np.float64) for a in (R_gt, t_gt, R_est, t_est)]
+    """Return (M, 3, 3), (M, 3), (M, 3, 3), (M, 3) float64 arrays (R_est, t_est, R_gt, t_gt)
+    and whether the input was a single unbatched pose."""
+    arrays = [np.asarray(a, dtype=np.float64) for a in (R_est, t_est, R_gt, t_gt)]
     single = arrays[0].ndim == 2
     if single:
         arrays = [a[None] for a in arrays]
     M = len(arrays[0])
     expected = [(M, 3, 3), (M, 3), (M, 3, 3), (M, 3)]
-    for name, a, shape in zip(("R_gt", "t_gt", "R_est", "t_est"), arrays, expected, strict=True):
+    for name, a, shape in zip(("R_est", "t_est", "R_gt", "t_gt"), arrays, expected, strict=True):
         if a.shape != shape:
             raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
     return (*arrays, single)  # type: ignore[return-value]
@@ -58,23 +70,24 @@ def _out(values: np.ndarray, single: bool) -> np.ndarray:
 
 def add_distance(
     model_points: np.ndarray,
-    R_gt: np.ndarray,
-    t_gt: np.ndarray,
+    *,
     R_est: np.ndarray,
     t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
 ) -> np.ndarray:
     """AD: mean distance between corresponding model points under the two poses (vectorised).
 
     Args:
         model_points: (P, 3) model points, metres.
-        R_gt, t_gt: (M, 3, 3), (M, 3) ground-truth poses, model -> camera (or one (3, 3), (3,)).
-        R_est, t_est: (M, 3, 3), (M, 3) estimated poses.
+        R_est, t_est: (M, 3, 3), (M, 3) estimated poses, model -> camera (or one (3, 3), (3,)).
+        R_gt, t_gt: (M, 3, 3), (M, 3) ground-truth poses.
 
     Returns:
         (M,) AD in metres (a 0-d array for one unbatched pose).
     """
     X = _check_model(model_points)
-    R_gt, t_gt, R_est, t_est, single = _check_poses(R_gt, t_gt, R_est, t_est)
+    R_est, t_est, R_gt, t_gt, single = _check_poses(R_est, t_est, R_gt, t_gt)
     # (R x + t) - (R^ x + t^) = (R - R^) x + (t - t^): one (3C, 4) x (4, P) product per chunk.
     D = np.concatenate([R_gt - R_est, (t_gt - t_est)[:, :, None]], axis=2)  # (M, 3, 4)
     XhT = np.concatenate([X, np.ones((len(X), 1))], axis=1).T.copy()  # (4, P)
@@ -89,14 +102,15 @@ def add_distance(
 
 def add_distance_reference(
     model_points: np.ndarray,
-    R_gt: np.ndarray,
-    t_gt: np.ndarray,
+    *,
     R_est: np.ndarray,
     t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
 ) -> np.ndarray:
     """AD, one instance at a time, exactly as written (the twin of ``add_distance``)."""
     X = _check_model(model_points)
-    R_gt, t_gt, R_est, t_est, single = _check_poses(R_gt, t_gt, R_est, t_est)
+    R_est, t_est, R_gt, t_gt, single = _check_poses(R_est, t_est, R_gt, t_gt)
     out = np.empty(len(R_gt))
     for k in range(len(R_gt)):
         p_gt = X @ R_gt[k].T + t_gt[k]
@@ -107,11 +121,11 @@ def add_distance_reference(
 
 def adds_distance(
     model_points: np.ndarray,
-    R_gt: np.ndarray,
-    t_gt: np.ndarray,
+    *,
     R_est: np.ndarray,
     t_est: np.ndarray,
-    *,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
     index: ModelIndex | None = None,
 ) -> np.ndarray:
     """ADS: mean over ground-truth-posed points of the distance to the nearest estimate-posed
@@ -123,17 +137,17 @@ def adds_distance(
 
     Args:
         model_points: (P, 3) model points, metres.
-        R_gt, t_gt: (M, 3, 3), (M, 3) ground-truth poses, model -> camera (or one (3, 3), (3,)).
-        R_est, t_est: (M, 3, 3), (M, 3) estimated poses; R_est must be orthonormal (the
-            mapping uses R^T as the inverse: a float32-rounded rotation, off by ~1e-7, gives
-            ADS within ~1e-7 relative of the per-instance tree's).
+        R_est, t_est: (M, 3, 3), (M, 3) estimated poses, model -> camera (or one (3, 3), (3,));
+            R_est must be orthonormal (the mapping uses R^T as the inverse: a float32-rounded
+            rotation, off by ~1e-7, gives ADS within ~1e-7 relative of the per-instance tree's).
+        R_gt, t_gt: (M, 3, 3), (M, 3) ground-truth poses.
         index: optional prebuilt ``ModelIndex(model_points)`` (default: the cached one).
 
     Returns:
         (M,) ADS in metres (a 0-d array for one unbatched pose).
     """
     X = _check_model(model_points)
-    R_gt, t_gt, R_est, t_est, single = _check_poses(R_gt, t_gt, R_est, t_est)
+    R_est, t_est, R_gt, t_gt, single = _check_poses(R_est, t_est, R_gt, t_gt)
     index = index if index is not None else ModelIndex.of(X)
     if index.points.shape != X.shape:
         raise ValueError(
@@ -161,17 +175,18 @@ def adds_distance(
 
 def adds_distance_reference(
     model_points: np.ndarray,
-    R_gt: np.ndarray,
-    t_gt: np.ndarray,
+    *,
     R_est: np.ndarray,
     t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
 ) -> np.ndarray:
     """ADS, one instance at a time with a KD-tree built on each estimate (bop_toolkit's ``adi``;
     the twin of ``adds_distance``)."""
     from scipy.spatial import cKDTree
 
     X = _check_model(model_points)
-    R_gt, t_gt, R_est, t_est, single = _check_poses(R_gt, t_gt, R_est, t_est)
+    R_est, t_est, R_gt, t_gt, single = _check_poses(R_est, t_est, R_gt, t_gt)
     out = np.empty(len(R_gt))
     for k in range(len(R_gt)):
         p_est = X @ R_est[k].T + t_est[k]
@@ -185,12 +200,12 @@ def adds_distance_reference(
 # Translation error (the rotation error is cloudpose.geometry.rigid.rotation_error_deg)
 
 
-def translation_error(t_gt: np.ndarray, t_est: np.ndarray) -> np.ndarray:
-    """Euclidean distance between translations.
+def translation_error(t_est: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
+    """Euclidean distance between translations (bop_toolkit's ``te``; symmetric).
 
     Args:
-        t_gt: (..., 3) metres.
         t_est: (..., 3) metres.
+        t_gt: (..., 3) metres.
 
     Returns:
         (...) metres.
@@ -205,10 +220,11 @@ def translation_error(t_gt: np.ndarray, t_est: np.ndarray) -> np.ndarray:
 def pose_errors(
     model_points_by_class: Mapping[int, np.ndarray],
     cls_ids: np.ndarray,
-    R_gt: np.ndarray,
-    t_gt: np.ndarray,
+    *,
     R_est: np.ndarray,
     t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
     miss: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-instance AD, ADS, rotation and translation errors; misses get infinite errors.
@@ -216,8 +232,9 @@ def pose_errors(
     Args:
         model_points_by_class: class id (1-based) -> (P, 3) model points, metres.
         cls_ids: (M,) class id of each instance.
-        R_gt, t_gt: (M, 3, 3), (M, 3) ground-truth poses, model -> camera.
-        R_est, t_est: (M, 3, 3), (M, 3) estimated poses (ignored, may be NaN, for misses).
+        R_est, t_est: (M, 3, 3), (M, 3) estimated poses, model -> camera (ignored, may be
+            NaN, for misses).
+        R_gt, t_gt: (M, 3, 3), (M, 3) ground-truth poses.
         miss: (M,) True where the instance has no estimate; None = no misses.
 
     Returns:
@@ -228,10 +245,10 @@ def pose_errors(
     if cls_ids.ndim != 1:
         raise ValueError(f"cls_ids: expected shape (M,), got {cls_ids.shape}")
     M = len(cls_ids)
-    R_gt, t_gt, R_est, t_est, single = _check_poses(R_gt, t_gt, R_est, t_est)
-    if single or len(R_gt) != M:
+    R_est, t_est, R_gt, t_gt, single = _check_poses(R_est, t_est, R_gt, t_gt)
+    if single or len(R_est) != M:
         raise ValueError(
-            f"R_gt: expected shape ({M}, 3, 3) (one per cls_ids entry), got {np.shape(R_gt)}"
+            f"R_est: expected shape ({M}, 3, 3) (one per cls_ids entry), got {np.shape(R_est)}"
         )
     miss = np.zeros(M, dtype=bool) if miss is None else np.asarray(miss, dtype=bool)
     if miss.shape != (M,):
@@ -257,11 +274,11 @@ def pose_errors(
     for c in np.unique(cls_ids[hit]):
         sel = np.flatnonzero(hit & (cls_ids == c))
         X = model_points_by_class[int(c)]
-        args = (R_gt[sel], t_gt[sel], R_est[sel], t_est[sel])
-        ad[sel] = add_distance(X, *args)
-        ads[sel] = adds_distance(X, *args)
+        poses = {"R_est": R_est[sel], "t_est": t_est[sel], "R_gt": R_gt[sel], "t_gt": t_gt[sel]}
+        ad[sel] = add_distance(X, **poses)
+        ads[sel] = adds_distance(X, **poses)
     rot[hit] = rotation_error_deg(R_gt[hit], R_est[hit])
-    trans[hit] = translation_error(t_gt[hit], t_est[hit])
+    trans[hit] = translation_error(t_est[hit], t_gt[hit])
     return {
         "cls_id": cls_ids,
         "miss": miss,

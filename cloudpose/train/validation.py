@@ -68,7 +68,8 @@ def validate(
     ads = np.empty(len(data))
     for c in np.unique(cls_id):
         m = cls_id == c
-        ads[m] = adds_distance(models_by_class[int(c)], R_gt[m], t_gt[m], R_est[m], t_est[m])
+        poses = {"R_est": R_est[m], "t_est": t_est[m], "R_gt": R_gt[m], "t_gt": t_gt[m]}
+        ads[m] = adds_distance(models_by_class[int(c)], **poses)
     rot = rotation_error_deg(R_gt, R_est)
     trans = np.linalg.norm(t_gt - t_est, axis=-1)
     out = {

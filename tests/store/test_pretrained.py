@@ -70,7 +70,7 @@ def test_the_shipped_network_puts_each_object_of_a_real_frame_within_a_centimetr
     for p in res.poses:
         k = frame.cls_ids.tolist().index(p.cls_id)
         R, t = frame.poses[k][:, :3], frame.poses[k][:, 3]
-        ads = float(adds_distance(ds.models()[p.cls_id], R, t, p.R, p.t))
+        ads = float(adds_distance(ds.models()[p.cls_id], R_est=p.R, t_est=p.t, R_gt=R, t_gt=t))
         assert ads < 0.015, (p.name, ads)  # 2.6-6.2 mm measured
 
 
