@@ -29,14 +29,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
 from cloudpose.baselines import load_settings, make
-from cloudpose.baselines.base import NotRegistered, settings_fingerprint
-from cloudpose.data.cache import segments_for
+from cloudpose.baselines.base import BaselineSettings, NotRegistered, settings_fingerprint
+from cloudpose.data.cache import SegmentSet, segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.evaluate import (
@@ -202,6 +203,110 @@ def split_segments(cfg, split: str, project_dir: Path, progress: bool = True):
     return prepared, prepared.dataset, prepared.train.subset(val)
 
 
+class _Pool(NamedTuple):
+    """The segments a baseline is evaluated on and what names them.
+
+    Attributes:
+        dataset: where the segments come from (their models and class names).
+        segments: every segment of the split or frame list.
+        data_key: the key of the data the run is tagged with (MLflow tag ``data``).
+        split: the metric prefix (a split, or the data's identity with ``data``).
+        described: the frame list in words with ``data``, else "".
+    """
+
+    dataset: object
+    segments: SegmentSet
+    data_key: str
+    split: str
+    described: str
+
+
+def _pool(
+    cfg, split: str, data: str | Path | None, frames: str, project_dir: Path, progress: bool
+) -> _Pool:
+    """The segments of ``split`` for run config ``cfg``, or of ``frames`` of the dataset at
+    ``data`` (then named by that data's identity, :func:`cloudpose.evaluate.evaluation_name`)."""
+    if data is None:
+        prepared, dataset, segments = split_segments(cfg, split, project_dir, progress)
+        return _Pool(dataset, segments, prepared.key, split, "")
+    dataset = open_dataset(data)
+    segments = folder_segments(dataset, frames, cfg.data, project_dir, progress)
+    name = evaluation_name(data, frames, segments.key)
+    return _Pool(dataset, segments, segments.key, name, describe_split(dataset, frames))
+
+
+def _estimate_all(
+    estimator, models: dict, segs: SegmentSet, state: _Progress, method: str, progress: bool
+) -> float:
+    """Run ``estimator`` on every valid segment that ``state`` has not done yet, saving now and
+    then; the seconds spent preparing the estimator's per-model state (kept off each segment's
+    clock: a one-off cost per run, logged as ``prepare_s``)."""
+    todo = np.flatnonzero(np.asarray(segs.valid, dtype=bool))
+    left = todo[~state.done[todo]]
+    if len(left) < len(todo):
+        print(f"{method}: resuming from {state.path} ({len(todo) - len(left)} of {len(todo)} done)")
+    t0 = time.perf_counter()
+    estimator.prepare(sorted(set(np.asarray(segs.cls_id)[left].tolist()) & set(models)))
+    prepare_s = time.perf_counter() - t0
+    bar = tqdm(
+        left,
+        initial=len(todo) - len(left),
+        total=len(todo),
+        disable=not progress,
+        desc=method,
+        unit="obj",
+    )
+    for i in bar:
+        k = int(min(segs.count[i], segs.points.shape[1]))
+        t0 = time.perf_counter()
+        try:
+            pose = estimator.estimate(segs.points[i, :k], int(segs.cls_id[i]))
+            state.R[i], state.t[i] = pose.R, pose.t
+            state.ok[i] = True
+        except NotRegistered:
+            pass
+        finally:
+            state.seconds += time.perf_counter() - t0
+        state.done[i] = True
+        state.calls = estimator.calls
+        state.save()
+    state.save(force=True)
+    return prepare_s
+
+
+def _metrics(
+    table: pd.DataFrame,
+    split: str,
+    seconds: float,
+    prepare_s: float,
+    icp_s: float | None,
+    n_valid: int,
+    failures: int,
+) -> dict[str, float]:
+    """The run's metrics: the table's summaries (per video too on the real frames), the
+    milliseconds per object of the method and of ICP (``icp_s`` None: no ICP), the
+    preparation seconds and the failures."""
+    metrics = summary_metrics(table, split)
+    if split == "real":
+        metrics.update(video_metrics(table, split))
+    metrics[f"{split}/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
+    metrics[f"{split}/prepare_s"] = prepare_s
+    if icp_s is not None:
+        metrics[f"{split}/icp_ms_per_object"] = 1000 * icp_s / max(n_valid, 1)
+    metrics[f"{split}/failures"] = float(failures)
+    return metrics
+
+
+def _data_params(cfg, data: str | Path | None) -> dict[str, object]:
+    """The MLflow params of the data: the ``data.*`` settings, the rotation metric's symmetry
+    table, and the root of a user's dataset."""
+    params: dict[str, object] = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
+    params["loss.symmetry_table"] = cfg.loss.symmetry_table
+    if data is not None:
+        params["data.root"] = str(Path(data).resolve())
+    return params
+
+
 def run_baseline(
     method: str,
     preset: str = DEFAULT_PRESET,
@@ -240,20 +345,19 @@ def run_baseline(
     project_dir = (project_dir or Path.cwd()).resolve()
     settings = load_settings(method).with_overrides(overrides)
     cfg = resolve("shared-0", preset, seed)
-    described = ""
-    if data is not None:
-        dataset = open_dataset(data)
-        pool = folder_segments(dataset, frames, cfg.data, project_dir, progress)
-        data_key = pool.key
-        split = evaluation_name(data, frames, data_key)
-        described = describe_split(dataset, frames)
-    else:
-        prepared, dataset, pool = split_segments(cfg, split, project_dir, progress)
-        data_key = prepared.key
-    models = dataset.models()
-    segs = pool.subset(subsample(len(pool), limit))
+    pool = _pool(cfg, split, data, frames, project_dir, progress)
+    split = pool.split
+    models = pool.dataset.models()
+    segs = pool.segments.subset(subsample(len(pool.segments), limit))
     call = BaselineCall(
-        project_dir, method, preset, seed, data_key, settings_fingerprint(settings), split, limit
+        project_dir,
+        method,
+        preset,
+        seed,
+        pool.data_key,
+        settings_fingerprint(settings),
+        split,
+        limit,
     )
     if log and not rerun:
         done = call.finished(icp)
@@ -262,113 +366,74 @@ def run_baseline(
     estimator = make(method, models, settings, seed=seed)
     state = _Progress(call.progress_path(), len(segs))
     estimator.calls = state.calls
-    todo = np.flatnonzero(np.asarray(segs.valid, dtype=bool))
-    left = todo[~state.done[todo]]
-    if len(left) < len(todo):
-        print(f"{method}: resuming from {state.path} ({len(todo) - len(left)} of {len(todo)} done)")
-    # per-model state (features, hash tables) is built before the clock of each segment
-    # starts: a one-off cost per run, logged as prepare_s, not spread over the objects
-    t0 = time.perf_counter()
-    estimator.prepare(sorted(set(np.asarray(segs.cls_id)[left].tolist()) & set(models)))
-    prepare_s = time.perf_counter() - t0
-    bar = tqdm(
-        left,
-        initial=len(todo) - len(left),
-        total=len(todo),
-        disable=not progress,
-        desc=method,
-        unit="obj",
-    )
-    for i in bar:
-        k = int(min(segs.count[i], segs.points.shape[1]))
-        t0 = time.perf_counter()
-        try:
-            pose = estimator.estimate(segs.points[i, :k], int(segs.cls_id[i]))
-            state.R[i], state.t[i] = pose.R, pose.t
-            state.ok[i] = True
-        except NotRegistered:
-            pass
-        finally:
-            state.seconds += time.perf_counter() - t0
-        state.done[i] = True
-        state.calls = estimator.calls
-        state.save()
-    state.save(force=True)
-    R, t, seconds = state.R, state.t, state.seconds
+    prepare_s = _estimate_all(estimator, models, segs, state, method, progress)
     ok = np.asarray(segs.valid, dtype=bool) & state.ok
     n_valid = int(np.sum(segs.valid))
     failures = n_valid - int(ok.sum())
     segs.valid = ok  # a segment the method could not register is a miss
-    est = {"net": Estimates(R, t)}
-    t_icp = 0.0
+    est = {"net": Estimates(state.R, state.t)}
+    icp_s = None
     if icp:
         t0 = time.perf_counter()
         est["icp"], _ = refine_poses(segs, est["net"], models, progress=progress)
-        t_icp = time.perf_counter() - t0
+        icp_s = time.perf_counter() - t0
     table = instance_table(
-        segs, est, models, dataset.classes, symmetry_table=cfg.loss.symmetry_table
+        segs, est, models, pool.dataset.classes, symmetry_table=cfg.loss.symmetry_table
     )
-    metrics = summary_metrics(table, split)
-    if split == "real":
-        metrics.update(video_metrics(table, split))
-    metrics[f"{split}/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
-    metrics[f"{split}/prepare_s"] = prepare_s
-    if icp:
-        metrics[f"{split}/icp_ms_per_object"] = 1000 * t_icp / max(n_valid, 1)
-    metrics[f"{split}/failures"] = float(failures)
-    data_params = {k: v for k, v in cfg.flat().items() if k.startswith("data.")}
-    data_params["loss.symmetry_table"] = cfg.loss.symmetry_table  # the rotation metric's table
-    if data is not None:
-        data_params["data.root"] = str(Path(data).resolve())
-    run_id = (
-        _log(
-            method,
-            preset,
-            seed,
-            settings,
-            data_key,
-            table,
-            metrics,
-            limit,
-            data_params,
-            split,
-            project_dir,
-            described,
-        )
-        if log
-        else None
-    )
+    metrics = _metrics(table, split, state.seconds, prepare_s, icp_s, n_valid, failures)
+    record = BaselineRecord(call, settings, table, metrics, _data_params(cfg, data), pool.described)
+    run_id = _log(record) if log else None
     state.remove()
-    return BaselineOutcome(table, metrics, run_id, failures, name=split, split=described)
+    return BaselineOutcome(table, metrics, run_id, failures, name=split, split=pool.described)
 
 
-def _log(
-    method,
-    preset,
-    seed,
-    settings,
-    data_key,
-    table,
-    metrics,
-    limit,
-    data_params,
-    split,
-    project_dir,
-    described="",
-) -> str:
-    client = tracking.setup(project_dir)
-    exp = tracking.experiment_id(client, GROUP, project_dir)
-    config = settings_fingerprint(settings)
+@dataclass(frozen=True)
+class BaselineRecord:
+    """What a computed baseline run logs to MLflow.
+
+    Attributes:
+        call: the call that computed it (method, preset, seed, data key, settings fingerprint,
+            split, subsample, project).
+        settings: the method's settings (params ``baseline.*``).
+        table: the per-instance table (artifact ``eval/{split}/instances.csv``).
+        metrics: the run's metrics.
+        data_params: params of the data (:func:`_data_params`).
+        described: a user's frame list in words (tags ``eval/{split}/data`` and
+            ``eval/{split}/split``), or "" for one of :data:`SPLITS`.
+    """
+
+    call: BaselineCall
+    settings: BaselineSettings
+    table: pd.DataFrame
+    metrics: dict[str, float]
+    data_params: dict[str, object]
+    described: str = ""
+
+
+def _log(record: BaselineRecord) -> str:
+    """Log ``record`` as a new FINISHED run of experiment :data:`GROUP`; its run id."""
+    call = record.call
+    client = tracking.setup(call.project_dir)
+    exp = tracking.experiment_id(client, GROUP, call.project_dir)
     tags = runs.baseline_tags(
-        method, GROUP, preset, seed, data_key, config, limit=limit, split=split
+        call.method,
+        GROUP,
+        call.preset,
+        call.seed,
+        call.data_key,
+        call.settings_fp,
+        limit=call.limit,
+        split=call.split,
     )
-    own = settings_fingerprint(load_settings(method))
-    name = runs.baseline_name(method, preset, seed, split, config, own)
-    params = {f"baseline.{k}": v for k, v in settings.values.items()} | data_params
+    own = settings_fingerprint(load_settings(call.method))
+    name = runs.baseline_name(
+        call.method, call.preset, call.seed, call.split, call.settings_fp, own
+    )
+    params = {f"baseline.{k}": v for k, v in record.settings.values.items()} | record.data_params
     run_id = runs.create_run_record(client, exp, name, tags, params)
-    log_evaluation(client, run_id, split, table, metrics)
-    if described:  # a user's data, tagged as an evaluation of it is
-        client.set_tag(run_id, f"eval/{split}/data", data_key)
-        client.set_tag(run_id, f"eval/{split}/split", described)
+    log_evaluation(client, run_id, call.split, record.table, record.metrics)
+    if record.described:  # a user's data, tagged as an evaluation of it is
+        client.set_tag(run_id, f"eval/{call.split}/data", call.data_key)
+        client.set_tag(run_id, f"eval/{call.split}/split", record.described)
     client.set_terminated(run_id, "FINISHED")
     return run_id
