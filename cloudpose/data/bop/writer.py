@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from PIL import Image
@@ -19,9 +20,9 @@ from cloudpose.data.bop.format import (
     model_origin,
     write_ply,
 )
-from cloudpose.data.synth.render import Renderer
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, SegmentWarning, extract_segments
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
@@ -120,6 +121,89 @@ def check_export_units(src, frame_ids: list[str], models: dict[int, np.ndarray])
     check_units(src, unit_stats(SegmentSet.from_segments(segments, 256), models))
 
 
+def _export_splits(src: YCBVideo, frames: str, train: bool) -> list[tuple[str, list[str]]]:
+    """``(split, frame ids)`` to export: ``frames`` as ``test``, the training frames as
+    ``train`` when ``train``; a frame id that is not numbers raises (:func:`bop_ids`)."""
+    splits = [("test", src.image_set(frames))]
+    if train:
+        splits.append(("train", src.image_set("train")))
+    for _, ids in splits:
+        for fid in ids:
+            bop_ids(fid)
+    return splits
+
+
+def _write_models(out: Path, models: dict[int, np.ndarray], renderer: Renderer, classes) -> None:
+    """``models/``: each model's surface as a PLY (millimetres, BOP frame) and
+    ``models_info.json``."""
+    (out / "models").mkdir(parents=True, exist_ok=True)
+    for c, pts in models.items():
+        tri = np.asarray(renderer.mesh(c).triangles)
+        write_ply(out / "models" / f"obj_{c:06d}.ply", (pts - model_origin(pts)) * 1000.0, tri)
+    atomic_text(
+        out / "models" / "models_info.json",
+        json.dumps(models_info(models, classes), indent=1) + "\n",
+    )
+
+
+class _FrameAnnotations(NamedTuple):
+    """One exported frame's entries of its scene's ``scene_gt``, ``scene_camera`` and
+    ``scene_gt_info``: one gt and one info per object, in the frame's order."""
+
+    gt: list[dict]
+    camera: dict
+    info: list[dict]
+
+
+def _write_frame(
+    src: YCBVideo,
+    fid: str,
+    scene_dir: Path,
+    renderer: Renderer,
+    origins: dict[int, np.ndarray],
+) -> _FrameAnnotations:
+    """Write frame ``fid``'s depth, rgb (where the source has colour) and per-object ``mask``
+    (rendered alone) and ``mask_visib`` (its label pixels) under ``scene_dir``; its
+    annotations."""
+    im = bop_ids(fid)[1]
+    has_color = src.frame_paths(fid)["color"].is_file()
+    f = src.frame(fid, with_color=has_color)
+    shape = f.depth.shape
+    alone = src.alone_pixels(fid)
+    if alone is None:
+        alone = renderer.alone_pixels(f.K, shape, f.cls_ids, f.poses)
+    _png(
+        scene_dir / "depth" / f"{im:06d}.png",
+        np.round(f.depth.astype(np.float64) * 1000.0 / DEPTH_SCALE).astype(np.uint16),
+    )
+    if f.color is not None:
+        _png(scene_dir / "rgb" / f"{im:06d}.png", f.color, "RGB")
+    gt, info = [], []
+    for g, (c, P) in enumerate(zip(f.cls_ids, f.poses, strict=True)):
+        R, t = P[:, :3], P[:, 3]
+        full = renderer.render(f.K, shape, [int(c)], P[None]).label > 0
+        visib = f.label == c
+        _png(scene_dir / "mask" / f"{im:06d}_{g:06d}.png", full.astype(np.uint8) * 255, "L")
+        _png(scene_dir / "mask_visib" / f"{im:06d}_{g:06d}.png", visib.astype(np.uint8) * 255, "L")
+        t_mm = 1000.0 * (t + R @ origins[int(c)])
+        gt.append({"cam_R_m2c": R.ravel().tolist(), "cam_t_m2c": t_mm.tolist(), "obj_id": int(c)})
+        n_all, n_vis = int(alone[g]), int(visib.sum())
+        # a real label can exceed the rendered silhouette by a few pixels
+        fract = min(n_vis / n_all, 1.0) if n_all > 0 else 0.0
+        info.append(
+            {
+                "bbox_obj": _bbox(full),
+                "bbox_visib": _bbox(visib),
+                "px_count_all": n_all,
+                "px_count_valid": int((full & (f.depth > 0)).sum()),
+                "px_count_visib": n_vis,
+                "visib_fract": fract,
+            }
+        )
+    camera = {"cam_K": f.K.ravel().tolist(), "depth_scale": DEPTH_SCALE}
+    return _FrameAnnotations(gt, camera, info)
+
+
 def export_bop(
     source: str | Path,
     out: str | Path,
@@ -157,26 +241,14 @@ def export_bop(
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out}: the folder exists and is not empty; name a new one")
-    splits = [("test", src.image_set(frames))]
-    if train:
-        splits.append(("train", src.image_set("train")))
-    for _, ids in splits:
-        for fid in ids:
-            bop_ids(fid)
+    splits = _export_splits(src, frames, train)
     models = src.models()
     check_export_units(src, [fid for _, ids in splits for fid in ids], models)
     # the surfaces that render a real frame's occlusion counts, so both layouts give one factor
     renderer = Renderer(
         {c: p.copy() for c, p in models.items()}, surface_version=ALONE_SURFACE_VERSION
     )
-    (out / "models").mkdir(parents=True, exist_ok=True)
-    for c, pts in models.items():
-        tri = np.asarray(renderer.mesh(c).triangles)
-        write_ply(out / "models" / f"obj_{c:06d}.ply", (pts - model_origin(pts)) * 1000.0, tri)
-    atomic_text(
-        out / "models" / "models_info.json",
-        json.dumps(models_info(models, src.classes), indent=1) + "\n",
-    )
+    _write_models(out, models, renderer, src.classes)
     origins = {c: model_origin(p) for c, p in models.items()}
     n_frames = n_inst = 0
     targets = []
@@ -191,56 +263,14 @@ def export_bop(
             gt, cam, info = {}, {}, {}
             for fid in fids:
                 im = bop_ids(fid)[1]
-                has_color = src.frame_paths(fid)["color"].is_file()
-                f = src.frame(fid, with_color=has_color)
-                shape = f.depth.shape
-                alone = src.alone_pixels(fid)
-                if alone is None:
-                    alone = renderer.alone_pixels(f.K, shape, f.cls_ids, f.poses)
-                _png(
-                    d / "depth" / f"{im:06d}.png",
-                    np.round(f.depth.astype(np.float64) * 1000.0 / DEPTH_SCALE).astype(np.uint16),
-                )
-                if f.color is not None:
-                    _png(d / "rgb" / f"{im:06d}.png", f.color, "RGB")
-                gt[str(im)], info[str(im)] = [], []
-                cam[str(im)] = {"cam_K": f.K.ravel().tolist(), "depth_scale": DEPTH_SCALE}
-                for g, (c, P) in enumerate(zip(f.cls_ids, f.poses, strict=True)):
-                    R, t = P[:, :3], P[:, 3]
-                    full = renderer.render(f.K, shape, [int(c)], P[None]).label > 0
-                    visib = f.label == c
-                    _png(d / "mask" / f"{im:06d}_{g:06d}.png", full.astype(np.uint8) * 255, "L")
-                    _png(
-                        d / "mask_visib" / f"{im:06d}_{g:06d}.png",
-                        visib.astype(np.uint8) * 255,
-                        "L",
-                    )
-                    t_mm = 1000.0 * (t + R @ origins[int(c)])
-                    gt[str(im)].append(
-                        {
-                            "cam_R_m2c": R.ravel().tolist(),
-                            "cam_t_m2c": t_mm.tolist(),
-                            "obj_id": int(c),
-                        }
-                    )
-                    n_all, n_vis = int(alone[g]), int(visib.sum())
-                    # a real label can exceed the rendered silhouette by a few pixels
-                    fract = min(n_vis / n_all, 1.0) if n_all > 0 else 0.0
-                    info[str(im)].append(
-                        {
-                            "bbox_obj": _bbox(full),
-                            "bbox_visib": _bbox(visib),
-                            "px_count_all": n_all,
-                            "px_count_valid": int((full & (f.depth > 0)).sum()),
-                            "px_count_visib": n_vis,
-                            "visib_fract": fract,
-                        }
-                    )
-                    if split == "test" and fract >= MIN_VISIB_FRACT:
-                        targets.append(
-                            {"im_id": im, "inst_count": 1, "obj_id": int(c), "scene_id": scene_id}
-                        )
-                    n_inst += 1
+                ann = _write_frame(src, fid, d, renderer, origins)
+                gt[str(im)], cam[str(im)], info[str(im)] = ann
+                targets += [
+                    {"im_id": im, "inst_count": 1, "obj_id": g["obj_id"], "scene_id": scene_id}
+                    for g, i in zip(ann.gt, ann.info, strict=True)
+                    if split == "test" and i["visib_fract"] >= MIN_VISIB_FRACT
+                ]
+                n_inst += len(ann.gt)
                 n_frames += 1
                 bar.update()
             for name, table in (("scene_gt", gt), ("scene_camera", cam), ("scene_gt_info", info)):
