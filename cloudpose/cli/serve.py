@@ -14,13 +14,15 @@ from cloudpose.cli.app import (
 )
 
 
-def _serve_until_interrupted(cmd: list[str], env: dict[str, str], what: str) -> None:
+def _serve_until_interrupted(
+    cmd: list[str], env: dict[str, str], what: str, cwd: Path | None = None
+) -> None:
     """Run a server that serves until interrupted (which ends this command too): any return of
     its own is a failure, said in one line, with its exit code (1 if it gave none).
 
     The server runs in a process group of its own; Ctrl-C or SIGTERM to this command stops the
     whole group (the server and its workers: SIGTERM, then SIGKILL after 10 s), so no server is
-    left serving after the command is gone.
+    left serving after the command is gone. ``cwd``: the server's working folder.
     """
     import os
     import signal
@@ -28,7 +30,7 @@ def _serve_until_interrupted(cmd: list[str], env: dict[str, str], what: str) -> 
 
     from cloudpose.failures import sigterm_as_interrupt
 
-    proc = subprocess.Popen(cmd, env={**os.environ, **env}, start_new_session=True)
+    proc = subprocess.Popen(cmd, env={**os.environ, **env}, cwd=cwd, start_new_session=True)
     try:
         with sigterm_as_interrupt():
             code = proc.wait()
@@ -92,10 +94,12 @@ def mlflow_ui(
         bool, typer.Option("--serve/--no-serve", help="Start the UI (else only prepare and print).")
     ] = True,
 ) -> None:
-    """The MLflow UI, opening on each experiment's runs grouped by variant with the headline
-    metrics averaged over seeds. First logs the headline metrics of runs stored without them and
-    the saved view "variants" on every cloudpose experiment (experiment tags), and prints each
-    experiment's address."""
+    """The MLflow UI, with one saved view per ablation group and preset: its variants (the
+    reference shared-0 included) one row each, mean and sd over the seeds the report counts in
+    percent, and a link to the report run's tables and plots. First prepares the store
+    (cloudpose.store.headline.prepare_ui: runs the report does not count tagged `superseded`,
+    dead RUNNING runs marked KILLED, statistics, views and descriptions written) and prints each
+    view's address."""
     import os
 
     from cloudpose.store import headline, tracking
@@ -109,30 +113,59 @@ def mlflow_ui(
 
         check_port_free(host, port)
     base = uri.rstrip("/") if remote else f"http://{host}:{port}"
+    typer.echo(f"preparing the views of {uri} ...")
     prepared = headline.prepare_ui(tracking.setup())
-    backfilled = sum(p.backfilled for p in prepared)
-    if backfilled:
-        keys = ", ".join(headline.HEADLINE)
-        typer.echo(f"headline metrics ({keys}) logged now for {backfilled} runs stored before them")
-    shown = [p for p in prepared if p.runs]
-    if shown:
-        typer.echo(
-            "Runs grouped by variant, headline metrics averaged over seeds (view "
-            f'"{headline.VIEW_NAME}"):'
-        )
-        width = max(len(p.name) for p in shown)
-        for p in shown:
-            url = headline.view_url(base, p.experiment_id)
-            typer.echo(f"  {p.name:<{width}}  {p.runs:>3} runs  {url}")
-    else:
-        typer.echo(f"no cloudpose run in {uri} yet")
+    _print_prepared(prepared, base, uri)
     if not serve or remote:
         return
     typer.echo(f"MLflow UI on {base} (store {uri}); Ctrl-C ends it")
-    cmd = headline.ui_command(uri, host, port)
+    # The server runs in a SQLite store's folder: relative artifact addresses (a store as
+    # store-pack writes it) are read from there.
+    db = tracking.sqlite_path(uri)
+    folder = db.resolve().parent if db is not None else None
+    cmd = headline.ui_command(f"sqlite:///{db.resolve()}" if db else uri, host, port)
     _serve_until_interrupted(
-        cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}"
+        cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}", folder
     )
+
+
+def _print_prepared(prepared, base: str, uri: str) -> None:
+    """What mlflow-ui prepared: one line per comparison view, the other experiments' views, the
+    runs left out and the dead runs marked."""
+    from cloudpose.store import headline, tracking
+
+    if prepared.backfilled:
+        keys = ", ".join(headline.HEADLINE)
+        typer.echo(f"headline metrics ({keys}) logged now for {prepared.backfilled} runs")
+    for name, why in prepared.killed:
+        typer.echo(f"marked KILLED: {name} ({why})")
+    comps = prepared.comparisons
+    if not comps and not prepared.experiments:
+        typer.echo(f"no cloudpose run in {uri} yet")
+        return
+    if comps:
+        typer.echo(
+            "One view per group and preset: a row per variant, percent, mean and sd over the "
+            "seeds the report counts:"
+        )
+        width = max(len(c.key) for c in comps)
+        for c in comps:
+            runs = sum(len(r.run_ids) for r in c.rows)
+            variants = sum(1 for r in c.rows if r.run_ids)
+            url = headline.view_url(base, c.experiments, c.key)
+            typer.echo(f"  {c.key:<{width}}  {variants:>2} variants {runs:>3} runs  {url}")
+    homed = {tracking.EXPERIMENT_PREFIX + c.group for c in comps}
+    rest = {i: n for i, n in prepared.experiments.items() if n not in homed}
+    if rest:
+        typer.echo("Other experiments (finished runs):")
+        for i, name in sorted(rest.items(), key=lambda kv: kv[1]):
+            typer.echo(f"  {name}  {headline.view_url(base, [i], headline.RUNS_VIEW)}")
+    if prepared.superseded:
+        typer.echo(
+            f"{prepared.superseded} evaluated runs that the report does not count (older "
+            f"reruns, other configs or data) carry the tag `{headline.SUPERSEDED}` (why) and "
+            "are left out of the views"
+        )
 
 
 @app.command("store-pack")
