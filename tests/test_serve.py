@@ -53,3 +53,27 @@ def test_a_stopped_serve_command_stops_its_server_and_the_servers_workers(tmp_pa
                 os.kill(int(pidfile.read_text()), signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_served_store_is_served_from_its_folder(tmp_path, monkeypatch):
+    """The UI server runs in a SQLite store's folder (relative artifact addresses, as a packed
+    store holds them, resolve there) with the store's absolute address."""
+    from typer.testing import CliRunner
+
+    from cloudpose.cli import app, serve
+    from cloudpose.suite import cluster
+
+    calls = []
+    monkeypatch.setattr(serve, "_serve_until_interrupted", lambda *a: calls.append(a))
+    monkeypatch.setattr(cluster, "check_port_free", lambda host, port: None)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///store/mlflow.db")  # relative
+    store = tmp_path / "store"
+    store.mkdir()
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["mlflow-ui"])
+    assert res.exit_code == 0, res.output
+    assert "no cloudpose run" in res.output
+    (cmd, env, _what, cwd) = calls[0]
+    assert cwd == store.resolve()
+    assert cmd[cmd.index("--backend-store-uri") + 1] == f"sqlite:///{store.resolve()}/mlflow.db"
+    assert env == {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
