@@ -31,19 +31,21 @@ from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
-from cloudpose.metrics import flatten_summary, pose_errors, summarize
+from cloudpose.metrics import pose_errors
 from cloudpose.refine import ICPSettings, segment_views
 from cloudpose.store import runs, tracking
 from cloudpose.store.headline import headline
+from cloudpose.store.metric_names import (
+    ICP_SUFFIX,
+    OWN_TEST,
+    REAL_DEV,
+    data_evaluation_name,
+    own_test_name,
+    summary_metrics,
+    video_metrics,
+)
 from cloudpose.store.pretrained import is_pretrained
 from cloudpose.store.runs import local_checkpoint
-
-OWN_TEST = "test"
-"""Metric prefix of a run's evaluation on its own test set (``test/...``, ``test_icp/...``).
-Reserved: an evaluation on other data (``--data``) is named by that data's identity."""
-
-METHODS = ("net", "icp")
-"""Column prefixes of the per-instance table: the network's estimate, then after ICP."""
 
 
 def instance_table(
@@ -96,43 +98,6 @@ def _number_lists(rows: np.ndarray, miss: np.ndarray) -> list[str]:
     return ["" if m else " ".join(f"{v:.17g}" for v in r) for r, m in zip(rows, miss, strict=True)]
 
 
-def _by_method(df: pd.DataFrame, name: str):
-    """``(metric prefix, table with the method's error columns unprefixed)`` per method."""
-    for method in METHODS:
-        if f"{method}_ads" not in df:
-            continue
-        prefix = name if method == "net" else f"{name}_icp"
-        cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
-        yield prefix, df.rename(columns={f"{method}_{k}": k for k in cols})
-
-
-def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
-    """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
-    out: dict[str, float] = {}
-    for prefix, sub in _by_method(df, name):
-        for key, value in flatten_summary(summarize(sub)).items():
-            out[tracking.metric_key(prefix, key)] = float(value)
-    return out
-
-
-def video_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
-    """Pooled metrics of each video (the ``SEQ`` of ``SEQ/FRAME``), per method, as
-    ``{name}/video/{SEQ}/{key}``: consecutive frames of a video show one scene, so a set of a
-    few videos is a few scenes and is read per video as well as pooled."""
-    out: dict[str, float] = {}
-    video = df["frame_id"].astype(str).str.split("/").str[0]
-    for prefix, sub in _by_method(df, name):
-        for seq, part in sub.groupby(video.to_numpy()):
-            for key, value in summarize(part, by_class=False)["pooled"].items():
-                out[tracking.metric_key(prefix, f"video/{seq}/{key}")] = float(value)
-    return out
-
-
-REAL_DEV = "real"
-"""Metric prefix of a run's evaluation on the packaged real development frames
-(:func:`real_dev_root`): ``real/...``, ``real_icp/...``, per video ``real/video/0000/...``."""
-
-
 def real_dev_root() -> Path:
     """The 61 real YCB-Video frames with ground truth that ship in the package (frames
     000001-000020 of training videos 0000-0002 and 0003/000138; 14 classes, 4 scenes), in the
@@ -168,25 +133,6 @@ class EvalOutcome:
     run's MLflow tag ``eval/{name}/split``."""
 
 
-def own_test_name(segmentation: str | None = None) -> str:
-    """Metric prefix of a run's evaluation on its own test set: :data:`OWN_TEST` with the run's
-    own masks (``segmentation`` None), ``test-{segmentation}`` under another mask source
-    (``test-degraded-medium``; the ``+ ICP`` results under ``test-degraded-medium_icp``)."""
-    if not segmentation:
-        return OWN_TEST
-    return tracking.metric_key(f"{OWN_TEST}-{mask_source_label(segmentation)}")
-
-
-def evaluation_name(root: str | Path, frames: str, key: str) -> str:
-    """Metric prefix of an evaluation on ``frames`` of the dataset at ``root``.
-
-    ``{folder}-{frames}-{key[:10]}`` with ``key`` the content key of the segments
-    (:func:`cloudpose.data.cache.cache_key`): two folders with one basename, or one folder's
-    keyframes and all its frames, get different names; the same bytes anywhere get one name.
-    """
-    return tracking.metric_key(f"{Path(root).resolve().name}-{frames}-{key[:10]}")
-
-
 def check_evaluation_name(name: str, data: str | Path | None) -> str:
     """``name`` if a user may name an evaluation so (``--name``), else ``ValueError``.
 
@@ -204,7 +150,7 @@ def check_evaluation_name(name: str, data: str | Path | None) -> str:
             f"--name {name!r} is a metric prefix of training ({prefixes}): an evaluation under "
             "it would add points to the training curves; choose another name"
         )
-    if name.endswith("_icp"):
+    if name.endswith(ICP_SUFFIX):
         raise ValueError(
             f"--name {name!r}: names ending in _icp are the ICP results of another evaluation; "
             "choose another name"
@@ -261,7 +207,7 @@ def evaluate(
         frames: with ``data``: frame list to read ("keyframe" = YCB-Video's keyframes or the
             BOP19 test targets, "all", or an image_sets name).
         name: metric prefix; default :data:`OWN_TEST` for the run's own test set, else
-            :func:`evaluation_name` (a name of the user's: :func:`check_evaluation_name`).
+            :func:`~cloudpose.store.metric_names.data_evaluation_name` (a name of the user's: :func:`check_evaluation_name`).
         icp: also evaluate after ICP refinement.
         icp_overrides: fields of :class:`~cloudpose.refine.ICPSettings` to change from the
             run's own (``cfg.icp``), e.g. ``{"starts": 24}``. Other settings than the run's
@@ -321,7 +267,7 @@ def evaluate(
         segs = folder_segments(dataset, frames, seg_cfg, project_dir, progress)
         data_key = segs.key
         label = f"-{mask_source_label(masks)}" if masks else ""
-        name = name or tracking.metric_key(evaluation_name(data, frames, data_key) + label)
+        name = name or tracking.metric_key(data_evaluation_name(data, frames, data_key) + label)
         split = describe_split(dataset, frames)
         data_label = f"{split} in {Path(data).resolve()}"
     own_icp = ICPSettings.from_config(cfg.icp)

@@ -225,9 +225,10 @@ def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, t
     from cloudpose.data.bop import export_bop
     from cloudpose.data.cache import cache_key
     from cloudpose.data.layout import describe_split
-    from cloudpose.evaluate import evaluation_name, real_dev_root
+    from cloudpose.evaluate import real_dev_root
     from cloudpose.registry import resolve
     from cloudpose.store import tracking
+    from cloudpose.store.metric_names import data_evaluation_name
 
     if layout == "ycb":
         root, limit = real_dev_root(), 4  # the 61 packaged real frames, 4 videos
@@ -239,7 +240,7 @@ def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, t
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     key = cache_key(root, "all", resolve("shared-0", "smoke").data, Path.cwd() / "data" / "cache")
-    name = evaluation_name(root, "all", key)
+    name = data_evaluation_name(root, "all", key)
     assert f"logged as {name}/" in res.output and describe_split(root, "all") in res.output
     assert not (Path.cwd() / "data" / "synth-seed0").exists()  # no synthetic set was made
     client = tracking.setup(Path.cwd())

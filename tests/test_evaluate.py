@@ -127,3 +127,24 @@ def test_a_torn_model_of_a_run_folder_says_how_to_rewrite_it(smoke_run, tmp_path
     (run_dir / "model.pt").write_bytes(b"")
     with pytest.raises(ValueError, match=r"model\.pt is not .*rerun the run's train command"):
         evaluate(str(run_dir), project_dir=proj, progress=False, log=False)
+
+
+def test_metric_names_import_without_torch_and_name_each_method():
+    """The reports read the evaluation names at the top of their modules: the module of the
+    names loads neither torch nor the evaluation."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; import cloudpose.store.metric_names; "
+        "print(sorted(m for m in ('torch', 'cloudpose.evaluate') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    from cloudpose.store import metric_names as names
+
+    assert names.method_prefixes("real") == {"net": "real", "icp": "real_icp"}
+    assert names.own_test_name() == names.OWN_TEST == "test"
+    assert names.own_test_name("degraded-medium") == "test-degraded-medium"
+    name = names.data_evaluation_name(DATA / "ycb_real", "all", "0123456789abcdef0123")
+    assert name == "ycb_real-all-0123456789"

@@ -19,9 +19,10 @@ file is removed once the run is logged, so a later call computes afresh.
 On a user's dataset (``data=ROOT``, either layout, ``frames`` as ``cloudpose evaluate
 --data`` takes them) the preset gives the segment settings only. The run is logged under the
 data's identity as an evaluation on that data is
-(:func:`cloudpose.evaluate.evaluation_name`): metrics ``{folder}-{frames}-{key}/...``, tags
-``data`` = the segments' content key, ``split`` = that name, ``eval/{name}/split`` = the frame
-list in words, run name ``baseline-{method}/{preset}/seed{S}+{name}-{settings}``.
+(:func:`cloudpose.store.metric_names.data_evaluation_name`): metrics
+``{folder}-{frames}-{data_key}/...``, tags ``data`` = the segments' data key, ``split`` = that
+name, ``eval/{name}/split`` = the frame list in words, run name
+``baseline-{method}/{preset}/seed{S}+{name}-{settings}``.
 """
 
 from __future__ import annotations
@@ -40,18 +41,12 @@ from cloudpose.baselines.base import BaselineSettings, NotRegistered, settings_f
 from cloudpose.data.cache import SegmentSet, segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.layout import describe_split, open_dataset
-from cloudpose.evaluate import (
-    evaluation_name,
-    instance_table,
-    log_evaluation,
-    real_dev_root,
-    summary_metrics,
-    video_metrics,
-)
+from cloudpose.evaluate import instance_table, log_evaluation, real_dev_root
 from cloudpose.files import atomic_write
 from cloudpose.infer import Estimates, refine_poses
 from cloudpose.registry import DEFAULT_PRESET, resolve
 from cloudpose.store import runs, tracking
+from cloudpose.store.metric_names import data_evaluation_name, summary_metrics, video_metrics
 from cloudpose.store.runs import run_folder
 from cloudpose.train.loop import split_frames
 
@@ -225,13 +220,14 @@ def _pool(
     cfg, split: str, data: str | Path | None, frames: str, project_dir: Path, progress: bool
 ) -> _Pool:
     """The segments of ``split`` for run config ``cfg``, or of ``frames`` of the dataset at
-    ``data`` (then named by that data's identity, :func:`cloudpose.evaluate.evaluation_name`)."""
+    ``data`` (then named by that data's identity,
+    :func:`cloudpose.store.metric_names.data_evaluation_name`)."""
     if data is None:
         prepared, dataset, segments = split_segments(cfg, split, project_dir, progress)
         return _Pool(dataset, segments, prepared.key, split, "")
     dataset = open_dataset(data)
     segments = folder_segments(dataset, frames, cfg.data, project_dir, progress)
-    name = evaluation_name(data, frames, segments.key)
+    name = data_evaluation_name(data, frames, segments.key)
     return _Pool(dataset, segments, segments.key, name, describe_split(dataset, frames))
 
 

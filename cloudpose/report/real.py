@@ -30,10 +30,7 @@ import pandas as pd
 
 from cloudpose.report.runs import run_instance_table
 from cloudpose.store import tracking
-
-REAL = "real"
-"""The metric prefix of an evaluation on the real development frames
-(:data:`cloudpose.evaluate.REAL_DEV`); the network's guarded ICP is ``real-fallback``."""
+from cloudpose.store.metric_names import REAL_DEV, method_prefixes, summary_metrics, video_metrics
 
 NETWORK = "shared-0"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
@@ -79,12 +76,10 @@ def video_of(frame_id: pd.Series) -> pd.Series:
 def table_metrics(table: pd.DataFrame) -> dict[tuple[str, str, str], float]:
     """``(method column prefix, video or "pooled", metric) -> value`` (0..1) of an instance
     table of :func:`cloudpose.evaluate.instance_table` (``net_*``, ``icp_*`` columns)."""
-    from cloudpose.evaluate import summary_metrics, video_metrics
-
     out: dict[tuple[str, str, str], float] = {}
     name = "x"
     metrics = {**summary_metrics(table, name), **video_metrics(table, name)}
-    for method, prefix in (("net", name), ("icp", f"{name}_icp")):
+    for method, prefix in method_prefixes(name).items():
         for key in METRICS:
             if f"{prefix}/{key}" not in metrics:
                 continue
@@ -147,7 +142,7 @@ def find_evaluations(
                 f"(`cloudpose run --variant {NETWORK} --preset {preset} --seed {seed}`)"
             )
             continue
-        ev = _load(client, run, NETWORK, REAL)
+        ev = _load(client, run, NETWORK, REAL_DEV)
         if ev is None:
             missing.append(
                 f"{NETWORK}/{preset}/seed{seed}: not evaluated on the real frames "
@@ -157,13 +152,13 @@ def find_evaluations(
             continue
         found.append(ev)
         seeds_found.setdefault(NETWORK, []).append(seed)
-        guarded = _load(client, run, NETWORK, f"{REAL}-fallback")
+        guarded = _load(client, run, NETWORK, f"{REAL_DEV}-fallback")
         if guarded is not None:
             found.append(guarded)
     for method in BASELINES:
         fp = settings_fingerprint(load_settings(method))
         extra = (
-            f"tags.kind = 'baseline' and tags.split = '{REAL}' and tags.subsample = 'all' "
+            f"tags.kind = 'baseline' and tags.split = '{REAL_DEV}' and tags.subsample = 'all' "
             f"and tags.config = '{fp}'"
         )
         runs = tracking.find_runs(
@@ -173,7 +168,7 @@ def find_evaluations(
         for run in runs:
             per_seed.setdefault(int(run.data.tags.get("seed", 0)), run)
         for seed, run in sorted(per_seed.items()):
-            ev = _load(client, run, method, REAL)
+            ev = _load(client, run, method, REAL_DEV)
             if ev is not None:
                 found.append(ev)
                 seeds_found.setdefault(method, []).append(seed)
@@ -305,8 +300,8 @@ def versus_baseline(
 def comparison(evaluations: list[Evaluation], reference: str = REFERENCE) -> pd.DataFrame:
     """:func:`versus_baseline` for every metric, without and with ICP: the network's seeds
     against the reference baseline's lowest seed; empty when either is missing."""
-    nets = [ev.table for ev in evaluations if ev.method == NETWORK and ev.name == REAL]
-    refs = [ev for ev in evaluations if ev.method == reference and ev.name == REAL]
+    nets = [ev.table for ev in evaluations if ev.method == NETWORK and ev.name == REAL_DEV]
+    refs = [ev for ev in evaluations if ev.method == reference and ev.name == REAL_DEV]
     if not nets or not refs:
         return pd.DataFrame()
     ref = min(refs, key=lambda ev: ev.seed).table

@@ -5,7 +5,7 @@ The paper tests with PoseCNN's segmentation; the default data has only ground tr
 :mod:`cloudpose.data.masks` imitates a segmentation network's errors at three strengths. Each
 run of shared-0 holds one evaluation of its own test set per source, each with the network's
 estimate and the estimate after ICP: ``eval/test/instances.csv`` for ground truth,
-``eval/test-degraded-medium/instances.csv`` and so on (:func:`cloudpose.evaluate.own_test_name`).
+``eval/test-degraded-medium/instances.csv`` and so on (:func:`cloudpose.store.metric_names.own_test_name`).
 From those per-instance tables:
 
 - ``table_masks`` (.md, .tex, .csv): per source, ADS AUC, AD AUC, ADS < 2 cm and rotation error
@@ -30,13 +30,14 @@ from cloudpose.report.formats import Provenance, Table
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import format_mean_std, mean_std
 from cloudpose.report.tables import METRIC_LABELS, paper_table
+from cloudpose.store.metric_names import own_test_name
 
 __all__ = [
     "GROUP",
     "SOURCES",
     "describe_source",
-    "evaluation_name",
     "instance_figures",
+    "mask_source_evaluation_name",
     "render",
     "source_tables",
     "table_masks",
@@ -66,10 +67,9 @@ METHODS = {"net": "w/o ICP", "icp": "+ ICP"}
 """Instance-table method prefixes and their column labels."""
 
 
-def evaluation_name(source: str) -> str:
-    """Metric prefix and artifact folder of shared-0's evaluation under ``source``."""
-    from cloudpose.evaluate import own_test_name  # imports torch; the reports do not need it
-
+def mask_source_evaluation_name(source: str) -> str:
+    """Metric prefix and artifact folder of shared-0's evaluation of its own test set under
+    mask source ``source`` (one of :data:`SOURCES`)."""
     return own_test_name(None if source == "gt" else source)
 
 
@@ -88,7 +88,7 @@ def describe_source(source: str) -> str:
 
 def source_tables(runs: RunSet, source: str) -> dict[int, pd.DataFrame]:
     """seed -> shared-0's per-instance table under ``source`` (seeds without one left out)."""
-    name = evaluation_name(source)
+    name = mask_source_evaluation_name(source)
     return {r.seed: t for r in runs.of(VARIANT) if (t := r.instances(name)) is not None}
 
 

@@ -106,7 +106,7 @@ def mask_ablation(
     evaluations: list[MaskEvaluation] = []
     todo = [(st, s) for st in statuses for s in sources]
     for k, (st, source) in enumerate(todo, 1):
-        name = segmentation.evaluation_name(source)
+        name = segmentation.mask_source_evaluation_name(source)
         label = f"[{k}/{len(todo)}] {run_name(segmentation.VARIANT, preset, st.seed)} {source}"
         data = client.get_run(st.run_id).data
         # the instance table is logged before the metrics (evaluate.log_evaluation)

@@ -394,7 +394,7 @@ def plan_masks(
         metrics = client.get_run(r.run_id).data.metrics if r.run_id else {}
         todo = []
         for source in sources:
-            name = segmentation.evaluation_name(source)
+            name = segmentation.mask_source_evaluation_name(source)
             if f"{name}/ads_auc" in metrics and f"{name}_icp/ads_auc" in metrics:
                 logged += 1
             elif r.run_id or name != TEST_KEY.split("/")[0]:  # a new run evaluates its own

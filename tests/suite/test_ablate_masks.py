@@ -49,7 +49,7 @@ def _instances(rng: np.random.Generator, misses: int) -> pd.DataFrame:
 
 def _store(root: Path, sources) -> dict:
     """shared-0 runs of two seeds, each with one evaluation per source in ``sources``."""
-    from cloudpose.report.segmentation import evaluation_name
+    from cloudpose.report.segmentation import mask_source_evaluation_name
     from cloudpose.store import tracking
 
     client = tracking.setup(root)
@@ -70,7 +70,7 @@ def _store(root: Path, sources) -> dict:
         client.log_metric(rid, "test/ads_auc", 0.5)
         for source in sources:
             df = _instances(rng, MISSES[source])
-            name = evaluation_name(source)
+            name = mask_source_evaluation_name(source)
             path = root / "logged" / rid / name / "instances.csv"
             path.parent.mkdir(parents=True)
             df.to_csv(path, index=False)
