@@ -19,7 +19,7 @@ from cloudpose.registry import DEFAULT_PRESET
 
 
 def _committed_if_lacking(preset: str, lacking=None) -> None:
-    """Read the preset's committed store (``reports/PRESET/mlflow-store.tar.xz``, unpacked once
+    """Read the preset's committed store (``reports/PRESET/mlflow-store/``, unpacked once
     into ``stores/PRESET``) when no store is named and the project's own lacks the runs
     (:mod:`cloudpose.report.committed`)."""
     from cloudpose.report.committed import holds_preset, use_committed_store
