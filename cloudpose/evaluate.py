@@ -261,11 +261,11 @@ def evaluate(
             )
             data_label += f" with {masks} masks"
         name = name or own_test_name(masks)
-        data_key = segs.key
+        data_key = segs.data_key
     else:
         dataset = open_dataset(data)
         segs = folder_segments(dataset, frames, seg_cfg, project_dir, progress)
-        data_key = segs.key
+        data_key = segs.data_key
         label = f"-{mask_source_label(masks)}" if masks else ""
         name = name or tracking.metric_key(data_evaluation_name(data, frames, data_key) + label)
         split = describe_split(dataset, frames)

@@ -61,7 +61,7 @@ def test_bop_round_trip_gives_the_same_segments(bop_real, tmp_path):
     assert len(a) == len(b) == 3
     for name in a._ARRAYS:
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
-    assert a.key != b.key  # other files, other content key
+    assert a.data_key != b.data_key  # other files, other content key
 
 
 def test_bop_files_follow_the_format(bop_real):

@@ -46,14 +46,14 @@ def _segment(i: int, gt: bool = True) -> Segment:
 
 def test_segment_set_round_trip_and_subset(tmp_path):
     s = cache.SegmentSet.from_segments([_segment(0), _segment(1), _segment(2, gt=False)], 8)
-    s.key = "abc"
+    s.data_key = "abc"
     assert len(s) == 3
     assert s.points.shape == (3, 8, 3) and s.points.dtype == np.float32
     assert np.isnan(s.R[2]).all() and np.isnan(s.t[2]).all() and np.isnan(s.occlusion[2])
     path = tmp_path / "x.npz"
     s.save(path)
     back = cache.SegmentSet.load(path)
-    assert back.key == "abc"
+    assert back.data_key == "abc"
     for name in cache.SegmentSet._ARRAYS:
         a, b = getattr(s, name), getattr(back, name)
         assert a.dtype == b.dtype, name
@@ -81,7 +81,7 @@ def test_prepare_and_keys(project, tmp_path):
     cdir = tmp_path / "cache"
     p = cache.prepare(root, "train", CFG, cdir, workers=1, progress=False)
     s = cache.SegmentSet.load(p)
-    assert p.name.startswith("ds-train-") and s.key in p.name
+    assert p.name.startswith("ds-train-") and s.data_key in p.name
     assert len(s) >= 6 and s.valid.all()
     assert s.points.shape[1:] == (64, 3)
     assert set(s.frame_id.tolist()) == {"0000/000001", "0000/000002"}
@@ -146,7 +146,7 @@ def test_prepare_data_synthetic(project):
     assert set(test.frame_id.tolist()) == {"1000/000001"}
     assert train.points.shape[1] == 64
     fp = dataset.data_fingerprint(CFG, project)
-    assert fp == prep.key and len(fp) == 16
+    assert fp == prep.data_key and len(fp) == 16
     assert dataset.data_fingerprint(dataclasses.replace(CFG, n_fps=32), project) != fp
     assert dataset.synthetic_root(CFG, project).name == "synth-seed0-v2"
     assert dataset.dataset_root(CFG, project) == dataset.synthetic_root(CFG, project)

@@ -53,11 +53,17 @@ def test_prepare_data_reads_the_rendered_set_and_keys_it(project):
     assert prep.root == synthetic_root(cfg, project) and prep.cache_dir == prep.root / "cache"
     assert len(prep.train) > 0 and len(prep.test) > 0
     assert set(np.char.partition(prep.test.frame_id.astype(str), "/")[:, 0]) <= {"1000"}
-    assert prep.key == data_fingerprint(cfg, project) and len(prep.key) == 16
+    assert prep.data_key == data_fingerprint(cfg, project) and len(prep.data_key) == 16
     again = prepare_data(cfg, project, progress=False)
-    assert (again.train.key, again.test.key, again.key) == (prep.train.key, prep.test.key, prep.key)
+    assert (again.train.data_key, again.test.data_key, again.data_key) == (
+        prep.train.data_key,
+        prep.test.data_key,
+        prep.data_key,
+    )
     # another segment setting is other data, with another key
-    assert data_fingerprint(dataclasses.replace(cfg, n_fps=cfg.n_fps // 2), project) != prep.key
+    assert (
+        data_fingerprint(dataclasses.replace(cfg, n_fps=cfg.n_fps // 2), project) != prep.data_key
+    )
 
 
 def test_only_classes_keeps_the_named_classes(project):
@@ -100,9 +106,9 @@ def test_prepare_data_opens_the_dataset_once_and_passes_it_on(project, monkeypat
 def test_folder_segments_are_of_the_configured_classes_and_cached_under_the_project(tmp_path):
     cfg = DataConfig(n_fps=64)
     every = folder_segments(REAL, "all", cfg, tmp_path, progress=False)
-    assert len(every) == 3 and len(every.key) == 20
+    assert len(every) == 3 and len(every.data_key) == 20
     assert list((tmp_path / "data" / "cache").glob("*.npz"))
     names = open_dataset(REAL).classes
     one = names[int(every.cls_id[0]) - 1]
     few = folder_segments(REAL, "all", dataclasses.replace(cfg, classes=(one,)), tmp_path, False)
-    assert few.cls_id.tolist() == [int(every.cls_id[0])] and few.key == every.key
+    assert few.cls_id.tolist() == [int(every.cls_id[0])] and few.data_key == every.data_key

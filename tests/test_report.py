@@ -527,7 +527,7 @@ def test_table4_rotation_and_loss(rendered):
 
 def test_runs_on_other_data_or_unfinished_are_left_out(rendered):
     _, _, result = rendered
-    assert result.runs.data == DATA
+    assert result.runs.data_key == DATA
     assert {r.git_commit for r in result.runs.records} == {COMMIT}  # not xxx, yyy, zzz
 
 

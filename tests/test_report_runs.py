@@ -49,7 +49,7 @@ def test_one_dataset_and_the_newest_run_per_variant_and_seed(store):
     add("l2", 3, "aaaa", ads=0.1, status="FAILED")
     with pytest.warns(UserWarning, match="1 finished run.* other data than aaaa"):
         rs = load_runs("smoke", client=client)
-    assert rs.data == "aaaa" and rs.ignored == 1
+    assert rs.data_key == "aaaa" and rs.ignored == 1
     assert rs.variants == ["l2", "shared-0"] and rs.seeds == [1, 2]
     assert [r.seed for r in rs.of("shared-0")] == [1, 2]
     assert rs.of("shared-0")[0].run_id == newest
@@ -67,7 +67,7 @@ def test_data_asked_for_wins_over_the_most_common(store):
     add("shared-0", 2, "aaaa", ads=0.5)
     add("shared-0", 1, "bbbb", ads=0.7)
     with pytest.warns(UserWarning, match="2 finished run"):
-        rs = load_runs("smoke", data="bbbb", client=client)
+        rs = load_runs("smoke", data_key="bbbb", client=client)
     assert [r.metric(TEST_KEY) for r in rs.records] == [0.7]
 
 

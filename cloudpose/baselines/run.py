@@ -40,6 +40,7 @@ from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import BaselineSettings, NotRegistered, settings_fingerprint
 from cloudpose.data.cache import SegmentSet, segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
+from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.evaluate import instance_table, log_evaluation, real_dev_root
 from cloudpose.files import atomic_write
@@ -91,7 +92,7 @@ class BaselineCall:
     method: str
     preset: str
     seed: int
-    data_key: str
+    data_key: DataKey
     settings_fp: str
     split: str = "test"
     limit: int | None = None
@@ -182,7 +183,7 @@ class _Progress:
 
 def split_segments(cfg, split: str, project_dir: Path, progress: bool = True):
     """``(prepared, dataset, segments)`` of one of :data:`SPLITS` for a run config ``cfg``:
-    the preset's prepared data (its key identifies the run's data whatever the split), the
+    the preset's prepared data (its data key identifies the run's data whatever the split), the
     dataset the segments come from (their models), and the segments: the test set, the real
     development frames (all 61, cached beside the preset's), or the validation frames held
     out of the training set."""
@@ -211,7 +212,7 @@ class _Pool(NamedTuple):
 
     dataset: object
     segments: SegmentSet
-    data_key: str
+    data_key: DataKey
     split: str
     described: str
 
@@ -224,11 +225,11 @@ def _pool(
     :func:`cloudpose.store.metric_names.data_evaluation_name`)."""
     if data is None:
         prepared, dataset, segments = split_segments(cfg, split, project_dir, progress)
-        return _Pool(dataset, segments, prepared.key, split, "")
+        return _Pool(dataset, segments, prepared.data_key, split, "")
     dataset = open_dataset(data)
     segments = folder_segments(dataset, frames, cfg.data, project_dir, progress)
-    name = data_evaluation_name(data, frames, segments.key)
-    return _Pool(dataset, segments, segments.key, name, describe_split(dataset, frames))
+    name = data_evaluation_name(data, frames, segments.data_key)
+    return _Pool(dataset, segments, segments.data_key, name, describe_split(dataset, frames))
 
 
 def _estimate_all(

@@ -161,7 +161,7 @@ def prepare(
 
         title = (
             f"Occlusion factors of the {preset}-preset test set: {len(test_set)} instances\n"
-            f"(cloudpose prepare --preset {preset} --histogram ...; data {prepared.key[:10]})"
+            f"(cloudpose prepare --preset {preset} --histogram ...; data {prepared.data_key[:10]})"
         )
         counts = occlusion_histogram(test_set, histogram, title)
         typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")

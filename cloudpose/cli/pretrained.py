@@ -54,6 +54,7 @@ def ship(
     run, its data key and metrics, with a checksum), from this folder's MLflow store."""
     from cloudpose.conventions import resource_path
     from cloudpose.data.dataset import folder_segments
+    from cloudpose.data.keys import DataKey
     from cloudpose.data.layout import open_dataset
     from cloudpose.evaluate import real_dev_root
     from cloudpose.infer import load_checkpoint
@@ -77,7 +78,7 @@ def ship(
             SHIPPED[name],
             run_name=record.info.run_name,
             run_id=run_id,
-            data_key=record.data.tags.get("data", ""),
+            data_key=DataKey(record.data.tags.get("data", "")),
             fingerprint=record.data.tags.get("config", cfg.fingerprint()),
             metrics=record.data.metrics,
             command=recorded_command(ctx),

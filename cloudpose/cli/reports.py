@@ -68,7 +68,7 @@ def report(
         preset,
         groups,
         project_dir=Path.cwd(),
-        data=data,
+        data_key=data,
         log_mlflow=mlflow,
         command=recorded_command(ctx),
         out_dir=out,

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import Dataset, as_dataset, open_dataset
 from cloudpose.data.mask_sources import get_mask_source
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
@@ -86,8 +87,8 @@ def _settings(cfg: DataConfig) -> dict:
 
 def cache_key(
     dataset: str | Path | Dataset, split: str, cfg: DataConfig, memo_dir: str | Path | None = None
-) -> str:
-    """Key of a split's segments: hash of frame ids, the *content* of each frame's files and of
+) -> DataKey:
+    """The data key of a split's segments (:data:`~cloudpose.data.keys.DataKey`): hash of frame ids, the *content* of each frame's files and of
     the model files, and the segment settings (20 hex digits).
 
     The same data gives the same key wherever it lies, whenever and on whichever machine it was
@@ -121,7 +122,7 @@ def cache_key(
     model_digest = iter(digests[len(files) :])
     for name, p in zip(ds.classes, models, strict=True):
         h.update(f"{name}:{next(model_digest) if p.is_file() else '-'};".encode())
-    return h.hexdigest()[:20]
+    return DataKey(h.hexdigest()[:20])
 
 
 MAT_TEXT_HEADER = 116
@@ -313,8 +314,8 @@ def cache_path(
 ) -> Path:
     """Where the segments of ``split`` live: ``cache_dir/ROOTNAME-SPLIT-KEY.npz``."""
     ds = as_dataset(dataset)
-    key = cache_key(ds, split, cfg, memo_dir=cache_dir)
-    return Path(cache_dir) / f"{ds.root.resolve().name}-{split}-{key}.npz"
+    data_key = cache_key(ds, split, cfg, memo_dir=cache_dir)
+    return Path(cache_dir) / f"{ds.root.resolve().name}-{split}-{data_key}.npz"
 
 
 def prepare(
@@ -378,7 +379,7 @@ def prepare(
             stacklevel=2,
         )
     out = SegmentSet.from_segments(segments, settings["n_fps"])
-    out.key = path.stem.rsplit("-", 1)[-1]
+    out.data_key = DataKey(path.stem.rsplit("-", 1)[-1])
     unit = unit_stats(out, ds.models())
     out.save(path, extra=unit)
     check_units(ds, unit)

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cloudpose.data.cache import SegmentSet, cache_key, load_segments, segments_for
+from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import Dataset, as_dataset, open_dataset
 
 if TYPE_CHECKING:
@@ -46,7 +47,7 @@ class Prepared:
     Attributes:
         train, test: the segments of the training set (image_sets/train.txt) and of the test
             set (keyframe.txt).
-        key: :func:`data_fingerprint` of both.
+        data_key: the data key of both (:func:`data_fingerprint`).
         dataset: the opened dataset (models, class names and frames are read from it).
         cache_dir: where its segment caches are (other segment settings of the same frames
             go there too).
@@ -54,7 +55,7 @@ class Prepared:
 
     train: SegmentSet
     test: SegmentSet
-    key: str
+    data_key: DataKey
     dataset: Dataset
     cache_dir: Path
 
@@ -70,7 +71,7 @@ def prepare_data(
     workers: int | None = None,
     progress: bool = True,
 ) -> Prepared:
-    """The (train, test) segments that ``cfg`` asks for, made on first use, with their key.
+    """The (train, test) segments that ``cfg`` asks for, made on first use, with their data key.
 
     With ``cfg.root == ""`` the synthetic default (:func:`synthetic_root`) is rendered or
     completed to ``cfg.train_frames`` / ``cfg.test_frames`` (resumable); a real root is never
@@ -102,11 +103,12 @@ def prepare_data(
         )
         for split in ("train", "test")
     )
-    return Prepared(train, test, _fingerprint(train.key, test.key), ds, cache_dir)
+    return Prepared(train, test, _train_test_key(train.data_key, test.data_key), ds, cache_dir)
 
 
-def _fingerprint(train_key: str, test_key: str) -> str:
-    return hashlib.sha256(f"{train_key}+{test_key}".encode()).hexdigest()[:16]
+def _train_test_key(train: DataKey, test: DataKey) -> DataKey:
+    """The data key of a run's data from those of its train and test segments."""
+    return DataKey(hashlib.sha256(f"{train}+{test}".encode()).hexdigest()[:16])
 
 
 def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Path:
@@ -171,17 +173,17 @@ def folder_segments(
 ) -> SegmentSet:
     """The segments of the frame list ``frames`` of a dataset folder other than a run's own
     (``--data``), with ``cfg``'s segment settings and of its classes, cached in
-    ``project_dir/data/cache`` (the folder is only read); ``.key`` is their cache key."""
+    ``project_dir/data/cache`` (the folder is only read); ``.data_key`` is their data key."""
     ds = as_dataset(dataset)
     cache_dir = Path(project_dir or Path.cwd()) / "data" / "cache"
     segs = segments_for(ds, frames, cfg, cache_dir=cache_dir, progress=progress)
     return only_classes(segs, ds, cfg.classes)
 
 
-def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> str:
-    """One key for the train and test data and settings (for MLflow params); 16 hex digits:
-    :attr:`Prepared.key`, computed without preparing (the data must exist)."""
+def data_fingerprint(cfg: DataConfig, project_dir: str | Path | None = None) -> DataKey:
+    """One data key for the train and test data and settings (MLflow tag ``data``); 16 hex
+    digits: :attr:`Prepared.data_key`, computed without preparing (the data must exist)."""
     project_dir = Path(project_dir or Path.cwd())
     root, cache_dir = _dataset_root(cfg, project_dir)
     ds = open_dataset(root)
-    return _fingerprint(*(cache_key(ds, s, cfg, memo_dir=cache_dir) for s in ("train", "test")))
+    return _train_test_key(*(cache_key(ds, s, cfg, memo_dir=cache_dir) for s in ("train", "test")))

@@ -14,3 +14,6 @@ from typing import NewType
 
 DataKey = NewType("DataKey", str)
 """A content key of data (hex digits)."""
+
+NO_DATA_KEY = DataKey("")
+"""The key of segments built in memory, of no data file."""

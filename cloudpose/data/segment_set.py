@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cloudpose.data.keys import NO_DATA_KEY, DataKey
 from cloudpose.data.segments import (
     Segment,
     depth_scale_problem,
@@ -46,7 +47,9 @@ class SegmentSet:
         frame_id: (M,) str "SEQ/FRAME".
         instance: (M,) int16 instance index within its frame.
         valid: (M,) bool; False = no usable point (a miss at test time).
-        key: cache key of the data and settings ("" when built in memory).
+        data_key: the data key of the frames and settings
+            (:func:`cloudpose.data.cache.cache_key`; :data:`~cloudpose.data.keys.NO_DATA_KEY` when
+            built in memory).
     """
 
     points: np.ndarray
@@ -58,7 +61,7 @@ class SegmentSet:
     frame_id: np.ndarray
     instance: np.ndarray
     valid: np.ndarray
-    key: str = ""
+    data_key: DataKey = NO_DATA_KEY
 
     _ARRAYS = ("points", "count", "cls_id", "R", "t", "occlusion", "frame_id", "instance", "valid")
 
@@ -68,7 +71,7 @@ class SegmentSet:
     def subset(self, index: np.ndarray | slice) -> SegmentSet:
         """The segments selected by a bool mask (M,), an index array or a slice."""
         parts = {name: getattr(self, name)[index] for name in self._ARRAYS}
-        return SegmentSet(**parts, key=self.key)
+        return SegmentSet(**parts, data_key=self.data_key)
 
     @classmethod
     def from_segments(cls, segments: list[Segment], n_fps: int = 1024) -> SegmentSet:
@@ -105,7 +108,7 @@ class SegmentSet:
         arrays ``extra`` beside the segments' (:meth:`load` leaves them out)."""
         arrays = {**(extra or {}), **{n: getattr(self, n) for n in self._ARRAYS}}
         arrays["frame_id"] = np.asarray(self.frame_id, dtype=str)
-        atomic_write(path, lambda tmp: np.savez(tmp, key=np.array(self.key), **arrays), ".npz")
+        atomic_write(path, lambda tmp: np.savez(tmp, key=np.array(self.data_key), **arrays), ".npz")
 
     @classmethod
     def load(cls, path: str | Path) -> SegmentSet:
@@ -120,9 +123,9 @@ class SegmentSet:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: segment cache not found")
         parts = read_npz(path, (*cls._ARRAYS, "key"), "segment cache")
-        key = str(parts.pop("key"))
+        data_key = DataKey(str(parts.pop("key")))
         _check_shapes(path, {n: a.shape for n, a in parts.items()})
-        return cls(**parts, key=key)
+        return cls(**parts, data_key=data_key)
 
     @classmethod
     def check(cls, path: str | Path) -> None:

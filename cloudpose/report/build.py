@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
+from cloudpose.data.keys import DataKey
 from cloudpose.registry import get_group, groups
 from cloudpose.report import plots, segmentation
 from cloudpose.report.claims import (
@@ -91,7 +92,7 @@ def render_reports(
     out_dir: Path | None = None,
     project_dir: Path | None = None,
     command: str | None = None,
-    data: str | None = None,
+    data_key: DataKey | None = None,
     log_mlflow: bool = True,
     client=None,
     readme: Path | None = None,
@@ -109,7 +110,7 @@ def render_reports(
         out_dir: output folder; default :func:`default_out_dir`.
         project_dir: folder of the default MLflow store (cwd).
         command: the command named in every file; default this process's command line.
-        data: data fingerprint to report; default the one most runs were trained on.
+        data_key: the data key of the runs to report; default the one most runs were trained on.
         log_mlflow: also log the files to a ``report/{group}/{preset}`` run per group.
         readme: also replace the preset's verdict table in this hand-written file
             (:func:`~cloudpose.report.claims.update_verdicts_block`).
@@ -127,7 +128,7 @@ def render_reports(
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or tracking.command_line()
     renderer = tracking.git_commit()
-    runs = load_runs(preset, data=data, client=client)
+    runs = load_runs(preset, data_key=data_key, client=client)
     prov_all = Provenance.of(runs, command, renderer)
     written: dict[str, list[Path]] = {"overall": []}
 

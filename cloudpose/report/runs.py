@@ -1,7 +1,7 @@
 """Reading the finished, evaluated runs of a preset out of MLflow for the reports.
 
 A report compares runs trained on the same data: of the preset's finished runs that carry test
-metrics, it keeps those of one data fingerprint (the one most (variant, seed) pairs were trained
+metrics, it keeps those of one data key (the one most (variant, seed) pairs were trained
 on, ties to the newest; or the one asked for) and, per (variant, seed), the newest run.
 """
 
@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose.data.keys import DataKey
 from cloudpose.files import CorruptFileError, why
 from cloudpose.store import instances, tracking
 from cloudpose.store.runs import is_preset_config
@@ -37,7 +38,7 @@ class RunRecord:
     variant: str
     seed: int
     preset: str
-    data: str
+    data_key: DataKey
     git_commit: str
     start_time: int
     params: dict[str, str]
@@ -192,7 +193,7 @@ class RunSet:
     """The runs one report is rendered from."""
 
     preset: str
-    data: str | None
+    data_key: DataKey | None
     records: list[RunRecord]
     ignored: int = 0
     """Runs of the same preset left out because they were trained on other data."""
@@ -214,7 +215,7 @@ class RunSet:
         """The runs of the given variants only."""
         keep = set(variants)
         return RunSet(
-            self.preset, self.data, [r for r in self.records if r.variant in keep], self.ignored
+            self.preset, self.data_key, [r for r in self.records if r.variant in keep], self.ignored
         )
 
     @property
@@ -226,16 +227,16 @@ class RunSet:
         return sorted({r.git_commit for r in self.records})
 
     def data_label(self) -> str:
-        """Where the runs' data came from, in words, with the fingerprint."""
+        """Where the runs' data came from, in words, with the data key."""
         if not self.records:
             return "no runs"
         roots = {r.params.get("data.root", "") for r in self.records}
-        fp = (self.data or "?")[:10]
+        short = (self.data_key or "?")[:10]
         if roots <= {""}:
             seeds = {r.params.get("data.synth_seed", "?") for r in self.records}
-            return f"synthetic YCB-Video-layout scenes (synth seed {','.join(sorted(seeds))}, data {fp})"
+            return f"synthetic YCB-Video-layout scenes (synth seed {','.join(sorted(seeds))}, data {short})"
         names = ", ".join(sorted(Path(r).name or r for r in roots))
-        return f"{names} (data {fp})"
+        return f"{names} (data {short})"
 
 
 def _current(run) -> bool:
@@ -248,13 +249,18 @@ def _current(run) -> bool:
 
 
 def load_runs(
-    preset: str, *, data: str | None = None, client=None, project_dir: Path | None = None
+    preset: str,
+    *,
+    data_key: DataKey | None = None,
+    client=None,
+    project_dir: Path | None = None,
 ) -> RunSet:
     """Finished runs of ``preset`` with test metrics, one per (variant, seed), on one dataset.
 
     Args:
         preset: the training preset (tag ``preset``).
-        data: data fingerprint to keep; default the one with the most (variant, seed) pairs.
+        data_key: the data key to keep (tag ``data``); default the one with the most (variant,
+            seed) pairs.
         client: an ``MlflowClient``; default :func:`cloudpose.store.tracking.setup` of ``project_dir``.
         project_dir: folder of the default MLflow store (cwd).
     """
@@ -275,20 +281,20 @@ def load_runs(
         )
         runs = [r for r in runs if _current(r)]
     if not runs:
-        return RunSet(preset, data, [])
-    if data is None:
-        pairs = Counter()
-        newest: dict[str, int] = {}
+        return RunSet(preset, data_key, [])
+    if data_key is None:
+        pairs: Counter[DataKey] = Counter()
+        newest: dict[DataKey, int] = {}
         for r in runs:
-            fp = r.data.tags.get("data", "")
-            pairs[fp] += 1
-            newest[fp] = max(newest.get(fp, 0), r.info.start_time or 0)
-        data = max(pairs, key=lambda fp: (pairs[fp], newest[fp]))
+            run_key = DataKey(r.data.tags.get("data", ""))
+            pairs[run_key] += 1
+            newest[run_key] = max(newest.get(run_key, 0), r.info.start_time or 0)
+        data_key = max(pairs, key=lambda k: (pairs[k], newest[k]))
     chosen: dict[tuple[str, int], RunRecord] = {}
     ignored = 0
     for r in runs:  # newest first
         tags = r.data.tags
-        if tags.get("data", "") != data:
+        if tags.get("data", "") != data_key:
             ignored += 1
             continue
         key = (tags["variant"], int(tags["seed"]))
@@ -299,7 +305,7 @@ def load_runs(
             variant=key[0],
             seed=key[1],
             preset=preset,
-            data=data,
+            data_key=data_key,
             git_commit=tags.get("git_commit", "unknown"),
             start_time=r.info.start_time or 0,
             params=dict(r.data.params),
@@ -311,7 +317,7 @@ def load_runs(
     if ignored:
         warnings.warn(
             f"{ignored} finished run(s) of preset {preset!r} were trained on other data than "
-            f"{data[:10]} and are left out of the report",
+            f"{data_key[:10]} and are left out of the report",
             stacklevel=2,
         )
-    return RunSet(preset, data, list(chosen.values()), ignored)
+    return RunSet(preset, data_key, list(chosen.values()), ignored)

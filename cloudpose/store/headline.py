@@ -419,7 +419,7 @@ def build_comparisons(
         report_id = report.info.run_id if report is not None else None
         ids = [i for r in rows for i in r.run_ids] + ([report_id] if report_id else [])
         exps = tuple(sorted({experiment_of[i] for i in ids if i in experiment_of}))
-        comp = Comparison(group, runset.preset, runset.data or "", tuple(rows), report_id)
+        comp = Comparison(group, runset.preset, runset.data_key or "", tuple(rows), report_id)
         out.append(
             replace(comp, experiments=exps, report_experiment=experiment_of.get(report_id, ""))
         )
@@ -773,7 +773,7 @@ def run_updates(
         if i in counted:
             tags[i][SUPERSEDED] = None
         elif r.info.status == "FINISHED" and preset in runsets:
-            why = superseded_reason(r, chosen[preset], runsets[preset].data)
+            why = superseded_reason(r, chosen[preset], runsets[preset].data_key)
             tags[i][SUPERSEDED] = why
             metrics[i] = {k: v for k, v in nan_stats.items() if k in r.data.metrics}
             superseded += 1

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from cloudpose.conventions import resource_path
+from cloudpose.data.keys import DataKey
 from cloudpose.files import atomic_text, atomic_write
 
 PRETRAINED = "pretrained"
@@ -127,7 +128,7 @@ def ship(
     *,
     run_name: str,
     run_id: str,
-    data_key: str,
+    data_key: DataKey,
     fingerprint: str,
     metrics: dict[str, float],
     command: str,

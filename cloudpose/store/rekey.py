@@ -34,6 +34,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from cloudpose.data.keys import DataKey
 from cloudpose.store import tracking
 
 REKEYED_PREFIX = "rekeyed/"
@@ -51,7 +52,7 @@ class Rekeyed:
     new: str
 
 
-def current_keys(preset: str, project_dir: Path) -> dict[str, str]:
+def current_keys(preset: str, project_dir: Path) -> dict[str, DataKey]:
     """Today's keys of ``preset``'s data (it must exist: ``cloudpose prepare``): ``data`` (the
     fingerprint of train and test), ``test`` (the test segments), ``real`` (the packaged real
     development frames)."""
@@ -94,9 +95,9 @@ def rekey_runs(
     old = [k.strip() for k in old]
     if any(len(k) < 8 for k in old):
         raise ValueError(f"old keys {old}: give at least 8 hex digits of each")
-    keys = current_keys(preset, project_dir)
-    if any(keys["data"].startswith(k) for k in old):
-        raise ValueError(f"{keys['data']} is today's key of the {preset} data, not an old one")
+    data_keys = current_keys(preset, project_dir)
+    if any(data_keys["data"].startswith(k) for k in old):
+        raise ValueError(f"{data_keys['data']} is today's key of the {preset} data, not an old one")
     client = tracking.setup(project_dir)
     changes: list[Rekeyed] = []
     for run in tracking.find_runs(client, preset=preset, status=None):
@@ -105,9 +106,11 @@ def rekey_runs(
         was = (tags.get("data", ""), tags.get(REKEYED_PREFIX + "data", ""))
         if not any(w.startswith(k) for w in was for k in old):
             continue
-        wanted = {"data": keys["data"]}
+        wanted = {"data": data_keys["data"]}
         own = {
-            tags[f"eval/{s}/data"]: keys[s] for s in ("test", "real") if f"eval/{s}/data" in tags
+            tags[f"eval/{s}/data"]: data_keys[s]
+            for s in ("test", "real")
+            if f"eval/{s}/data" in tags
         }
         for tag, value in tags.items():
             if tag.startswith("eval/") and tag.endswith("/data") and value in own:

@@ -42,6 +42,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from cloudpose.data.keys import DataKey
 from cloudpose.files import atomic_text
 from cloudpose.store import tracking
 
@@ -100,7 +101,7 @@ def display_name(cfg: Config) -> str:
     )
 
 
-def training_tags(cfg: Config, group: str, data_key: str, run_dir: Path) -> dict[str, str]:
+def training_tags(cfg: Config, group: str, data_key: DataKey, run_dir: Path) -> dict[str, str]:
     """The MLflow tags of a training run: what the reports, the runner and ``--run`` look it up
     by (variant, group, preset, seed, data, config) and where it came from."""
     return {
@@ -130,7 +131,7 @@ def baseline_tags(
     group: str,
     preset: str,
     seed: int,
-    data_key: str,
+    data_key: DataKey,
     config: str,
     *,
     limit: int | None,
@@ -210,7 +211,7 @@ def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | 
 
 
 def run_folder(
-    variant: str, preset: str, seed: int, data_key: str, settings_key: str, project_dir: Path
+    variant: str, preset: str, seed: int, data_key: DataKey, settings_key: str, project_dir: Path
 ) -> Path:
     """``runs/{variant}/{preset}/seed{S}-{data[:10]}-{settings[:8]}`` under the project folder
     (under ``$CLOUDPOSE_RUNS_DIR`` instead of ``runs/`` when that is set): the folder of a
@@ -220,7 +221,7 @@ def run_folder(
     return root / variant / preset / name
 
 
-def run_dir(cfg: Config, data_key: str, project_dir: Path) -> Path:
+def run_dir(cfg: Config, data_key: DataKey, project_dir: Path) -> Path:
     """The run folder of ``cfg`` trained on data ``data_key`` (:func:`run_folder`)."""
     return run_folder(cfg.variant, cfg.preset, cfg.seed, data_key, cfg.fingerprint(), project_dir)
 
@@ -311,23 +312,23 @@ def describe_run(run) -> str:
     )
 
 
-def finished_run(client, cfg: Config, data: str):
-    """The newest FINISHED run of exactly ``cfg`` on ``data`` with test metrics, or None.
+def finished_run(client, cfg: Config, data_key: DataKey):
+    """The newest FINISHED run of exactly ``cfg`` on ``data_key`` with test metrics, or None.
 
     Matched on the tags (variant, preset, seed, data) and then on the whole config: after an
     edit of the preset or the variant, or a run with overrides, the runs of the old config are
     not taken for the new one.
     """
     for r in tracking.find_runs(
-        client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed, data=data
+        client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed, data=data_key
     ):
         if TEST_KEY in r.data.metrics and run_has_config(r, cfg):
             return r
     return None
 
 
-def restore_run_folder(client, cfg: Config, data: str, folder: Path) -> dict[str, Any]:
-    """Rebuild the run folder of ``cfg`` on ``data`` from MLflow, on a machine without it.
+def restore_run_folder(client, cfg: Config, data_key: DataKey, folder: Path) -> dict[str, Any]:
+    """Rebuild the run folder of ``cfg`` on ``data_key`` from MLflow, on a machine without it.
 
     The newest run of exactly this config and data is taken: a finished one with its
     ``model.pt``, else an unfinished one (a worker that died), with its last checkpoint
@@ -337,14 +338,19 @@ def restore_run_folder(client, cfg: Config, data: str, folder: Path) -> dict[str
 
     Args:
         client: MLflow client of the store.
-        cfg: the run's config; data: its data fingerprint.
+        cfg: the run's config; data_key: its data key.
         folder: the run folder to fill (:func:`run_dir`).
 
     Returns:
         The folder's new ``run.json`` content, or {} when MLflow has no run to continue.
     """
     candidates = tracking.find_runs(
-        client, variant=cfg.variant, preset=cfg.preset, seed=cfg.seed, data=data, status=None
+        client,
+        variant=cfg.variant,
+        preset=cfg.preset,
+        seed=cfg.seed,
+        data=data_key,
+        status=None,
     )
     for run in candidates:
         if not run_has_config(run, cfg):

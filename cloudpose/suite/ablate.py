@@ -1,7 +1,7 @@
 """The ablation runner: train and evaluate every variant of a group over seeds, then report.
 
 For each member variant and seed, a run that already finished *and* was evaluated in MLflow for
-the same variant, preset, seed, data fingerprint and config is skipped; anything else is trained
+the same variant, preset, seed, data key and config is skipped; anything else is trained
 (:func:`cloudpose.train.loop.train` resumes an interrupted run from its checkpoint) and evaluated
 (:func:`cloudpose.evaluate.evaluate`). So an interrupted suite, rerun, continues where it stopped.
 One line per run goes to ``runs/ablate-{group}-{preset}.log``. Executors: ``local`` trains the
@@ -192,7 +192,7 @@ def _train_here(
     keep_going: bool,
 ) -> None:
     """Train and evaluate run ``k`` in this process; a failure raises unless ``keep_going``."""
-    resumed = (run_dir(cfg, data.key, project_dir) / "last.pt").is_file()
+    resumed = (run_dir(cfg, data.data_key, project_dir) / "last.pt").is_file()
     t0 = time.monotonic()
     try:
         result = pipeline.train_and_evaluate(
@@ -262,7 +262,7 @@ def ensure_runs(
     log_path.parent.mkdir(parents=True, exist_ok=True)
     todo = [resolve(v, preset, s, overrides) for v in variants for s in seeds]
     data_of = _data_once(project_dir, progress)
-    pending = [cfg for cfg in todo if finished_run(client, cfg, data_of(cfg).key) is None]
+    pending = [cfg for cfg in todo if finished_run(client, cfg, data_of(cfg).data_key) is None]
     prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
     book = _Progress(len(todo), log_path, echo, prior)
     echo(
@@ -276,7 +276,7 @@ def ensure_runs(
         sweep = RaySweep(ray or RayOptions(), project_dir, group)
     try:
         for k, cfg in enumerate(todo, 1):
-            done = finished_run(client, cfg, data_of(cfg).key)
+            done = finished_run(client, cfg, data_of(cfg).data_key)
             if done is not None:
                 book.skipped(k, cfg, done)
             elif sweep is not None:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from cloudpose.config import Config
 from cloudpose.data.dataset import data_fingerprint, dataset_root, synthetic_root
+from cloudpose.data.keys import DataKey
 from cloudpose.data.synth.frames import frame_id
 from cloudpose.data.synth.write import _frame_done
 from cloudpose.registry import get_group, resolve
@@ -296,20 +297,20 @@ def plan_configs(
     plan = Plan(title, finished=finished)
     preset = todo[0].preset if todo else ""
     variants = list(dict.fromkeys(c.variant for c in todo))
-    keys: dict[str, str | None] = {}
+    data_keys: dict[str, DataKey | None] = {}
     for cfg in todo:
         k = repr(cfg.data)
-        if k in keys:
+        if k in data_keys:
             continue
         root, n, wanted, lists = _frames_to_render(cfg, project_dir)
         plan.frames[root] = (n, wanted)
         ready = n == 0 and lists
-        keys[k] = data_fingerprint(cfg.data, project_dir) if ready else None
+        data_keys[k] = data_fingerprint(cfg.data, project_dir) if ready else None
         plan.data_ready = plan.data_ready and ready
     for cfg in todo:
-        data = keys[repr(cfg.data)]
-        done = finished_run(client, cfg, data) if data is not None else None
-        if data is None and finished_run_any_data(client, cfg) is not None:
+        data_key = data_keys[repr(cfg.data)]
+        done = finished_run(client, cfg, data_key) if data_key is not None else None
+        if data_key is None and finished_run_any_data(client, cfg) is not None:
             plan.matched_elsewhere += 1
         plan.runs.append(
             PlannedRun(

@@ -269,7 +269,7 @@ def train(
     project_dir = (project_dir or Path.cwd()).resolve()
     if group is not None:
         tracking.check_name("group", group)
-    rdir = runs.run_dir(cfg, data.key, project_dir)
+    rdir = runs.run_dir(cfg, data.data_key, project_dir)
     # One process at a time per run folder: a second identical command waits, then finds
     # the run finished (or resumes it), instead of training a twin into the same folder.
     lock = runs.run_lock(rdir) if world.is_main else contextlib.nullcontext()
@@ -345,7 +345,7 @@ def _train(
         # across threads), so a run trains with its own, part of its identity
         runtime.configure_threads(cfg.train.threads)
     shard = world.shard(cfg.train.batch_size)
-    train_set, data_key = data.train, data.key
+    train_set, data_key = data.train, data.data_key
     last, final = rdir / "last.pt", rdir / "model.pt"
     client, info = None, {}
     if world.is_main:

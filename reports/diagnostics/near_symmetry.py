@@ -108,7 +108,7 @@ def main() -> None:
         f"_made by `python reports/diagnostics/near_symmetry.py --seed {args.seed}"
         + (f" --run {args.run}" if args.run else "")
         + f"`; data "
-        f"{data.key[:10]}; error over {BIG_DEG:.0f} deg 'about the long axis' when its axis is "
+        f"{data.data_key[:10]}; error over {BIG_DEG:.0f} deg 'about the long axis' when its axis is "
         f"within {AXIS_DEG:.0f} deg of the model's principal axis; the baselines' columns count "
         "rotation errors modulo symmetry_\n"
     )

@@ -27,7 +27,7 @@ def test_rekeyed_runs_are_found_under_todays_keys(tmp_path, smoke_data, empty_st
     cfg = resolve("shared-0", "smoke", 1)
     keys = current_keys("smoke", proj)
     prepared = prepare_data(cfg.data, proj, progress=False)
-    assert keys["data"] == prepared.key and keys["test"] == prepared.test.key
+    assert keys["data"] == prepared.data_key and keys["test"] == prepared.test.data_key
 
     client = tracking.setup(proj)
     exp = tracking.experiment_id(client, "shared", proj)

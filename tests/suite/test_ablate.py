@@ -25,14 +25,14 @@ class Fakes:
         self.root = root
         self.trained: list[tuple[str, int]] = []
         self.evaluated: list[str] = []
-        self.fingerprint = "data0000001234"
+        self.data_key = "data0000001234"
         self.fail_train: set[tuple[str, int]] = set()
         self.interrupt_eval: set[tuple[str, int]] = set()
         self.runs: dict[tuple[str, int, str, str], str] = {}  # resumable: same run, same settings
         self.config_tag = True  # False: runs as made before the ``config`` tag existed
 
     def prepare_data(self, data_cfg, project_dir=None, progress=True):
-        return types.SimpleNamespace(key=self.fingerprint)
+        return types.SimpleNamespace(data_key=self.data_key)
 
     def train(self, cfg, data=None, *, project_dir=None, group=None, progress=True, **_):
         key = (cfg.variant, cfg.seed)
@@ -40,7 +40,7 @@ class Fakes:
         if key in self.fail_train:
             raise FloatingPointError("loss became nan")
         client = tracking.setup(project_dir)
-        rkey = (cfg.variant, cfg.seed, self.fingerprint, cfg.fingerprint())
+        rkey = (cfg.variant, cfg.seed, self.data_key, cfg.fingerprint())
         if rkey not in self.runs:
             exp = tracking.experiment_id(client, group, project_dir)
             tags = {
@@ -48,7 +48,7 @@ class Fakes:
                 "group": group,
                 "preset": cfg.preset,
                 "seed": str(cfg.seed),
-                "data": self.fingerprint,
+                "data": self.data_key,
                 "git_commit": "c0ffee",
             }
             if self.config_tag:
@@ -147,7 +147,7 @@ def test_interrupted_suite_resumes_where_it_stopped(fakes, tmp_path):
     assert [r.status for r in res.runs] == ["skipped", "skipped", "trained", "trained"]
     l2_1 = next(r for r in res.runs if (r.variant, r.seed) == ("l2", 1))
     assert l2_1.run_id == next(
-        v for k, v in fakes.runs.items() if k[:3] == ("l2", 1, fakes.fingerprint)
+        v for k, v in fakes.runs.items() if k[:3] == ("l2", 1, fakes.data_key)
     )
     log = (tmp_path / "runs" / "ablate-loss-smoke.log").read_text()
     assert "\tinterrupted\t" in log
@@ -156,7 +156,7 @@ def test_interrupted_suite_resumes_where_it_stopped(fakes, tmp_path):
 def test_other_data_is_trained_again(fakes, tmp_path):
     _run(tmp_path, seeds=1)
     fakes.trained.clear()
-    fakes.fingerprint = "otherdata9999"
+    fakes.data_key = "otherdata9999"
     _run(tmp_path, seeds=1)
     assert sorted(fakes.trained) == [("l2", 1), ("shared-0", 1)]
 
@@ -221,7 +221,7 @@ def test_a_resumed_run_does_not_set_the_estimate(fakes, tmp_path, monkeypatch, r
     monkeypatch.setattr(ablate, "time", clock)
     if resume_first:
         cfg = resolve("shared-0", "smoke", 1)
-        last = runs.run_dir(cfg, fakes.fingerprint, tmp_path.resolve()) / "last.pt"
+        last = runs.run_dir(cfg, fakes.data_key, tmp_path.resolve()) / "last.pt"
         last.parent.mkdir(parents=True)
         last.write_bytes(b"")
     lines = [line for line in _run(tmp_path)[1] if "training + evaluation" in line]

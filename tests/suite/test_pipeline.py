@@ -28,4 +28,4 @@ def test_a_finished_run_is_not_trained_again_and_is_evaluated(smoke_project):
     assert out.evaluation.run_id == trained.run_id
     assert 0.0 <= out.evaluation.metrics["test/ads_auc"] <= 1.0
     assert len(out.evaluation.table) == len(out.data.test)
-    assert out.data.key == data_fingerprint(cfg.data, proj)
+    assert out.data.data_key == data_fingerprint(cfg.data, proj)

@@ -261,7 +261,7 @@ def test_an_empty_checkpoint_without_a_previous_one_is_one_line(tmp_path, smoke_
     cfg = resolve("shared-0", "smoke", seed=1)
     proj = _project(tmp_path, smoke_data, monkeypatch)
     monkeypatch.chdir(proj)
-    rdir = runs.run_dir(cfg, prepare_data(cfg.data, proj, progress=False).key, proj)
+    rdir = runs.run_dir(cfg, prepare_data(cfg.data, proj, progress=False).data_key, proj)
     rdir.mkdir(parents=True)
     (rdir / "last.pt").write_bytes(b"")
     res = cli("train", "--preset", "smoke", "--seed", "1", "--no-progress")
