@@ -26,6 +26,7 @@ from cloudpose import runtime
 from cloudpose.conventions import resource_path
 from cloudpose.data.cache import segments_for
 from cloudpose.data.dataset import Prepared, folder_segments, only_classes, prepare_data
+from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import describe_split, open_dataset
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
@@ -183,6 +184,120 @@ def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
     return "-".join(parts) or "other"
 
 
+def _load_network(client, run: str, device: str):
+    """``(run id, network, config, checkpoint in words)`` of ``run``; a checkpoint downloaded
+    from the run's artifacts is read and removed with its folder."""
+    with local_checkpoint(client, run) as (run_id, ckpt):
+        try:
+            model, cfg = load_checkpoint(ckpt, device)
+        except ValueError as exc:
+            if not runs.is_run_folder(ckpt.parent):
+                raise
+            raise ValueError(
+                f"{exc}; rerun the run's train command (cloudpose train with its variant, "
+                "preset, seed and settings): it rewrites model.pt from last.pt or the MLflow run"
+            ) from exc
+        kept = run_id is None or runs.is_run_folder(ckpt.parent)  # shipped, or in its folder
+        ckpt_label = str(ckpt) if kept else "model.pt (downloaded)"
+    return run_id, model, cfg, ckpt_label
+
+
+@dataclass(frozen=True)
+class _TestData:
+    """What an evaluation scores: the segments, their dataset, and how they are named.
+
+    Attributes:
+        segs: the segments (a :class:`~cloudpose.data.segment_set.SegmentSet`).
+        dataset: their dataset (models, class names).
+        data_key: the segments' data key (tag ``eval/{name}/data``).
+        name: the metric prefix before any ICP suffix.
+        split: the frame list in words (tag ``eval/{name}/split``).
+        label: the data in words, for messages.
+    """
+
+    segs: Any
+    dataset: Any
+    data_key: DataKey
+    name: str
+    split: str
+    label: str
+
+
+def _test_data(
+    cfg,
+    data: str | None,
+    frames: str,
+    name: str | None,
+    masks: str | None,
+    own_data: Prepared | None,
+    project_dir: Path,
+    progress: bool,
+) -> _TestData:
+    """The run's own test set (``data`` None) or ``frames`` of the dataset at ``data``, under
+    mask source ``masks`` (None: the run's own), named ``name`` or by default."""
+    seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
+    if data is None:
+        own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
+        segs, dataset = own.test, own.dataset
+        split = describe_split(dataset, "test")
+        label = f"the run's own test set, {split} in {dataset.root}"
+        if masks:  # the same frames, segmented otherwise (cached beside the run's own)
+            segs = only_classes(
+                segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir, progress=progress),
+                dataset,
+                cfg.data.classes,
+            )
+            label += f" with {masks} masks"
+        name = name or own_test_name(masks)
+        return _TestData(segs, dataset, segs.data_key, name, split, label)
+    dataset = open_dataset(data)
+    segs = folder_segments(dataset, frames, seg_cfg, project_dir, progress)
+    suffix = f"-{mask_source_label(masks)}" if masks else ""
+    name = name or tracking.metric_key(data_evaluation_name(data, frames, segs.data_key) + suffix)
+    split = describe_split(dataset, frames)
+    return _TestData(
+        segs, dataset, segs.data_key, name, split, f"{split} in {Path(data).resolve()}"
+    )
+
+
+def _score(
+    model,
+    cfg,
+    test: _TestData,
+    name: str,
+    icp_settings: ICPSettings | None,
+    device,
+    progress: bool,
+) -> tuple[pd.DataFrame, dict[str, float]]:
+    """The per-instance table and metrics of the network on ``test``, and after ICP with
+    ``icp_settings`` (None: no ICP), with milliseconds per object."""
+    segs, dataset = test.segs, test.dataset
+    models_by_class = dataset.models()
+    t0 = time.monotonic()
+    est = {"net": estimate_poses(model, segs, cfg.train.n_points, device=device)}
+    t_net = time.monotonic() - t0
+    if icp_settings is not None:
+        t0 = time.monotonic()
+        views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
+        est["icp"], stats = refine_poses(
+            segs, est["net"], models_by_class, icp_settings, progress, views=views
+        )
+        t_icp = time.monotonic() - t0
+    table = instance_table(
+        segs, est, models_by_class, dataset.classes, symmetry_table=cfg.loss.symmetry_table
+    )
+    if icp_settings is not None:
+        table["icp_fitness"] = stats.fitness
+        table["icp_inlier_rmse"] = stats.inlier_rmse
+        table["icp_fallback"] = stats.fallback
+    metrics = summary_metrics(table, name)
+    n_valid = max(int(np.sum(segs.valid)), 1)
+    metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
+    if icp_settings is not None:
+        metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
+    return table, metrics
+
+
 def evaluate(
     run: str,
     *,
@@ -231,89 +346,34 @@ def evaluate(
     project_dir = (project_dir or Path.cwd()).resolve()
     log = log and not is_pretrained(run)  # the shipped network has no MLflow run to log to
     client = tracking.setup(project_dir)
-    # a checkpoint downloaded from the run's artifacts is read here and removed with its folder
-    with local_checkpoint(client, run) as (run_id, ckpt):
-        try:
-            model, cfg = load_checkpoint(ckpt, device)
-        except ValueError as exc:
-            if not runs.is_run_folder(ckpt.parent):
-                raise
-            raise ValueError(
-                f"{exc}; rerun the run's train command (cloudpose train with its variant, "
-                "preset, seed and settings): it rewrites model.pt from last.pt or the MLflow run"
-            ) from exc
-        kept = run_id is None or runs.is_run_folder(ckpt.parent)  # shipped, or in its folder
-        ckpt_label = str(ckpt) if kept else "model.pt (downloaded)"
+    run_id, model, cfg, ckpt_label = _load_network(client, run, device)
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
-    device = next(model.buffers()).device
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
-    seg_cfg = dataclasses.replace(cfg.data, segmentation=masks) if masks else cfg.data
-    if data is None:
-        own = own_data or prepare_data(cfg.data, project_dir, progress=progress)
-        segs, dataset = own.test, own.dataset
-        split = describe_split(dataset, "test")
-        data_label = f"the run's own test set, {split} in {dataset.root}"
-        if masks:  # the same frames, segmented otherwise (cached beside the run's own)
-            segs = only_classes(
-                segments_for(dataset, "test", seg_cfg, cache_dir=own.cache_dir, progress=progress),
-                dataset,
-                cfg.data.classes,
-            )
-            data_label += f" with {masks} masks"
-        name = name or own_test_name(masks)
-        data_key = segs.data_key
-    else:
-        dataset = open_dataset(data)
-        segs = folder_segments(dataset, frames, seg_cfg, project_dir, progress)
-        data_key = segs.data_key
-        label = f"-{mask_source_label(masks)}" if masks else ""
-        name = name or tracking.metric_key(data_evaluation_name(data, frames, data_key) + label)
-        split = describe_split(dataset, frames)
-        data_label = f"{split} in {Path(data).resolve()}"
+    test = _test_data(cfg, data, frames, name, masks, own_data, project_dir, progress)
+    name = test.name
     own_icp = ICPSettings.from_config(cfg.icp)
     icp_settings = dataclasses.replace(own_icp, **(icp_overrides or {}))
     if icp and icp_settings != own_icp:
         name = tracking.metric_key(f"{name}-{icp_label(icp_settings, own_icp)}")
-    if len(segs) == 0:
+    if len(test.segs) == 0:
         raise ValueError(
-            f"no instance to evaluate in {data_label} (no annotated object in its frames"
+            f"no instance to evaluate in {test.label} (no annotated object in its frames"
             + (f" of the classes {list(cfg.data.classes)})" if cfg.data.classes else ")")
         )
     tag = f"eval/{name}/data"
     logged = client.get_run(run_id).data.tags.get(tag) if log else None
-    if logged is not None and logged != data_key:
+    if logged is not None and logged != test.data_key:
         raise ValueError(
             f"run {run_id} already holds an evaluation named {name!r} of other data (key "
-            f"{logged}, this data {data_key}); choose another --name"
+            f"{logged}, this data {test.data_key}); choose another --name"
         )
-    models_by_class = dataset.models()
-    t0 = time.monotonic()
-    est = {"net": estimate_poses(model, segs, cfg.train.n_points, device=device)}
-    t_net = time.monotonic() - t0
-    if icp:
-        t0 = time.monotonic()
-        views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
-        est["icp"], stats = refine_poses(
-            segs, est["net"], models_by_class, icp_settings, progress, views=views
-        )
-        t_icp = time.monotonic() - t0
-    table = instance_table(
-        segs, est, models_by_class, dataset.classes, symmetry_table=cfg.loss.symmetry_table
-    )
-    if icp:
-        table["icp_fitness"] = stats.fitness
-        table["icp_inlier_rmse"] = stats.inlier_rmse
-        table["icp_fallback"] = stats.fallback
-    metrics = summary_metrics(table, name)
-    n_valid = max(int(np.sum(segs.valid)), 1)
-    metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
-    if icp:
-        metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
+    device = next(model.buffers()).device
+    table, metrics = _score(model, cfg, test, name, icp_settings if icp else None, device, progress)
     if log:
         try:
             log_evaluation(client, run_id, name, table, metrics)
-            client.set_tag(run_id, tag, data_key)
-            client.set_tag(run_id, f"eval/{name}/split", split)
+            client.set_tag(run_id, tag, test.data_key)
+            client.set_tag(run_id, f"eval/{name}/split", test.split)
             if masks:
                 client.set_tag(run_id, f"eval/{name}/segmentation", masks)
         except Exception as exc:
@@ -322,8 +382,8 @@ def evaluate(
                 raise
             raise full from exc
     who = f"run {run_id}" if run_id is not None else f"the shipped network {run!r}"
-    source = f"{who}, checkpoint {ckpt_label}, {len(segs)} instances of {data_label}"
-    return EvalOutcome(table, metrics, run_id, name, source, split)
+    source = f"{who}, checkpoint {ckpt_label}, {len(test.segs)} instances of {test.label}"
+    return EvalOutcome(table, metrics, run_id, name, source, test.split)
 
 
 def _disk_full(exc: BaseException, client, run_id: str) -> DiskFullError | None:
