@@ -7,7 +7,8 @@ YCB-Video toolbox counts it). Every evaluation names its frame list in words (ML
 images)``).
 Summaries (:func:`cloudpose.metrics.summarize`) are logged as metrics ``{name}/...`` for the
 network alone and ``{name}_icp/...`` after ICP; the per-instance table is an artifact
-``eval/{name}/instances.parquet``.
+``eval/{name}/instances.parquet``. The names and metric keys are
+:mod:`cloudpose.store.metric_names`.
 """
 
 from __future__ import annotations
