@@ -288,7 +288,7 @@ def comparison_view(comp: Comparison) -> dict:
         "orderByAsc": False,
         "selectedColumns": metrics,
         "columnOrder": [_RUN_NAME_COLUMN, *metrics, _START_COLUMN],
-        "columnWidths": {_RUN_NAME_COLUMN: 330, **{m: 108 for m in metrics}},
+        "columnWidths": {_RUN_NAME_COLUMN: 320, **{m: _width(m) for m in metrics}},
         "groupBy": {
             "aggregateFunction": "max",
             "groupByKeys": [{"mode": "tag", "groupByData": comp.key}],
@@ -301,6 +301,11 @@ def comparison_view(comp: Comparison) -> dict:
     }
 
 
+def _width(column: str) -> int:
+    """Pixels that show a metric column's whole header (``metrics.`KEY```)."""
+    return max(84, 7 * len(column.removeprefix("metrics.`").removesuffix("`")) + 24)
+
+
 def runs_view() -> dict:
     """The state of :data:`RUNS_VIEW`: an experiment's finished runs, newest first, with the
     per-run headline metrics (0-1)."""
@@ -311,7 +316,7 @@ def runs_view() -> dict:
         "orderByAsc": False,
         "selectedColumns": metrics,
         "columnOrder": [_RUN_NAME_COLUMN, *metrics, _START_COLUMN],
-        "columnWidths": {_RUN_NAME_COLUMN: 330, **{m: 120 for m in metrics}},
+        "columnWidths": {_RUN_NAME_COLUMN: 320, **{m: _width(m) for m in metrics}},
         "runsHiddenMode": "SHOW_ALL",
         "hideEmptyCharts": True,
         "chartsSearchFilter": "^(" + "|".join(HEADLINE) + ")$",

@@ -211,7 +211,7 @@ def shown_cell(row: dict[str, str], name: str) -> str:
 
 def open_view(page, url: str, wide: bool = True) -> float:
     """Open a view and wait for its grouped rows; returns the seconds it took."""
-    page.set_viewport_size({"width": 2600 if wide else 1600, "height": 900})
+    page.set_viewport_size({"width": 2600 if wide else 1920, "height": 900})
     t0 = time.monotonic()
     page.goto(url)
     page.wait_for_selector("text=Group:", timeout=120_000)
@@ -263,7 +263,9 @@ def check(args) -> list[str]:
                     save(page, out / f"view_{key.split('.')[0]}.png")
                     print(f"{key}: {len(got)} rows, grid in {timings[key]:.1f} s")
                 problems += check_descriptions(client, exps, want)
-                screenshots_elsewhere(page, args.port, client, exps, views, out, timings)
+                problems += screenshots_elsewhere(
+                    page, args.port, client, exps, views, out, timings
+                )
                 browser.close()
             print(
                 "view load times (s): " + json.dumps({k: round(v, 1) for k, v in timings.items()})
@@ -336,9 +338,10 @@ def check_descriptions(client, exps, want) -> list[str]:
     return problems
 
 
-def screenshots_elsewhere(page, port, client, exps, views, out, timings) -> None:
-    """The experiments list, an experiment's description, a report run's artifacts and the
-    chart view of the largest comparison (timed)."""
+def screenshots_elsewhere(page, port, client, exps, views, out, timings) -> list[str]:
+    """The experiments list, an experiment's description (its links followed), a report
+    run's artifacts and the chart view of the largest comparison (timed); returns the links
+    that led elsewhere."""
     base = f"http://127.0.0.1:{port}"
     page.set_viewport_size({"width": 1600, "height": 900})
     page.goto(f"{base}/#/experiments?workflowType=machine_learning")
@@ -347,12 +350,34 @@ def screenshots_elsewhere(page, port, client, exps, views, out, timings) -> None
     save(page, out / "experiments.png")
 
     rotation = next(e for e in exps.values() if e.name == "cloudpose-rotation")
-    page.goto(f"{base}/#/experiments/{rotation.experiment_id}/runs?workflowType=machine_learning")
-    page.wait_for_selector("text=Rotation representation", timeout=60_000)
-    box = page.get_by_test_id("experiment-metadata-editor-edit-button").bounding_box()
-    page.mouse.click(box["x"] + 48, box["y"] + 16)  # the description's expand chevron
-    page.wait_for_timeout(1500)
+
+    def description() -> None:
+        page.goto(
+            f"{base}/#/experiments/{rotation.experiment_id}/runs?workflowType=machine_learning"
+        )
+        page.wait_for_selector("text=Rotation representation", timeout=60_000)
+        box = page.get_by_test_id("experiment-metadata-editor-edit-button").bounding_box()
+        page.mouse.click(box["x"] + 48, box["y"] + 16)  # the description's expand chevron
+        page.wait_for_timeout(1500)
+
+    description()
     save(page, out / "description_rotation.png")
+    problems = []
+    for link, expect, shows in (
+        ("open the comparison", "viewStateShareKey=rotation.", "text=Group:"),
+        ("the report's tables and plots", "/artifacts", "text=table4_rotation.md"),
+    ):
+        description()
+        with page.context.expect_page() as opened:  # the UI opens description links in a tab
+            page.get_by_role("link", name=link).first.click()
+        tab = opened.value
+        try:
+            tab.wait_for_selector(shows, timeout=60_000)
+        except Exception:
+            problems.append(f"description link {link!r}: {tab.url} shows no {shows!r}")
+        if expect not in tab.url:
+            problems.append(f"description link {link!r} led to {tab.url}")
+        tab.close()
 
     report = client.search_runs(
         [rotation.experiment_id], f"attributes.run_name = 'report/rotation/{PRESET}'"
@@ -365,7 +390,7 @@ def screenshots_elsewhere(page, port, client, exps, views, out, timings) -> None
     page.wait_for_timeout(3000)
     save(page, out / "report_run_rotation.png")
 
-    key = max(views, key=lambda k: timings[k])
+    key = f"shared.{PRESET}" if f"shared.{PRESET}" in views else sorted(views)[0]
     t0 = time.monotonic()
     page.goto(views[key] + "&compareRunsMode=CHART")
     page.wait_for_selector(".js-plotly-plot, canvas", timeout=120_000)
@@ -373,6 +398,7 @@ def screenshots_elsewhere(page, port, client, exps, views, out, timings) -> None
     timings[f"{key} charts"] = time.monotonic() - t0
     page.wait_for_timeout(3000)
     save(page, out / f"charts_{key.split('.')[0]}.png")
+    return problems
 
 
 def main() -> None:
