@@ -101,8 +101,7 @@ TITLES: dict[str, str] = {
 """The first line of an experiment's description (the experiments list shows about its first
 25 characters): what its group compares, in words."""
 
-PRIMARY: dict[str, str] = {"rotation": "rot_sym_lt_10deg", "loss": "rot_sym_lt_10deg"}
-PRIMARY["symmetry"] = "rot_sym_lt_10deg"
+PRIMARY: dict[str, str] = dict.fromkeys(("rotation", "loss", "symmetry"), "rot_sym_lt_10deg")
 """Headline key a comparison's view sorts its rows by (best first); ``ads_auc`` otherwise."""
 
 REPORT_ROW = "report: tables and plots"
@@ -122,7 +121,7 @@ RUNS_VIEW = "runs"
 """Share key of the view of an experiment that holds no comparison (finished runs, newest first)."""
 
 LEGACY_VIEWS = ("variants",)
-"""Share keys of views that earlier versions put on every experiment; removed."""
+"""Share keys of views that earlier versions of :func:`prepare_ui` wrote; removed."""
 
 _VIEW_PREFIX = "mlflow.sharedViewState."
 _NOTE = "mlflow.note.content"
