@@ -108,7 +108,7 @@ renderer-vs-real: ## synthetic frames (generator versions 1 and 2) against the r
 mlflow-server: ## MLflow tracking server for several machines on MLFLOW_HOST:MLFLOW_PORT (127.0.0.1:5000): SQLite ./mlflow-server/ or MLFLOW_BACKEND, artifacts served
 	$(CLI) mlflow-server --host $(MLFLOW_HOST) --port $(MLFLOW_PORT) $(if $(MLFLOW_BACKEND),--backend $(MLFLOW_BACKEND))
 
-mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db); prints each experiment's runs-by-variant address
+mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db); prints each ablation group's saved view (every variant, the report's runs, mean/sd/seeds in percent)
 	$(CLI) mlflow-ui --backend $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT)
 
 # --- benchmarks ---------------------------------------------------------------------
