@@ -97,12 +97,13 @@ def mlflow_ui(
     """The MLflow UI, with one saved view per ablation group and preset: its variants (the
     reference shared-0 included) one row each, mean and sd over the seeds the report counts in
     percent, and a link to the report run's tables and plots. First prepares the store
-    (cloudpose.store.headline.prepare_ui: runs the report does not count tagged `superseded`,
+    (cloudpose.report.ui.prepare_ui: runs the report does not count tagged `superseded`,
     dead RUNNING runs marked KILLED, statistics, views and descriptions written) and prints each
     view's address."""
     import os
 
-    from cloudpose.store import headline, tracking
+    from cloudpose.report import ui
+    from cloudpose.store import tracking
 
     if backend:
         os.environ["MLFLOW_TRACKING_URI"] = backend
@@ -114,7 +115,7 @@ def mlflow_ui(
         check_port_free(host, port)
     base = uri.rstrip("/") if remote else f"http://{host}:{port}"
     typer.echo(f"preparing the views of {uri} ...")
-    prepared = headline.prepare_ui(tracking.setup())
+    prepared = ui.prepare_ui(tracking.setup())
     _print_prepared(prepared, base, uri)
     if not serve or remote:
         return
@@ -123,7 +124,7 @@ def mlflow_ui(
     # store-pack writes it) are read from there.
     db = tracking.sqlite_path(uri)
     folder = db.resolve().parent if db is not None else None
-    cmd = headline.ui_command(f"sqlite:///{db.resolve()}" if db else uri, host, port)
+    cmd = ui.ui_command(f"sqlite:///{db.resolve()}" if db else uri, host, port)
     _serve_until_interrupted(
         cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}", folder
     )
@@ -132,10 +133,11 @@ def mlflow_ui(
 def _print_prepared(prepared, base: str, uri: str) -> None:
     """What mlflow-ui prepared: one line per comparison view, the other experiments' views, the
     runs left out and the dead runs marked."""
-    from cloudpose.store import headline, tracking
+    from cloudpose.report import ui
+    from cloudpose.store import tracking
 
     if prepared.backfilled:
-        keys = ", ".join(headline.HEADLINE)
+        keys = ", ".join(ui.HEADLINE)
         typer.echo(f"headline metrics ({keys}) logged now for {prepared.backfilled} runs")
     for name, why in prepared.killed:
         typer.echo(f"marked KILLED: {name} ({why})")
@@ -152,18 +154,18 @@ def _print_prepared(prepared, base: str, uri: str) -> None:
         for c in comps:
             runs = sum(len(r.run_ids) for r in c.rows)
             variants = sum(1 for r in c.rows if r.run_ids)
-            url = headline.view_url(base, c.experiments, c.key)
+            url = ui.view_url(base, c.experiments, c.key)
             typer.echo(f"  {c.key:<{width}}  {variants:>2} variants {runs:>3} runs  {url}")
     homed = {tracking.EXPERIMENT_PREFIX + c.group for c in comps}
     rest = {i: n for i, n in prepared.experiments.items() if n not in homed}
     if rest:
         typer.echo("Other experiments (finished runs):")
         for i, name in sorted(rest.items(), key=lambda kv: kv[1]):
-            typer.echo(f"  {name}  {headline.view_url(base, [i], headline.RUNS_VIEW)}")
+            typer.echo(f"  {name}  {ui.view_url(base, [i], ui.RUNS_VIEW)}")
     if prepared.superseded:
         typer.echo(
             f"{prepared.superseded} evaluated runs that the report does not count (older "
-            f"reruns, other configs or data) carry the tag `{headline.SUPERSEDED}` (why) and "
+            f"reruns, other configs or data) carry the tag `{ui.SUPERSEDED}` (why) and "
             "are left out of the views"
         )
 

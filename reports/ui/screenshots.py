@@ -116,23 +116,24 @@ def stop(proc: subprocess.Popen) -> None:
 def expected(folder: Path) -> dict[str, dict[str, dict[str, str]]]:
     """Comparison key -> row name -> column -> the report's text (``"91.3 ± 0.2"``, seeds
     ``"8"``), from the store in ``folder`` by the report's own code."""
+    from cloudpose.report import ui
     from cloudpose.report.runs import load_runs
     from cloudpose.report.stats import format_mean_std, mean_std
-    from cloudpose.store import headline, tracking
+    from cloudpose.store import tracking
 
     runs = load_runs(PRESET, client=tracking.setup(folder))
     out = {}
-    for group, members in headline.comparison_members(runs.variants):
+    for group, members in ui.comparison_members(runs.variants):
         rows = {}
         for variant, label in members:
             if not runs.of(variant):
                 continue
             cells = {"seeds": str(len(runs.of(variant)))}
-            for key, name in headline.COLUMNS.items():
-                values = list(runs.values(variant, headline.HEADLINE[key]).values())
+            for key, name in ui.COLUMNS.items():
+                values = list(runs.values(variant, ui.HEADLINE[key]).values())
                 cells[name] = format_mean_std(mean_std(values))
             cells["run ids"] = sorted(r.run_id for r in runs.of(variant))
-            rows[headline.Row(variant, label).value] = cells
+            rows[ui.Row(variant, label).value] = cells
         out[f"{group}.{PRESET}"] = rows
     return out
 
@@ -277,13 +278,13 @@ def check(args) -> list[str]:
 
 def compare_view(key, got, want, committed) -> list[str]:
     """Mismatches between a view's grid rows and the report's figures."""
-    from cloudpose.store import headline
+    from cloudpose.report import ui
 
     problems = []
-    report_rows = [k for k in got if k == headline.REPORT_ROW]
+    report_rows = [k for k in got if k == ui.REPORT_ROW]
     if not report_rows:
         problems.append(f"{key}: no row linking the report run")
-    names = set(got) - {headline.REPORT_ROW}
+    names = set(got) - {ui.REPORT_ROW}
     if names != set(want):
         problems.append(f"{key}: rows {sorted(names)}, the group's variants {sorted(want)}")
     for name, cells in want.items():
@@ -291,7 +292,7 @@ def compare_view(key, got, want, committed) -> list[str]:
         variant = name.split(",")[0]
         if row.get("runs") != cells["seeds"] or row.get("seeds") != cells["seeds"]:
             problems.append(f"{key} {name}: {row.get('runs')} runs, report {cells['seeds']} seeds")
-        for col in headline.COLUMNS.values():
+        for col in ui.COLUMNS.values():
             shown = shown_cell(row, col)
             if shown != cells[col]:
                 problems.append(f"{key} {name} {col}: grid {shown}, report {cells[col]}")

@@ -14,8 +14,9 @@ from typer.testing import CliRunner
 
 from cloudpose.evaluate import OWN_TEST, log_evaluation
 from cloudpose.registry import resolve
+from cloudpose.report import ui
 from cloudpose.report.stats import format_mean_std, mean_std
-from cloudpose.store import headline, tracking
+from cloudpose.store import tracking
 
 DETAIL = {
     "test/ads_auc": 0.9,
@@ -40,13 +41,13 @@ def _run(client, exp, variant="shared-1", seed=1, metrics=None):
 
 
 def test_headline_copies_the_detailed_keys_and_skips_missing_or_nan():
-    assert headline.headline(DETAIL) == {
+    assert ui.headline(DETAIL) == {
         "ads_auc": 0.9,
         "ads_auc_icp": 0.95,
         "rot_sym_lt_10deg": 0.3,
         "trans_lt_1cm": 0.6,
     }
-    assert headline.headline({"test/ads_auc": float("nan"), "test/trans_lt_1cm": 0.5}) == {
+    assert ui.headline({"test/ads_auc": float("nan"), "test/trans_lt_1cm": 0.5}) == {
         "trans_lt_1cm": 0.5
     }
 
@@ -57,12 +58,12 @@ def test_own_test_evaluation_logs_headline_keys_beside_the_detail(tmp_path):
     table = pd.DataFrame({"frame_id": ["0000/000001"], "net_ads": [0.01]})
     log_evaluation(client, run_id, OWN_TEST, table, dict(DETAIL))
     metrics = client.get_run(run_id).data.metrics
-    assert {k: metrics[k] for k in headline.HEADLINE} == headline.headline(DETAIL)
+    assert {k: metrics[k] for k in ui.HEADLINE} == ui.headline(DETAIL)
     assert {k: metrics[k] for k in DETAIL} == DETAIL  # the detail stays as it was
     # an evaluation on other data is no headline of the run
     other = _run(client, exp, seed=2)
     log_evaluation(client, other, "real", table, {"real/ads_auc": 0.5, "real_icp/ads_auc": 0.6})
-    assert not set(headline.HEADLINE) & set(client.get_run(other).data.metrics)
+    assert not set(ui.HEADLINE) & set(client.get_run(other).data.metrics)
 
 
 def test_backfill_logs_runs_stored_before_headlines_once(tmp_path):
@@ -72,13 +73,13 @@ def test_backfill_logs_runs_stored_before_headlines_once(tmp_path):
     def runs():
         return client.search_runs([exp], "")
 
-    assert headline.backfill(client, runs()) == 1
+    assert ui.backfill(client, runs()) == 1
     assert client.get_run(old).data.metrics["ads_auc_icp"] == 0.95
-    assert headline.backfill(client, runs()) == 0
+    assert ui.backfill(client, runs()) == 0
     assert len(client.get_metric_history(old, "ads_auc")) == 1
     # a re-evaluation that changed the detail brings the headline along
     client.log_batch(old, metrics=tracking.metric_batch({"test/ads_auc": 0.7}))
-    assert headline.backfill(client, runs()) == 1
+    assert ui.backfill(client, runs()) == 1
     assert client.get_run(old).data.metrics["ads_auc"] == 0.7
 
 
@@ -96,23 +97,23 @@ def test_backfill_logs_runs_stored_before_headlines_once(tmp_path):
     ],
 )
 def test_statistics_are_the_reports_mean_and_sd_in_percent_as_it_prints_them(values):
-    stats = headline.variant_stats({"ads_auc": values}, seeds=len(values))
+    stats = ui.variant_stats({"ads_auc": values}, seeds=len(values))
     assert stats["seeds"] == len(values)
     text = format_mean_std(mean_std(values))
-    assert headline.format_stat(stats, "ADS AUC") == text
+    assert ui.format_stat(stats, "ADS AUC") == text
     mean, *sd = text.split(" ± ")
     assert stats["ADS AUC mean"] == float(mean)
     assert stats.get("ADS AUC sd") == (float(sd[0]) if sd else None)
     assert "ADS AUC ICP mean" not in stats  # no values, no column
-    assert headline.format_stat(stats, "ADS AUC ICP") == "–"
+    assert ui.format_stat(stats, "ADS AUC ICP") == "–"
 
 
 def test_statistic_keys_are_mlflow_keys_and_the_chart_filter_matches_only_them():
-    keys = headline.stat_keys()
-    assert keys[-1] == "seeds" and len(keys) == 2 * len(headline.HEADLINE) + 1
+    keys = ui.stat_keys()
+    assert keys[-1] == "seeds" and len(keys) == 2 * len(ui.HEADLINE) + 1
     assert all(re.fullmatch(r"[A-Za-z0-9_\-./ ]+", k) for k in keys)
-    comp = headline.Comparison("rotation", "smoke", "aaaa", (), None)
-    pattern = re.compile(headline.comparison_view(comp)["chartsSearchFilter"])
+    comp = ui.Comparison("rotation", "smoke", "aaaa", (), None)
+    pattern = re.compile(ui.comparison_view(comp)["chartsSearchFilter"])
     assert all(pattern.search(k) for k in keys)
     others = ["ads_auc", "test/ads_auc", "ADS AUC mean/x", "train/loss", "seeds2"]
     assert not any(pattern.search(k) for k in others)
@@ -123,24 +124,24 @@ def test_statistic_keys_are_mlflow_keys_and_the_chart_filter_matches_only_them()
 
 def _comparison():
     rows = (
-        headline.Row("shared-0", "axis-angle", ("a", "b"), {"ADS AUC mean": 91.3}),
-        headline.Row("quaternion", "quaternion", ("c",), {"ADS AUC mean": 91.4}),
-        headline.Row("rot6d", "6D"),  # no run yet
+        ui.Row("shared-0", "axis-angle", ("a", "b"), {"ADS AUC mean": 91.3}),
+        ui.Row("quaternion", "quaternion", ("c",), {"ADS AUC mean": 91.4}),
+        ui.Row("rot6d", "6D"),  # no run yet
     )
-    return headline.Comparison(
+    return ui.Comparison(
         "rotation", "smoke", "aaaa", rows, "r", report_experiment="4", experiments=("1", "4")
     )
 
 
 def test_a_comparison_view_groups_by_its_tag_with_the_statistics_by_maximum():
     comp = _comparison()
-    state = headline.comparison_view(comp)
+    state = ui.comparison_view(comp)
     assert state["searchFilter"] == "tags.`rotation.smoke` != ''"
     assert state["groupBy"] == {
         "aggregateFunction": "max",
         "groupByKeys": [{"mode": "tag", "groupByData": "rotation.smoke"}],
     }
-    cols = [f"metrics.`{k}`" for k in headline.stat_keys()]
+    cols = [f"metrics.`{k}`" for k in ui.stat_keys()]
     assert state["selectedColumns"] == cols
     assert state["columnOrder"][1:-1] == cols
     # rotation groups sort by the rotation share, best first
@@ -149,15 +150,15 @@ def test_a_comparison_view_groups_by_its_tag_with_the_statistics_by_maximum():
     assert state["groupsExpanded"] == {
         "tag.rotation.smoke.shared-0, axis-angle": False,
         "tag.rotation.smoke.quaternion": False,
-        f"tag.rotation.smoke.{headline.REPORT_ROW}": True,
+        f"tag.rotation.smoke.{ui.REPORT_ROW}": True,
     }
-    assert headline.Row("quaternion", "quaternion").value == "quaternion"
+    assert ui.Row("quaternion", "quaternion").value == "quaternion"
 
 
 def test_a_view_over_several_experiments_opens_in_the_multi_experiment_table():
-    one = headline.view_path(["4"], "loss.smoke")
+    one = ui.view_path(["4"], "loss.smoke")
     assert one == "#/experiments/4/runs?viewStateShareKey=loss.smoke&workflowType=machine_learning"
-    several = headline.view_url("http://h:1/", ["4", "12", "1"], "loss.smoke")
+    several = ui.view_url("http://h:1/", ["4", "12", "1"], "loss.smoke")
     assert several == (
         "http://h:1/#/compare-experiments/s?experiments=%5B%221%22%2C%2212%22%2C%224%22%5D"
         "&viewStateShareKey=loss.smoke&workflowType=machine_learning"
@@ -166,21 +167,21 @@ def test_a_view_over_several_experiments_opens_in_the_multi_experiment_table():
 
 def test_the_description_starts_with_the_title_and_holds_the_grids_numbers():
     comp = _comparison()
-    text = headline.description("Rotation representation: x", [comp], [], "report note")
+    text = ui.description("Rotation representation: x", [comp], [], "report note")
     first, rest = text.split("\n", 1)
     assert first == "Rotation representation: x"
     assert "| shared-0 | axis-angle | 91.3 | – | – | – | 2 |" in rest
     assert "| rot6d | 6D | – | – | – | – | no run |" in rest
     assert "(#/experiments/4/runs/r/artifacts)" in rest  # the report run's tables and plots
-    assert headline.view_path(comp.experiments, comp.key) in rest
+    assert ui.view_path(comp.experiments, comp.key) in rest
     assert rest.endswith("report note")
-    assert len(headline.description("t", [comp], [], "x" * 30000)) < 20000  # MLflow's limit
+    assert len(ui.description("t", [comp], [], "x" * 30000)) < 20000  # MLflow's limit
 
 
 def test_group_titles_differ_in_the_characters_the_experiments_list_shows():
-    starts = [t[:25] for t in headline.TITLES.values()]
+    starts = [t[:25] for t in ui.TITLES.values()]
     assert len(set(starts)) == len(starts)
-    assert headline.group_title("newgroup", [headline.Row("a", "A")]) == "Newgroup: A"
+    assert ui.group_title("newgroup", [ui.Row("a", "A")]) == "Newgroup: A"
 
 
 # -- dead runs and paths ----------------------------------------------------------------------
@@ -190,11 +191,11 @@ H = 3600 * 1000
 
 def test_a_running_run_is_dead_when_stale_or_abandoned_and_never_while_its_folder_is_held():
     now = 100 * H
-    assert headline.dead_reason(now - 1 * H, now) is None  # logged an hour ago
-    assert "nothing logged" in headline.dead_reason(now - 7 * H, now)
-    assert "later run" in headline.dead_reason(now - 1 * H, now, later_start_ms=now - H // 2)
-    assert headline.dead_reason(now - 1 * H, now, later_start_ms=now - 2 * H) is None
-    assert headline.dead_reason(now - 70 * H, now, now - H, folder_locked=True) is None
+    assert ui.dead_reason(now - 1 * H, now) is None  # logged an hour ago
+    assert "nothing logged" in ui.dead_reason(now - 7 * H, now)
+    assert "later run" in ui.dead_reason(now - 1 * H, now, later_start_ms=now - H // 2)
+    assert ui.dead_reason(now - 1 * H, now, later_start_ms=now - 2 * H) is None
+    assert ui.dead_reason(now - 70 * H, now, now - H, folder_locked=True) is None
 
 
 def test_a_run_folder_held_by_a_process_is_alive(tmp_path):
@@ -204,25 +205,23 @@ def test_a_run_folder_held_by_a_process_is_alive(tmp_path):
 
     folder = tmp_path / "runs" / "shared-0" / "smoke" / "seed1-aaaa-bbbb"
     folder.mkdir(parents=True)
-    assert not headline._folder_locked(str(folder))
+    assert not ui._folder_locked(str(folder))
     held = FileLock(str(lock_path(folder)))
     with held:
-        assert headline._folder_locked(str(folder))
-    assert not headline._folder_locked(str(folder))
-    assert not headline._folder_locked(str(tmp_path / "elsewhere"))
+        assert ui._folder_locked(str(folder))
+    assert not ui._folder_locked(str(folder))
+    assert not ui._folder_locked(str(tmp_path / "elsewhere"))
 
 
 def test_run_dir_paths_become_the_projects(tmp_path):
     proj = tmp_path / "proj"
     inside = proj / "runs" / "l2" / "cpu" / "seed1-aa-bb"
-    assert headline.relative_run_dir(str(inside), proj) == "runs/l2/cpu/seed1-aa-bb"
+    assert ui.relative_run_dir(str(inside), proj) == "runs/l2/cpu/seed1-aa-bb"
     foreign = "/tmp/exp/runs/l2/cpu/seed1-aa-bb"
-    assert headline.relative_run_dir(foreign, proj, exists=lambda p: False) == (
-        "runs/l2/cpu/seed1-aa-bb"
-    )
-    assert headline.relative_run_dir(foreign, proj, exists=lambda p: True) is None  # here
-    assert headline.relative_run_dir("runs/l2/cpu/seed1-aa-bb", proj) is None
-    assert headline.relative_run_dir("", proj) is None
+    assert ui.relative_run_dir(foreign, proj, exists=lambda p: False) == ("runs/l2/cpu/seed1-aa-bb")
+    assert ui.relative_run_dir(foreign, proj, exists=lambda p: True) is None  # here
+    assert ui.relative_run_dir("runs/l2/cpu/seed1-aa-bb", proj) is None
+    assert ui.relative_run_dir("", proj) is None
 
 
 # -- the whole preparation, on a store ----------------------------------------------------------
@@ -269,7 +268,7 @@ def sweep(tmp_path):
 
 
 def _prepare(client, hours_later=10):
-    return headline.prepare_ui(client, now_ms=int(1e6) + hours_later * H)
+    return ui.prepare_ui(client, now_ms=int(1e6) + hours_later * H)
 
 
 def test_prepare_ui_builds_each_comparison_from_the_reports_runs(sweep, tmp_path):
@@ -286,7 +285,7 @@ def test_prepare_ui_builds_each_comparison_from_the_reports_runs(sweep, tmp_path
     assert rot.experiments == tuple(sorted(exps.values())) and rot.report_run == ids["report"]
     # the statistics are the report's: mean and sample std of the newest runs, in percent
     want = format_mean_std(mean_std([0.90, 0.92]))
-    assert headline.format_stat(rows["shared-0"].stats, "ADS AUC") == want
+    assert ui.format_stat(rows["shared-0"].stats, "ADS AUC") == want
     run = client.get_run(ids["s0-1"]).data
     assert run.metrics["ADS AUC mean"] == float(want.split(" ± ")[0])
     assert run.metrics["seeds"] == 2
@@ -299,7 +298,7 @@ def test_prepare_ui_builds_each_comparison_from_the_reports_runs(sweep, tmp_path
         *rot.rows[1].run_ids,
         ids["report"],
     }
-    assert client.get_run(ids["report"]).data.tags["rotation.smoke"] == headline.REPORT_ROW
+    assert client.get_run(ids["report"]).data.tags["rotation.smoke"] == ui.REPORT_ROW
     # the view is on every experiment the multi-experiment table may read it from
     for exp in exps.values():
         state = json.loads(
@@ -307,10 +306,10 @@ def test_prepare_ui_builds_each_comparison_from_the_reports_runs(sweep, tmp_path
                 "state"
             ]
         )
-        assert state == json.loads(json.dumps(headline.comparison_view(rot)))
+        assert state == json.loads(json.dumps(ui.comparison_view(rot)))
     # the description: a title in words, the grid's numbers, the report's note
     note = client.get_experiment(exps["rotation"]).tags["mlflow.note.content"]
-    assert note.split("\n", 1)[0] == headline.TITLES["rotation"]
+    assert note.split("\n", 1)[0] == ui.TITLES["rotation"]
     assert f"| shared-0 | axis-angle | {want} |" in note
     assert note.endswith("rotation (smoke preset): Table IV")
 
@@ -344,7 +343,7 @@ def test_prepare_ui_marks_dead_runs_killed_and_writes_nothing_the_second_time(sw
     assert [name for name, _ in prepared.killed] == [client.get_run(ids["dead"]).info.run_name]
     dead = client.get_run(ids["dead"])
     assert dead.info.status == "KILLED" and dead.info.end_time == dead.info.start_time
-    assert "nothing logged" in dead.data.tags[headline.KILLED_TAG]
+    assert "nothing logged" in dead.data.tags[ui.KILLED_TAG]
     assert dead.data.tags["run_dir"] == "runs/q/smoke/s3"  # not this machine's folder
     again = _prepare(client, hours_later=20)
     assert again.written == 0 and again.killed == []
@@ -357,7 +356,7 @@ def test_mlflow_ui_no_serve_prints_each_comparison_view(sweep, tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     res = CliRunner().invoke(app, ["mlflow-ui", "--no-serve", "--port", "5123"])
     assert res.exit_code == 0, res.output
-    url = headline.view_url("http://127.0.0.1:5123", sorted(exps.values()), "rotation.smoke")
+    url = ui.view_url("http://127.0.0.1:5123", sorted(exps.values()), "rotation.smoke")
     assert re.search(r"rotation\.smoke\s+2 variants\s+4 runs\s+" + re.escape(url), res.output)
     assert "2 evaluated runs that the report does not count" in res.output
     # started in 1970 by the test's clock, never logged since
@@ -390,4 +389,4 @@ def test_a_trained_and_evaluated_run_has_its_headline_metrics(smoke_project):
     metrics = tracking.setup(proj).get_run(out.run_id).data.metrics
     assert metrics["ads_auc"] == pytest.approx(ev.metrics["test/ads_auc"])
     assert metrics["ads_auc_icp"] == pytest.approx(ev.metrics["test_icp/ads_auc"])
-    assert set(headline.HEADLINE) <= set(metrics)
+    assert set(ui.HEADLINE) <= set(metrics)
