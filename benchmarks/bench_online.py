@@ -57,8 +57,9 @@ ONLINE_VERSION = _ONLINE.data.online_version
 
 def _synthesis_rate(batches: int) -> dict:
     from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.data.synth.store import OnlineSettings
 
-    synth = OnlineSynth(VERSION, n_points=N_POINTS, online_version=ONLINE_VERSION)
+    synth = OnlineSynth(OnlineSettings(VERSION, n_points=N_POINTS, online_version=ONLINE_VERSION))
     synth.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels
     t0, scenes = time.perf_counter(), 0
     for step in range(batches):
@@ -104,9 +105,11 @@ def _versions_rate(batches: int) -> dict:
     """Segments/s of on-line synthesis versions 1 and 2 in this process (one thread each),
     batch by batch alternately, and how far their segments agree."""
     from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.data.synth.store import OnlineSettings
 
     synths = {
-        v: OnlineSynth(VERSION, n_points=N_POINTS, nthreads=1, online_version=v) for v in (1, 2)
+        v: OnlineSynth(OnlineSettings(VERSION, n_points=N_POINTS, online_version=v), nthreads=1)
+        for v in (1, 2)
     }
     for s in synths.values():
         s.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels, BVHs
@@ -158,7 +161,7 @@ def _scene_stages(synth, rng: np.random.Generator, parts: dict) -> None:
     )
     from cloudpose.data.ycb import Frame
 
-    v2 = synth.online_version >= 2
+    v2 = synth.settings.online_version >= 2
     t = time.perf_counter()
     with _numpy_sampler(not v2):
         scene = synth.sample_scene(rng)
@@ -209,9 +212,11 @@ def _scene_parts(scenes: int) -> dict:
     """Milliseconds a scene spends in each stage of ``OnlineSynth``, on-line versions 1 and 2
     on the same scenes, alternating (one process, one thread, warm)."""
     from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.data.synth.store import OnlineSettings
 
     synths = {
-        v: OnlineSynth(VERSION, n_points=N_POINTS, nthreads=1, online_version=v) for v in (1, 2)
+        v: OnlineSynth(OnlineSettings(VERSION, n_points=N_POINTS, online_version=v), nthreads=1)
+        for v in (1, 2)
     }
     parts = {v: dict.fromkeys(PARTS, 0.0) for v in synths}
     for s in synths.values():
@@ -261,15 +266,14 @@ def _stream_rate(steps: int) -> dict:
     import tempfile
 
     from cloudpose.data.synth.online import OnlineStream
+    from cloudpose.data.synth.store import OnlineSettings
 
     step = make_step("shared-0", "fused", BATCH, N_POINTS)
-    synth_kwargs = {"version": VERSION, "n_points": N_POINTS}
-    if ONLINE_VERSION != 1:
-        synth_kwargs["online_version"] = ONLINE_VERSION
+    settings = OnlineSettings(VERSION, n_points=N_POINTS, online_version=ONLINE_VERSION)
     rates = []
     with tempfile.TemporaryDirectory() as store:
         for _ in range(2):
-            stream = OnlineStream(synth_kwargs, 0, BATCH, REUSE, steps + 8, store=store)
+            stream = OnlineStream(settings, 0, BATCH, REUSE, steps + 8, store=store)
             for _ in range(4):
                 stream.next()
             t0 = time.perf_counter()

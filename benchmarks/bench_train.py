@@ -166,10 +166,11 @@ def bf16_accuracy(
     import numpy as np
 
     from cloudpose.data.synth.online import OnlineSynth
+    from cloudpose.data.synth.store import OnlineSettings
     from cloudpose.geometry.rotations import rotmat_geodesic_distance
 
     cfg = resolve("shared-0", "cpu")
-    synth = OnlineSynth(2, n_points=n)
+    synth = OnlineSynth(OnlineSettings(2, n_points=n))
 
     def tensors(step: int, size: int) -> tuple[torch.Tensor, ...]:
         b = synth.batch(0, step, size)

@@ -27,6 +27,9 @@ ONLINE_SCENE_MIN_CLASSES = 3
 """Classes on-line scenes of the kept classes only need: a table scene holds at least this many
 distinct objects (the scene sampler's ``N_OBJECTS[0]``, :mod:`cloudpose.data.synth.scenes`)."""
 KERNELS = ("fused", "plain")
+SEED_STREAMS = ("arithmetic", "purpose")
+"""How training's random streams are seeded (``TrainConfig.seed_streams``,
+:func:`cloudpose.train.seeds.seed_for`)."""
 
 GENERATOR_VERSIONS = (1, 2)
 """The generators frames can be made with (``DataConfig.synth_version``; stored in
@@ -193,11 +196,19 @@ class TrainConfig:
             data: a camera rolled about its optical axis sees the same surface points. 0 = off.
         augment_depth_noise_mm: move each training point along its viewing ray by a normal
             draw whose standard deviation is uniform in [0, this] mm, one level per segment
-            (:func:`cloudpose.train.loop.jitter_along_rays`). 0 = off.
+            (:func:`cloudpose.train.augment.jitter_along_rays`). 0 = off.
         threads: intra-op CPU threads of training (``torch.set_num_threads``), whatever the
             machine has. CPU kernels split their sums by thread (BatchNorm statistics, the
             reduction dimension of a GEMM), so the thread count changes a run's numbers: it is
             a setting, part of the run's identity, not the machine's core count.
+        seed_streams: how the random streams of training (initial weights, batch order,
+            augmentations, BatchNorm re-estimation, probe) are seeded
+            (:data:`SEED_STREAMS`, :mod:`cloudpose.train.seeds`): "purpose", one stream per
+            purpose and index, none shared; "arithmetic", the seed arithmetic of every run
+            stored before this field existed, whose streams overlap (epoch e's batch order is
+            the roll augmentation's stream of epoch 0, step e). The default, and so every
+            preset's, is "arithmetic": their runs keep their numbers and identity; a preset
+            (or ``--set train.seed_streams=purpose``) opts in to "purpose".
     """
 
     epochs: int = 90
@@ -214,8 +225,13 @@ class TrainConfig:
     augment_roll_deg: float = 0.0
     augment_depth_noise_mm: float = 0.0
     threads: int = 2
+    seed_streams: str = "arithmetic"
 
     def __post_init__(self) -> None:
+        if self.seed_streams not in SEED_STREAMS:
+            raise ValueError(
+                f"train.seed_streams must be one of {SEED_STREAMS}, got {self.seed_streams!r}"
+            )
         if self.threads < 1:
             raise ValueError(f"train.threads must be >= 1, got {self.threads}")
         if not self.augment_depth_noise_mm >= 0:
@@ -481,7 +497,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "start_margin": 0.02,
         "select": "fitness",
     },
-    "train": {"threads": 2, "augment_depth_noise_mm": 0.0},
+    "train": {"threads": 2, "augment_depth_noise_mm": 0.0, "seed_streams": "arithmetic"},
     "loss": {"symmetry_table": 1},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
@@ -493,7 +509,8 @@ existed used symmetry table 1; every run stored before
 the ``icp`` section existed was refined without the guard, and every run stored before
 ``icp.starts`` existed from the estimate only; every run stored before
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads, and
-without depth-noise augmentation.
+without depth-noise augmentation; every run stored before ``train.seed_streams`` existed drew
+its random streams by the seed arithmetic.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 

@@ -318,7 +318,7 @@ def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
 
 @pytest.mark.slow
 def test_a_run_that_fails_is_marked_failed_and_resumes(tmp_path, smoke_data, monkeypatch):
-    import cloudpose.train.loop
+    import cloudpose.train.step
     from cloudpose.registry import resolve
     from cloudpose.suite.pipeline import train_run
     from tests.conftest import make_project
@@ -330,14 +330,14 @@ def test_a_run_that_fails_is_marked_failed_and_resumes(tmp_path, smoke_data, mon
         terms = real_loss(*args, **kwargs)
         return type(terms)(*(t * float("nan") for t in terms))
 
-    real_loss = cloudpose.train.loop.pose_loss
-    monkeypatch.setattr(cloudpose.train.loop, "pose_loss", nan_loss)
+    real_loss = cloudpose.train.step.pose_loss
+    monkeypatch.setattr(cloudpose.train.step, "pose_loss", nan_loss)
     with pytest.raises(FloatingPointError, match="loss became nan"):
         train_run(cfg, project_dir=proj, progress=False)
     client = tracking.setup(proj)
     (run,) = tracking.find_runs(client, variant="shared-0", status=None)
     assert run.info.status == "FAILED"
-    monkeypatch.setattr(cloudpose.train.loop, "pose_loss", real_loss)
+    monkeypatch.setattr(cloudpose.train.step, "pose_loss", real_loss)
     out = train_run(cfg, project_dir=proj, progress=False)  # the same command again
     assert out.run_id == run.info.run_id
     assert client.get_run(out.run_id).info.status == "FINISHED"

@@ -257,9 +257,9 @@ def _chunk(n=N, k=K, seed=0):
 
 @pytest.fixture
 def store(tmp_path):
-    from cloudpose.data.synth.store import ChunkStore
+    from cloudpose.data.synth.store import ChunkStore, OnlineSettings
 
-    return ChunkStore(tmp_path / "online", {"n_points": K, "scenes_per_batch": 2}, N)
+    return ChunkStore(tmp_path / "online", OnlineSettings(n_points=K), N)
 
 
 def test_a_stored_chunk_reads_back(store):

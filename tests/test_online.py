@@ -14,6 +14,7 @@ from cloudpose.data.dataset import prepare_data
 from cloudpose.data.segments import extract_segments
 from cloudpose.data.synth.frames import generate_frame
 from cloudpose.data.synth.online import OnlineStream, OnlineSynth
+from cloudpose.data.synth.store import OnlineSettings
 from cloudpose.data.ycb import Frame
 from cloudpose.registry import resolve
 from cloudpose.suite.pipeline import train_run
@@ -28,9 +29,9 @@ ONLINE = {
 
 @pytest.mark.parametrize("online_version", [1, 2])
 def test_a_batch_is_a_function_of_seed_and_step(online_version):
-    synth = OnlineSynth(2, n_points=64, online_version=online_version)
+    synth = OnlineSynth(OnlineSettings(2, n_points=64, online_version=online_version))
     a = synth.batch(3, 7, 12)
-    b = OnlineSynth(2, n_points=64, online_version=online_version).batch(3, 7, 12)
+    b = OnlineSynth(OnlineSettings(2, n_points=64, online_version=online_version)).batch(3, 7, 12)
     for x, y in zip(a.tensors(), b.tensors(), strict=True):
         assert torch.equal(x, y)
     other = synth.batch(3, 8, 12)
@@ -57,7 +58,7 @@ def test_online_and_frame_segments_of_one_scene_agree(online_version):
     frame = Frame("x", depth, f.label, YCB_INTRINSICS, f.cls_ids, f.poses, None)
     rng = np.random.default_rng(4)
     ref = extract_segments(frame, alone_pixels=f.alone_pixels, n_fps=128, rng=rng)
-    synth = OnlineSynth(2, noise=False, n_points=128, online_version=online_version)
+    synth = OnlineSynth(OnlineSettings(2, noise=False, n_points=128, online_version=online_version))
     got = synth.scene_segments(f.scene, np.random.default_rng(4))
     ref = [s for s, v in zip(ref, f.visible_pixels, strict=True) if s.valid and v >= 100]
     assert [s.cls_id for s in got] == [s.cls_id for s in ref] and len(got) >= 3
@@ -103,8 +104,8 @@ def test_online_version_2_makes_version_1s_segments():
     """The compiled path (data.online_version = 2) draws the same scenes and sensor readings
     as the ray cast path, to float rounding: the same classes and poses, and, but for scenes
     re-drawn after a rounding flip, the same points."""
-    a = OnlineSynth(2, n_points=64, online_version=1).batch(0, 3, 24)
-    b = OnlineSynth(2, n_points=64, online_version=2).batch(0, 3, 24)
+    a = OnlineSynth(OnlineSettings(2, n_points=64, online_version=1)).batch(0, 3, 24)
+    b = OnlineSynth(OnlineSettings(2, n_points=64, online_version=2)).batch(0, 3, 24)
     np.testing.assert_array_equal(a.cls_id, b.cls_id)
     np.testing.assert_array_equal(a.R, b.R)
     assert a.scenes == b.scenes
@@ -119,9 +120,9 @@ def test_online_version_2_without_numba_is_its_twin():
     the segment path's FPS): the same segments to float rounding."""
     from cloudpose.kernels.backend import disabled
 
-    a = OnlineSynth(2, n_points=64, online_version=2).batch(1, 0, 16)
+    a = OnlineSynth(OnlineSettings(2, n_points=64, online_version=2)).batch(1, 0, 16)
     with disabled():
-        b = OnlineSynth(2, n_points=64, online_version=2).batch(1, 0, 16)
+        b = OnlineSynth(OnlineSettings(2, n_points=64, online_version=2)).batch(1, 0, 16)
     np.testing.assert_array_equal(a.cls_id, b.cls_id)
     same, worst, count = _agreement(a, b)
     assert same >= ONLINE_V2_SAME and worst < ONLINE_V2_NEAR and count < ONLINE_V2_COUNT, (
@@ -154,26 +155,24 @@ def test_cut_segments_is_extract_segments():
 
 
 def test_online_version_is_a_setting_of_its_own():
-    """data.online_version 1 leaves fingerprints and chunk-store arguments as they were;
-    2 changes both; others are refused."""
-    from cloudpose.train.loop import online_synth_kwargs
+    """data.online_version 1 leaves fingerprints as they were; 2 changes the fingerprint and
+    the synthesis settings; others are refused."""
+    from cloudpose.config import Config
 
     cfg = resolve("shared-0", "cpu-online")
     d = cfg.to_dict()
     del d["data"]["online_version"]
-    from cloudpose.config import Config
-
     assert Config.from_dict(d).fingerprint() == cfg.fingerprint()
-    assert "online_version" not in online_synth_kwargs(cfg, [])
+    assert OnlineSettings.from_config(cfg, []).online_version == 1
     fast = resolve("shared-0", "cpu-online", overrides={"data": {"online_version": 2}})
     assert fast.fingerprint() != cfg.fingerprint()
-    assert online_synth_kwargs(fast, [])["online_version"] == 2
+    assert OnlineSettings.from_config(fast, []).online_version == 2
     with pytest.raises(ValueError, match="online_version"):
         resolve("shared-0", "cpu-online", overrides={"data": {"online_version": 3}})
 
 
 def test_stream_steps_reuse_each_chunk_and_restart_anywhere():
-    kw = {"version": 2, "n_points": 32}
+    kw = OnlineSettings(2, n_points=32)
     args = {"seed": 1, "batch_size": 8, "reuse": 2, "total_steps": 5, "spacing": 2}
     full = OnlineStream(kw, workers=0, **args)
     steps = [full.next() for _ in range(5)]
@@ -195,8 +194,8 @@ def test_scenes_of_the_kept_classes_only():
     """With ``scenes="classes"`` a scene holds only kept classes, so far fewer scenes fill a
     batch; with "all" the other classes stay as occluders and segments are dropped."""
     keep = (5, 11, 15)
-    only = OnlineSynth(2, n_points=32, class_ids=keep, scenes="classes")
-    mixed = OnlineSynth(2, n_points=32, class_ids=keep)
+    only = OnlineSynth(OnlineSettings(2, n_points=32, class_ids=keep, online_scenes="classes"))
+    mixed = OnlineSynth(OnlineSettings(2, n_points=32, class_ids=keep))
     for step in range(3):
         scene = only.sample_scene(np.random.default_rng([0, step]))
         assert set(scene.cls_ids.tolist()) <= set(keep) and len(scene.cls_ids) == 3
@@ -205,12 +204,16 @@ def test_scenes_of_the_kept_classes_only():
     assert a.scenes * 2 < b.scenes, (a.scenes, b.scenes)
     # every class kept: the scenes of "all", draw for draw
     every = tuple(range(1, 22))
-    full = OnlineSynth(2, n_points=32, class_ids=every, scenes="classes").batch(0, 1, 8)
-    assert np.array_equal(full.points, OnlineSynth(2, n_points=32).batch(0, 1, 8).points)
+    full = OnlineSynth(
+        OnlineSettings(2, n_points=32, class_ids=every, online_scenes="classes")
+    ).batch(0, 1, 8)
+    assert np.array_equal(
+        full.points, OnlineSynth(OnlineSettings(2, n_points=32)).batch(0, 1, 8).points
+    )
     with pytest.raises(ValueError, match="at least 3 classes"):
-        OnlineSynth(2, class_ids=(5, 11), scenes="classes")
+        OnlineSettings(2, class_ids=(5, 11), online_scenes="classes")
     with pytest.raises(ValueError, match="on-line scenes"):
-        OnlineSynth(2, scenes="some")
+        OnlineSettings(2, online_scenes="some")
     with pytest.raises(ValueError, match="online_scenes"):
         resolve("shared-0", "smoke", overrides={"data": {"online_scenes": "some"}})
 
@@ -237,7 +240,7 @@ def test_bad_online_settings_are_refused():
     with pytest.raises(ValueError, match="online_reuse"):
         resolve("shared-0", "smoke", overrides={"data": {"online_reuse": 0}})
     with pytest.raises(ValueError, match="subset of the model ids"):
-        OnlineSynth(2, class_ids=(99,))
+        OnlineSynth(OnlineSettings(2, class_ids=(99,)))
 
 
 def test_frames_configs_keep_their_fingerprint():
@@ -303,7 +306,9 @@ def _held_out_rotation_error(checkpoint: Path, n_points: int) -> float:
 
     names = packaged_classes()
     ids = tuple(names.index(c) + 1 for c in LEARN_CLASSES)
-    held = OnlineSynth(2, n_points=n_points, class_ids=ids, scenes="classes").batch(999, 0, 96)
+    held = OnlineSynth(
+        OnlineSettings(2, n_points=n_points, class_ids=ids, online_scenes="classes")
+    ).batch(999, 0, 96)
     points, cls_id, R, _ = held.tensors()
     model, _ = load_checkpoint(checkpoint)
     with torch.no_grad():

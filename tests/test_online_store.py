@@ -10,19 +10,24 @@ import pytest
 import torch
 
 from cloudpose.data.synth import store as store_module
-from cloudpose.data.synth.online import OnlineChunks, OnlineStream, OnlineSynth, store_chunks
-from cloudpose.data.synth.store import ChunkStore, store_settings
+from cloudpose.data.synth.online import (
+    OnlineChunks,
+    OnlineStream,
+    OnlineSynth,
+    store_chunks,
+)
+from cloudpose.data.synth.store import ChunkStore, OnlineSettings, store_settings
 from cloudpose.registry import resolve
 from cloudpose.store import tracking
 from cloudpose.suite.pipeline import train_run
 from cloudpose.train.loop import ONLINE_STORE_ENV, online_chunks, online_store_root
 from tests.conftest import make_project
 
-KW = {"version": 2, "n_points": 32}
+KW = OnlineSettings(2, n_points=32)
 
 
 def test_a_stored_chunk_reads_back_to_the_bit(tmp_path):
-    chunk = OnlineSynth(**KW).batch(3, 5, 4).tensors()
+    chunk = OnlineSynth(KW).batch(3, 5, 4).tensors()
     store = ChunkStore(tmp_path, KW, 4)
     assert store.load(3, 5) is None
     store.save(3, 5, chunk)
@@ -36,12 +41,17 @@ def test_a_stored_chunk_reads_back_to_the_bit(tmp_path):
 
 
 def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
+    from dataclasses import replace
+
     base = ChunkStore(tmp_path, KW, 4).key
-    assert ChunkStore(tmp_path, {**KW, "nthreads": 1}, 4).key == base  # speed only
-    assert ChunkStore(tmp_path, {**KW, "n_points": 64}, 4).key != base
-    assert ChunkStore(tmp_path, {**KW, "class_ids": (3, 1, 2)}, 4).key == (
-        ChunkStore(tmp_path, {**KW, "class_ids": (1, 2, 3)}, 4).key
+    assert ChunkStore(tmp_path, replace(KW, n_points=64), 4).key != base
+    assert ChunkStore(tmp_path, replace(KW, online_version=2), 4).key != base
+    assert ChunkStore(tmp_path, replace(KW, class_ids=(3, 1, 2)), 4).key == (
+        ChunkStore(tmp_path, replace(KW, class_ids=(1, 2, 3)), 4).key
     )
+    assert ChunkStore(tmp_path, replace(KW, class_ids=(1, 2, 3)), 4).key != base
+    # every setting is a field of the key, by its name
+    assert set(store_settings(KW, 4)["synth"]) == set(KW.__dataclass_fields__)
     assert ChunkStore(tmp_path, KW, 8).key != base
     # the synthesis code: another source digest is another folder
     monkeypatch.setattr(store_module, "code_digest", lambda: "0" * 32)
@@ -183,5 +193,5 @@ def test_a_chunk_that_cannot_be_written_warns_and_training_goes_on(tmp_path):
     chunks = OnlineChunks(KW, 1, 4, 2, store=blocked)
     with pytest.warns(UserWarning, match="chunk not stored"):
         got = chunks[0]
-    for a, b in zip(got, OnlineSynth(**KW).batch(1, 0, 4).tensors(), strict=True):
+    for a, b in zip(got, OnlineSynth(KW).batch(1, 0, 4).tensors(), strict=True):
         assert torch.equal(a, b)

@@ -15,6 +15,7 @@ from cloudpose.data.synth.sensor import (
     edge_distance,
     edge_distance_compiled,
 )
+from cloudpose.data.synth.store import OnlineSettings
 from cloudpose.kernels.backend import disabled, enabled
 
 pytestmark = pytest.mark.skipif(not enabled(), reason="numba kernels off")
@@ -22,7 +23,7 @@ pytestmark = pytest.mark.skipif(not enabled(), reason="numba kernels off")
 
 @pytest.fixture(scope="module")
 def synth():
-    return OnlineSynth(2, n_points=64, nthreads=1)
+    return OnlineSynth(OnlineSettings(2, n_points=64), nthreads=1)
 
 
 def test_zbuffer_is_the_ray_cast(synth):

@@ -182,10 +182,10 @@ def _store_seeds(
     root = online_store_root(Path.cwd())
     if root is None:
         raise ValueError(f"--seeds: the chunk store is switched off ({ONLINE_STORE_ENV}=0)")
-    synth_kwargs, chunk_size, n_chunks = online_chunks(cfg, class_names)
+    settings, chunk_size, n_chunks = online_chunks(cfg, class_names)
     for seed in range(1, seeds + 1):
-        made = store_chunks(synth_kwargs, seed, chunk_size, n_chunks, root, workers, progress)
+        made = store_chunks(settings, seed, chunk_size, n_chunks, root, workers, progress)
         typer.echo(f"seed {seed}: {n_chunks} chunks of {chunk_size} segments ({made} made)")
-    folder = ChunkStore(root, synth_kwargs, chunk_size).folder
+    folder = ChunkStore(root, settings, chunk_size).folder
     size = sum(f.stat().st_size for f in folder.rglob("*.npz"))
     typer.echo(f"chunk store: {folder} ({size / 2**20:.0f} MiB)")

@@ -60,6 +60,7 @@ __all__ = [
     "is_preset_config",
     "local_checkpoint",
     "lock_path",
+    "open_training_run",
     "read_checkpoint",
     "read_info",
     "resolve_run",
@@ -197,6 +198,41 @@ def create_run_record(
     if config is not None:
         client.log_text(run_id, json.dumps(config, indent=2), "config.json")
     return run_id
+
+
+def open_training_run(
+    client,
+    cfg: Config,
+    data_key: DataKey,
+    folder: Path,
+    *,
+    group: str,
+    params: dict[str, Any],
+    project_dir: Path,
+) -> dict[str, Any]:
+    """The MLflow run of the run folder ``folder``, RUNNING: the one its ``run.json`` names
+    (a resumed run, marked RUNNING again), else a new run of ``cfg`` on ``data_key`` in
+    ``group``'s experiment (name :func:`display_name`, tags :func:`training_tags`, ``params``
+    beside ``cfg``'s own, the config as ``config.json``), whose id the folder's new
+    ``run.json`` records.
+
+    Returns:
+        The folder's ``run.json`` content: ``run_id``, ``group``, ``config`` (and a finished
+        run's ``finished`` and ``metrics``).
+    """
+    info = read_info(folder)
+    if info.get("run_id") is not None:
+        client.update_run(info["run_id"], status="RUNNING")
+        return info
+    exp = tracking.experiment_id(client, group, project_dir)
+    tags = training_tags(cfg, group, data_key, folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    run_id = create_run_record(
+        client, exp, display_name(cfg), tags, cfg.flat() | params, cfg.to_dict()
+    )
+    info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
+    write_info(folder, info)
+    return info
 
 
 def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:

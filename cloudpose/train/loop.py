@@ -1,31 +1,40 @@
 """Training of one variant from the segment cache, resumable and tracked in MLflow.
 
-Resumability: the run folder ``runs/{variant}/{preset}/seed{S}-{data}-{config}`` (data and config
-fingerprints: an edited preset or an override never resumes another config's run) holds ``last.pt`` (model,
-optimiser, position in the epoch and the epoch's running loss sums), written atomically at the end
-of every epoch and every ``checkpoint_every_s`` seconds within one, the one before it as
-``last.prev.pt``, and ``run.json`` with the MLflow run id. Rerunning the same command after any
-interruption (``kill -9``, SIGTERM, Ctrl-C, a full disk) continues from ``last.pt`` into the same
-MLflow run; from ``last.prev.pt``, with a warning naming the bad file, when ``last.pt`` cannot be
-read (torn, empty). An epoch's metrics are logged once: a resumed run that trains an epoch again
-(from an earlier checkpoint) does not log it a second time. A full disk is one line naming the
-file and the space it needs (:class:`cloudpose.failures.DiskFullError`), and the run is marked
-FAILED; SIGTERM stops training as Ctrl-C does (the run is marked KILLED). The batch order of
-epoch ``e`` depends only on ``(seed, e)`` and the model's initial weights only on ``seed``, so a
-resumed run ends with the same numbers as an uninterrupted one (on CPU, with the same thread
-count). Against a tracking server
-(:func:`cloudpose.store.tracking.is_remote`) every checkpoint is also logged to the run as the artifact
-``checkpoint/last.pt`` (removed once the run finishes), and a machine without the run folder
-(a retried Ray task on another node) rebuilds it from MLflow (:func:`cloudpose.store.runs.restore_run_folder`):
-the run continues into the same MLflow run from the last logged checkpoint.
+A run is a sequence of steps (:func:`_train`): open the run folder (:class:`RunRecord`), build the
+data (:class:`TrainingSets`) and the network, resume from the last checkpoint (a
+:class:`Position`), open the MLflow run (:func:`cloudpose.store.runs.open_training_run`),
+train the epochs (:class:`Trainer`; each optimiser step is
+:func:`cloudpose.train.step.train_step`, on batches augmented by :mod:`cloudpose.train.augment`),
+and finish. Every random stream is :func:`cloudpose.train.seeds.seed_for`'s.
 
-Several processes (``torchrun``; :mod:`cloudpose.train.distributed`) train one run: each takes an equal
-share of every global batch, DDP averages the gradients, BatchNorm uses the global batch's
-statistics; rank 0 alone writes the run folder and talks to MLflow.
+Resumability: the run folder ``runs/{variant}/{preset}/seed{S}-{data}-{config}`` (data and
+config fingerprints: an edited preset or an override never resumes another config's run) holds
+``last.pt`` (model, optimiser, position in the epoch and the epoch's running loss sums), written
+atomically at the end of every epoch and every ``checkpoint_every_s`` seconds within one, the
+one before it as ``last.prev.pt``, and ``run.json`` with the MLflow run id. Rerunning the same
+command after any interruption (``kill -9``, SIGTERM, Ctrl-C, a full disk) continues from
+``last.pt`` into the same MLflow run; from ``last.prev.pt``, with a warning naming the bad file,
+when ``last.pt`` cannot be read (torn, empty). An epoch's metrics are logged once: a resumed run
+that trains an epoch again (from an earlier checkpoint) does not log it a second time. A full
+disk is one line naming the file and the space it needs
+(:class:`cloudpose.failures.DiskFullError`), and the run is marked FAILED; SIGTERM stops
+training as Ctrl-C does (the run is marked KILLED). Every random stream of training depends only
+on the seed, its purpose and its index (the batch order of epoch ``e`` on ``(seed, e)``, the
+model's initial weights on ``seed``), so a resumed run ends with the same numbers as an
+uninterrupted one (on CPU, with the same thread count). Against a tracking server
+(:func:`cloudpose.store.tracking.is_remote`) every checkpoint is also logged to the run as the
+artifact ``checkpoint/last.pt`` (removed once the run finishes), and a machine without the run
+folder (a retried Ray task on another node) rebuilds it from MLflow
+(:func:`cloudpose.store.runs.restore_run_folder`): the run continues into the same MLflow run
+from the last logged checkpoint.
 
-Validation: a fixed share of the training *frames* (not instances: instances of one frame share a
-scene) is held out, chosen from the frame ids alone so every seed and variant sees the same split;
-:mod:`cloudpose.train.validation` measures the network on it at the end of every epoch.
+Several processes (``torchrun``; :mod:`cloudpose.train.distributed`) train one run: each takes
+an equal share of every global batch, DDP averages the gradients, BatchNorm uses the global
+batch's statistics; rank 0 alone writes the run folder and talks to MLflow.
+
+Validation: a fixed share of the training *frames* (not instances: instances of one frame share
+a scene) is held out, chosen from the frame ids alone so every seed and variant sees the same
+split; :mod:`cloudpose.train.validation` measures the network on it at the end of every epoch.
 """
 
 from __future__ import annotations
@@ -37,8 +46,10 @@ import math
 import os
 import time
 import warnings
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -48,17 +59,20 @@ from cloudpose import runtime
 from cloudpose.config import Config
 from cloudpose.data.batches import Batchable
 from cloudpose.data.dataset import Prepared
+from cloudpose.data.keys import DataKey
 from cloudpose.data.synth.online import REUSE_SPACING, OnlineChunks, OnlineStream
-from cloudpose.data.synth.store import STORE_DIR, code_digest
+from cloudpose.data.synth.store import STORE_DIR, OnlineSettings, code_digest
 from cloudpose.failures import DiskFullError, disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
-from cloudpose.losses import pose_loss
 from cloudpose.models import build_model, count_parameters
 from cloudpose.models.fused import fuse_model
 from cloudpose.registry import groups_of
 from cloudpose.store import runs, tracking
+from cloudpose.train.augment import augment
 from cloudpose.train.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
+from cloudpose.train.seeds import generator, seed_for
+from cloudpose.train.step import Batch, StepLoss, train_step
 from cloudpose.train.validation import batch_stats_rotation_error, recalibrate_bn, validate
 
 
@@ -87,32 +101,6 @@ def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
     return np.array([held[f] for f in frame_ids], dtype=bool)
 
 
-def online_synth_kwargs(cfg: Config, class_names: list[str]) -> dict:
-    """:class:`~cloudpose.data.synth.online.OnlineSynth` arguments of an on-line run: the
-    generator version, noise and segment settings of ``cfg.data``, and the ids of its
-    ``data.classes`` in ``class_names`` (the dataset's ``classes.txt``), every class when
-    empty."""
-    d = cfg.data
-    if d.root:
-        raise ValueError(
-            f"data.train_source='online' synthesizes YCB-Video scenes from the packaged models; "
-            f"it cannot be combined with data.root={d.root!r} (train on its frames instead)"
-        )
-    classes = None
-    if d.classes:
-        classes = tuple(sorted(class_names.index(c) + 1 for c in d.classes))
-    return {
-        "version": d.synth_version,
-        "noise": d.noise,
-        "n_points": cfg.train.n_points,
-        "outlier_radius": d.outlier_radius,
-        "class_ids": classes,
-        "scenes": d.online_scenes,
-        # version 1 leaves it out: its chunk store settings stay as they were
-        **({"online_version": d.online_version} if d.online_version != 1 else {}),
-    }
-
-
 ONLINE_STORE_ENV = "CLOUDPOSE_ONLINE_STORE"
 """Environment variable: ``0`` keeps on-line runs from reading or writing the project's chunk
 store (:mod:`cloudpose.data.synth.store`); a path puts the store there. Unset: the project's
@@ -132,92 +120,44 @@ def online_epoch_steps(cfg: Config) -> int:
     return max(cfg.data.online_epoch_segments // cfg.train.batch_size, 1)
 
 
-def online_chunks(cfg: Config, class_names: list[str]) -> tuple[dict, int, int]:
-    """``(synth_kwargs, chunk_size, n_chunks)`` of an on-line run: the chunks its
+def online_chunks(cfg: Config, class_names: list[str]) -> tuple[OnlineSettings, int, int]:
+    """``(settings, chunk_size, n_chunks)`` of an on-line run: the chunks its
     :class:`~cloudpose.data.synth.online.OnlineStream` draws, the same for every variant that
     shares its ``data`` section, ``train.n_points``, ``train.batch_size`` and epochs."""
     reuse = cfg.data.online_reuse
     span = (reuse - 1) * REUSE_SPACING
     return (
-        online_synth_kwargs(cfg, class_names),
+        OnlineSettings.from_config(cfg, class_names),
         cfg.train.batch_size // reuse,
         cfg.train.epochs * online_epoch_steps(cfg) + span,
     )
 
 
 def online_probe(
-    synth_kwargs: dict, seed: int, n: int, store: str | Path | None = None
+    settings: OnlineSettings, seed: int, n: int, store: str | Path | None = None
 ) -> Batchable:
     """``n`` segments drawn as the run's first step draws them (its first chunk is trained on):
     the ``fit/`` probe of an on-line run (read from, or kept in, the chunk store ``store``)."""
-    return Batchable(*OnlineChunks(synth_kwargs, seed, n, 1, store)[0])
+    return Batchable(*OnlineChunks(settings, seed, n, 1, store)[0])
 
 
-def epoch_order(fit: Batchable, sampler: str, seed: int, epoch: int, n: int) -> torch.Tensor:
-    """(n,) training indices of one epoch, a function of ``(seed, epoch)`` only.
+def epoch_order(fit: Batchable, sampler: str, n: int, generator: torch.Generator) -> torch.Tensor:
+    """(n,) training indices of one epoch, drawn from ``generator`` (the epoch's ``order``
+    stream, :func:`cloudpose.train.seeds.seed_for`).
 
     ``shuffle``: a permutation of the segments (the first ``n``); ``class_balanced``: each
     draw picks a class uniformly among the classes present, then one of its segments.
     """
-    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
     if sampler == "shuffle":
-        return torch.randperm(len(fit), generator=g)[:n]
+        return torch.randperm(len(fit), generator=generator)[:n]
     classes, inverse = torch.unique(fit.cls_id, return_inverse=True)
     members = [torch.nonzero(inverse == c).squeeze(1) for c in range(len(classes))]
-    pick = torch.randint(len(classes), (n,), generator=g)
+    pick = torch.randint(len(classes), (n,), generator=generator)
     out = torch.empty(n, dtype=torch.long)
     for c, idx in enumerate(members):
         sel = pick == c
-        out[sel] = idx[torch.randint(len(idx), (int(sel.sum()),), generator=g)]
+        out[sel] = idx[torch.randint(len(idx), (int(sel.sum()),), generator=generator)]
     return out
-
-
-def roll_about_optical_axis(
-    points: torch.Tensor,
-    R: torch.Tensor,
-    t: torch.Tensor,
-    max_deg: float,
-    generator: torch.Generator,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Segments and poses as seen by the camera rolled about its optical (z) axis.
-
-    Args:
-        points: (B, n, 3) camera-frame points, metres; R (B, 3, 3), t (B, 3) their poses.
-        max_deg: roll angles are uniform in [-max_deg, max_deg] degrees, one per segment.
-
-    Returns:
-        ``(points @ Q^T, Q R, Q t)`` with Q (B, 3, 3) the rolls.
-    """
-    B = points.shape[0]
-    a = (torch.rand(B, generator=generator) * 2 - 1) * math.radians(max_deg)
-    c, s = torch.cos(a), torch.sin(a)
-    Q = torch.zeros(B, 3, 3)
-    Q[:, 0, 0], Q[:, 0, 1], Q[:, 1, 0], Q[:, 1, 1], Q[:, 2, 2] = c, -s, s, c, 1.0
-    Q = Q.to(points.device, points.dtype)
-    return points @ Q.mT, Q @ R, (Q @ t[..., None]).squeeze(-1)
-
-
-def jitter_along_rays(
-    points: torch.Tensor, max_sigma_m: float, generator: torch.Generator
-) -> torch.Tensor:
-    """Segments with depth noise of a randomized level: each point moves along its viewing ray
-    by a normal draw whose standard deviation is uniform in ``[0, max_sigma_m]``, one level per
-    segment. Real depth is noisier than a fitted sensor model (and a network trained on one
-    noise level does worse on clean depth than on noisy): training over a range of levels
-    covers both.
-
-    Args:
-        points: (B, n, 3) camera-frame points, metres.
-        max_sigma_m: the largest per-segment standard deviation, metres.
-
-    Returns:
-        (B, n, 3) the moved points (the poses are unchanged: the surface is where it was).
-    """
-    B, n, _ = points.shape
-    sigma = torch.rand(B, 1, generator=generator) * max_sigma_m  # (B, 1)
-    step = torch.randn(B, n, generator=generator) * sigma  # (B, n) metres along each ray
-    ray = points / points.norm(dim=-1, keepdim=True).clamp_min(1e-9)  # (B, n, 3)
-    return points + step.to(points.device, points.dtype)[..., None] * ray
 
 
 def lr_at(cfg: Config, step: int, total: int) -> float:
@@ -338,265 +278,479 @@ def _train(
     world: World,
     checkpoint_artifacts: bool | None,
 ) -> TrainOutcome:
-    """:func:`train` with the run folder's lock held (rank 0)."""
+    """:func:`train` with the run folder's lock held (rank 0): the run's folder and MLflow
+    record, its data, its network resumed from the last checkpoint, the epochs, the end."""
+    device = _training_device(cfg, world)
+    run = _open_run(cfg, data.data_key, rdir, project_dir, world, checkpoint_artifacts)
+    if run.finished(cfg, world):
+        return TrainOutcome(run.info["run_id"], rdir, run.final, run.info.get("metrics", {}))
+    sets = _training_sets(cfg, data, project_dir, device)
+    model, opt = _network(cfg, device)
+    position = _resume(run, model, opt, cfg, world, device)
+    params = _run_params(cfg, data.data_key, model, sets, device)
+    group = group or (groups_of(cfg.variant) or ["misc"])[0]
+    run.open_mlflow_run(cfg, data.data_key, group, params, project_dir, world)
+    trainer = Trainer(cfg, model, opt, device, world, sets, run)
+    metrics = trainer.run(
+        position, progress=progress, checkpoint_every_s=checkpoint_every_s, max_steps=max_steps
+    )
+    return run.finish(model, cfg, metrics, world)
+
+
+def _training_device(cfg: Config, world: World) -> torch.device:
+    """This process's device, with training's own thread count on one process."""
     device = world.device(runtime.pick_device(cfg.train.device))
     if not world.distributed:
         # the thread count changes the numbers (training BatchNorm and GEMM reductions split
         # across threads), so a run trains with its own, part of its identity
         runtime.configure_threads(cfg.train.threads)
-    shard = world.shard(cfg.train.batch_size)
-    train_set, data_key = data.train, data.data_key
-    last, final = rdir / "last.pt", rdir / "model.pt"
-    client, info = None, {}
-    if world.is_main:
-        info = runs.read_info(rdir)
-        client = tracking.setup(project_dir)
-        if checkpoint_artifacts is None:
-            checkpoint_artifacts = tracking.is_remote(client.tracking_uri)
-        if not info and checkpoint_artifacts:
-            info = runs.restore_run_folder(client, cfg, data_key, rdir)
-    info = world.broadcast(info)
-    if info.get("finished") and world.broadcast(
-        world.is_main and _final_model_ready(final, last, cfg, client, info["run_id"])
-    ):
-        return TrainOutcome(info["run_id"], rdir, final, info.get("metrics", {}))
+    world.shard(cfg.train.batch_size)  # a batch that does not split fails here, not later
+    return device
 
-    dataset = data.dataset
-    class_names = list(dataset.classes)
-    online = cfg.data.train_source == "online"
-    if online:  # the rendered training frames validate; fitting draws fresh segments
-        synth_kwargs = online_synth_kwargs(cfg, class_names)
-        val = Batchable.from_segments(train_set, cfg.train.n_points)
-        fit = online_probe(synth_kwargs, cfg.seed, 256, online_store_root(project_dir))
+
+# ---------------------------------------------------------------------------- the run record
+
+
+@dataclass
+class RunRecord:
+    """A run's folder and MLflow run as this process sees them: rank 0 holds the MLflow
+    client and writes; the other processes hold what rank 0 broadcast."""
+
+    folder: Path
+    info: dict[str, Any]
+    client: Any = None
+    artifacts: bool = False
+    run_id: str | None = None
+    logged: frozenset[int] = frozenset()
+
+    @property
+    def last(self) -> Path:
+        """The resume checkpoint, ``last.pt``."""
+        return self.folder / "last.pt"
+
+    @property
+    def final(self) -> Path:
+        """The finished run's model, ``model.pt``."""
+        return self.folder / "model.pt"
+
+    def finished(self, cfg: Config, world: World) -> bool:
+        """Whether the run is finished and its ``model.pt`` is there (rewritten if torn)."""
+        if not self.info.get("finished"):
+            return False
+        ready = world.is_main and _final_model_ready(
+            self.final, self.last, cfg, self.client, self.info["run_id"]
+        )
+        return world.broadcast(ready)
+
+    def open_mlflow_run(
+        self,
+        cfg: Config,
+        data_key: DataKey,
+        group: str,
+        params: dict[str, Any],
+        project_dir: Path,
+        world: World,
+    ) -> None:
+        """Resume the folder's MLflow run, or create it (:func:`runs.open_training_run`), and
+        note the epochs it has logged already (trained again from an earlier checkpoint, they
+        are not logged again)."""
+        if world.is_main:
+            self.info = runs.open_training_run(
+                self.client,
+                cfg,
+                data_key,
+                self.folder,
+                group=group,
+                params=params,
+                project_dir=project_dir,
+            )
+            history = self.client.get_metric_history(self.info["run_id"], "train/loss")
+            self.logged = frozenset(m.step for m in history)
+        self.run_id = world.broadcast(self.info.get("run_id"))
+
+    def checkpoint(self, model: torch.nn.Module, opt, cfg: Config, position: Position) -> None:
+        """Write ``last.pt`` at ``position`` (and log it to the run with ``artifacts``)."""
+        _checkpoint(self.last, model, opt, cfg, position)
+        if self.artifacts:
+            self.client.log_artifact(
+                self.run_id, str(self.last), artifact_path=runs.CHECKPOINT_ARTIFACT_DIR
+            )
+
+    def log_epoch(self, epoch: int, metrics: dict[str, float]) -> None:
+        """Log the metrics of ``epoch`` (1-based) unless the run logged that epoch already."""
+        if epoch not in self.logged:
+            self.client.log_batch(self.run_id, metrics=tracking.metric_batch(metrics, epoch))
+
+    def finish(
+        self, model: torch.nn.Module, cfg: Config, metrics: dict[str, float], world: World
+    ) -> TrainOutcome:
+        """Save ``model.pt``, record the final metrics and mark the run FINISHED (rank 0)."""
+        final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
+        if world.is_main:
+            if not metrics:  # stopped after its last checkpoint: as it logged them
+                final_metrics = self.info.get("metrics") or self._logged_metrics()
+            _save(self.final, {"model": model.state_dict(), "config": cfg.to_dict()})
+            self.client.log_artifact(self.run_id, str(self.final))
+            self.last.with_name(PREVIOUS_CHECKPOINT).unlink(missing_ok=True)
+            self.info.update({"finished": True, "metrics": final_metrics})
+            runs.write_info(self.folder, self.info)
+            if self.artifacts:
+                runs.drop_checkpoint_artifact(self.client, self.run_id)
+            self.client.set_terminated(self.run_id, "FINISHED")
+        return TrainOutcome(self.run_id, self.folder, self.final, world.broadcast(final_metrics))
+
+    def _logged_metrics(self) -> dict[str, float]:
+        logged = self.client.get_run(self.run_id).data.metrics
+        return {
+            k: v
+            for k, v in logged.items()
+            if k.split("/")[0] in runs.TRAINING_PREFIXES and not k.startswith("time/")
+        }
+
+
+def _open_run(
+    cfg: Config,
+    data_key: DataKey,
+    rdir: Path,
+    project_dir: Path,
+    world: World,
+    artifacts: bool | None,
+) -> RunRecord:
+    """The run folder as it stands: its ``run.json`` (rebuilt from MLflow on a machine without
+    it when checkpoints are logged there), on every process."""
+    run = RunRecord(rdir, {})
+    if world.is_main:
+        run.info = runs.read_info(rdir)
+        run.client = tracking.setup(project_dir)
+        if artifacts is None:
+            artifacts = tracking.is_remote(run.client.tracking_uri)
+        run.artifacts = artifacts
+        if not run.info and artifacts:
+            run.info = runs.restore_run_folder(run.client, cfg, data_key, rdir)
+    run.info = world.broadcast(run.info)
+    return run
+
+
+def _run_params(
+    cfg: Config, data_key: DataKey, model: torch.nn.Module, sets: TrainingSets, device
+) -> dict[str, Any]:
+    """The MLflow params of a new run besides its config's."""
+    online = sets.online is not None
+    return {
+        "model.parameters": count_parameters(model),
+        "data.fingerprint": data_key,
+        "data.train_segments": "online" if online else len(sets.fit),
+        # on line, the segments are made by code: runs of one seed are like for like only
+        # when their synthesis code agrees (the chunk store's key holds it too)
+        **({"data.online_code": code_digest()} if online else {}),
+        "data.val_segments": len(sets.val),
+        "device": device,
+    }
+
+
+# ---------------------------------------------------------------------------- data and network
+
+
+@dataclass(frozen=True)
+class TrainingSets:
+    """What a run trains and validates on.
+
+    Attributes:
+        fit: the training segments (on line: the first step's segments, which re-estimate
+            BatchNorm statistics).
+        val: the validation segments (on line: every rendered training frame's).
+        probe: a fixed sample of ``fit`` (eval- vs train-mode error on the same segments).
+        online: the on-line synthesis settings; None when training on frames.
+        online_store: where on-line chunks are kept (:func:`online_store_root`).
+        class_names: the dataset's classes; models_by_class: their model points.
+        symmetry: each class's symmetries on the device (``loss.symmetric``), else None.
+    """
+
+    fit: Batchable
+    val: Batchable
+    probe: Batchable
+    online: OnlineSettings | None
+    online_store: Path | None
+    class_names: list[str]
+    models_by_class: dict
+    symmetry: SymmetryTensors | None
+
+
+def _training_sets(
+    cfg: Config, data: Prepared, project_dir: Path, device: torch.device
+) -> TrainingSets:
+    """The run's :class:`TrainingSets`: held-out frames validate (``train.val_fraction``), or
+    on line, the rendered training frames do and fitting draws fresh segments."""
+    class_names = list(data.dataset.classes)
+    n_points, online, store = cfg.train.n_points, None, online_store_root(project_dir)
+    if cfg.data.train_source == "online":
+        online = OnlineSettings.from_config(cfg, class_names)
+        val = Batchable.from_segments(data.train, n_points)
+        fit = online_probe(online, cfg.seed, 256, store)
     else:
-        held = split_frames(train_set.frame_id, cfg.train.val_fraction)
-        fit = Batchable.from_segments(train_set.subset(~held), cfg.train.n_points)
-        val = Batchable.from_segments(train_set.subset(held), cfg.train.n_points)
+        held = split_frames(data.train.frame_id, cfg.train.val_fraction)
+        fit = Batchable.from_segments(data.train.subset(~held), n_points)
+        val = Batchable.from_segments(data.train.subset(held), n_points)
     if len(fit) < cfg.train.batch_size:
         raise ValueError(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
             f"{cfg.train.batch_size}; render more frames (data.train_frames)"
         )
-    models_by_class = dataset.models()
     symmetry = None
     if cfg.loss.symmetric:
         symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)
-    # A fixed sample of training segments: eval- vs train-mode error on the same segments.
-    probe = fit.subset(torch.randperm(len(fit), generator=torch.Generator().manual_seed(0))[:512])
+    g = generator(cfg.seed, "probe", streams=cfg.train.seed_streams)
+    probe = fit.subset(torch.randperm(len(fit), generator=g)[:512])
+    models = data.dataset.models()
+    return TrainingSets(fit, val, probe, online, store, class_names, models, symmetry)
 
-    torch.manual_seed(cfg.seed)
+
+def _network(cfg: Config, device: torch.device) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
+    """The network at its initial weights (the seed's ``init`` stream) and its Adam."""
+    torch.manual_seed(seed_for(cfg.seed, "init", streams=cfg.train.seed_streams))
     model = build_model(cfg.model).to(device)
-    use_bf16 = cfg.train.precision == "bf16"
-    if use_bf16:
+    bf16 = cfg.train.precision == "bf16"
+    if bf16:
         warn_if_slow_bf16(device)
     if fused_kernel(cfg, device):
-        fuse_model(model, bf16=use_bf16)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
-    epoch, batch, sums = 0, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
+        fuse_model(model, bf16=bf16)
+    return model, torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
+
+
+@dataclass
+class Position:
+    """Where a run stands: its epoch (0-based), the next batch within it, and the epoch's
+    running loss sums (``loss``, ``rot``, ``trans`` and the step count ``n``); ``last.pt``
+    keeps them beside the model and the optimiser."""
+
+    epoch: int = 0
+    batch: int = 0
+    sums: dict[str, float] = field(
+        default_factory=lambda: {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
+    )
+
+    def add(self, step: StepLoss) -> None:
+        """Count one step's losses; on to the next batch."""
+        self.sums["loss"] += step.loss
+        self.sums["rot"] += step.rot
+        self.sums["trans"] += step.trans
+        self.sums["n"] += 1
+        self.batch += 1
+
+    def means(self) -> dict[str, float]:
+        """The epoch's mean losses so far, as logged (``train/loss`` and its two terms)."""
+        n = max(self.sums["n"], 1)
+        return {
+            "train/loss": self.sums["loss"] / n,
+            "train/loss_rot": self.sums["rot"] / n,
+            "train/loss_trans": self.sums["trans"] / n,
+        }
+
+
+def _resume(
+    run: RunRecord, model: torch.nn.Module, opt, cfg: Config, world: World, device: torch.device
+) -> Position:
+    """Load the run's last checkpoint (rank 0's, on every process) into ``model`` and ``opt``
+    and return its position; the start when there is none."""
     state = None
     if world.is_main:
         where = "cpu" if world.distributed else device  # sent to the other processes first
-        state = _read_resume_state(last, where)
-    state = world.broadcast(state)  # rank 0's checkpoint, on every process
-    if state is not None:
-        if Config.from_dict(state["config"]).to_dict() != cfg.to_dict():
-            raise ValueError(f"{last} was written by another config; delete {rdir} to restart")
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        epoch, batch, sums = state["epoch"], state["batch"], state["sums"]
-
-    group = group or (groups_of(cfg.variant) or ["misc"])[0]
-    run_id = info.get("run_id")
-    if world.is_main and run_id is None:
-        exp = tracking.experiment_id(client, group, project_dir)
-        tags = runs.training_tags(cfg, group, data_key, rdir)
-        rdir.mkdir(parents=True, exist_ok=True)
-        params = cfg.flat() | {
-            "model.parameters": count_parameters(model),
-            "data.fingerprint": data_key,
-            "data.train_segments": "online" if online else len(fit),
-            # on line, the segments are made by code: runs of one seed are like for like only
-            # when their synthesis code agrees (the chunk store's key holds it too)
-            **({"data.online_code": code_digest()} if online else {}),
-            "data.val_segments": len(val),
-            "device": device,
-        }
-        run_id = runs.create_run_record(
-            client, exp, runs.display_name(cfg), tags, params, cfg.to_dict()
+        state = _read_resume_state(run.last, where)
+    state = world.broadcast(state)
+    if state is None:
+        return Position()
+    if Config.from_dict(state["config"]).to_dict() != cfg.to_dict():
+        raise ValueError(
+            f"{run.last} was written by another config; delete {run.folder} to restart"
         )
-        info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
-        runs.write_info(rdir, info)
-    elif world.is_main:
-        client.update_run(run_id, status="RUNNING")
-    run_id = world.broadcast(run_id)
-    # epochs already logged: trained again from an earlier checkpoint, not logged again
-    logged = set()
-    if world.is_main:
-        logged = {m.step for m in client.get_metric_history(run_id, "train/loss")}
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optimizer"])
+    return Position(state["epoch"], state["batch"], state["sums"])
 
-    def checkpoint() -> None:
-        _checkpoint(last, model, opt, cfg, epoch, batch, sums)
-        if checkpoint_artifacts:
-            client.log_artifact(run_id, str(last), artifact_path=runs.CHECKPOINT_ARTIFACT_DIR)
 
-    net = model
-    if world.distributed:
-        sync_batch_stats(model, world.stats_group)
-        net = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None
-        )
+# ---------------------------------------------------------------------------- the epochs
 
-    bs = cfg.train.batch_size
-    if online:
-        n_batches = online_epoch_steps(cfg)
-    else:
-        n_batches = len(fit) // bs  # drop the last partial batch: BatchNorm needs full batches
-    steps_here, t_ckpt = 0, time.monotonic()
-    model.train()
-    bar = tqdm(
-        total=cfg.train.epochs * n_batches,
-        initial=epoch * n_batches + batch,
-        disable=not progress or not world.is_main,
-        desc=runs.display_name(cfg),
-        unit="step",
-        dynamic_ncols=True,
-    )
-    metrics: dict[str, float] = {}
-    total_steps = cfg.train.epochs * n_batches
-    stream = None
-    if online and epoch < cfg.train.epochs:
-        stream = OnlineStream(
-            synth_kwargs,
-            cfg.seed,
-            bs,
-            cfg.data.online_reuse,
-            total_steps,
-            start=epoch * n_batches + batch,
-            workers=cfg.data.online_workers,
-            store=online_store_root(project_dir),
-        )
-    while epoch < cfg.train.epochs:
-        t_epoch = time.monotonic()
-        if stream is None:
-            perm = epoch_order(fit, cfg.train.sampler, cfg.seed, epoch, n_batches * bs)
-        while batch < n_batches:
-            for group_ in opt.param_groups:
-                group_["lr"] = lr_at(cfg, epoch * n_batches + batch, total_steps)
-            if stream is not None:
-                pts, cls_id, R_gt, t_gt = (x.to(device) for x in stream.next())
-            else:
-                idx = perm[batch * bs : (batch + 1) * bs]
-                pts, cls_id = fit.points[idx].to(device), fit.cls_id[idx].to(device)
-                R_gt, t_gt = fit.R[idx].to(device), fit.t[idx].to(device)
-            if cfg.train.augment_roll_deg > 0:
-                g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 100_003 + batch)
-                pts, R_gt, t_gt = roll_about_optical_axis(
-                    pts, R_gt, t_gt, cfg.train.augment_roll_deg, g
-                )
-            if cfg.train.augment_depth_noise_mm > 0:
-                g = torch.Generator().manual_seed(cfg.seed * 7_000_003 + epoch * 100_003 + batch)
-                pts = jitter_along_rays(pts, cfg.train.augment_depth_noise_mm / 1000, g)
-            if world.distributed:  # this process's share of the global batch
-                pts, cls_id, R_gt, t_gt = pts[shard], cls_id[shard], R_gt[shard], t_gt[shard]
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                out = net(pts, cls_id)
-            terms = pose_loss(
-                out.R.float(),
-                out.t.float(),
-                R_gt,
-                t_gt,
-                rotation=cfg.loss.rotation,
-                alpha=cfg.loss.alpha,
-                rotvec_pred=out.rot_raw.float(),
-                symmetry=symmetry,
-                cls_id=cls_id,
+
+class Trainer:
+    """The epochs of one run from a :class:`Position` on: batches, steps, checkpoints, and
+    each epoch's validation and metrics."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        model: torch.nn.Module,
+        opt: torch.optim.Optimizer,
+        device: torch.device,
+        world: World,
+        sets: TrainingSets,
+        run: RunRecord,
+    ) -> None:
+        self.cfg, self.model, self.opt, self.device = cfg, model, opt, device
+        self.world, self.sets, self.run_record = world, sets, run
+        self.net = model
+        if world.distributed:
+            sync_batch_stats(model, world.stats_group)
+            self.net = torch.nn.parallel.DistributedDataParallel(
+                model, device_ids=[device.index] if device.type == "cuda" else None
             )
-            opt.zero_grad(set_to_none=True)
-            terms.total.backward()
-            opt.step()
-            loss, l_rot, l_trans = (float(x.detach()) for x in terms)
-            if world.distributed:  # the global batch's: the mean of the equal shares' means
-                loss, l_rot, l_trans = world.mean([loss, l_rot, l_trans])
-            if not math.isfinite(loss):
-                raise FloatingPointError(f"loss became {loss} at epoch {epoch + 1}")
-            sums["loss"] += loss
-            sums["rot"] += l_rot
-            sums["trans"] += l_trans
-            sums["n"] += 1
-            batch += 1
-            steps_here += 1
-            bar.update(1)
-            bar.set_postfix(epoch=epoch + 1, loss=f"{sums['loss'] / sums['n']:.3f}")
-            if world.is_main and time.monotonic() - t_ckpt > checkpoint_every_s:
-                checkpoint()
-                t_ckpt = time.monotonic()
-            if max_steps is not None and steps_here >= max_steps:
+        self.batch_size = cfg.train.batch_size
+        if sets.online is not None:
+            self.n_batches = online_epoch_steps(cfg)
+        else:  # drop the last partial batch: BatchNorm needs full batches
+            self.n_batches = len(sets.fit) // self.batch_size
+        self.total_steps = cfg.train.epochs * self.n_batches
+
+    def run(
+        self,
+        position: Position,
+        *,
+        progress: bool,
+        checkpoint_every_s: float,
+        max_steps: int | None,
+    ) -> dict[str, float]:
+        """Train from ``position`` to the last epoch; the last epoch's metrics ({} when none
+        was trained here). ``max_steps`` steps in: a checkpoint, then
+        :class:`TrainingInterrupted`."""
+        epochs, world = self.cfg.train.epochs, self.world
+        metrics: dict[str, float] = {}
+        steps, t_ckpt = 0, time.monotonic()
+        with contextlib.ExitStack() as stack:
+            bar = stack.enter_context(self._progress_bar(position, progress))
+            stream = None
+            if self.sets.online is not None and position.epoch < epochs:
+                stream = stack.enter_context(contextlib.closing(self._stream(position)))
+            self.model.train()
+            while position.epoch < epochs:
+                t_epoch = time.monotonic()
+                for batch in self._batches(position, stream):
+                    position.add(self._step(batch, position))
+                    steps += 1
+                    bar.update(1)
+                    mean = position.sums["loss"] / position.sums["n"]
+                    bar.set_postfix(epoch=position.epoch + 1, loss=f"{mean:.3f}")
+                    if world.is_main and time.monotonic() - t_ckpt > checkpoint_every_s:
+                        self._checkpoint(position)
+                        t_ckpt = time.monotonic()
+                    if max_steps is not None and steps >= max_steps:
+                        if world.is_main:
+                            self._checkpoint(position)
+                        raise TrainingInterrupted(self.run_record.folder)
+                metrics = self._end_epoch(position, time.monotonic() - t_epoch)
+                position = Position(position.epoch + 1)
                 if world.is_main:
-                    checkpoint()
-                bar.close()
-                if stream is not None:
-                    stream.close()
-                raise TrainingInterrupted(rdir)
-        n = max(sums["n"], 1)
-        metrics = {
-            "train/loss": sums["loss"] / n,
-            "train/loss_rot": sums["rot"] / n,
-            "train/loss_trans": sums["trans"] / n,
-            "time/epoch_s": time.monotonic() - t_epoch,
-            "train/lr": opt.param_groups[0]["lr"],
+                    self._checkpoint(position)
+                t_ckpt = time.monotonic()
+        return metrics
+
+    def _progress_bar(self, position: Position, progress: bool) -> tqdm:
+        return tqdm(
+            total=self.total_steps,
+            initial=position.epoch * self.n_batches + position.batch,
+            disable=not progress or not self.world.is_main,
+            desc=runs.display_name(self.cfg),
+            unit="step",
+            dynamic_ncols=True,
+        )
+
+    def _stream(self, position: Position) -> OnlineStream:
+        """The on-line batches from ``position`` on."""
+        assert self.sets.online is not None
+        return OnlineStream(
+            self.sets.online,
+            self.cfg.seed,
+            self.batch_size,
+            self.cfg.data.online_reuse,
+            self.total_steps,
+            start=position.epoch * self.n_batches + position.batch,
+            workers=self.cfg.data.online_workers,
+            store=self.sets.online_store,
+        )
+
+    def _batches(self, position: Position, stream: OnlineStream | None) -> Iterator[Batch]:
+        """The global batches of ``position``'s epoch from its batch on, on the device: the
+        on-line stream's, else the epoch's order of the training segments."""
+        to = self.device
+        if stream is not None:
+            for _ in range(position.batch, self.n_batches):
+                yield Batch(*(x.to(to) for x in stream.next()))
+            return
+        fit, bs, cfg = self.sets.fit, self.batch_size, self.cfg
+        g = generator(cfg.seed, "order", position.epoch, streams=cfg.train.seed_streams)
+        perm = epoch_order(fit, cfg.train.sampler, self.n_batches * bs, g)
+        for b in range(position.batch, self.n_batches):
+            idx = perm[b * bs : (b + 1) * bs]
+            yield Batch(
+                fit.points[idx].to(to), fit.cls_id[idx].to(to), fit.R[idx].to(to), fit.t[idx].to(to)
+            )
+
+    def _step(self, batch: Batch, position: Position) -> StepLoss:
+        """One optimiser step on ``batch`` at ``position``: the learning rate of the step, the
+        batch augmented (the whole global batch, then this process's share), :func:`train_step`."""
+        cfg = self.cfg
+        for group in self.opt.param_groups:
+            group["lr"] = lr_at(
+                cfg, position.epoch * self.n_batches + position.batch, self.total_steps
+            )
+        points, R, t = augment(batch.points, batch.R, batch.t, cfg, position.epoch, position.batch)
+        batch = batch._replace(points=points, R=R, t=t)
+        if self.world.distributed:  # this process's share of the global batch
+            shard = self.world.shard(self.batch_size)
+            batch = Batch(*(x[shard] for x in batch))
+        try:
+            return train_step(
+                self.net,
+                self.opt,
+                batch,
+                cfg.loss,
+                symmetry=self.sets.symmetry,
+                bf16=cfg.train.precision == "bf16",
+                world=self.world,
+            )
+        except FloatingPointError as exc:
+            raise FloatingPointError(f"{exc} at epoch {position.epoch + 1}") from None
+
+    def _checkpoint(self, position: Position) -> None:
+        self.run_record.checkpoint(self.model, self.opt, self.cfg, position)
+
+    def _end_epoch(self, position: Position, seconds: float) -> dict[str, float]:
+        """The finished epoch's metrics: its losses, time and learning rate, and (rank 0)
+        validation, logged once."""
+        metrics = position.means() | {
+            "time/epoch_s": seconds,
+            "train/lr": self.opt.param_groups[0]["lr"],
         }
         # Rank 0 alone, on whole batches of its own; the other processes wait for it at their
         # next step, where DDP hands them its re-estimated BatchNorm buffers.
-        if world.is_main:
-            with local_batch_stats(model):
-                metrics["fit/rot_err_median_deg_batchstats"] = batch_stats_rotation_error(
-                    model, probe, bs, device
-                )
-                if cfg.train.bn_recalibrate:
-                    recalibrate_bn(
-                        model, fit, cfg.train.bn_recalibrate, bs, cfg.seed + epoch, device
-                    )
-                for data_, prefix in ((val, "val"), (probe, "fit")):
-                    metrics.update(
-                        validate(
-                            model,
-                            data_,
-                            models_by_class,
-                            cfg,
-                            device,
-                            class_names=class_names,
-                            symmetry=symmetry,
-                            prefix=prefix,
-                        )
-                    )
-            if epoch + 1 not in logged:
-                client.log_batch(run_id, metrics=tracking.metric_batch(metrics, epoch + 1))
-        epoch, batch, sums = epoch + 1, 0, {"loss": 0.0, "rot": 0.0, "trans": 0.0, "n": 0}
-        if world.is_main:
-            checkpoint()
-        t_ckpt = time.monotonic()
-    bar.close()
-    if stream is not None:
-        stream.close()
+        if self.world.is_main:
+            metrics |= self._validate(position.epoch)
+            self.run_record.log_epoch(position.epoch + 1, metrics)
+        return metrics
 
-    final_metrics = {k: v for k, v in metrics.items() if not k.startswith("time/")}
-    if not metrics and world.is_main:  # stopped after its last checkpoint: as it logged them
-        logged_metrics = client.get_run(run_id).data.metrics
-        final_metrics = info.get("metrics") or {
-            k: v
-            for k, v in logged_metrics.items()
-            if k.split("/")[0] in runs.TRAINING_PREFIXES and not k.startswith("time/")
-        }
-    if world.is_main:
-        _save(final, {"model": model.state_dict(), "config": cfg.to_dict()})
-        client.log_artifact(run_id, str(final))
-        last.with_name(PREVIOUS_CHECKPOINT).unlink(missing_ok=True)
-        info.update({"finished": True, "metrics": final_metrics})
-        runs.write_info(rdir, info)
-        if checkpoint_artifacts:
-            runs.drop_checkpoint_artifact(client, run_id)
-        client.set_terminated(run_id, "FINISHED")
-    return TrainOutcome(run_id, rdir, final, world.broadcast(final_metrics))
+    def _validate(self, epoch: int) -> dict[str, float]:
+        """Train-mode error on the probe; BatchNorm statistics re-estimated
+        (``train.bn_recalibrate``); the eval-mode metrics of the validation set and the probe."""
+        cfg, model, sets, device, bs = self.cfg, self.model, self.sets, self.device, self.batch_size
+        with local_batch_stats(model):
+            out = {
+                "fit/rot_err_median_deg_batchstats": batch_stats_rotation_error(
+                    model, sets.probe, bs, device
+                )
+            }
+            if cfg.train.bn_recalibrate:
+                seed = seed_for(cfg.seed, "bn_recalibrate", epoch, streams=cfg.train.seed_streams)
+                recalibrate_bn(model, sets.fit, cfg.train.bn_recalibrate, bs, seed, device)
+            for data, prefix in ((sets.val, "val"), (sets.probe, "fit")):
+                out |= validate(
+                    model,
+                    data,
+                    sets.models_by_class,
+                    cfg,
+                    device,
+                    class_names=sets.class_names,
+                    symmetry=sets.symmetry,
+                    prefix=prefix,
+                )
+        return out
 
 
 def fused_kernel(cfg: Config, device: torch.device) -> bool:
@@ -656,14 +810,16 @@ def _save(path: Path, state: dict, keep: Path | None = None) -> None:
         raise full from exc
 
 
-def _checkpoint(path: Path, model, opt, cfg: Config, epoch: int, batch: int, sums: dict) -> None:
+def _checkpoint(path: Path, model, opt, cfg: Config, position: Position) -> None:
+    """Write ``last.pt`` (:data:`RESUME_KEYS`) at ``position``; the one it replaces becomes
+    :data:`PREVIOUS_CHECKPOINT`."""
     state = {
         "model": model.state_dict(),
         "optimizer": opt.state_dict(),
         "config": cfg.to_dict(),
-        "epoch": epoch,
-        "batch": batch,
-        "sums": dict(sums),
+        "epoch": position.epoch,
+        "batch": position.batch,
+        "sums": dict(position.sums),
     }
     _save(path, state, keep=path.with_name(PREVIOUS_CHECKPOINT))
 

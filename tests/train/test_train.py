@@ -109,6 +109,29 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, smoke_data, m
 
 
 @pytest.mark.slow
+def test_purpose_streams_resume_to_the_same_numbers(tmp_path, smoke_data, monkeypatch):
+    """``train.seed_streams = "purpose"`` with both augmentations: a run cut mid-epoch and
+    resumed ends as an uninterrupted one, whose numbers differ from the seed arithmetic's."""
+    aug = {"augment_roll_deg": 30.0, "augment_depth_noise_mm": 2.0}
+    cfg = resolve("shared-0", "smoke", 2, {"train": {**aug, "seed_streams": "purpose"}})
+    ref = train_run(
+        cfg, project_dir=_project(tmp_path / "ref", smoke_data, monkeypatch), progress=False
+    )
+    proj = _project(tmp_path / "cut", smoke_data, monkeypatch)
+    with pytest.raises(TrainingInterrupted):
+        train_run(cfg, project_dir=proj, progress=False, max_steps=1)
+    resumed = train_run(cfg, project_dir=proj, progress=False)
+    assert resumed.metrics == ref.metrics
+    arithmetic = resolve("shared-0", "smoke", 2, {"train": aug})
+    other = train_run(
+        arithmetic,
+        project_dir=_project(tmp_path / "arith", smoke_data, monkeypatch),
+        progress=False,
+    )
+    assert other.metrics["train/loss"] != ref.metrics["train/loss"]
+
+
+@pytest.mark.slow
 def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
     cfg = resolve("shared-0", "smoke", seed=5)
     ref = train_run(
@@ -135,17 +158,22 @@ def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
 def test_class_balanced_sampler_draws_classes_uniformly():
     from cloudpose.data.batches import Batchable
     from cloudpose.train.loop import epoch_order
+    from cloudpose.train.seeds import generator
 
     cls_id = torch.tensor([1] * 900 + [2] * 90 + [3] * 10)
     fit = Batchable(
         torch.zeros(1000, 4, 3), cls_id, torch.eye(3).expand(1000, 3, 3), torch.zeros(1000, 3)
     )
-    idx = epoch_order(fit, "class_balanced", seed=1, epoch=0, n=3000)
+
+    def order(sampler: str, epoch: int, n: int) -> torch.Tensor:
+        return epoch_order(fit, sampler, n, generator(1, "order", epoch))
+
+    idx = order("class_balanced", 0, 3000)
     counts = torch.bincount(cls_id[idx])[1:].float() / 3000
     assert torch.allclose(counts, torch.full((3,), 1 / 3), atol=0.04)
-    assert torch.equal(idx, epoch_order(fit, "class_balanced", seed=1, epoch=0, n=3000))
-    assert not torch.equal(idx, epoch_order(fit, "class_balanced", seed=1, epoch=1, n=3000))
-    perm = epoch_order(fit, "shuffle", seed=1, epoch=0, n=1000)
+    assert torch.equal(idx, order("class_balanced", 0, 3000))
+    assert not torch.equal(idx, order("class_balanced", 1, 3000))
+    perm = order("shuffle", 0, 1000)
     assert sorted(perm.tolist()) == list(range(1000))
 
 
@@ -160,7 +188,7 @@ def test_cosine_schedule_ends_at_zero():
 
 
 def test_roll_keeps_segments_on_their_posed_models():
-    from cloudpose.train.loop import roll_about_optical_axis
+    from cloudpose.train.augment import roll_about_optical_axis
 
     g = torch.Generator().manual_seed(0)
     model = torch.randn(50, 3, dtype=torch.float64) * 0.05
@@ -208,7 +236,7 @@ def test_run_continues_from_its_logged_checkpoint_on_a_machine_without_its_folde
 
 
 def test_depth_noise_moves_points_along_their_rays_at_a_level_drawn_per_segment():
-    from cloudpose.train.loop import jitter_along_rays
+    from cloudpose.train.augment import jitter_along_rays
 
     rng = torch.Generator().manual_seed(0)
     pts = torch.randn(64, 200, 3, generator=rng) * 0.03 + torch.tensor([0.1, -0.05, 0.9])

@@ -59,13 +59,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cloudpose.config import ONLINE_SCENES, check_online_version, check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import SegmentWarning, extract_segments
 from cloudpose.data.synth.frames import _generator
 from cloudpose.data.synth.scenes import (
     MIN_VISIBLE_PIXELS,
-    N_OBJECTS,
     STACK_SHARE,
     Scene,
     sample_table_scene,
@@ -77,7 +75,7 @@ from cloudpose.data.synth.sensor import (
     background_depth_at,
     object_ring,
 )
-from cloudpose.data.synth.store import DEFAULT_N_POINTS, ChunkStore
+from cloudpose.data.synth.store import ChunkStore, OnlineSettings
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -200,80 +198,43 @@ class OnlineSynth:
     """Draws table scenes and cuts them into training segments (see the module doc).
 
     Args:
-        version: generator version (:data:`~cloudpose.config.GENERATOR_VERSIONS`):
-            its surfaces, stacking share and sensor model.
-        noise: apply the version's sensor model.
-        n_points: points per segment (FPS prefix; the network's n).
-        outlier_radius: the segment path's outlier filter, metres.
-        class_ids: keep segments of these 1-based classes only (None: all).
-        scenes: with ``class_ids``, what the scenes hold
-            (:data:`~cloudpose.config.ONLINE_SCENES`): "all", objects of every class, the others
-            staying in the scene as occluders (the scenes of the test frames); "classes",
-            objects of the kept classes only (at least 3 of them), so no scene is drawn for
-            segments it then drops: with 3 of the 21 classes ~5x the segments per second, at
-            the price of occluders of those classes only.
+        settings: what the segments are made with (:class:`OnlineSettings`).
         K, shape: camera intrinsics and image size (YCB-Video's by default).
-        nthreads: ray-casting threads (0: every core; a synthesis worker uses 1).
-        online_version: how the segments are made (:data:`~cloudpose.config.ONLINE_VERSIONS`):
-            1, the ray cast path above; 2, the same scenes, sensor and segment path computed
-            by compiled kernels (a z-buffer of the meshes instead of the ray cast, the
-            sensor's edge distance and correlated field compiled, segments cut in one pass):
-            the same random draws and the same numbers to float rounding (see "Version 2").
+        nthreads: ray-casting threads (0: every core; a synthesis worker uses 1); speed only.
     """
 
     def __init__(
         self,
-        version: int = 2,
+        settings: OnlineSettings,
         *,
-        noise: bool = True,
-        n_points: int = DEFAULT_N_POINTS,
-        outlier_radius: float = 0.2,
-        class_ids: tuple[int, ...] | None = None,
-        scenes: str = "all",
         K: np.ndarray = YCB_INTRINSICS,
         shape: tuple[int, int] = IMAGE_SHAPE,
         nthreads: int = 0,
-        online_version: int = 1,
     ) -> None:
-        self.version = check_synth_version(version)
-        self.online_version = check_online_version(online_version)
+        self.settings = settings
         self.nthreads = int(nthreads)
-        if n_points < 1:
-            raise ValueError(f"n_points must be >= 1, got {n_points}")
-        self.noise = noise
-        self.n_points = int(n_points)
-        self.outlier_radius = float(outlier_radius)
         self.K = np.asarray(K, dtype=np.float64)
         self.shape = (int(shape[0]), int(shape[1]))
-        self._gen = _generator(self.version)
-        known = set(self._gen.models)
-        if class_ids is not None:
-            unknown = sorted(set(class_ids) - known)
-            if unknown or not class_ids:
-                raise ValueError(
-                    f"on-line classes {sorted(class_ids)}: expected a non-empty subset of the "
-                    f"model ids {sorted(known)}"
-                )
-        self.class_ids = None if class_ids is None else frozenset(int(c) for c in class_ids)
-        if scenes not in ONLINE_SCENES:
-            raise ValueError(f"on-line scenes {scenes!r}: expected one of {ONLINE_SCENES}")
+        self._gen = _generator(settings.synth_version)
         self._models, self._resting = self._gen.models, self._gen.resting
-        if scenes == "classes" and self.class_ids is not None:
-            if len(self.class_ids) < N_OBJECTS[0]:
+        kept = settings.class_ids
+        self._kept = None if kept is None else frozenset(kept)
+        if kept is not None:
+            if set(kept) - set(self._models):
                 raise ValueError(
-                    f"on-line scenes 'classes' need at least {N_OBJECTS[0]} classes (a table "
-                    f"scene holds {N_OBJECTS[0]}-{N_OBJECTS[1]} distinct objects); got "
-                    f"{sorted(self.class_ids)}"
+                    f"on-line classes {list(kept)}: expected a non-empty subset of the model "
+                    f"ids {sorted(self._models)}"
                 )
-            self._models = {c: self._models[c] for c in sorted(self.class_ids)}
-            self._resting = {c: self._resting[c] for c in sorted(self.class_ids)}
+            if settings.online_scenes == "classes":
+                self._models = {c: self._models[c] for c in kept}
+                self._resting = {c: self._resting[c] for c in kept}
 
     # ------------------------------------------------------------------ one scene
 
     def sample_scene(self, rng: np.random.Generator) -> Scene:
         """A table scene as the version's frames draw them (of the kept classes only with
-        ``scenes="classes"``)."""
-        stack = 0.0 if self.version == 1 else STACK_SHARE
+        ``online_scenes="classes"``)."""
+        stack = 0.0 if self.settings.synth_version == 1 else STACK_SHARE
         return sample_table_scene(rng, self._models, self._resting, self.K, self.shape, stack)
 
     def windows(self, scene: Scene) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
@@ -312,7 +273,7 @@ class OnlineSynth:
         from cloudpose.data.ycb import Frame
 
         poses = scene.poses()
-        if self.online_version >= 2:
+        if self.settings.online_version >= 2:
             got = self._gen.renderer.render_raster(
                 self.K, self.shape, scene.cls_ids, poses, WINDOW_PAD, self.nthreads
             )
@@ -331,7 +292,8 @@ class OnlineSynth:
         Kw = self.K.copy()
         Kw[0, 2] -= u0
         Kw[1, 2] -= v0
-        if self.noise and self.version >= 2:
+        noise, version = self.settings.noise, self.settings.synth_version
+        if noise and version >= 2:
             # only object pixels make segments: the background is needed where it borders them
             clean = np.where(label > 0, r.depth.astype(np.float64), 0.0)
             ring_v, ring_u = np.nonzero(object_ring(label))
@@ -339,12 +301,12 @@ class OnlineSynth:
                 Kw, ring_v, ring_u, scene.world_to_camera, scene.background
             )
             out = add_sensor_noise_v2_objects(
-                clean, label, Kw, rng, compiled=self.online_version >= 2
+                clean, label, Kw, rng, compiled=self.settings.online_version >= 2
             )
         else:
             bg = background_depth(Kw, (v1 - v0, u1 - u0), scene.world_to_camera, scene.background)
             clean = np.where(label > 0, r.depth.astype(np.float64), bg)
-            out = add_sensor_noise(clean, rng) if self.noise else clean
+            out = add_sensor_noise(clean, rng) if noise else clean
         frame = Frame("online", out.astype(np.float32), label, Kw, scene.cls_ids, poses, None)
         return frame, r.visible_pixels
 
@@ -355,19 +317,18 @@ class OnlineSynth:
         if rendered is None:
             return []
         frame, visible = rendered
-        if self.online_version >= 2:
-            segs = cut_segments(frame, self.n_points, self.outlier_radius, rng)
+        n, radius = self.settings.n_points, self.settings.outlier_radius
+        if self.settings.online_version >= 2:
+            segs = cut_segments(frame, n, radius, rng)
         else:
             with warnings.catch_warnings():  # an object without a usable point is dropped below
                 warnings.simplefilter("ignore", SegmentWarning)
-                segs = extract_segments(
-                    frame, n_fps=self.n_points, outlier_radius=self.outlier_radius, rng=rng
-                )
+                segs = extract_segments(frame, n_fps=n, outlier_radius=radius, rng=rng)
         keep = []
         for s, v in zip(segs, visible, strict=True):
             if not s.valid or v < MIN_VISIBLE_PIXELS:
                 continue
-            if self.class_ids is not None and s.cls_id not in self.class_ids:
+            if self._kept is not None and s.cls_id not in self._kept:
                 continue
             keep.append(s)
         return keep
@@ -387,7 +348,7 @@ class OnlineSynth:
             if k > 50 * batch_size:  # only an impossible class filter gets here
                 raise RuntimeError(
                     f"{k} on-line scenes gave {len(segs)} segments of classes "
-                    f"{sorted(self.class_ids or [])}; expected at least {batch_size}"
+                    f"{list(self.settings.class_ids or [])}; expected at least {batch_size}"
                 )
         segs = segs[:batch_size]
         return SegmentBatch(
@@ -406,8 +367,8 @@ class OnlineChunks(torch.utils.data.Dataset):
     processes can make chunks in any order and a DataLoader hands them back in order.
 
     Args:
-        synth_kwargs: :class:`OnlineSynth` arguments (the source is built in each process on
-            first use: an Open3D scene cannot be pickled).
+        settings: what the segments are made with (the :class:`OnlineSynth` is built in each
+            process on first use: an Open3D scene cannot be pickled).
         seed: the run's seed.
         chunk_size: segments per chunk.
         n_chunks: chunks in the run.
@@ -417,17 +378,17 @@ class OnlineChunks(torch.utils.data.Dataset):
 
     def __init__(
         self,
-        synth_kwargs: dict,
+        settings: OnlineSettings,
         seed: int,
         chunk_size: int,
         n_chunks: int,
         store: str | Path | None = None,
     ) -> None:
-        self.synth_kwargs = dict(synth_kwargs)
+        self.settings = settings
         self.seed = int(seed)
         self.chunk_size = int(chunk_size)
         self.n_chunks = int(n_chunks)
-        self.store = None if store is None else ChunkStore(store, synth_kwargs, chunk_size)
+        self.store = None if store is None else ChunkStore(store, settings, chunk_size)
         self._synth: OnlineSynth | None = None
 
     def __len__(self) -> int:
@@ -437,9 +398,8 @@ class OnlineChunks(torch.utils.data.Dataset):
         if self.store is not None and (got := self.store.load(self.seed, j)) is not None:
             return got
         if self._synth is None:
-            info = torch.utils.data.get_worker_info()
-            threads = {"nthreads": 1} if info is not None else {}
-            self._synth = OnlineSynth(**{**self.synth_kwargs, **threads})
+            in_worker = torch.utils.data.get_worker_info() is not None
+            self._synth = OnlineSynth(self.settings, nthreads=1 if in_worker else 0)
         chunk = self._synth.batch(self.seed, int(j), self.chunk_size).tensors()
         if self.store is not None:
             self.store.save(self.seed, j, chunk)
@@ -472,7 +432,7 @@ class OnlineStream:
     chunks step ``s`` needs.
 
     Args:
-        synth_kwargs: :class:`OnlineSynth` arguments.
+        settings: what the segments are made with.
         seed: the run's seed.
         batch_size: segments per step; a multiple of ``reuse``.
         reuse: steps each segment is used in.
@@ -487,7 +447,7 @@ class OnlineStream:
 
     def __init__(
         self,
-        synth_kwargs: dict,
+        settings: OnlineSettings,
         seed: int,
         batch_size: int,
         reuse: int,
@@ -507,7 +467,7 @@ class OnlineStream:
         self.spacing = int(spacing)
         self.step = int(start)
         span = (self.reuse - 1) * self.spacing
-        chunks = OnlineChunks(synth_kwargs, seed, batch_size // reuse, total_steps + span, store)
+        chunks = OnlineChunks(settings, seed, batch_size // reuse, total_steps + span, store)
         self._loader = torch.utils.data.DataLoader(
             chunks,
             batch_size=None,
@@ -544,7 +504,7 @@ class OnlineStream:
 
 
 def store_chunks(
-    synth_kwargs: dict,
+    settings: OnlineSettings,
     seed: int,
     chunk_size: int,
     n_chunks: int,
@@ -557,7 +517,7 @@ def store_chunks(
     (:mod:`cloudpose.data.synth.store`). Returns how many were made."""
     from tqdm.auto import tqdm
 
-    chunks = OnlineChunks(synth_kwargs, seed, chunk_size, n_chunks, store)
+    chunks = OnlineChunks(settings, seed, chunk_size, n_chunks, store)
     assert chunks.store is not None
     missing = [j for j in range(n_chunks) if not chunks.store.path(seed, j).is_file()]
     if workers is None:

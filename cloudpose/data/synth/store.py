@@ -1,7 +1,8 @@
 """On-line chunks kept on disk: synthesized once per seed, trained on by every variant.
 
 Chunk ``j`` of an on-line run (:class:`~cloudpose.data.synth.online.OnlineChunks`) is a pure
-function of the synthesis settings, the seed, the chunk size and ``j``. The variants of a
+function of the synthesis settings (:class:`OnlineSettings`, here: they are the store's key),
+the seed, the chunk size and ``j``. The variants of a
 preset share all of these (they differ in the network and the loss), so at one seed they train
 on the same segments, and synthesis, not the training step, sets a run's pace on a small
 machine (on a 2-core Xeon: ~180 ms a chunk of 8 segments against ~120 ms a training step of
@@ -11,8 +12,8 @@ instead of synthesizing it again. What a run trains on is unchanged to the bit: 
 holds the synthesized float32 tensors themselves, and the training process keeps the threads
 it has without the store (tested).
 
-The key of a store folder covers everything a chunk depends on: the :class:`OnlineSynth`
-arguments, the chunk size, the code of the modules that could make it (``cloudpose/data``,
+The key of a store folder covers everything a chunk depends on: the synthesis settings, the
+chunk size, the code of the modules that could make it (``cloudpose/data``,
 ``cloudpose/kernels``, ``cloudpose/geometry``, ``conventions.py``, this module aside; as syntax
 trees, so an edit of a docstring or comment keeps the key), the packaged model points and
 surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
@@ -34,22 +35,30 @@ naming it. Delete a folder to reclaim its space.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import functools
 import hashlib
 import importlib.metadata
 import json
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
+from cloudpose.config import (
+    GENERATOR_VERSION,
+    ONLINE_SCENE_MIN_CLASSES,
+    ONLINE_SCENES,
+    check_online_version,
+    check_synth_version,
+)
 from cloudpose.conventions import resource_path
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_npz
 
-DEFAULT_N_POINTS = 256
-"""Points per on-line segment when the synthesis arguments do not say (``OnlineSynth``'s
-default, which is this constant)."""
+if TYPE_CHECKING:
+    from cloudpose.config import Config
 
 STORE_DIR = ("data", "cache", "online")
 """Where a project keeps its store, under the project folder."""
@@ -66,6 +75,91 @@ _LIBRARIES = ("numpy", "scipy", "open3d", "numba", "torch")
 _FIELDS = ("points", "cls_id", "R", "t")
 
 Chunk = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+@dataclasses.dataclass(frozen=True)
+class OnlineSettings:
+    """What on-line segments are made with (:class:`~cloudpose.data.synth.online.OnlineSynth`):
+    every setting a chunk depends on besides the seed, the chunk size and its index, so the
+    key of a :class:`ChunkStore`.
+
+    Attributes:
+        synth_version: generator version (``data.synth_version``,
+            :data:`~cloudpose.config.GENERATOR_VERSIONS`): its surfaces, stacking share and
+            sensor model.
+        noise: apply the version's sensor model (``data.noise``).
+        n_points: points per segment (``train.n_points``: the FPS prefix the network sees).
+        outlier_radius: the segment path's outlier filter, metres (``data.outlier_radius``).
+        class_ids: keep segments of these 1-based classes only (``data.classes`` as ids,
+            sorted); None: all.
+        online_scenes: with ``class_ids``, what the scenes hold (``data.online_scenes``,
+            :data:`~cloudpose.config.ONLINE_SCENES`): "all", objects of every class, the others
+            staying in the scene as occluders (the scenes of the test frames); "classes",
+            objects of the kept classes only (at least 3 of them), so no scene is drawn for
+            segments it then drops: with 3 of the 21 classes ~5x the segments per second, at
+            the price of occluders of those classes only.
+        online_version: how the segments are made (``data.online_version``,
+            :data:`~cloudpose.config.ONLINE_VERSIONS`): 1, the ray cast path; 2,
+            the same scenes, sensor and segment path computed by compiled kernels (a z-buffer
+            of the meshes instead of the ray cast, the sensor's edge distance and correlated
+            field compiled, segments cut in one pass): the same random draws and the same
+            numbers to float rounding (:mod:`cloudpose.data.synth.online`, "Version 2").
+    """
+
+    synth_version: int = GENERATOR_VERSION
+    noise: bool = True
+    n_points: int = 256
+    outlier_radius: float = 0.2
+    class_ids: tuple[int, ...] | None = None
+    online_scenes: str = "all"
+    online_version: int = 1
+
+    def __post_init__(self) -> None:
+        check_synth_version(self.synth_version)
+        check_online_version(self.online_version)
+        if self.n_points < 1:
+            raise ValueError(f"on-line n_points must be >= 1, got {self.n_points}")
+        if self.online_scenes not in ONLINE_SCENES:
+            raise ValueError(
+                f"on-line scenes {self.online_scenes!r}: expected one of {ONLINE_SCENES}"
+            )
+        if self.class_ids is not None:
+            ids = tuple(sorted({int(c) for c in self.class_ids}))
+            if not ids:
+                raise ValueError("on-line classes: expected a non-empty set of model ids")
+            few = len(ids) < ONLINE_SCENE_MIN_CLASSES
+            if self.online_scenes == "classes" and few:
+                raise ValueError(
+                    f"on-line scenes 'classes' need at least {ONLINE_SCENE_MIN_CLASSES} "
+                    f"classes (a table scene holds {ONLINE_SCENE_MIN_CLASSES} or more distinct "
+                    f"objects); got {list(ids)}"
+                )
+            object.__setattr__(self, "class_ids", ids)
+
+    @classmethod
+    def from_config(cls, cfg: Config, class_names: list[str]) -> OnlineSettings:
+        """The settings of an on-line run of ``cfg``: the generator version, noise and segment
+        settings of ``cfg.data``, ``train.n_points``, and the ids of ``data.classes`` in
+        ``class_names`` (the dataset's ``classes.txt``), every class when empty."""
+        d = cfg.data
+        if d.root:
+            raise ValueError(
+                f"data.train_source='online' synthesizes YCB-Video scenes from the packaged "
+                f"models; it cannot be combined with data.root={d.root!r} (train on its frames "
+                "instead)"
+            )
+        classes = None
+        if d.classes:
+            classes = tuple(sorted(class_names.index(c) + 1 for c in d.classes))
+        return cls(
+            synth_version=d.synth_version,
+            noise=d.noise,
+            n_points=cfg.train.n_points,
+            outlier_radius=d.outlier_radius,
+            class_ids=classes,
+            online_scenes=d.online_scenes,
+            online_version=d.online_version,
+        )
 
 
 def _code_of(path: Path) -> bytes:
@@ -130,14 +224,13 @@ def code_digest() -> str:
     return h.hexdigest()
 
 
-def store_settings(synth_kwargs: dict, chunk_size: int) -> dict:
-    """The parts of a store's key, as written to its ``settings.json``."""
-    kwargs = {
-        k: (sorted(int(c) for c in v) if k == "class_ids" and v is not None else v)
-        for k, v in synth_kwargs.items()
-        if k != "nthreads"  # speed only
-    }
-    return {"synth": kwargs, "chunk_size": int(chunk_size), "code": code_digest()}
+def store_settings(settings: OnlineSettings, chunk_size: int) -> dict[str, Any]:
+    """The parts of a store's key, as written to its ``settings.json``: the synthesis settings
+    field by field, the chunk size and the synthesis code (:func:`code_digest`)."""
+    synth = dataclasses.asdict(settings)
+    if synth["class_ids"] is not None:
+        synth["class_ids"] = list(synth["class_ids"])
+    return {"synth": synth, "chunk_size": int(chunk_size), "code": code_digest()}
 
 
 class ChunkStore:
@@ -145,12 +238,12 @@ class ChunkStore:
 
     Args:
         root: the store's root folder (a project's is ``data/cache/online``).
-        synth_kwargs: :class:`~cloudpose.data.synth.online.OnlineSynth` arguments.
+        settings: what the chunks are made with.
         chunk_size: segments per chunk.
     """
 
-    def __init__(self, root: str | Path, synth_kwargs: dict, chunk_size: int) -> None:
-        self.settings = store_settings(synth_kwargs, chunk_size)
+    def __init__(self, root: str | Path, settings: OnlineSettings, chunk_size: int) -> None:
+        self.settings = store_settings(settings, chunk_size)
         text = json.dumps(self.settings, sort_keys=True)
         self.key = hashlib.sha256(text.encode()).hexdigest()[:20]
         self.folder = Path(root) / self.key
@@ -181,7 +274,7 @@ class ChunkStore:
     def _check(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
         """A stored chunk is what this store makes: ``chunk_size`` segments of ``n_points``
         finite float32 points, int64 classes, float32 rotations and translations."""
-        n, k = self.settings["chunk_size"], self._n_points()
+        n, k = self.settings["chunk_size"], self.settings["synth"]["n_points"]
         expected = {
             "points": ((n, k, 3), np.float32),
             "cls_id": ((n,), np.int64),
@@ -198,10 +291,6 @@ class ChunkStore:
                 )
             if a.dtype.kind == "f" and not np.isfinite(a).all():
                 raise CorruptFileError(path, f"stored chunk field {name} holds NaN or inf")
-
-    def _n_points(self) -> int:
-        """Points per segment: the synthesis argument, or its default."""
-        return int(self.settings["synth"].get("n_points", DEFAULT_N_POINTS))
 
     def save(self, seed: int, j: int, chunk: Chunk) -> None:
         """Keep chunk ``j`` of ``seed`` (atomic: written to a temporary file, then renamed)."""
