@@ -24,11 +24,10 @@ import numpy as np
 import pandas as pd
 
 from cloudpose import runtime
-from cloudpose.conventions import resource_path
 from cloudpose.data.cache import segments_for
 from cloudpose.data.dataset import Prepared, folder_segments, only_classes, prepare_data
 from cloudpose.data.keys import DataKey
-from cloudpose.data.layout import describe_split, open_dataset
+from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
@@ -98,13 +97,6 @@ def _number_lists(rows: np.ndarray, miss: np.ndarray) -> list[str]:
     """Each row of (M, k) numbers as one space-separated string (17 significant digits, so
     float64 survives the CSV); "" where ``miss``."""
     return ["" if m else " ".join(f"{v:.17g}" for v in r) for r, m in zip(rows, miss, strict=True)]
-
-
-def real_dev_root() -> Path:
-    """The 61 real YCB-Video frames with ground truth that ship in the package (frames
-    000001-000020 of training videos 0000-0002 and 0003/000138; 14 classes, 4 scenes), in the
-    YCB-Video layout: the sim-to-real check of every run. Test videos are not among them."""
-    return resource_path("real_dev")
 
 
 def evaluate_real(run: str, **kwargs) -> EvalOutcome:

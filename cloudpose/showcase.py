@@ -67,8 +67,9 @@ def run_showcase(
         baseline: a registered baseline (``cloudpose baseline --help``), or "" for none.
     """
     from cloudpose.baselines.run import run_baseline
+    from cloudpose.data.layout import real_dev_root
     from cloudpose.data.synth.write import synthesize
-    from cloudpose.evaluate import evaluate, real_dev_root
+    from cloudpose.evaluate import evaluate
     from cloudpose.infer import load_checkpoint
     from cloudpose.predict import predict
 

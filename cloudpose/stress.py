@@ -49,7 +49,7 @@ from cloudpose.files import atomic_write
 
 SOURCES = ("real", "synth")
 """Where the frames come from: the 61 packaged real development frames
-(:func:`cloudpose.evaluate.real_dev_root`) and the default preset's synthetic test frames."""
+(:func:`cloudpose.data.layout.real_dev_root`) and the default preset's synthetic test frames."""
 
 MIN_KEEP = 0.1
 """Least share of a segment's points the cut plane and the lateral shift leave (a segment of
@@ -448,7 +448,7 @@ def open_source(
     from cloudpose.data.layout import open_dataset
 
     if name == "real":
-        from cloudpose.evaluate import real_dev_root
+        from cloudpose.data.layout import real_dev_root
 
         ds = open_dataset(real_dev_root())
         ids = ds.image_set("all")

@@ -152,7 +152,7 @@ def smoke_data(tmp_path_factory) -> Path:
     """``data/`` folder holding the smoke preset's synthetic set and its segment caches."""
     from cloudpose.data.cache import segments_for
     from cloudpose.data.dataset import prepare_data
-    from cloudpose.evaluate import real_dev_root
+    from cloudpose.data.layout import real_dev_root
     from cloudpose.registry import resolve
 
     root = tmp_path_factory.mktemp("smoke-data")

@@ -226,8 +226,7 @@ def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, t
     from cloudpose.cli import app
     from cloudpose.data.bop import export_bop
     from cloudpose.data.cache import cache_key
-    from cloudpose.data.layout import describe_split
-    from cloudpose.evaluate import real_dev_root
+    from cloudpose.data.layout import describe_split, real_dev_root
     from cloudpose.registry import resolve
     from cloudpose.store import tracking
     from cloudpose.store.metric_names import data_evaluation_name
@@ -268,9 +267,8 @@ def test_fpfh_gives_the_same_pose_whatever_threads_open3d_may_use():
     gave another pose on 4 threads). The estimator runs RANSAC on one thread: the same call
     gives the same pose on any machine."""
     from cloudpose import runtime
-    from cloudpose.data.layout import open_dataset
+    from cloudpose.data.layout import open_dataset, real_dev_root
     from cloudpose.data.segments import extract_segments
-    from cloudpose.evaluate import real_dev_root
 
     frame = open_dataset(real_dev_root()).frame("0000/000008")
     seg = next(s for s in extract_segments(frame, rng=np.random.default_rng(0)) if s.cls_id == 8)

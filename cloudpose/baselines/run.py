@@ -41,8 +41,8 @@ from cloudpose.baselines.base import BaselineSettings, NotRegistered, settings_f
 from cloudpose.data.cache import SegmentSet, segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.keys import DataKey
-from cloudpose.data.layout import describe_split, open_dataset
-from cloudpose.evaluate import instance_table, log_evaluation, real_dev_root
+from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
+from cloudpose.evaluate import instance_table, log_evaluation
 from cloudpose.files import atomic_write
 from cloudpose.infer import Estimates, refine_poses
 from cloudpose.registry import DEFAULT_PRESET, resolve
@@ -55,7 +55,7 @@ GROUP = "baselines"
 SAVE_EVERY_S = 60.0
 SPLITS = ("test", "val", "real")
 """Where a baseline is evaluated: the preset's test set, its validation frames (where settings
-are tuned), or the packaged real development frames (:func:`cloudpose.evaluate.real_dev_root`,
+are tuned), or the packaged real development frames (:func:`cloudpose.data.layout.real_dev_root`,
 with per-video metrics)."""
 
 

@@ -55,8 +55,7 @@ def ship(
     from cloudpose.conventions import resource_path
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.keys import DataKey
-    from cloudpose.data.layout import open_dataset
-    from cloudpose.evaluate import real_dev_root
+    from cloudpose.data.layout import open_dataset, real_dev_root
     from cloudpose.infer import load_checkpoint
     from cloudpose.store import tracking
     from cloudpose.store.pretrained import SHIPPED

@@ -14,10 +14,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from cloudpose.conventions import resource_path
 from cloudpose.data.bop import BOPYcbv, is_bop_root
 from cloudpose.data.ycb import YCBVideo
 
-__all__ = ["Dataset", "as_dataset", "describe_split", "detect_layout", "open_dataset"]
+__all__ = ["Dataset", "as_dataset", "describe_split", "detect_layout", "open_dataset", "real_dev_root"]
 
 Dataset = YCBVideo | BOPYcbv
 """An opened dataset of either layout: what the data stages read frames, models and frame
@@ -77,3 +78,10 @@ def describe_split(data: str | Path | Dataset, frames: str) -> str:
         return f"{what} ({n} images)"
     kind = "synthetic YCB-Video-layout" if (ds.root / "synth.json").is_file() else "YCB-Video"
     return f"{kind} {name} ({n} frames)"
+
+
+def real_dev_root() -> Path:
+    """The 61 real YCB-Video frames with ground truth that ship in the package (frames
+    000001-000020 of training videos 0000-0002 and 0003/000138; 14 classes, 4 scenes), in the
+    YCB-Video layout: the sim-to-real check of every run. Test videos are not among them."""
+    return resource_path("real_dev")

@@ -31,7 +31,7 @@ Reserved: an evaluation on other data (``--data``) is named by that data's ident
 
 REAL_DEV = "real"
 """Metric prefix of a run's evaluation on the packaged real development frames
-(:func:`cloudpose.evaluate.real_dev_root`): ``real/...``, ``real_icp/...``, per video
+(:func:`cloudpose.data.layout.real_dev_root`): ``real/...``, ``real_icp/...``, per video
 ``real/video/0000/...``."""
 
 METHODS = ("net", "icp")

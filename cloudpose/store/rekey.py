@@ -58,8 +58,7 @@ def current_keys(preset: str, project_dir: Path) -> dict[str, DataKey]:
     development frames)."""
     from cloudpose.data.cache import cache_key
     from cloudpose.data.dataset import data_fingerprint, dataset_root
-    from cloudpose.data.layout import open_dataset
-    from cloudpose.evaluate import real_dev_root
+    from cloudpose.data.layout import open_dataset, real_dev_root
     from cloudpose.registry import resolve
 
     cfg = resolve(preset=preset).data

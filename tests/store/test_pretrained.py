@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from cloudpose.conventions import resource_path
-from cloudpose.evaluate import real_dev_root
+from cloudpose.data.layout import real_dev_root
 from cloudpose.store.pretrained import (
     PRETRAINED,
     SHIPPED,
