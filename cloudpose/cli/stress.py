@@ -104,20 +104,10 @@ def stress(
             fpfh_instances = fpfh_instances or QUICK["fpfh_instances"]
             ppf_instances = ppf_instances or QUICK["ppf_instances"]
             synth_frames = QUICK["synth_frames"]
-        methods = _network_methods(checkpoint or [], run or [], project)
-        if ppf_levels not in ("all", "ends"):
-            raise typer.BadParameter(f"--ppf-levels {ppf_levels!r}: expected all or ends")
-        methods += [
-            st.Method(name, limit=limit, ends_only=ends)
-            for name, limit, ends in (
-                ("fpfh", fpfh_instances, False),
-                ("ppf", ppf_instances, ppf_levels == "ends"),
-            )
-            if limit != 0  # 0: left out
-        ]
-        if not methods:
-            raise typer.BadParameter("no method: give a --checkpoint or --run, or a baseline")
-        st.run_sweep(
+        methods = _all_methods(
+            checkpoint or [], run or [], project, fpfh_instances, ppf_instances, ppf_levels
+        )
+        _sweep(
             results,
             resolve("shared-0", preset, seed),
             methods,
@@ -126,28 +116,57 @@ def stress(
             instances=instances,
             synth_frames=synth_frames,
             seed=seed,
+            icp_selection=icp_selection,
             progress=progress,
-            echo=typer.echo,
             dry_run=dry_run,
         )
-        if icp_selection and not dry_run:
-            st.run_icp_selection(
-                results,
-                resolve("shared-0", preset, seed),
-                methods,
-                sources=tuple(source or st.SOURCES),
-                instances=icp_selection,
-                synth_frames=synth_frames,
-                seed=seed,
-                progress=progress,
-                echo=typer.echo,
-            )
     if dry_run or not (report or report_only):
         return
     files = render_stress_report(
         results, out or default_out_dir(project, preset), command=recorded_command(ctx)
     )
     typer.echo(" ".join(str(f) for f in files))
+
+
+def _all_methods(
+    checkpoints: list[Path],
+    runs: list[str],
+    project: Path,
+    fpfh_instances: int | None,
+    ppf_instances: int | None,
+    ppf_levels: str,
+) -> list:
+    """The networks named and the baselines not left out (a limit of 0), as
+    :class:`cloudpose.stress.Method`; BadParameter when there is none or ``ppf_levels`` is not
+    ``all`` or ``ends``."""
+    from cloudpose import stress as st
+
+    methods = _network_methods(checkpoints, runs, project)
+    if ppf_levels not in ("all", "ends"):
+        raise typer.BadParameter(f"--ppf-levels {ppf_levels!r}: expected all or ends")
+    methods += [
+        st.Method(name, limit=limit, ends_only=ends)
+        for name, limit, ends in (
+            ("fpfh", fpfh_instances, False),
+            ("ppf", ppf_instances, ppf_levels == "ends"),
+        )
+        if limit != 0  # 0: left out
+    ]
+    if not methods:
+        raise typer.BadParameter("no method: give a --checkpoint or --run, or a baseline")
+    return methods
+
+
+def _sweep(results: Path, cfg, methods: list, *, icp_selection: int, dry_run: bool, **kw) -> None:
+    """The stress sweep (:func:`cloudpose.stress.run_sweep`), then, unless ``dry_run``, the
+    comparison of ICP start selections on ``icp_selection`` instances per source (0: none)."""
+    from cloudpose import stress as st
+
+    st.run_sweep(results, cfg, methods, echo=typer.echo, dry_run=dry_run, **kw)
+    if icp_selection and not dry_run:
+        kw.pop("only")
+        kw["instances"] = icp_selection
+        st.run_icp_selection(results, cfg, methods, echo=typer.echo, **kw)
 
 
 def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):

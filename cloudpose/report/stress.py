@@ -193,6 +193,31 @@ def markdown(
         "segment. Cells: ADS AUC / rotation < 10 deg modulo symmetry / translation < 1 cm / "
         "median translation error (mm).",
         "",
+    ]
+    out += _levels_section(levels, how)
+    fragility, t_fragile = _fragility_section(frag)
+    out += fragility
+    fragile = sorted(set(frag[frag.fragile].perturbation))
+    out += [
+        "",
+        "Fragile on ADS AUC (either source): " + (", ".join(fragile) or "none") + ". "
+        "Translation-fragile at the real frames' level: " + (", ".join(t_fragile) or "none") + ".",
+        "",
+        "![ADS AUC per level](stress.png)",
+        "",
+        "![median translation per level](stress_translation.png)",
+        "",
+    ]
+    out += _per_perturbation_section(summary, meta)
+    out += _statistics_section(stats)
+    if extra:
+        out += ["", extra]
+    return "\n".join(out) + "\n"
+
+
+def _levels_section(levels: dict, how: dict) -> list[str]:
+    """Where the real frames sit on each perturbation's scale."""
+    out = [
         "## Where the real frames sit",
         "",
         "The real segments' statistic against the synthetic ones' at each level "
@@ -207,7 +232,13 @@ def markdown(
         lv = levels[name]
         cell = f"{lv:.3g} {p.unit}" if np.isfinite(lv) else "not placed"
         out.append(f"| {name}: {p.what} | {cell} | {how[name]} |")
-    out += ["", "## Fragility", ""]
+    return out
+
+
+def _fragility_section(frag: pd.DataFrame) -> tuple[list[str], list[str]]:
+    """The fragility tables (ADS AUC lost; translation at the real frames' level) and the
+    perturbations the network's translation is fragile to."""
+    out = ["", "## Fragility", ""]
     out += [
         "ADS AUC (after ICP) lost from the unperturbed segments to the real frames' level and to "
         "the largest level, in points (real level unplaced: the largest only). Paired: the "
@@ -260,18 +291,12 @@ def markdown(
             f"| {r.perturbation} | {r.real_level:.3g} | " + " | ".join(cells)
             + f" | {'**translation-fragile**' if flag else ''} |"
         )  # fmt: skip
-    fragile = sorted(set(frag[frag.fragile].perturbation))
-    out += [
-        "",
-        "Fragile on ADS AUC (either source): " + (", ".join(fragile) or "none") + ". "
-        "Translation-fragile at the real frames' level: " + (", ".join(t_fragile) or "none") + ".",
-        "",
-        "![ADS AUC per level](stress.png)",
-        "",
-        "![median translation per level](stress_translation.png)",
-        "",
-        "## Per perturbation",
-    ]
+    return out, t_fragile
+
+
+def _per_perturbation_section(summary: pd.DataFrame, meta: dict) -> list[str]:
+    """One table per perturbation: every curve's cell at every level of each source."""
+    out = ["## Per perturbation"]
     cols = [(m, s, label) for m, s, label, *_ in CURVES if m in set(summary.method)]
     for name, p in PERTURBATIONS.items():
         if name not in set(summary.perturbation):
@@ -283,6 +308,12 @@ def markdown(
             for lv in sorted(p.levels):
                 cells = [_cell(summary, source, name, lv, m, s) for m, s, _ in cols]
                 out.append(f"| {source} | {lv:g} | " + " | ".join(cells) + " |")
+    return out
+
+
+def _statistics_section(stats: pd.DataFrame) -> list[str]:
+    """The segment statistics at each level, and what each is."""
+    out: list[str] = []
     out += ["", "## Segment statistics per level", ""]
     keys = list(STATISTICS)
     out.append("| source | perturbation | level | " + " | ".join(keys) + " |")
@@ -294,9 +325,7 @@ def markdown(
             + " |"
         )
     out += ["", *(f"- {k}: {v}" for k, v in STATISTICS.items())]
-    if extra:
-        out += ["", extra]
-    return "\n".join(out) + "\n"
+    return out
 
 
 def per_pose_markdown(run_dir: Path) -> str:
