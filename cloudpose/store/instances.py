@@ -4,15 +4,19 @@ An evaluation logs one row per test instance (``cloudpose.evaluate.instance_tabl
 errors of each method, and each method's pose as numbers joined by spaces (``net_R``: the 9
 entries of R row-major, ``net_t``: t in metres; empty for a miss). As CSV text at 17
 significant digits such a table is ~0.8 kB a row; :func:`write_table` stores it as Parquet,
-every float column as float32 and each pose column as a fixed-size list of float32 (byte
-stream split, zstd), about a fifth of that. The network computes in float32, so its poses and
-errors lose nothing; ICP's (float64) keep 7 significant digits.
+about a seventh of that: every float column as float32 and each pose column as a fixed-size
+list of float32, all of them byte-stream-split (zstd), and each rotation column (``X_R``, 9
+numbers) as the unit quaternion ``X_q`` (4 float32, XYZW: scalar last as in RoMa and scipy,
+``w >= 0``), which gives the rotation to ~1e-7 rad as a float32 matrix does. The network
+computes in float32, so its errors and translations lose nothing and its rotations stay within
+:data:`ROTATION_TOLERANCE_DEG`; ICP's (float64) keep 7 significant digits.
 
 :func:`read_table` reads either form into the same DataFrame as ``pd.read_csv`` of the CSV:
-floats as float64, integers as int64, pose columns as space-joined numbers (NaN for a miss),
-so every reader of the CSV reads the Parquet form unchanged. A run's table is
-``eval/{name}/instances.parquet`` (:data:`PARQUET`) or, logged before, ``instances.csv``
-(:data:`CSV`); :func:`artifact_names` lists both, the Parquet one first.
+floats as float64, integers as int64, pose columns as space-joined numbers (NaN for a miss;
+quaternions back as the 9 entries of their matrix), so every reader of the CSV reads the
+Parquet form unchanged. A run's table is ``eval/{name}/instances.parquet`` (:data:`PARQUET`)
+or, logged before, ``instances.csv`` (:data:`CSV`); :func:`artifact_names` lists both, the
+Parquet one first.
 """
 
 from __future__ import annotations
@@ -30,6 +34,15 @@ CSV = "instances.csv"
 """File name of an instance table logged as CSV (runs evaluated before :data:`PARQUET`)."""
 
 _COMPRESSION = ("zstd", 9)
+
+ROTATION_TOLERANCE_DEG = 1e-5
+"""A rotation column is stored as quaternions only if every rotation read back is within this
+angle of the matrix written (and within 1e-5 entry by entry: a rotation to float32
+precision); else as its 9 numbers."""
+
+QUATERNIONS_KEY = "cloudpose.unitquat_xyzw"
+"""Parquet key-value metadata: JSON ``{"X_q": "X_R", ...}``, the quaternion columns of a table
+and the rotation column each stands for."""
 
 
 def artifact_names(name: str) -> tuple[str, str]:
@@ -98,28 +111,120 @@ def to_arrow(df: pd.DataFrame):
     return pa.Table.from_arrays(arrays, names=names)
 
 
+def _rotmat_to_quat32(R: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) matrices near rotations -> (M, 4) float32 unit quaternions XYZW, ``w >= 0``,
+    of their nearest rotations (``U V^T`` of the SVD, in float64: a float32 network's matrix
+    is orthonormal to ~1e-6 only, and the quaternion of the matrix as it is may be off by as
+    much)."""
+    import torch
+
+    from cloudpose.geometry.rotations import rotmat_to_unitquat
+
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    d = np.sign(np.linalg.det(U @ Vt))  # -1 for a reflection: the nearest rotation flips
+    U[..., :, 2] *= d[..., None]
+    q = rotmat_to_unitquat(torch.from_numpy(U @ Vt))
+    return q.numpy().astype(np.float32)
+
+
+def _quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """(M, 4) quaternions XYZW (normalised here, in float64) -> (M, 3, 3) float64 rotations."""
+    import torch
+
+    from cloudpose.geometry.rotations import normalize_quat, unitquat_to_rotmat
+
+    q64 = torch.from_numpy(np.asarray(q, dtype=np.float64))
+    return unitquat_to_rotmat(normalize_quat(q64)).numpy()
+
+
+def _angle_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(M,) angle of ``A^T B`` in degrees from its skew part (accurate near 0, where the
+    trace's arccos is not); for (M, 3, 3) matrices that are rotations to float precision."""
+    M = np.swapaxes(A, -1, -2) @ B
+    v = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], 1)
+    return np.degrees(np.arcsin(np.clip(np.linalg.norm(v, axis=1) / 2, 0.0, 1.0)))
+
+
+def _quaternion_column(col):
+    """A rotation column (fixed-size lists of 9 float32, R row-major, null for a miss) as
+    fixed-size lists of 4 float32 (XYZW), or None when some row is not a rotation to float32
+    precision (:data:`ROTATION_TOLERANCE_DEG`)."""
+    import pyarrow as pa
+
+    col = col.combine_chunks() if hasattr(col, "combine_chunks") else col
+    null = col.is_null().to_numpy(zero_copy_only=False)
+    R = np.zeros((len(col), 3, 3), dtype=np.float64)
+    R[~null] = col.flatten().to_numpy(zero_copy_only=False).reshape(-1, 3, 3)
+    if not np.isfinite(R).all():
+        return None
+    q = _rotmat_to_quat32(R)
+    back = _quat_to_rotmat(q)
+    ok = ~null
+    if ok.any() and (
+        np.abs(back[ok] - R[ok]).max() > 1e-5
+        or _angle_deg(R[ok], back[ok]).max() > ROTATION_TOLERANCE_DEG
+    ):
+        return None
+    q[null] = 0.0
+    return pa.FixedSizeListArray.from_arrays(pa.array(q.ravel()), 4, mask=pa.array(null))
+
+
+def _with_quaternions(table) -> tuple[object, dict[str, str]]:
+    """``table`` with each rotation column ``X_R`` (9 float32 a row) that holds rotations
+    replaced in place by ``X_q`` (:func:`_quaternion_column`); and the names replaced."""
+    import pyarrow as pa
+
+    names = list(table.column_names)
+    replaced = {}
+    for i, f in enumerate(table.schema):
+        quat = f"{f.name[:-2]}_q"
+        if not (
+            f.name.endswith("_R")
+            and pa.types.is_fixed_size_list(f.type)
+            and f.type.list_size == 9
+            and quat not in names
+        ):
+            continue
+        arr = _quaternion_column(table.column(i))
+        if arr is not None:
+            table = table.set_column(i, quat, arr)
+            replaced[quat] = f.name
+    return table, replaced
+
+
 def write_table(df: pd.DataFrame, path: str | Path) -> Path:
-    """Write an instance table to ``path`` as Parquet (:func:`to_arrow`; byte stream split for
-    the float columns, zstd). The same table gives the same bytes (with one pyarrow version)."""
+    """Write an instance table to ``path`` as Parquet (:func:`to_arrow`, rotations as
+    quaternions; byte stream split for every float and float list column, dictionaries for the
+    others, zstd). The same table gives the same bytes (with one pyarrow version)."""
+    import json
+
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    table = to_arrow(df)
+    table, replaced = _with_quaternions(to_arrow(df))
     floats = [
         f.name
         for f in table.schema
         if pa.types.is_floating(f.type) or pa.types.is_fixed_size_list(f.type)
     ]
-    pq.write_table(
-        table,
+    with pq.ParquetWriter(
         str(path),
+        table.schema,
         compression=_COMPRESSION[0],
         compression_level=_COMPRESSION[1],
         use_dictionary=[n for n in table.column_names if n not in floats],
-        use_byte_stream_split=floats,
+        # a list column's values are its leaf, NAME.list.element
+        use_byte_stream_split=[
+            f"{f.name}.list.element" if pa.types.is_fixed_size_list(f.type) else f.name
+            for f in table.schema
+            if f.name in floats
+        ],
         write_statistics=False,
         store_schema=False,
-    )
+    ) as writer:
+        writer.write_table(table)
+        if replaced:
+            writer.add_key_value_metadata({QUATERNIONS_KEY: json.dumps(replaced, sort_keys=True)})
     return Path(path)
 
 
@@ -142,15 +247,33 @@ def _list_text(arr) -> list:
     return _joined(values, null)
 
 
+def _quaternion_text(arr) -> list:
+    """A quaternion column (lists of 4, XYZW) as :func:`_joined` text of the 9 entries of each
+    rotation matrix, row-major (NaN for a null)."""
+    null = arr.is_null().to_numpy(zero_copy_only=False)
+    q = np.zeros((len(arr), 4), dtype=np.float64)
+    q[~null] = arr.flatten().to_numpy(zero_copy_only=False).reshape(-1, 4)
+    q[null] = (0.0, 0.0, 0.0, 1.0)
+    return _joined(_quat_to_rotmat(q).reshape(-1, 9), null)
+
+
 def from_arrow(table) -> pd.DataFrame:
     """The DataFrame ``pd.read_csv`` gives for the same table written as CSV: floats float64,
-    integers int64, list columns as space-joined numbers (NaN for a null)."""
+    integers int64, list columns as space-joined numbers (NaN for a null), each quaternion
+    column (:data:`QUATERNIONS_KEY`) as its rotation column."""
+    import json
+
     import pyarrow as pa
 
-    cols = {}
+    meta = table.schema.metadata or {}
+    quats = json.loads(meta.get(QUATERNIONS_KEY.encode(), b"{}"))
+    cols, names = {}, []
     for name, col in zip(table.column_names, table.columns, strict=True):
         t = col.type
-        if pa.types.is_list(t) or pa.types.is_fixed_size_list(t):
+        if name in quats:
+            name = quats[name]
+            cols[name] = pd.Series(_quaternion_text(col.combine_chunks()), dtype="str")
+        elif pa.types.is_list(t) or pa.types.is_fixed_size_list(t):
             cols[name] = pd.Series(_list_text(col.combine_chunks()), dtype="str")
         elif pa.types.is_floating(t):
             cols[name] = col.to_numpy().astype(np.float64)
@@ -160,7 +283,8 @@ def from_arrow(table) -> pd.DataFrame:
             cols[name] = pd.Series(col.to_pylist(), dtype="str")
         else:
             cols[name] = col.to_pandas()
-    return pd.DataFrame(cols, columns=table.column_names)
+        names.append(name)
+    return pd.DataFrame(cols, columns=names)
 
 
 def read_table(path: str | Path) -> pd.DataFrame:
