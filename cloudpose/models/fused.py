@@ -37,7 +37,7 @@ two of 2*N*C*C (covariance, ``x_c @ M``), i.e. 1.25 / 3 of the plain count.
 Eval mode (running statistics) folds BN into the Linear and takes ``amax`` of ``x W'^T + b'``.
 
 Across processes (one batch split over the processes of a distributed run,
-:mod:`cloudpose.train.distributed`): the mean of x, then its centred scatter, are all-reduced, so BN
+:mod:`cloudpose.models.sync_bn`): the mean of x, then its centred scatter, are all-reduced, so BN
 normalises with the whole batch's statistics; the backward all-reduces ``dbeta`` and ``dgamma``
 (the two (D,) sums the statistics' gradient needs), as a synchronised BatchNorm does.
 
@@ -61,7 +61,7 @@ from torch import nn
 from torch.autograd.function import once_differentiable
 
 from cloudpose.models.basenet import PointLayerMaxPool
-from cloudpose.train.distributed import GroupBatchStats, all_reduce_sum, global_mean
+from cloudpose.models.sync_bn import GroupBatchStats, all_reduce_sum, global_mean
 
 __all__ = [
     "DEFAULT_CHUNK_ROWS",
@@ -160,7 +160,7 @@ def _batch_stats(
         xf: (N, C) inputs, N = B*n points.
         weight: (D, C), bias: (D,).
         group: a process group whose processes' points together make the batch (the mean,
-            then the centred scatter, all-reduced: :mod:`cloudpose.train.distributed`); None = this
+            then the centred scatter, all-reduced: :mod:`cloudpose.models.sync_bn`); None = this
             process's points alone.
 
     Returns:
@@ -349,7 +349,7 @@ def fused_point_max_pool(
         bf16: the main GEMM in bfloat16 (statistics and backward stay in x's dtype).
         chunk_rows: points per chunk of the main GEMM.
         group: with batch statistics, the process group whose processes' points together
-            make the batch (:mod:`cloudpose.train.distributed`); None = this call's points alone.
+            make the batch (:mod:`cloudpose.models.sync_bn`); None = this call's points alone.
 
     Returns:
         out (B, D); mean_y (D,) and biased var_y (D,), the statistics BN normalised with.
@@ -399,7 +399,7 @@ class FusedPointLayerMaxPool(GroupBatchStats, nn.Module):
     Attributes:
         process_group: None, or in training the process group whose processes each hold an
             equal share of the batch: BatchNorm then uses the whole batch's statistics
-            (:func:`cloudpose.train.distributed.sync_batch_stats` sets it).
+            (:func:`cloudpose.models.sync_bn.sync_batch_stats` sets it).
     """
 
     def __init__(

@@ -1,5 +1,5 @@
-"""One training run across processes: the process group, the batch split, and BatchNorm
-statistics over the global batch.
+"""One training run across processes: the process group and the batch split (BatchNorm over the
+global batch: :mod:`cloudpose.models.sync_bn`).
 
 ``torchrun --nproc_per_node N -m cloudpose.cli train ...`` (or ``cloudpose train --nproc N``)
 starts N processes; :func:`from_env` joins them (gloo on CPU, NCCL for CUDA tensors) and
@@ -12,10 +12,7 @@ starts N processes; :func:`from_env` joins them (gloo on CPU, NCCL for CUDA tens
 - The model is wrapped in ``DistributedDataParallel``, which averages the gradients of the N
   shares' mean losses: the gradient of the global batch's mean loss.
 - BatchNorm normalises with the statistics of the global batch, as the paper's batch of 128 on
-  one GPU does (:func:`sync_batch_stats`): plain ``BatchNorm1d`` layers become
-  :class:`SyncBatchNorm1d`, and the fused last layer (:mod:`cloudpose.models.fused`), which
-  computes its BatchNorm itself, all-reduces its own statistics and their gradients.
-  ``torch.nn.SyncBatchNorm`` is not used: it refuses CPU tensors.
+  one GPU does (:func:`cloudpose.models.sync_bn.sync_batch_stats`).
 
 So N processes with a batch split N ways follow the loss curve of one process with the whole
 batch, to float rounding (tests/train/test_distributed.py, gloo on CPU). Only rank 0 writes files
@@ -32,20 +29,8 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import torch
-from torch import nn
 
-__all__ = [
-    "SINGLE",
-    "GroupBatchStats",
-    "SyncBatchNorm1d",
-    "World",
-    "all_reduce_sum",
-    "from_env",
-    "global_mean",
-    "local_batch_stats",
-    "relaunch_under_torchrun",
-    "sync_batch_stats",
-]
+__all__ = ["SINGLE", "World", "from_env", "relaunch_under_torchrun"]
 
 T = TypeVar("T")
 
@@ -186,133 +171,3 @@ def relaunch_under_torchrun(args: list[str], nproc: int) -> int:
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
     cmd += ["--nproc_per_node", str(nproc), "-m", "cloudpose.cli", *args]
     return subprocess.run(cmd, check=False).returncode
-
-
-def all_reduce_sum(t: torch.Tensor, group: Any) -> torch.Tensor:
-    """Sum ``t`` over the processes of ``group``, in place; returns ``t``."""
-    import torch.distributed as dist
-
-    dist.all_reduce(t, group=group)
-    return t
-
-
-def global_mean(x: torch.Tensor, group: Any) -> tuple[torch.Tensor, int]:
-    """Mean over the rows of every process's ``x`` and the total row count.
-
-    Args:
-        x: (N_r, C) this process's rows.
-        group: the process group.
-
-    Returns:
-        mean (C,) over all sum_r N_r rows, and that count.
-    """
-    s = torch.cat([x.sum(dim=0), x.new_tensor([x.shape[0]])])  # (C + 1,)
-    all_reduce_sum(s, group)
-    n = round(float(s[-1]))
-    return s[:-1] / n, n
-
-
-class GroupBatchStats:
-    """A module that computes its own training BatchNorm statistics and all-reduces them over
-    ``process_group``, the processes that each hold a share of the batch (None: this process's
-    batch alone). :class:`SyncBatchNorm1d` is one, and so is the fused last layer
-    (:class:`cloudpose.models.fused.FusedPointLayerMaxPool`); :func:`sync_batch_stats` and
-    :func:`local_batch_stats` set the group of every such module of a model."""
-
-    process_group: Any = None
-
-
-class _SyncBatchNormFn(torch.autograd.Function):
-    """BatchNorm over the rows of every process: statistics and their gradient all-reduced."""
-
-    @staticmethod
-    def forward(ctx: Any, x, weight, bias, eps: float, group: Any):
-        """x (N_r, C); returns y (N_r, C), the global mean (C,), biased variance (C,) and
-        row count (a 0-d tensor)."""
-        mean, n = global_mean(x, group)
-        xc = x - mean  # (N_r, C)
-        var = all_reduce_sum((xc * xc).sum(dim=0), group) / n  # (C,) biased
-        inv_std = torch.rsqrt(var + eps)
-        xhat = xc * inv_std  # (N_r, C)
-        y = xhat * weight + bias
-        ctx.save_for_backward(xhat, weight, inv_std)
-        ctx.n, ctx.group = n, group
-        count = torch.tensor(n)
-        ctx.mark_non_differentiable(mean, var, count)
-        return y, mean, var, count
-
-    @staticmethod
-    def backward(ctx: Any, gy, *_):
-        """The input gradient of the global objective from the all-reduced sums of ``gy`` and
-        ``gy * xhat``; the weight and bias gradients of this process's rows (DDP sums them)."""
-        xhat, weight, inv_std = ctx.saved_tensors
-        dbeta = gy.sum(dim=0)  # (C,)
-        dgamma = (gy * xhat).sum(dim=0)  # (C,)
-        sums = all_reduce_sum(torch.stack([dbeta, dgamma]), ctx.group) / ctx.n  # (2, C)
-        dx = (weight * inv_std) * (gy - sums[0] - xhat * sums[1])  # (N_r, C)
-        return dx, dgamma, dbeta, None, None
-
-
-class SyncBatchNorm1d(GroupBatchStats, nn.BatchNorm1d):
-    """``nn.BatchNorm1d`` whose training statistics are those of every process's rows.
-
-    With ``process_group`` None (the default) or in eval mode it is ``nn.BatchNorm1d``
-    exactly. Running statistics follow ``nn.BatchNorm1d`` (momentum or cumulative average;
-    unbiased variance over the global count). Input (N_r, C) only: the layers here normalise
-    (B*n, C) point features or (B, C) pooled ones.
-    """
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if not (self.training and self.process_group is not None):
-            return super().forward(x)
-        if x.ndim != 2:
-            raise ValueError(f"SyncBatchNorm1d expects (N, C) input, got {tuple(x.shape)}")
-        y, mean, var, count = _SyncBatchNormFn.apply(
-            x, self.weight, self.bias, self.eps, self.process_group
-        )
-        if self.track_running_stats:
-            with torch.no_grad():
-                self.num_batches_tracked.add_(1)
-                f = (
-                    1.0 / float(self.num_batches_tracked)
-                    if self.momentum is None
-                    else self.momentum
-                )
-                n = int(count)
-                self.running_mean.lerp_(mean, f)
-                self.running_var.lerp_(var * (n / (n - 1)), f)
-        return y
-
-
-def sync_batch_stats(model: nn.Module, group: Any) -> nn.Module:
-    """Make every BatchNorm of ``model`` normalise with the statistics of ``group``'s batch.
-
-    Each plain ``nn.BatchNorm1d`` becomes a :class:`SyncBatchNorm1d` in place (its class is
-    switched: same parameters, buffers, state_dict and module identity, so a module two
-    branches share stays shared); every :class:`GroupBatchStats` module gets the group.
-    ``group`` None turns the synchronisation off again.
-
-    Returns:
-        ``model``.
-    """
-    for m in model.modules():
-        if type(m) is nn.BatchNorm1d:
-            m.__class__ = SyncBatchNorm1d
-        if isinstance(m, GroupBatchStats):
-            m.process_group = group
-    return model
-
-
-@contextlib.contextmanager
-def local_batch_stats(model: nn.Module) -> Iterator[nn.Module]:
-    """Within the block, ``model``'s BatchNorms use this process's own batch statistics (one
-    process validating or re-estimating running statistics on whole batches of its own)."""
-    mods = [m for m in model.modules() if isinstance(m, GroupBatchStats)]
-    groups = [m.process_group for m in mods]
-    for m in mods:
-        m.process_group = None
-    try:
-        yield model
-    finally:
-        for m, g in zip(mods, groups, strict=True):
-            m.process_group = g

@@ -28,7 +28,7 @@ folder (a retried Ray task on another node) rebuilds it from MLflow
 (:func:`cloudpose.store.runs.restore_run_folder`): the run continues into the same MLflow run
 from the last logged checkpoint.
 
-Several processes (``torchrun``; :mod:`cloudpose.train.distributed`) train one run: each takes
+Several processes (``torchrun``; :mod:`cloudpose.models.sync_bn`) train one run: each takes
 an equal share of every global batch, DDP averages the gradients, BatchNorm uses the global
 batch's statistics; rank 0 alone writes the run folder and talks to MLflow.
 
@@ -67,10 +67,11 @@ from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
 from cloudpose.models import build_model, count_parameters
 from cloudpose.models.fused import fuse_model
+from cloudpose.models.sync_bn import local_batch_stats, sync_batch_stats
 from cloudpose.registry import groups_of
 from cloudpose.store import runs, tracking
 from cloudpose.train.augment import augment
-from cloudpose.train.distributed import SINGLE, World, local_batch_stats, sync_batch_stats
+from cloudpose.train.distributed import SINGLE, World
 from cloudpose.train.seeds import generator, seed_for
 from cloudpose.train.step import Batch, StepLoss, train_step
 from cloudpose.train.validation import batch_stats_rotation_error, recalibrate_bn, validate

@@ -17,11 +17,11 @@ import torch.multiprocessing as mp
 
 from cloudpose.models.basenet import PointLayer, PointLayerMaxPool
 from cloudpose.models.fused import FusedPointLayerMaxPool
+from cloudpose.models.sync_bn import SyncBatchNorm1d, sync_batch_stats
 from cloudpose.registry import resolve
 from cloudpose.store import tracking
 from cloudpose.store.runs import read_info
 from cloudpose.suite.pipeline import train_run
-from cloudpose.train.distributed import SyncBatchNorm1d, sync_batch_stats
 from cloudpose.train.loop import TrainingInterrupted
 from tests.conftest import make_project
 
