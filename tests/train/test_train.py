@@ -139,7 +139,7 @@ def test_resume_after_kill_9(tmp_path, smoke_data, monkeypatch):
     )
     proj = _project(tmp_path / "kill", smoke_data, monkeypatch)
     code = (
-        "from pathlib import Path; from cloudpose.config import resolve; "
+        "from pathlib import Path; from cloudpose.registry import resolve; "
         "from cloudpose.suite.pipeline import train_run; "
         f"train_run(resolve('shared-0', 'smoke', seed=5), project_dir=Path({str(proj)!r}), "
         "progress=False, checkpoint_every_s=0.0)"
@@ -343,7 +343,7 @@ def test_sigterm_stops_training_as_ctrl_c_does(tmp_path, smoke_data, smoke_run, 
     cfg = resolve("shared-0", "smoke", seed=1)
     proj = _project(tmp_path, smoke_data, monkeypatch)
     code = (
-        "from pathlib import Path; from cloudpose.config import resolve; "
+        "from pathlib import Path; from cloudpose.registry import resolve; "
         "from cloudpose.suite.pipeline import train_run; "
         f"train_run(resolve('shared-0', 'smoke', seed=1), project_dir=Path({str(proj)!r}), "
         "progress=False, checkpoint_every_s=0.0)"
