@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -139,8 +140,10 @@ def ship(
 
     Half precision is kept only if, on every segment set of ``check_segments`` (pairs of a name
     and :class:`~cloudpose.data.segment_set.SegmentSet`), no pose differs from the float32
-    network's by more than :data:`HALF_TOLERANCE_DEG` (and 0.01 mm); else float32 ships. The
-    record says which and by how much the poses differ.
+    network's by more than :data:`HALF_TOLERANCE_DEG` (and 0.01 mm); else float32 ships: the
+    checkpoint's bytes as they are (one git blob with the run's stored checkpoint) when it
+    holds only the network and its config. The record says which and by how much the poses
+    differ.
 
     Returns:
         The weights file written.
@@ -166,9 +169,14 @@ def ship(
             trial.unlink(missing_ok=True)
         ok = all(r <= HALF_TOLERANCE_DEG and t <= 0.01 for r, t in worst.values())
         dtype = "float16" if ok else "float32"
-    weights = half_state(state["model"]) if dtype == "float16" else state["model"]
     path = out_dir / f"{stem}.pt"
-    atomic_write(path, lambda p: torch.save({"model": weights, "config": state["config"]}, p))
+    if dtype == "float32" and set(state) == {"model", "config"}:
+        # the checkpoint's own bytes: torch.save names the zip's root after the file, so a
+        # save under another name would differ, and git would store the network twice
+        atomic_write(path, lambda p: shutil.copyfile(checkpoint, p))
+    else:
+        weights = half_state(state["model"]) if dtype == "float16" else state["model"]
+        atomic_write(path, lambda p: torch.save({"model": weights, "config": state["config"]}, p))
     record = {
         "run_name": run_name,
         "run_id": run_id,

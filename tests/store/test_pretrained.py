@@ -123,6 +123,29 @@ def test_ship_keeps_half_precision_only_within_the_tolerance(smoke_run, tmp_path
     assert json.loads(path.with_suffix(".json").read_text())["sha256"] == net.info["sha256"]
 
 
+def test_a_float32_ship_is_the_checkpoint_byte_for_byte(smoke_run, tmp_path):
+    """Float32 ships the checkpoint's own bytes (not a save under another name), so git
+    stores the shipped network and the run's checkpoint as one blob."""
+    _, out = smoke_run
+    ckpt = Path(out.run_dir) / "model.pt"
+    path = ship(
+        ckpt,
+        tmp_path,
+        SHIPPED[PRETRAINED],
+        run_name="shared-0/smoke/seed1",
+        run_id="0" * 32,
+        data_key="0" * 16,
+        fingerprint="0" * 16,
+        metrics={},
+        command="test",
+        check_segments=[],
+        half=False,
+    )
+    assert path.read_bytes() == ckpt.read_bytes()
+    net = shipped(folder=tmp_path)
+    assert net.info["dtype"] == "float32" and not list(tmp_path.glob(".*"))
+
+
 def test_half_state_keeps_integer_buffers():
     state = {"w": torch.ones(2, dtype=torch.float32), "n": torch.tensor(3)}
     out = half_state(state)
