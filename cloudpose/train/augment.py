@@ -10,7 +10,7 @@ import math
 import torch
 
 from cloudpose.config import Config
-from cloudpose.train.seeds import generator
+from cloudpose.train import seeds
 
 
 def augment(
@@ -34,10 +34,10 @@ def augment(
     """
     train = cfg.train
     if train.augment_roll_deg > 0:
-        g = generator(cfg.seed, "roll", epoch, batch, streams=train.seed_streams)
+        g = seeds.generator(cfg.seed, "roll", epoch, batch, streams=train.seed_streams)
         points, R, t = roll_about_optical_axis(points, R, t, train.augment_roll_deg, g)
     if train.augment_depth_noise_mm > 0:
-        g = generator(cfg.seed, "depth_noise", epoch, batch, streams=train.seed_streams)
+        g = seeds.generator(cfg.seed, "depth_noise", epoch, batch, streams=train.seed_streams)
         points = jitter_along_rays(points, train.augment_depth_noise_mm / 1000, g)
     return points, R, t
 

@@ -70,9 +70,9 @@ from cloudpose.models.fused import fuse_model
 from cloudpose.models.sync_bn import local_batch_stats, sync_batch_stats
 from cloudpose.registry import groups_of
 from cloudpose.store import runs, tracking
+from cloudpose.train import seeds
 from cloudpose.train.augment import augment
 from cloudpose.train.distributed import SINGLE, World
-from cloudpose.train.seeds import generator, seed_for
 from cloudpose.train.step import Batch, StepLoss, train_step
 from cloudpose.train.validation import batch_stats_rotation_error, recalibrate_bn, validate
 
@@ -500,7 +500,7 @@ def _training_sets(
     symmetry = None
     if cfg.loss.symmetric:
         symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)
-    g = generator(cfg.seed, "probe", streams=cfg.train.seed_streams)
+    g = seeds.generator(cfg.seed, "probe", streams=cfg.train.seed_streams)
     probe = fit.subset(torch.randperm(len(fit), generator=g)[:512])
     models = data.dataset.models()
     return TrainingSets(fit, val, probe, online, store, class_names, models, symmetry)
@@ -508,7 +508,7 @@ def _training_sets(
 
 def _network(cfg: Config, device: torch.device) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
     """The network at its initial weights (the seed's ``init`` stream) and its Adam."""
-    torch.manual_seed(seed_for(cfg.seed, "init", streams=cfg.train.seed_streams))
+    torch.manual_seed(seeds.seed_for(cfg.seed, "init", streams=cfg.train.seed_streams))
     model = build_model(cfg.model).to(device)
     bf16 = cfg.train.precision == "bf16"
     if bf16:
@@ -676,7 +676,7 @@ class Trainer:
                 yield Batch(*(x.to(to) for x in stream.next()))
             return
         fit, bs, cfg = self.sets.fit, self.batch_size, self.cfg
-        g = generator(cfg.seed, "order", position.epoch, streams=cfg.train.seed_streams)
+        g = seeds.generator(cfg.seed, "order", position.epoch, streams=cfg.train.seed_streams)
         perm = epoch_order(fit, cfg.train.sampler, self.n_batches * bs, g)
         for b in range(position.batch, self.n_batches):
             idx = perm[b * bs : (b + 1) * bs]
@@ -738,7 +738,9 @@ class Trainer:
                 )
             }
             if cfg.train.bn_recalibrate:
-                seed = seed_for(cfg.seed, "bn_recalibrate", epoch, streams=cfg.train.seed_streams)
+                seed = seeds.seed_for(
+                    cfg.seed, "bn_recalibrate", epoch, streams=cfg.train.seed_streams
+                )
                 recalibrate_bn(model, sets.fit, cfg.train.bn_recalibrate, bs, seed, device)
             for data, prefix in ((sets.val, "val"), (sets.probe, "fit")):
                 out |= validate(
