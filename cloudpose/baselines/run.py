@@ -46,7 +46,7 @@ from cloudpose.evaluate import instance_table, log_evaluation
 from cloudpose.files import atomic_write
 from cloudpose.infer import Estimates, refine_poses
 from cloudpose.registry import DEFAULT_PRESET, resolve
-from cloudpose.store import runs, tracking
+from cloudpose.store import instances, runs, tracking
 from cloudpose.store.metric_names import data_evaluation_name, summary_metrics, video_metrics
 from cloudpose.store.runs import run_folder
 from cloudpose.train.loop import split_frames
@@ -134,7 +134,7 @@ class BaselineCall:
         if not runs:
             return None
         run = runs[0]
-        table = tracking.read_csv_artifact(client, run, f"eval/{self.split}/instances.csv")
+        table = instances.read_csv_artifact(client, run, f"eval/{self.split}/instances.csv")
         metrics = dict(run.data.metrics)
         failures = int(metrics.get(f"{self.split}/failures", 0))
         split = run.data.tags.get(f"eval/{self.split}/split", "")

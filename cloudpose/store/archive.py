@@ -43,9 +43,9 @@ from pathlib import Path
 from cloudpose.failures import disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write
 from cloudpose.store import tracking
+from cloudpose.store.compact import CHECKPOINT_SUFFIX
 from cloudpose.store.tracking import ARTIFACT_DIR, EXPERIMENT_PREFIX, STORE_DB
 
-CHECKPOINT_SUFFIX = ".pt"
 """Files left out of a packed store but for the runs named to keep them."""
 
 UNPACK_PREFIX = ".store-unpack-"

@@ -60,6 +60,9 @@ METRIC_COLUMNS = ("key", "step", "timestamp", "value", "is_nan")
 _KEPT = {"experiments", "experiment_tags", "runs", "tags", "params", "metrics", "latest_metrics"}
 _MADE_BY_MLFLOW = {"alembic_version", "workspaces"}
 
+CHECKPOINT_SUFFIX = ".pt"
+"""Suffix of a run's checkpoint artifacts (``model.pt``): kept only for the runs named."""
+
 
 @dataclass(frozen=True)
 class RunSource:
@@ -125,7 +128,6 @@ def _left_out(con: sqlite3.Connection) -> list[str]:
 def _stage_artifacts(run: RunSource, dest: Path) -> tuple[int, int, int]:
     """Copy a run's artifacts into ``dest``, instance tables as Parquet; returns (files,
     checkpoints kept, checkpoints left out)."""
-    from cloudpose.store.archive import CHECKPOINT_SUFFIX
 
     files = kept = left = 0
     if not run.source.is_dir():

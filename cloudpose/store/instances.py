@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose.store.tracking import local_artifact
+
 PARQUET = "instances.parquet"
 """File name of an instance table as evaluations write it."""
 
@@ -322,7 +324,6 @@ def local_table(artifact_uri: str, name: str) -> Path | None:
     """The file of evaluation ``name``'s instance table in a local artifact folder: the
     Parquet one if present, else the CSV one (which may not exist either); None for a remote
     store (:func:`cloudpose.store.tracking.local_artifact`)."""
-    from cloudpose.store.tracking import local_artifact
 
     paths = [local_artifact(artifact_uri, rel) for rel in artifact_names(name)]
     if paths[0] is None:
@@ -334,7 +335,6 @@ def read_artifact_table(client, run, rel: str) -> pd.DataFrame:
     """A run's table artifact ``rel`` (CSV, or an instance table in either form: its Parquet
     twin is read where the run has that instead), read in place from a local store,
     downloaded from a remote one."""
-    from cloudpose.store.tracking import local_artifact
 
     names = twins(rel)
     local = [local_artifact(run.info.artifact_uri, r) for r in names]
@@ -347,3 +347,9 @@ def read_artifact_table(client, run, rel: str) -> pd.DataFrame:
             except Exception:  # not there (MlflowException, OSError): try the CSV name
                 continue
         return read_table(client.download_artifacts(run.info.run_id, names[-1], tmp))
+
+
+def read_csv_artifact(client, run, rel: str) -> pd.DataFrame:
+    """The run's table artifact ``rel`` (e.g. ``eval/NAME/instances.csv``) as a DataFrame,
+    read from its Parquet form where the run has that (:func:`read_artifact_table`)."""
+    return read_artifact_table(client, run, rel)

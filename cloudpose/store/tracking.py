@@ -324,15 +324,6 @@ def local_artifact(uri: str, rel: str) -> Path | None:
     return None
 
 
-def read_csv_artifact(client, run, rel: str):
-    """The run's CSV artifact ``rel`` as a DataFrame: read in place from a local store,
-    downloaded from a remote one; an instance table (``eval/NAME/instances.csv``) is read
-    from its Parquet form where the run has that (:mod:`cloudpose.store.instances`)."""
-    from cloudpose.store.instances import read_artifact_table
-
-    return read_artifact_table(client, run, rel)
-
-
 def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:
     """MLflow ``Metric`` entities of ``metrics`` at ``step``, stamped now (for ``log_batch``);
     ``finite_only`` leaves out NaN and infinite values."""

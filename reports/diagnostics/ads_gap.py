@@ -33,6 +33,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.metrics.summaries import AUC_MAX_THRESHOLD, voc_ap_auc
+from cloudpose.store import instances as instance_tables
 from cloudpose.store import tracking
 
 BINS = (0.0, 10.0, 30.0, np.inf)
@@ -46,7 +47,7 @@ def instances(client, name: str) -> pd.DataFrame:
     run = tracking.newest_run_named(client, name)
     if run is None:
         raise SystemExit(f"no finished run named {name!r} in the MLflow store of {Path.cwd()}")
-    return tracking.read_csv_artifact(client, run, "eval/test/instances.csv")
+    return instance_tables.read_csv_artifact(client, run, "eval/test/instances.csv")
 
 
 def auc_loss(ads: pd.Series) -> np.ndarray:

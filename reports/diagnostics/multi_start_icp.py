@@ -38,7 +38,7 @@ from cloudpose.infer import Estimates, refine_poses
 from cloudpose.refine import ICPSettings
 from cloudpose.registry import resolve
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
-from cloudpose.store import tracking
+from cloudpose.store import instances, tracking
 
 KEY = ["frame_id", "instance"]
 
@@ -49,7 +49,7 @@ def logged(client, name: str, split: str) -> tuple[pd.DataFrame, dict]:
     run = tracking.newest_run_named(client, name)
     if run is None:
         raise SystemExit(f"no finished run named {name!r} in the MLflow store of {Path.cwd()}")
-    table = tracking.read_csv_artifact(client, run, f"eval/{split}/instances.csv")
+    table = instances.read_csv_artifact(client, run, f"eval/{split}/instances.csv")
     return table, run.data.tags
 
 

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from cloudpose.data.dataset import prepare_data
 from cloudpose.infer import estimate_poses, load_checkpoint
 from cloudpose.registry import resolve
-from cloudpose.store import tracking
+from cloudpose.store import instances, tracking
 
 CLASSES = (
     "021_bleach_cleanser",
@@ -68,7 +68,7 @@ def main() -> None:
     models, classes, segs = dataset.models(), dataset.classes, data.test
     est = estimate_poses(model, segs, cfg.train.n_points)
     base = {
-        m: tracking.read_csv_artifact(
+        m: instances.read_csv_artifact(
             client, _newest(client, f"baseline-{m}/{args.preset}/seed1"), "eval/test/instances.csv"
         )
         for m in ("ppf", "fpfh")

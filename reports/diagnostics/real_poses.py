@@ -42,7 +42,7 @@ from cloudpose.conventions import resource_path
 from cloudpose.data.layout import open_dataset
 from cloudpose.data.synth.resting import resting_poses
 from cloudpose.data.synth.scenes import CAMERA_DISTANCE, CAMERA_ELEVATION_DEG
-from cloudpose.store import tracking
+from cloudpose.store import instances, tracking
 
 PLANE_DISTANCE = 0.01
 """RANSAC inlier distance of the table plane, metres."""
@@ -114,7 +114,7 @@ def network_errors(names: list[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
         if run is None:
             raise SystemExit(f"no run named {name!r} in the MLflow store of {Path.cwd()}")
         for split, out in tables.items():
-            out.append(tracking.read_csv_artifact(client, run, f"eval/{split}/instances.csv"))
+            out.append(instances.read_csv_artifact(client, run, f"eval/{split}/instances.csv"))
 
     def summary(d: pd.DataFrame, by: list) -> pd.DataFrame:
         err = d.groupby(by).net_rot_sym_err_deg

@@ -8,7 +8,7 @@ import tarfile
 import pandas as pd
 import pytest
 
-from cloudpose.store import tracking
+from cloudpose.store import instances, tracking
 from cloudpose.store.archive import pack_store, unpack_store
 from tests.conftest import cli, one_line_error
 
@@ -45,7 +45,7 @@ def _tables(root):
     client = tracking.setup(root)
     runs = tracking.find_runs(client)
     return {
-        r.info.run_name: tracking.read_csv_artifact(client, r, "eval/test/instances.csv")
+        r.info.run_name: instances.read_csv_artifact(client, r, "eval/test/instances.csv")
         for r in runs
     }
 
