@@ -31,7 +31,14 @@ def test_a_stopped_serve_command_stops_its_server_and_the_servers_workers(tmp_pa
         "from cloudpose.cli.serve import _serve_until_interrupted\n"
         f"_serve_until_interrupted({server!r}, {{}}, 'stand-in server')\n"
     )
-    cmd = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True)
+    # As from a terminal: a command started in the background of a non-interactive shell (as CI
+    # may start the suite) inherits SIGINT ignored, and Python then installs no handler for it.
+    cmd = subprocess.Popen(
+        [sys.executable, "-c", code],
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         deadline = time.monotonic() + 60
         while not (pidfile.is_file() and pidfile.read_text().strip()):
