@@ -12,6 +12,22 @@ from cloudpose.report.experiments import (
     steps_per_epoch,
     write_log,
 )
+from tests.conftest import make_project
+
+
+@pytest.fixture(scope="module")
+def group_store(tmp_path_factory, smoke_data):
+    """A project whose store holds one run of the shared group: shared-0 trained on the smoke
+    preset. Its own store, not the session's smoke project, which other tests add runs to."""
+    from cloudpose.suite.pipeline import train_run
+
+    mp = pytest.MonkeyPatch()
+    try:
+        proj = make_project(tmp_path_factory.mktemp("experiments") / "proj", smoke_data, mp)
+        out = train_run(resolve("shared-0", "smoke", seed=1), project_dir=proj, progress=False)
+    finally:
+        mp.undo()
+    return proj, out
 
 
 def test_config_changes_lists_overrides_only():
@@ -22,8 +38,8 @@ def test_config_changes_lists_overrides_only():
     assert literal["model.xyz_scale"] == 0.03 and literal["loss.symmetric"] is True
 
 
-def test_log_of_a_trained_smoke_run(smoke_run, tmp_path, monkeypatch):
-    proj, _ = smoke_run
+def test_log_of_a_trained_smoke_run(group_store, tmp_path, monkeypatch):
+    proj, _ = group_store
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     (exp,) = collect("shared", proj)
     assert exp.name == "shared-0/smoke/seed1" and exp.changes == "(none)"
@@ -37,8 +53,8 @@ def test_log_of_a_trained_smoke_run(smoke_run, tmp_path, monkeypatch):
     assert (tmp_path / "log.csv").exists()
 
 
-def test_log_of_several_groups_and_one_preset(smoke_run, tmp_path, monkeypatch):
-    proj, _ = smoke_run
+def test_log_of_several_groups_and_one_preset(group_store, tmp_path, monkeypatch):
+    proj, _ = group_store
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     (exp,) = collect(["shared", "shared"], proj, preset="smoke")  # each run once
     assert exp.name == "shared-0/smoke/seed1"
