@@ -171,19 +171,25 @@ def make_project(path: Path, smoke_data: Path, monkeypatch) -> Path:
     return path
 
 
-@pytest.fixture(scope="session")
-def smoke_run(tmp_path_factory, smoke_data):
-    """(project folder, TrainOutcome) of shared-0 trained on the smoke preset."""
+def train_smoke_project(folder: Path, smoke_data: Path):
+    """(project folder, TrainOutcome): a new project in ``folder`` with shared-0 trained on the
+    smoke preset."""
     from cloudpose.registry import resolve
     from cloudpose.suite.pipeline import train_run
 
     mp = pytest.MonkeyPatch()
     try:
-        proj = make_project(tmp_path_factory.mktemp("smoke-run") / "proj", smoke_data, mp)
+        proj = make_project(folder / "proj", smoke_data, mp)
         out = train_run(resolve("shared-0", "smoke", seed=1), project_dir=proj, progress=False)
     finally:
         mp.undo()
     return proj, out
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory, smoke_data):
+    """(project folder, TrainOutcome) of shared-0 trained on the smoke preset."""
+    return train_smoke_project(tmp_path_factory.mktemp("smoke-run"), smoke_data)
 
 
 @pytest.fixture

@@ -12,22 +12,14 @@ from cloudpose.report.experiments import (
     steps_per_epoch,
     write_log,
 )
-from tests.conftest import make_project
+from tests.conftest import train_smoke_project
 
 
 @pytest.fixture(scope="module")
 def group_store(tmp_path_factory, smoke_data):
     """A project whose store holds one run of the shared group: shared-0 trained on the smoke
     preset. Its own store, not the session's smoke project, which other tests add runs to."""
-    from cloudpose.suite.pipeline import train_run
-
-    mp = pytest.MonkeyPatch()
-    try:
-        proj = make_project(tmp_path_factory.mktemp("experiments") / "proj", smoke_data, mp)
-        out = train_run(resolve("shared-0", "smoke", seed=1), project_dir=proj, progress=False)
-    finally:
-        mp.undo()
-    return proj, out
+    return train_smoke_project(tmp_path_factory.mktemp("experiments"), smoke_data)
 
 
 def test_config_changes_lists_overrides_only():
