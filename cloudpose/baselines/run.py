@@ -134,7 +134,7 @@ class BaselineCall:
         if not runs:
             return None
         run = runs[0]
-        table = instances.read_csv_artifact(client, run, f"eval/{self.split}/instances.csv")
+        table = instances.read_artifact_table(client, run, f"eval/{self.split}/instances.csv")
         metrics = dict(run.data.metrics)
         failures = int(metrics.get(f"{self.split}/failures", 0))
         split = run.data.tags.get(f"eval/{self.split}/split", "")

@@ -335,7 +335,6 @@ def read_artifact_table(client, run, rel: str) -> pd.DataFrame:
     """A run's table artifact ``rel`` (CSV, or an instance table in either form: its Parquet
     twin is read where the run has that instead), read in place from a local store,
     downloaded from a remote one."""
-
     names = twins(rel)
     local = [local_artifact(run.info.artifact_uri, r) for r in names]
     if local[0] is not None:
@@ -347,9 +346,3 @@ def read_artifact_table(client, run, rel: str) -> pd.DataFrame:
             except Exception:  # not there (MlflowException, OSError): try the CSV name
                 continue
         return read_table(client.download_artifacts(run.info.run_id, names[-1], tmp))
-
-
-def read_csv_artifact(client, run, rel: str) -> pd.DataFrame:
-    """The run's table artifact ``rel`` (e.g. ``eval/NAME/instances.csv``) as a DataFrame,
-    read from its Parquet form where the run has that (:func:`read_artifact_table`)."""
-    return read_artifact_table(client, run, rel)

@@ -47,7 +47,7 @@ def instances(client, name: str) -> pd.DataFrame:
     run = tracking.newest_run_named(client, name)
     if run is None:
         raise SystemExit(f"no finished run named {name!r} in the MLflow store of {Path.cwd()}")
-    return instance_tables.read_csv_artifact(client, run, "eval/test/instances.csv")
+    return instance_tables.read_artifact_table(client, run, "eval/test/instances.csv")
 
 
 def auc_loss(ads: pd.Series) -> np.ndarray:

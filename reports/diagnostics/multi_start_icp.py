@@ -49,7 +49,7 @@ def logged(client, name: str, split: str) -> tuple[pd.DataFrame, dict]:
     run = tracking.newest_run_named(client, name)
     if run is None:
         raise SystemExit(f"no finished run named {name!r} in the MLflow store of {Path.cwd()}")
-    table = instances.read_csv_artifact(client, run, f"eval/{split}/instances.csv")
+    table = instances.read_artifact_table(client, run, f"eval/{split}/instances.csv")
     return table, run.data.tags
 
 

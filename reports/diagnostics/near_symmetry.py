@@ -68,7 +68,7 @@ def main() -> None:
     models, classes, segs = dataset.models(), dataset.classes, data.test
     est = estimate_poses(model, segs, cfg.train.n_points)
     base = {
-        m: instances.read_csv_artifact(
+        m: instances.read_artifact_table(
             client, _newest(client, f"baseline-{m}/{args.preset}/seed1"), "eval/test/instances.csv"
         )
         for m in ("ppf", "fpfh")

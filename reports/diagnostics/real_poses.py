@@ -114,7 +114,7 @@ def network_errors(names: list[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
         if run is None:
             raise SystemExit(f"no run named {name!r} in the MLflow store of {Path.cwd()}")
         for split, out in tables.items():
-            out.append(instances.read_csv_artifact(client, run, f"eval/{split}/instances.csv"))
+            out.append(instances.read_artifact_table(client, run, f"eval/{split}/instances.csv"))
 
     def summary(d: pd.DataFrame, by: list) -> pd.DataFrame:
         err = d.groupby(by).net_rot_sym_err_deg

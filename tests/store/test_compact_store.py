@@ -132,7 +132,7 @@ def test_a_compact_store_rebuilds_the_same_runs_and_tables(project, tmp_path):
         ]
         seed = int(name[-1])
         want = _table(seed)
-        got = instances.read_csv_artifact(client, run, "eval/test/instances.csv")  # the twin
+        got = instances.read_artifact_table(client, run, "eval/test/instances.csv")  # the twin
         assert list(got.columns) == list(want.columns)
         pd.testing.assert_series_equal(got["frame_id"], want["frame_id"], check_dtype=False)
         assert got["miss"].tolist() == want["miss"].tolist()

@@ -74,6 +74,22 @@ def test_the_shipped_network_puts_each_object_of_a_real_frame_within_a_centimetr
         assert ads < 0.015, (p.name, ads)  # 2.6-6.2 mm measured
 
 
+def _ship_smoke(ckpt: Path, out: Path, **kwargs) -> Path:
+    """:func:`ship` of the smoke run's checkpoint into ``out`` under the shipped name, with a
+    placeholder record (run, data key and fingerprint zeros)."""
+    return ship(
+        ckpt,
+        out,
+        SHIPPED[PRETRAINED],
+        run_name="shared-0/smoke/seed1",
+        run_id="0" * 32,
+        data_key="0" * 16,
+        fingerprint="0" * 16,
+        command="test",
+        **kwargs,
+    )
+
+
 def test_ship_keeps_half_precision_only_within_the_tolerance(smoke_run, tmp_path):
     """A run's checkpoint shipped: the record names the run and a checksum that
     :func:`shipped` accepts; half precision ships only if every pose stays within 0.01 deg."""
@@ -98,16 +114,10 @@ def test_ship_keeps_half_precision_only_within_the_tolerance(smoke_run, tmp_path
         instance=np.arange(m, dtype=np.int16),
         valid=np.ones(m, bool),
     )
-    path = ship(
+    path = _ship_smoke(
         ckpt,
         tmp_path,
-        SHIPPED[PRETRAINED],
-        run_name="shared-0/smoke/seed1",
-        run_id="0" * 32,
-        data_key="0" * 16,
-        fingerprint="0" * 16,
         metrics={"test/ads_auc": 0.5, "other": 1.0},
-        command="test",
         check_segments=[("noise", segs)],
     )
     net = shipped(folder=tmp_path)
@@ -128,19 +138,7 @@ def test_a_float32_ship_is_the_checkpoint_byte_for_byte(smoke_run, tmp_path):
     stores the shipped network and the run's checkpoint as one blob."""
     _, out = smoke_run
     ckpt = Path(out.run_dir) / "model.pt"
-    path = ship(
-        ckpt,
-        tmp_path,
-        SHIPPED[PRETRAINED],
-        run_name="shared-0/smoke/seed1",
-        run_id="0" * 32,
-        data_key="0" * 16,
-        fingerprint="0" * 16,
-        metrics={},
-        command="test",
-        check_segments=[],
-        half=False,
-    )
+    path = _ship_smoke(ckpt, tmp_path, metrics={}, check_segments=[], half=False)
     assert path.read_bytes() == ckpt.read_bytes()
     net = shipped(folder=tmp_path)
     assert net.info["dtype"] == "float32" and not list(tmp_path.glob(".*"))

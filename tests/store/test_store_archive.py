@@ -45,7 +45,7 @@ def _tables(root):
     client = tracking.setup(root)
     runs = tracking.find_runs(client)
     return {
-        r.info.run_name: instances.read_csv_artifact(client, r, "eval/test/instances.csv")
+        r.info.run_name: instances.read_artifact_table(client, r, "eval/test/instances.csv")
         for r in runs
     }
 

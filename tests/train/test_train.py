@@ -92,16 +92,22 @@ def test_train_logs_to_mlflow_and_same_seed_same_numbers(tmp_path, smoke_data, m
     assert not runs.run_has_config(tracking.setup(proj).get_run(other.run_id), cfg)
 
 
-@pytest.mark.slow
-def test_resume_after_interruption_matches_uninterrupted(tmp_path, smoke_data, monkeypatch):
-    cfg = resolve("shared-1", "smoke", seed=2)
+def _cut_and_resumed(cfg, max_steps: int, tmp_path: Path, smoke_data: Path, monkeypatch):
+    """(uninterrupted run, the same run stopped after ``max_steps`` steps and resumed, the
+    resumed run's project), each in a project of its own."""
     ref = train_run(
         cfg, project_dir=_project(tmp_path / "ref", smoke_data, monkeypatch), progress=False
     )
     proj = _project(tmp_path / "cut", smoke_data, monkeypatch)
     with pytest.raises(TrainingInterrupted):
-        train_run(cfg, project_dir=proj, progress=False, max_steps=3)  # mid-epoch
-    resumed = train_run(cfg, project_dir=proj, progress=False)
+        train_run(cfg, project_dir=proj, progress=False, max_steps=max_steps)
+    return ref, train_run(cfg, project_dir=proj, progress=False), proj
+
+
+@pytest.mark.slow
+def test_resume_after_interruption_matches_uninterrupted(tmp_path, smoke_data, monkeypatch):
+    cfg = resolve("shared-1", "smoke", seed=2)
+    ref, resumed, proj = _cut_and_resumed(cfg, 3, tmp_path, smoke_data, monkeypatch)  # mid-epoch
     assert resumed.metrics == ref.metrics
     assert _curve(resumed.run_id, proj, "train/loss") == _curve(
         ref.run_id, tmp_path / "ref" / "proj", "train/loss"
@@ -114,13 +120,7 @@ def test_purpose_streams_resume_to_the_same_numbers(tmp_path, smoke_data, monkey
     resumed ends as an uninterrupted one, whose numbers differ from the seed arithmetic's."""
     aug = {"augment_roll_deg": 30.0, "augment_depth_noise_mm": 2.0}
     cfg = resolve("shared-0", "smoke", 2, {"train": {**aug, "seed_streams": "purpose"}})
-    ref = train_run(
-        cfg, project_dir=_project(tmp_path / "ref", smoke_data, monkeypatch), progress=False
-    )
-    proj = _project(tmp_path / "cut", smoke_data, monkeypatch)
-    with pytest.raises(TrainingInterrupted):
-        train_run(cfg, project_dir=proj, progress=False, max_steps=1)
-    resumed = train_run(cfg, project_dir=proj, progress=False)
+    ref, resumed, _ = _cut_and_resumed(cfg, 1, tmp_path, smoke_data, monkeypatch)
     assert resumed.metrics == ref.metrics
     arithmetic = resolve("shared-0", "smoke", 2, {"train": aug})
     other = train_run(
