@@ -18,6 +18,7 @@ ROTATION_LOSSES = ("geodesic", "l2")
 SHARED_CHOICES = (0, 1, 2, 3, 4, 5, "all")
 PRECISIONS = ("fp32", "bf16")
 ROTATION_INPUTS = ("raw", "centred")
+CENTRES = ("mean", "median", "trimmed")
 SAMPLERS = ("shuffle", "class_balanced")
 LR_SCHEDULES = ("constant", "cosine")
 TRAIN_SOURCES = ("frames", "online")
@@ -50,7 +51,7 @@ GENERATOR_VERSION = 2
 """The newest generator version (the default)."""
 
 
-ONLINE_VERSIONS = (1, 2)
+ONLINE_VERSIONS = (1, 2, 3)
 """How on-line synthesis makes its segments (``DataConfig.online_version``,
 :class:`cloudpose.data.synth.online.OnlineSynth`): 1, Open3D ray casting and numpy (every
 on-line run stored before this field existed); 2, the same scenes, draws and sensor by
@@ -101,6 +102,11 @@ class ModelConfig:
             ~0.05, so at 1.0 the class term dominates every first-layer unit and the pooled
             features vary by a few percent between segments of one class (a class can then
             get stuck at a constant output). 0.1 (decimetres) puts both on one scale.
+        centre: the point mu the segment is centred on and the translation is a residual to:
+            "mean" (the paper), "median" (per coordinate) or "trimmed" (the mean of the
+            points nearest the per-coordinate median, :data:`cloudpose.models.pose.TRIM_KEEP`
+            of them). Points of a neighbour or the background that a mask lets in drag the
+            mean sideways; the robust centres move less (docs/stress.md).
     """
 
     shared_layers: int | str = 0
@@ -112,8 +118,11 @@ class ModelConfig:
     bn_momentum: float = 0.01
     rotation_input: str = "raw"
     xyz_scale: float = 1.0
+    centre: str = "mean"
 
     def __post_init__(self) -> None:
+        if self.centre not in CENTRES:
+            raise ValueError(f"model.centre must be one of {CENTRES}, got {self.centre!r}")
         if self.rotation_input not in ROTATION_INPUTS:
             raise ValueError(
                 f"model.rotation_input must be one of {ROTATION_INPUTS}, "
@@ -499,6 +508,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
     },
     "train": {"threads": 2, "augment_depth_noise_mm": 0.0, "seed_streams": "arithmetic"},
     "loss": {"symmetry_table": 1},
+    "model": {"centre": "mean"},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
 synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
@@ -510,7 +520,8 @@ the ``icp`` section existed was refined without the guard, and every run stored 
 ``icp.starts`` existed from the estimate only; every run stored before
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads, and
 without depth-noise augmentation; every run stored before ``train.seed_streams`` existed drew
-its random streams by the seed arithmetic.
+its random streams by the seed arithmetic; every run stored before ``model.centre`` existed
+took the translation as a residual to the segment mean.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 

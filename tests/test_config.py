@@ -192,8 +192,9 @@ def test_groups_as_the_issue_lists_them():
     assert "shared-all-2x" in shared and len(shared) == 9
     assert g["rotation"].members == ("shared-0", "quaternion", "rot6d")
     assert g["loss"].members == ("shared-0", "l2")
-    assert groups_of("shared-0") == ["shared", "rotation", "loss", "symmetry"]
+    assert groups_of("shared-0") == ["shared", "rotation", "loss", "symmetry", "centre"]
     assert g["symmetry"].members == ("shared-0", "geodesic-plain")
+    assert g["centre"].members == ("shared-0", "centre-median", "centre-trimmed")
     assert groups_of("rot6d") == ["rotation"]
     # every variant belongs to some group
     assert all(groups_of(name) for name in variants())

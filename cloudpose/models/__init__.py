@@ -15,6 +15,7 @@ from cloudpose.models.pose import (
     build_model,
     count_parameters,
     raw_rotation_to_rotmat,
+    segment_centre,
     variant_table,
 )
 
@@ -31,5 +32,6 @@ __all__ = [
     "point_stages",
     "raw_rotation_to_rotmat",
     "scaled_width",
+    "segment_centre",
     "variant_table",
 ]

@@ -21,6 +21,7 @@ Class ids are 1-based (0 = background); the one-hot uses ``id - 1`` (cloudpose.c
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple, Protocol
 
 import torch
@@ -120,7 +121,8 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
     """The forward pass of a pose network: the one used in training (:class:`PoseNet`) and
     at inference (:class:`~cloudpose.models.folded.FoldedPoseNet`).
 
-    The points are centred on their mean mu; the translation branch (and a trunk) sees the
+    The points are centred on mu (their mean, or a robust centre: ``ModelConfig.centre``,
+    :func:`segment_centre`); the translation branch (and a trunk) sees the
     centred points, the rotation branch of layout "pair" the centred or the raw points
     (``ModelConfig.rotation_input``); the rotation output becomes R, and ``t = dt + mu``.
     ``net`` supplies how its layers run (:class:`PoseBranches`).
@@ -136,7 +138,7 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
     """
     cfg = net.cfg
     check_pose_inputs(points, cls_id, cfg.num_classes)
-    mu = points.mean(dim=1)  # (B, 3)
+    mu = segment_centre(points, cfg.centre)  # (B, 3)
     centred = points - mu[:, None, :]  # (B, n, 3)
     layout = branch_layout(cfg)
     if layout == "all":
@@ -149,6 +151,37 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
         rot_raw, t_residual = net.run_pair(rot_xyz, centred, cls_id)
     R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)  # (B, 3, 3)
     return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
+
+
+TRIM_KEEP = 0.75
+"""The share of a segment's points the "trimmed" centre averages: those nearest the
+per-coordinate median."""
+
+
+def segment_centre(points: torch.Tensor, centre: str = "mean") -> torch.Tensor:
+    """The point (B, 3) a segment (B, n, 3) is centred on (``ModelConfig.centre``).
+
+    "mean": the mean (the paper). "median": the per-coordinate median (for even n the lower of
+    the two middle values, as :func:`torch.median`). "trimmed": the mean of the
+    ``ceil(TRIM_KEEP * n)`` points nearest the per-coordinate median. Points a mask lets in
+    from the background behind the object pull both robust centres far less than the mean;
+    points of a neighbour right beside the rim are within the object's own spread and move
+    the median about as much as the mean (its shift is then ~ the bled share times the
+    object's spread, not times their distance).
+    """
+    if centre == "mean":
+        return points.mean(dim=1)
+    median = points.median(dim=1).values  # (B, 3)
+    if centre == "median":
+        return median
+    if centre != "trimmed":
+        raise ValueError(f"centre must be 'mean', 'median' or 'trimmed', got {centre!r}")
+    n = points.shape[1]
+    keep = max(1, math.ceil(TRIM_KEEP * n))
+    d2 = ((points - median[:, None, :]) ** 2).sum(dim=-1)  # (B, n)
+    idx = torch.topk(d2, keep, dim=1, largest=False).indices  # (B, keep)
+    near = torch.gather(points, 1, idx[..., None].expand(-1, -1, 3))
+    return near.mean(dim=1)
 
 
 def check_pose_inputs(points: torch.Tensor, cls_id: torch.Tensor, num_classes: int) -> None:
