@@ -57,7 +57,9 @@ ONLINE_VERSIONS = (1, 2, 3)
 on-line run stored before this field existed); 2, the same scenes, draws and sensor by
 compiled kernels (a z-buffer of the meshes; its segments per second against version 1's:
 ``online_v2_supply_ratio`` in reports/benchmarks.md): the same segments to float rounding, but
-not bit for bit, so a stream of its own."""
+not bit for bit, so a stream of its own; 3, the same scenes and sensor model with draws of its
+own (fewer, float32) and every object of a scene drawn, read and cut in a few compiled passes
+(``online_v3_supply_ratio``): the same distribution, other segments."""
 
 
 def check_online_version(version: int) -> int:
@@ -309,7 +311,9 @@ class DataConfig:
             (at least 3), which wastes no scene on segments it drops.
         online_version: with "online", how segments are synthesized
             (:data:`ONLINE_VERSIONS`): 1, ray casting (the committed on-line runs); 2, the
-            compiled path, the same scenes and sensor to float rounding, several times faster.
+            compiled path, the same scenes and sensor to float rounding, several times faster;
+            3, the scene-at-once compiled path, the same scenes and sensor model with draws
+            of its own (the same distribution, other segments), faster again.
         segment_streams: how a frame's instances draw their FPS start points
             (:data:`cloudpose.data.segments.SEGMENT_STREAMS`): "instance", each from its own
             stream, so a missed or dropped instance changes no other; "frame", one stream per

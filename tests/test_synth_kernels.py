@@ -153,3 +153,80 @@ def test_compiled_sensor_is_the_numpy_sensor(synth):
         pixels += int((got.label > 0).sum())
         assert (b > 0).sum() > 0.8 * (got.label > 0).sum()  # ~10% missing, as fitted
     assert differ <= 1e-5 * pixels, f"{differ} of {pixels} readings differ"
+
+
+# --------------------------------------------------------------------------- version 3
+
+
+@pytest.fixture(scope="module")
+def synth3():
+    return OnlineSynth(OnlineSettings(2, n_points=64, online_version=3), nthreads=1)
+
+
+def test_scene_zbuffer_is_version_2s(synth3):
+    """Version 3's one-pass z-buffer of a scene against version 2's per object: the same box,
+    the same label at every pixel but a handful (pixel centres within rounding of an edge)
+    and the same depth to version 2's float32 rounding."""
+    r = synth3._gen.renderer
+    pixels, off = 0, 0
+    for k in range(6):
+        scene = synth3.sample_scene(np.random.default_rng([7, k]))
+        a, box = r.render_raster(synth3.K, synth3.shape, scene.cls_ids, scene.poses(), WINDOW_PAD)
+        depth, index, visible, box3 = synth3._raster_v3(scene, scene.poses())
+        assert box3 == box
+        label = np.concatenate([scene.cls_ids, [0]]).astype(np.uint8)[index]
+        same = (label == a.label) & (a.label > 0)
+        pixels += int((a.label > 0).sum())
+        off += int((label != a.label).sum())
+        np.testing.assert_allclose(depth[same], a.depth[same], rtol=0, atol=2e-7)
+        np.testing.assert_array_equal(visible.sum(), (index >= 0).sum())
+    assert pixels > 100_000 and off <= 1e-5 * pixels, (off, pixels)
+
+
+@pytest.mark.parametrize("n", [1, 2, 50, 3000])
+def test_soa_fps_is_the_numpy_loop(n):
+    from cloudpose.kernels.scene_pass import fps_soa
+
+    rng = np.random.default_rng(n)
+    P = np.stack([rng.uniform(0, 0.1, n), rng.uniform(0, 0.1, n), rng.uniform(1, 1.02, n)], 1)
+    for pts in (P, np.round(P * 300) / 300):  # quantised: many ties (the highest index wins)
+        pts = pts.astype(np.float32)
+        k = min(n, 256)
+        start = int(rng.integers(n))
+        got = fps_soa(*(np.ascontiguousarray(pts[:, a]) for a in range(3)), k, start)
+        np.testing.assert_array_equal(got, farthest_point_sampling_reference(pts, k, start))
+
+
+def test_scene_sensor_is_the_numpy_sensor(synth3):
+    """Version 3's object pixels and readings against their numpy twins from the same draws:
+    the jump and cosine of version 2's twin; the field as scipy's filter of the white noise
+    (float32 sums against float64: a reading differs only where its probability lands within
+    ~1e-6 of its uniform), the missing probability with scipy's edge distance."""
+    from cloudpose.data.synth.online import scene_readings
+    from cloudpose.data.synth.sensor import object_pixel_geometry
+    from cloudpose.kernels.scene_pass import object_pixels
+
+    for k in range(3):
+        scene = synth3.sample_scene(np.random.default_rng([11, k]))
+        depth, index, _, (v0, _, u0, _) = synth3._raster_v3(scene, scene.poses())
+        Kw = synth3.K.copy()
+        Kw[0, 2] -= u0
+        Kw[1, 2] -= v0
+        clean = depth.copy()
+        clean[5:, :3][index[5:, :3] < 0] = 0.9  # background on part of the border
+        v, u, inst, jump, cos = object_pixels(clean, index, np.linalg.inv(Kw))
+        lab = index + 1
+        vv, uu = np.nonzero(lab)
+        np.testing.assert_array_equal(v, vv)
+        np.testing.assert_array_equal(u, uu)
+        np.testing.assert_array_equal(inst, index[vv, uu])
+        with disabled():
+            j2, c2 = object_pixel_geometry(np.pad(clean, 1), np.pad(lab, 1), v, u, Kw)
+        np.testing.assert_array_equal(jump, j2)
+        np.testing.assert_allclose(cos, c2, rtol=0, atol=1e-12)
+        args = (clean, index, v, u, inst, jump, cos, scene.cls_ids)
+        got = scene_readings(*args, np.random.default_rng(k), compiled=True)
+        want = scene_readings(*args, np.random.default_rng(k), compiled=False)
+        differ = int((got != want).sum())
+        assert differ <= 1e-4 * len(v), f"{differ} of {len(v)} readings differ"
+        assert 0.8 * len(v) < (got > 0).sum() < len(v)  # ~10% missing, as fitted

@@ -63,16 +63,24 @@ from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import SegmentWarning, extract_segments
 from cloudpose.data.synth.frames import _generator
 from cloudpose.data.synth.scenes import (
+    MAX_RANGE,
     MIN_VISIBLE_PIXELS,
     STACK_SHARE,
     Scene,
     sample_table_scene,
 )
 from cloudpose.data.synth.sensor import (
+    REAL_DROPOUT,
+    NoiseModel,
+    _gaussian_weights,
+    _noisy,
+    _smoothed_std,
     add_sensor_noise,
     add_sensor_noise_v2_objects,
     background_depth,
     background_depth_at,
+    edge_distance,
+    object_pixel_geometry,
     object_ring,
 )
 from cloudpose.data.synth.store import ChunkStore, OnlineSettings
@@ -122,6 +130,104 @@ class SegmentBatch:
             torch.from_numpy(self.R),
             torch.from_numpy(self.t),
         )
+
+
+def scene_readings(clean, index, v, u, inst, jump, cos, cls_ids, rng, compiled: bool) -> np.ndarray:
+    """The version-2 sensor's readings of a scene's object pixels, version 3's draws
+    (:mod:`cloudpose.kernels.scene_pass`): per object pixel a standard normal (axial noise),
+    per depth-edge pixel a uniform (flying or not), per flying pixel a uniform (its mix), all
+    float32; then white noise over the object pixels' bounding box widened by the blob
+    filter's reach, smoothed into the missing-depth field.
+
+    Args:
+        clean: (h, w) float64 clean depth (the objects', the background's on their ring).
+        index: (h, w) int64 instance of each pixel (-1 = background).
+        v, u, inst, jump, cos: (m,) the object pixels, row-major, their instance, depth jump
+            and incidence cosine (:func:`cloudpose.kernels.scene_pass.object_pixels`).
+        cls_ids: (N,) class id of each instance.
+        rng: the scene's generator.
+        compiled: :func:`cloudpose.kernels.scene_pass.sensor_readings`, else its numpy twin.
+
+    Returns:
+        (m,) float64 readings, metres, 0 = none.
+    """
+    model, dropout = NoiseModel(), REAL_DROPOUT
+    m = len(v)
+    normal = rng.standard_normal(m, dtype=np.float32)
+    u_edge = np.ones(m, dtype=np.float32)
+    edge = np.abs(jump) > model.edge_jump
+    u_edge[edge] = rng.random(int(edge.sum()), dtype=np.float32)
+    mix = np.zeros(m, dtype=np.float32)
+    flying = u_edge < model.edge_flying
+    mix[flying] = rng.random(int(flying.sum()), dtype=np.float32)
+    weights = _gaussian_weights(dropout.blob_sigma)
+    r = len(weights) // 2
+    hb = int(v.max()) - int(v.min()) + 1 + 2 * r if m else 0
+    wb = int(u.max()) - int(u.min()) + 1 + 2 * r if m else 0
+    white = rng.standard_normal((hb, wb), dtype=np.float32)
+    rate = dropout.rate_table()[np.asarray(cls_ids, dtype=np.int64)]
+    std = _smoothed_std(float(dropout.blob_sigma))
+    if not compiled:
+        from scipy import ndimage
+        from scipy.special import ndtr
+
+        z = clean[v, u]
+        out = _noisy(z, jump, normal.astype(np.float64), u_edge, mix, model)
+        if not m:
+            return out
+        smooth = ndimage.correlate1d(white.astype(np.float64), weights, axis=0, mode="constant")
+        smooth = ndimage.correlate1d(smooth, weights, axis=1, mode="constant")[r:-r, r:-r]
+        field = ndtr(smooth[v - v.min(), u - u.min()] / std)
+        p = dropout.probability(edge_distance(index + 1)[v, u], cos, np.asarray(cls_ids)[inst])
+        out[field < p] = 0.0
+        return out
+    from cloudpose.kernels.scene_pass import sensor_readings
+
+    return sensor_readings(
+        clean,
+        index,
+        v,
+        u,
+        inst,
+        jump,
+        cos,
+        rate,
+        normal,
+        u_edge,
+        mix,
+        white,
+        weights,
+        std,
+        (
+            model.sigma0,
+            model.sigma2,
+            model.focal_baseline,
+            model.subpixel,
+            model.edge_jump,
+            model.edge_flying,
+        ),
+        (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width),
+        MAX_RANGE,
+    )
+
+
+def _cut_points_numpy(v, u, inst, reading, Kinv, n, radius):
+    """The numpy twin of :func:`cloudpose.kernels.scene_pass.cut_points`."""
+    ok = reading > 0
+    order = np.argsort(inst[ok], kind="stable")  # by instance, row-major within each
+    z = reading[ok][order]
+    pix = np.stack([u[ok][order], v[ok][order], np.ones(len(z))], axis=1).astype(np.float64)
+    pts = (pix @ Kinv.T) * z[:, None]
+    counts = np.bincount(inst[ok], minlength=n)
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    out, offsets = [], [0]
+    for i in range(n):
+        p = pts[bounds[i] : bounds[i + 1]]
+        if len(p):
+            p = p[np.linalg.norm(p - p.mean(axis=0), axis=1) <= radius]
+        out.append(p)
+        offsets.append(offsets[-1] + len(p))
+    return np.concatenate(out) if out else np.zeros((0, 3)), np.array(offsets, dtype=np.int64)
 
 
 def cut_segments(frame, n_fps: int, outlier_radius: float, rng: np.random.Generator) -> list:
@@ -217,6 +323,7 @@ class OnlineSynth:
         self.shape = (int(shape[0]), int(shape[1]))
         self._gen = _generator(settings.synth_version)
         self._models, self._resting = self._gen.models, self._gen.resting
+        self._mesh_cat: tuple[np.ndarray, ...] | None = None
         kept = settings.class_ids
         self._kept = None if kept is None else frozenset(kept)
         if kept is not None:
@@ -310,9 +417,17 @@ class OnlineSynth:
         frame = Frame("online", out.astype(np.float32), label, Kw, scene.cls_ids, poses, None)
         return frame, r.visible_pixels
 
-    def scene_segments(self, scene: Scene, rng: np.random.Generator) -> list:
+    def scene_segments(
+        self, scene: Scene, rng: np.random.Generator, limit: int | None = None
+    ) -> list:
         """Valid segments (:class:`~cloudpose.data.segments.Segment`) of the scene's objects
-        with at least :data:`MIN_VISIBLE_PIXELS` pixels, of the kept classes, in scene order."""
+        with at least :data:`MIN_VISIBLE_PIXELS` pixels, of the kept classes, in scene order;
+        version 3 cuts the first ``limit`` only (None: all; the segments it returns are the
+        first of all of them: what a batch keeps of its last scene)."""
+        if self.settings.online_version >= 3 and (
+            self.settings.synth_version >= 2 or not self.settings.noise
+        ):
+            return self._scene_segments_v3(scene, rng, limit)
         rendered = self.render_window(scene, rng)
         if rendered is None:
             return []
@@ -333,6 +448,130 @@ class OnlineSynth:
             keep.append(s)
         return keep
 
+    # ------------------------------------------------------------------ version 3
+
+    def _meshes(self) -> tuple[np.ndarray, ...]:
+        """Every class's mesh in one array (vertices, triangles, each class's first vertex and
+        triangle, the slot of each class id), built once."""
+        if self._mesh_cat is None:
+            ids = sorted(self._gen.models)
+            Vs, Fs, vstart, fstart = [], [], [0], [0]
+            for c in ids:
+                V, F = self._gen.renderer._mesh_arrays(c)
+                Fs.append(F.astype(np.int64) + vstart[-1])
+                Vs.append(V)
+                vstart.append(vstart[-1] + len(V))
+                fstart.append(fstart[-1] + len(F))
+            slot = np.full(256, -1, dtype=np.int64)
+            slot[ids] = np.arange(len(ids))
+            self._mesh_cat = (
+                np.ascontiguousarray(np.concatenate(Vs)),
+                np.ascontiguousarray(np.concatenate(Fs)),
+                np.array(vstart, dtype=np.int64),
+                np.array(fstart, dtype=np.int64),
+                slot,
+            )
+        return self._mesh_cat
+
+    def _raster_v3(self, scene: Scene, poses: np.ndarray):
+        """The scene's z-buffer over the box around its objects plus :data:`WINDOW_PAD`:
+        ``(depth, index, visible, box)``, or None when no object is in the image. One compiled
+        pass (:func:`cloudpose.kernels.scene_pass.raster_scene`); an object reaching behind the
+        camera is drawn by version 2's z-buffer, which casts its rays."""
+        from cloudpose.kernels.backend import enabled
+
+        cls_ids = np.asarray(scene.cls_ids, dtype=np.int64)
+        if enabled():
+            from cloudpose.kernels.scene_pass import raster_scene
+
+            V, F, vstart, fstart, slot = self._meshes()
+            H, W = self.shape
+            status, box, depth, index, visible = raster_scene(
+                V, F, vstart, fstart, slot[cls_ids], poses, self.K, H, W, WINDOW_PAD
+            )
+            if status == 1:
+                return None
+            if status == 0:
+                return depth, index, visible, tuple(int(x) for x in box)
+        got = self._gen.renderer.render_raster(
+            self.K, self.shape, cls_ids, poses, WINDOW_PAD, self.nthreads
+        )
+        if got is None:
+            return None
+        r, box = got
+        lut = np.full(256, -1, dtype=np.int64)
+        lut[cls_ids] = np.arange(len(cls_ids))
+        index = lut[r.label]
+        return r.depth.astype(np.float64), index, r.visible_pixels, box
+
+    def _scene_segments_v3(self, scene: Scene, rng: np.random.Generator, limit: int | None):
+        """:meth:`scene_segments` of version 3 (see the module doc): the compiled passes of
+        :mod:`cloudpose.kernels.scene_pass` where the kernels are enabled, else their numpy
+        twins (the same segments to float rounding)."""
+        from cloudpose.data.segments import Segment, farthest_point_sampling, instance_streams
+        from cloudpose.kernels.backend import enabled
+
+        poses = scene.poses()
+        drawn = self._raster_v3(scene, poses)
+        if drawn is None:
+            return []
+        depth, index, visible, (v0, _, u0, _) = drawn
+        cls_ids = np.asarray(scene.cls_ids, dtype=np.int64)
+        Kw = self.K.copy()
+        Kw[0, 2] -= u0
+        Kw[1, 2] -= v0
+        Kinv = np.linalg.inv(Kw)
+        compiled = enabled()
+        clean = depth
+        if self.settings.noise:
+            ring_v, ring_u = np.nonzero(object_ring(index >= 0))
+            clean[ring_v, ring_u] = background_depth_at(
+                Kw, ring_v, ring_u, scene.world_to_camera, scene.background
+            )
+        if compiled:
+            from cloudpose.kernels.scene_pass import object_pixels
+
+            v, u, inst, jump, cos = object_pixels(clean, index, Kinv)
+        else:
+            lab = index + 1
+            v, u = np.nonzero(lab)
+            inst = index[v, u]
+            jump, cos = object_pixel_geometry(np.pad(clean, 1), np.pad(lab, 1), v, u, Kw)
+        if self.settings.noise:
+            reading = scene_readings(clean, index, v, u, inst, jump, cos, cls_ids, rng, compiled)
+        else:
+            reading = clean[v, u].astype(np.float32).astype(np.float64)  # a frame's depth
+        n_fps, radius = self.settings.n_points, float(self.settings.outlier_radius)
+        if compiled:
+            from cloudpose.kernels.scene_pass import cut_points, fps_soa
+
+            pts, offsets = cut_points(v, u, inst, reading, Kinv, len(cls_ids), radius)
+        else:
+            pts, offsets = _cut_points_numpy(v, u, inst, reading, Kinv, len(cls_ids), radius)
+        streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
+        keep = []
+        for i, c in enumerate(cls_ids.tolist()):
+            if limit is not None and len(keep) >= limit:
+                break
+            a, b = int(offsets[i]), int(offsets[i + 1])
+            if b == a or visible[i] < MIN_VISIBLE_PIXELS:
+                continue
+            if self._kept is not None and c not in self._kept:
+                continue
+            p32 = pts[a:b].astype(np.float32)
+            if compiled:
+                first = int(streams[i].integers(b - a))  # farthest_point_sampling's start draw
+                k = min(n_fps, b - a)
+                xyz = (np.ascontiguousarray(p32[:, j]) for j in range(3))
+                order = fps_soa(*xyz, k, first)
+                sample = p32[np.resize(order, n_fps) if k < n_fps else order]
+            else:
+                sample = p32[farthest_point_sampling(p32, n_fps, streams[i])]
+            R = poses[i, :, :3].astype(np.float32)
+            t = poses[i, :, 3].astype(np.float32)
+            keep.append(Segment(sample, b - a, c, R, t, np.nan, "online", i, True))
+        return keep
+
     # ------------------------------------------------------------------ batches
 
     def batch(self, seed: int, step: int, batch_size: int) -> SegmentBatch:
@@ -343,7 +582,7 @@ class OnlineSynth:
         k = 0
         while len(segs) < batch_size:
             rng = np.random.default_rng([int(seed), ONLINE_STREAM, int(step), k])
-            segs.extend(self.scene_segments(self.sample_scene(rng), rng))
+            segs.extend(self.scene_segments(self.sample_scene(rng), rng, batch_size - len(segs)))
             k += 1
             if k > 50 * batch_size:  # only an impossible class filter gets here
                 raise RuntimeError(

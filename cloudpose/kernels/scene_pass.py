@@ -1,0 +1,498 @@
+"""On-line synthesis version 3 (:mod:`cloudpose.data.synth.online`): a scene's objects drawn,
+read by the sensor and cut into segments in a few compiled passes, each over every object at
+once.
+
+- ``raster_scene``: every object of a scene into one z-buffer: the meshes posed and projected,
+  the objects' windows and the box around them (:meth:`~cloudpose.data.synth.render.Renderer.render_raster`'s
+  expressions), then each triangle tested at the pixel centres of its bounding box, the
+  nearest surface kept as the largest inverse depth (1/z is affine in the image over a planar
+  triangle: :mod:`cloudpose.kernels.raster`). The same hits as the ray cast to float rounding.
+- ``object_pixels``: the object pixels of the box in row-major order, with their instance,
+  clean depth, depth jump and incidence cosine (:func:`cloudpose.kernels.sensor.object_pixel_geometry_kernel`'s
+  expressions).
+- ``sensor_readings``: the version-2 sensor's readings of those pixels from their draws: the
+  missing-depth field smoothed at the object pixels only from white noise drawn over their
+  bounding box widened by the filter's reach (a stationary field, the same kernel as
+  :func:`cloudpose.data.synth.sensor.correlated_uniform`), mapped to uniform, and the fitted
+  missing probability with the exact edge distance
+  (:func:`cloudpose.kernels.sensor.edge_distance_kernel` on the objects' box).
+- ``fps_soa``: exact farthest point sampling over a grid of buckets, the points of a bucket
+  stored coordinate by coordinate so that a bucket's distance update is one vector loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cloudpose.kernels.backend import njit
+from cloudpose.kernels.sensor import _ray, edge_distance_kernel
+
+__all__ = ["cut_points", "fps_soa", "object_pixels", "raster_scene", "sensor_readings"]
+
+
+@njit(cache=True)
+def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no cover
+    """Every object of a scene into one z-buffer.
+
+    Args:
+        V: (M, 3) float64 vertices of every class's mesh, model frame, class after class.
+        F: (T, 3) int64 triangles, indices into ``V``.
+        vstart, fstart: (C + 1,) int64 first vertex and triangle of each class slot.
+        cls: (N,) int64 class slot of each object.
+        poses: (N, 3, 4) float64 object->camera.
+        K: (3, 3) float64 intrinsics.
+        H, W: image size.
+        pad: pixels added around the objects' windows.
+
+    Returns:
+        ``(status, box, depth, index, visible)``: status 0 drawn, 1 no object in the image,
+        2 an object reaches behind the camera (not drawn: the caller casts rays); box (4,)
+        int64 (v0, v1, u0, u1); depth (h, w) float64 metres (0 = none); index (h, w) int64
+        instance (-1 = none); visible (N,) int64 pixels of each instance.
+    """
+    n = cls.shape[0]
+    wins = np.zeros((n, 4), np.int64)
+    mtot = 0
+    for i in range(n):
+        mtot += vstart[cls[i] + 1] - vstart[cls[i]]
+    zs = np.empty(mtot)
+    us = np.empty(mtot)
+    vs = np.empty(mtot)
+    vbase = np.empty(n + 1, np.int64)
+    vbase[0] = 0
+    box = np.zeros(4, np.int64)
+    for i in range(n):
+        a, b = vstart[cls[i]], vstart[cls[i] + 1]
+        vbase[i + 1] = vbase[i] + (b - a)
+        P = poses[i]
+        umin, umax, vmin, vmax = np.inf, -np.inf, np.inf, -np.inf
+        for j in range(a, b):
+            x = V[j, 0] * P[0, 0] + V[j, 1] * P[0, 1] + V[j, 2] * P[0, 2] + P[0, 3]
+            y = V[j, 0] * P[1, 0] + V[j, 1] * P[1, 1] + V[j, 2] * P[1, 2] + P[1, 3]
+            z = V[j, 0] * P[2, 0] + V[j, 1] * P[2, 1] + V[j, 2] * P[2, 2] + P[2, 3]
+            if z <= 1e-6:
+                return 2, box, np.zeros((0, 0)), np.zeros((0, 0), np.int64), np.zeros(n, np.int64)
+            u = (K[0, 0] * x + K[0, 1] * y + K[0, 2] * z) / z
+            v = (K[1, 0] * x + K[1, 1] * y + K[1, 2] * z) / z
+            k = vbase[i] + j - a
+            zs[k], us[k], vs[k] = z, u, v
+            umin, umax = min(umin, u), max(umax, u)
+            vmin, vmax = min(vmin, v), max(vmax, v)
+        if b == a:
+            continue
+        wins[i, 0] = min(max(math.floor(vmin) - 1, 0), H)
+        wins[i, 1] = min(max(math.ceil(vmax) + 2, 0), H)
+        wins[i, 2] = min(max(math.floor(umin) - 1, 0), W)
+        wins[i, 3] = min(max(math.ceil(umax) + 2, 0), W)
+    bv0, bv1, bu0, bu1 = H, 0, W, 0
+    for i in range(n):
+        if wins[i, 0] < wins[i, 1] and wins[i, 2] < wins[i, 3]:
+            bv0, bv1 = min(bv0, wins[i, 0]), max(bv1, wins[i, 1])
+            bu0, bu1 = min(bu0, wins[i, 2]), max(bu1, wins[i, 3])
+    if bv0 >= bv1:
+        return 1, box, np.zeros((0, 0)), np.zeros((0, 0), np.int64), np.zeros(n, np.int64)
+    bv0, bv1 = max(bv0 - pad, 0), min(bv1 + pad, H)
+    bu0, bu1 = max(bu0 - pad, 0), min(bu1 + pad, W)
+    box[0], box[1], box[2], box[3] = bv0, bv1, bu0, bu1
+    h, w = bv1 - bv0, bu1 - bu0
+    inv = np.zeros((h, w))  # 1 / depth of the nearest surface (0 = none)
+    index = np.full((h, w), -1, np.int64)
+    for i in range(n):
+        if not (wins[i, 0] < wins[i, 1] and wins[i, 2] < wins[i, 3]):
+            continue
+        va = vstart[cls[i]]
+        base = vbase[i]
+        for f in range(fstart[cls[i]], fstart[cls[i] + 1]):
+            ia = base + F[f, 0] - va
+            ib = base + F[f, 1] - va
+            ic = base + F[f, 2] - va
+            ax, ay = us[ia], vs[ia]
+            bx, by = us[ib], vs[ib]
+            cx, cy = us[ic], vs[ic]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            if area == 0.0 or not math.isfinite(area):
+                continue
+            xlo = max(math.ceil(min(ax, bx, cx)), bu0)
+            xhi = min(math.floor(max(ax, bx, cx)), bu1 - 1)
+            ylo = max(math.ceil(min(ay, by, cy)), bv0)
+            yhi = min(math.floor(max(ay, by, cy)), bv1 - 1)
+            if xlo > xhi or ylo > yhi:
+                continue
+            s = 1.0 / area  # barycentric weights w_i / area: >= 0 inside, either winding
+            iza, izb, izc = 1.0 / zs[ia], 1.0 / zs[ib], 1.0 / zs[ic]
+            # w0, w1 and 1/z are affine in the pixel: w = A x + B y + C
+            a0, b0 = -(cy - by) * s, (cx - bx) * s
+            c0 = -(a0 * bx + b0 * by)
+            a1, b1 = -(ay - cy) * s, (ax - cx) * s
+            c1 = -(a1 * cx + b1 * cy)
+            # scan lines: the vertices by row, the span of each row between the long edge
+            # (first to last) and a short one, widened against rounding (the test decides)
+            if ay <= by:
+                px, py, qx, qy = ax, ay, bx, by
+            else:
+                px, py, qx, qy = bx, by, ax, ay
+            if cy < py:
+                px, py, qx, qy, ox, oy = cx, cy, px, py, qx, qy
+            elif cy < qy:
+                qx, qy, ox, oy = cx, cy, qx, qy
+            else:
+                ox, oy = cx, cy
+            slope_long = (ox - px) / (oy - py)
+            slope_a = (qx - px) / (qy - py) if qy > py else 0.0
+            slope_b = (ox - qx) / (oy - qy) if oy > qy else 0.0
+            for y in range(ylo, yhi + 1):
+                fy = float(y)
+                xa = px + (fy - py) * slope_long
+                xb = px + (fy - py) * slope_a if fy < qy else qx + (fy - qy) * slope_b
+                sl = max(math.ceil(min(xa, xb) - 1e-6), xlo)
+                sh = min(math.floor(max(xa, xb) + 1e-6), xhi)
+                r0 = b0 * fy + c0
+                r1 = b1 * fy + c1
+                row = index[y - bv0]
+                irow = inv[y - bv0]
+                for x in range(sl, sh + 1):  # branch-free
+                    fx = float(x)
+                    w0 = a0 * fx + r0
+                    w1 = a1 * fx + r1
+                    w2 = 1.0 - w0 - w1
+                    iz = w0 * iza + w1 * izb + w2 * izc
+                    cur = irow[x - bu0]
+                    take = (w0 >= 0.0) & (w1 >= 0.0) & (w2 >= 0.0) & (iz > cur)
+                    irow[x - bu0] = iz if take else cur
+                    row[x - bu0] = i if take else row[x - bu0]
+    depth = np.zeros((h, w))
+    visible = np.zeros(n, np.int64)
+    for y in range(h):
+        for x in range(w):
+            if index[y, x] >= 0:
+                depth[y, x] = 1.0 / inv[y, x]
+                visible[index[y, x]] += 1
+    return 0, box, depth, index, visible
+
+
+@njit(cache=True)
+def object_pixels(clean, index, Kinv):  # pragma: no cover - compiled
+    """The object pixels of a box, row-major, with what the sensor needs of them.
+
+    Args:
+        clean: (h, w) float64 clean depth: the objects', and the background's on the ring of
+            pixels around them (0 elsewhere and where no background is hit).
+        index: (h, w) int64 instance of each pixel (-1 = background).
+        Kinv: (3, 3) inverse intrinsics of the box.
+
+    Returns:
+        ``(v, u, inst, jump, cos)``, (m,) each: row, column, instance, the depth jump to the
+        4-neighbour that differs most (metres) and the incidence cosine (1 where a 4-neighbour
+        has no depth or another instance, and on the box's border).
+    """
+    h, w = index.shape
+    m = 0
+    for y in range(h):
+        for x in range(w):
+            if index[y, x] >= 0:
+                m += 1
+    v = np.empty(m, np.int64)
+    u = np.empty(m, np.int64)
+    inst = np.empty(m, np.int64)
+    jump = np.zeros(m)
+    cos = np.ones(m)
+    dv = (-1, 1, 0, 0)
+    du = (0, 0, -1, 1)
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            c = index[y, x]
+            if c < 0:
+                continue
+            v[k], u[k], inst[k] = y, x, c
+            z = clean[y, x]
+            best = 0.0
+            all_valid = True
+            same = True
+            for t in range(4):
+                yy, xx = y + dv[t], x + du[t]
+                if 0 <= yy < h and 0 <= xx < w:
+                    nb = clean[yy, xx]
+                    other = index[yy, xx] != c
+                else:
+                    nb = 0.0
+                    other = True
+                if nb > 0:
+                    d = nb - z if z > 0 else 0.0
+                else:
+                    d = 0.0
+                    all_valid = False
+                if abs(d) > abs(best):
+                    best = d
+                if other:
+                    same = False
+            jump[k] = best
+            if all_valid and same and 1 <= y <= h - 2 and 1 <= x <= w - 2:
+                fx, fy = float(x), float(y)
+                zr, zl = clean[y, x + 1], clean[y, x - 1]
+                zd, zu = clean[y + 1, x], clean[y - 1, x]
+                gx0 = _ray(Kinv, 0, fx + 1, fy) * zr - _ray(Kinv, 0, fx - 1, fy) * zl
+                gx1 = _ray(Kinv, 1, fx + 1, fy) * zr - _ray(Kinv, 1, fx - 1, fy) * zl
+                gx2 = _ray(Kinv, 2, fx + 1, fy) * zr - _ray(Kinv, 2, fx - 1, fy) * zl
+                gy0 = _ray(Kinv, 0, fx, fy + 1) * zd - _ray(Kinv, 0, fx, fy - 1) * zu
+                gy1 = _ray(Kinv, 1, fx, fy + 1) * zd - _ray(Kinv, 1, fx, fy - 1) * zu
+                gy2 = _ray(Kinv, 2, fx, fy + 1) * zd - _ray(Kinv, 2, fx, fy - 1) * zu
+                n0 = gx1 * gy2 - gx2 * gy1
+                n1 = gx2 * gy0 - gx0 * gy2
+                n2 = gx0 * gy1 - gx1 * gy0
+                r0, r1, r2 = _ray(Kinv, 0, fx, fy), _ray(Kinv, 1, fx, fy), _ray(Kinv, 2, fx, fy)
+                norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * math.sqrt(
+                    r0 * r0 + r1 * r1 + r2 * r2
+                )
+                if norm > 0:
+                    cos[k] = min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
+            k += 1
+    return v, u, inst, jump, cos
+
+
+@njit(cache=True)
+def sensor_readings(
+    clean,
+    index,
+    v,
+    u,
+    inst,
+    jump,
+    cos,
+    rate,
+    normal,
+    u_edge,
+    mix,
+    white,
+    weights,
+    std,
+    noise,
+    drop,
+    max_range,
+):  # pragma: no cover - compiled
+    """The version-2 sensor's readings of the object pixels ``(v, u)`` from their draws.
+
+    Args:
+        clean: (h, w) float64 clean depth; index: (h, w) int64 instance (-1 = background).
+        v, u, inst, jump, cos: (m,) from :func:`object_pixels`.
+        rate: (N,) float64 the missing rate of each instance's class.
+        normal: (m,) standard normal draws (axial noise).
+        u_edge: (m,) uniform draws, read only where ``|jump| > edge_jump`` (else any value).
+        mix: (m,) uniform draws, read only at the flying pixels.
+        white: (vb1 - vb0 + 2r, ub1 - ub0 + 2r) standard normal draws over the object pixels'
+            bounding box (rows vb0..vb1 - 1, columns ub0..ub1 - 1) widened by the filter's
+            reach r on every side.
+        weights: (2r + 1,) the smoothing kernel; std: the smoothed noise's standard deviation.
+        noise: (sigma0, sigma2, focal_baseline, subpixel, edge_jump, edge_flying).
+        drop: (edge_rate, edge_scale, graze_cos, graze_width).
+        max_range: metres.
+
+    Returns:
+        (m,) float64 readings, metres, 0 = none.
+    """
+    sigma0, sigma2, fb, sub, edge_jump, edge_flying = noise
+    edge_rate, edge_scale, graze_cos, graze_width = drop
+    h, w = index.shape
+    m = v.shape[0]
+    out = np.zeros(m)
+    if m == 0:
+        return out
+    r = weights.shape[0] // 2
+    vb0, vb1, ub0, ub1 = h, 0, w, 0
+    for i in range(m):
+        vb0, vb1 = min(vb0, v[i]), max(vb1, v[i] + 1)
+        ub0, ub1 = min(ub0, u[i]), max(ub1, u[i] + 1)
+    # first pass of the separable filter (along rows of the image) over the box's rows
+    hb, wb = vb1 - vb0, ub1 - ub0 + 2 * r
+    tmp = np.zeros((hb, wb), np.float32)
+    for y in range(hb):
+        for j in range(2 * r + 1):
+            wj = np.float32(weights[j])
+            src = white[y + j]
+            dst = tmp[y]
+            for x in range(wb):
+                dst[x] += wj * src[x]
+    # second pass (along columns) over the box: the smoothed noise at every pixel of it
+    sm = np.zeros((hb, ub1 - ub0), np.float32)
+    for y in range(hb):
+        src = tmp[y]
+        dst = sm[y]
+        for j in range(2 * r + 1):
+            wj = np.float32(weights[j])
+            for x in range(ub1 - ub0):
+                dst[x] += wj * src[x + j]
+    # the exact edge distance over the objects' box and the ring around it (every boundary)
+    ev0, ev1 = max(vb0 - 1, 0), min(vb1 + 1, h)
+    eu0, eu1 = max(ub0 - 1, 0), min(ub1 + 1, w)
+    lab = np.empty((ev1 - ev0, eu1 - eu0), np.int64)
+    for y in range(ev0, ev1):
+        for x in range(eu0, eu1):
+            lab[y - ev0, x - eu0] = index[y, x]
+    dist = edge_distance_kernel(lab)
+    for i in range(m):
+        zi = clean[v[i], u[i]]
+        valid = zi > 0
+        rd = zi + normal[i] * (sigma0 + sigma2 * (zi - 0.4) ** 2)
+        if abs(jump[i]) > edge_jump and u_edge[i] < edge_flying:
+            rd = rd + mix[i] * jump[i]
+        disparity = fb / (rd if valid else 1.0)
+        disparity = max(np.round(disparity / sub), 1.0) * sub
+        rd = fb / disparity
+        if not valid or rd <= 0 or rd > max_range:
+            continue
+        p_edge = edge_rate * math.exp(-(dist[v[i] - ev0, u[i] - eu0] - 1.0) / edge_scale)
+        x = min(max((cos[i] - graze_cos) / graze_width, -50.0), 50.0)
+        p_graze = 1.0 / (1.0 + math.exp(x))
+        p = 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - rate[inst[i]])
+        zf = np.float64(sm[v[i] - vb0, u[i] - ub0]) / std
+        # the field is uniform: Phi(zf) >= 1/2 where zf >= 0 (no erfc needed when p <= 1/2)
+        if (zf >= 0.0 and p <= 0.5) or 0.5 * math.erfc(-zf / math.sqrt(2.0)) >= p:
+            out[i] = rd
+    return out
+
+
+@njit(cache=True)
+def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
+    """Exact farthest point sampling of ``k`` of the float32 points ``(X, Y, Z)`` from index
+    ``start``: the points bucketed by a grid over x and y, each bucket's coordinates
+    contiguous; after each pick a bucket is skipped when its box is farther from the new
+    sample than the largest nearest-sample distance inside it.
+
+    Returns:
+        (k,) int64 indices (1 <= k <= N): :func:`cloudpose.kernels.fps.fps_order`'s order
+        (the same float32 squared distances, ties to the highest index).
+    """
+    n = X.shape[0]
+    g = max(1, int(math.sqrt(n / per_cell)))
+    x0, x1, y0, y1 = np.inf, -np.inf, np.inf, -np.inf
+    for i in range(n):
+        x0, x1 = min(x0, np.float64(X[i])), max(x1, np.float64(X[i]))
+        y0, y1 = min(y0, np.float64(Y[i])), max(y1, np.float64(Y[i]))
+    sx = g / (x1 - x0) if x1 > x0 else 0.0
+    sy = g / (y1 - y0) if y1 > y0 else 0.0
+    cells = g * g
+    cell = np.empty(n, np.int64)
+    counts = np.zeros(cells + 1, np.int64)
+    for i in range(n):
+        cx = min(int((X[i] - x0) * sx), g - 1)
+        cy = min(int((Y[i] - y0) * sy), g - 1)
+        cell[i] = cy * g + cx
+        counts[cell[i] + 1] += 1
+    cstart = np.cumsum(counts)
+    fill = cstart[:-1].copy()
+    index = np.empty(n, np.int64)
+    QX = np.empty(n, np.float32)
+    QY = np.empty(n, np.float32)
+    QZ = np.empty(n, np.float32)
+    for i in range(n):
+        j = fill[cell[i]]
+        fill[cell[i]] += 1
+        index[j] = i
+        QX[j], QY[j], QZ[j] = X[i], Y[i], Z[i]
+    box = np.empty((cells, 6))
+    cmax = np.full(cells, np.inf, np.float32)
+    carg = np.full(cells, -1, np.int64)  # stored position of the cell's farthest point
+    for c in range(cells):
+        if cstart[c] == cstart[c + 1]:
+            continue
+        box[c, 0] = box[c, 1] = box[c, 2] = np.inf
+        box[c, 3] = box[c, 4] = box[c, 5] = -np.inf
+        for j in range(cstart[c], cstart[c + 1]):
+            box[c, 0] = min(box[c, 0], np.float64(QX[j]))
+            box[c, 1] = min(box[c, 1], np.float64(QY[j]))
+            box[c, 2] = min(box[c, 2], np.float64(QZ[j]))
+            box[c, 3] = max(box[c, 3], np.float64(QX[j]))
+            box[c, 4] = max(box[c, 4], np.float64(QY[j]))
+            box[c, 5] = max(box[c, 5], np.float64(QZ[j]))
+        carg[c] = cstart[c]
+    near = np.full(n, np.inf, np.float32)
+    out = np.empty(k, np.int64)
+    cur = 0
+    for j in range(n):
+        if index[j] == start:
+            cur = j
+    for s in range(k):
+        out[s] = index[cur]
+        px, py, pz = QX[cur], QY[cur], QZ[cur]
+        xs, ys, zs = np.float64(px), np.float64(py), np.float64(pz)
+        for c in range(cells):
+            if carg[c] < 0:
+                continue
+            dx = max(box[c, 0] - xs, 0.0, xs - box[c, 3])
+            dy = max(box[c, 1] - ys, 0.0, ys - box[c, 4])
+            dz = max(box[c, 2] - zs, 0.0, zs - box[c, 5])
+            if (dx * dx + dy * dy + dz * dz) * (1.0 - 1e-6) > cmax[c]:
+                continue
+            a, b = cstart[c], cstart[c + 1]
+            for j in range(a, b):
+                ex = QX[j] - px
+                ey = QY[j] - py
+                ez = QZ[j] - pz
+                near[j] = min(near[j], ex * ex + ey * ey + ez * ez)
+            best = a
+            best_v = near[a]
+            for j in range(a + 1, b):  # ascending index within a cell: ties to the last
+                if near[j] >= best_v:
+                    best_v = near[j]
+                    best = j
+            cmax[c] = best_v
+            carg[c] = best
+        best_v = np.float32(-1.0)
+        for c in range(cells):
+            if carg[c] < 0:
+                continue
+            if cmax[c] > best_v or (cmax[c] == best_v and index[carg[c]] > index[cur]):
+                best_v = cmax[c]
+                cur = carg[c]
+    return out
+
+
+@njit(cache=True)
+def cut_points(v, u, inst, reading, Kinv, n, radius):  # pragma: no cover - compiled
+    """Each instance's points: the pixels with a reading back-projected (``z K^-1 [u, v, 1]``
+    in float64, row-major within an instance), less those farther than ``radius`` from their
+    instance's mean (the segment path's outlier filter).
+
+    Returns:
+        (M, 3) float64 points, instance by instance, and (n + 1,) int64 offsets: instance i's
+        are ``[offsets[i], offsets[i + 1])``.
+    """
+    m = v.shape[0]
+    counts = np.zeros(n + 1, np.int64)
+    for i in range(m):
+        if reading[i] > 0:
+            counts[inst[i] + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    X = np.empty((start[n], 3))
+    for i in range(m):
+        z = reading[i]
+        if z > 0:
+            fu, fv = np.float64(u[i]), np.float64(v[i])
+            j = fill[inst[i]]
+            fill[inst[i]] += 1
+            X[j, 0] = (fu * Kinv[0, 0] + fv * Kinv[0, 1] + Kinv[0, 2]) * z
+            X[j, 1] = (fu * Kinv[1, 0] + fv * Kinv[1, 1] + Kinv[1, 2]) * z
+            X[j, 2] = (fu * Kinv[2, 0] + fv * Kinv[2, 1] + Kinv[2, 2]) * z
+    offsets = np.zeros(n + 1, np.int64)
+    keep = 0
+    for c in range(n):
+        a, b = start[c], start[c + 1]
+        mx, my, mz = 0.0, 0.0, 0.0
+        for j in range(a, b):
+            mx += X[j, 0]
+            my += X[j, 1]
+            mz += X[j, 2]
+        if b > a:
+            mx /= b - a
+            my /= b - a
+            mz /= b - a
+        for j in range(a, b):
+            dx, dy, dz = X[j, 0] - mx, X[j, 1] - my, X[j, 2] - mz
+            if math.sqrt(dx * dx + dy * dy + dz * dz) <= radius:
+                X[keep, 0], X[keep, 1], X[keep, 2] = X[j, 0], X[j, 1], X[j, 2]
+                keep += 1
+        offsets[c + 1] = keep
+    return X[:keep], offsets
