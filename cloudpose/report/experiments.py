@@ -38,6 +38,7 @@ COLUMNS = {
     "test/rot_sym_lt_20deg": "test < 20° mod sym (%)",
     "test/ads_auc": "test ADS AUC",
     "test_icp/rot_sym_lt_10deg": "test + ICP < 10° mod sym (%)",
+    "test_icp/ads_auc": "test + ICP ADS AUC",
     "real/rot_sym_lt_10deg": "real < 10° mod sym (%)",
     "real_icp/rot_sym_lt_10deg": "real + ICP < 10° mod sym (%)",
     "real/ads_auc": "real ADS AUC",
