@@ -197,36 +197,36 @@ def test_soa_fps_is_the_numpy_loop(n):
         np.testing.assert_array_equal(got, farthest_point_sampling_reference(pts, k, start))
 
 
-def test_scene_sensor_is_the_numpy_sensor(synth3):
-    """Version 3's object pixels and readings against their numpy twins from the same draws:
-    the jump and cosine of version 2's twin; the field as scipy's filter of the white noise
-    (float32 sums against float64: a reading differs only where its probability lands within
-    ~1e-6 of its uniform), the missing probability with scipy's edge distance."""
-    from cloudpose.data.synth.online import scene_readings
-    from cloudpose.data.synth.sensor import object_pixel_geometry
-    from cloudpose.kernels.scene_pass import object_pixels
+def test_scene_points_are_the_numpy_twins(synth3):
+    """Version 3's sensor and segment points of a scene, compiled and numpy, from the same
+    draws: the same points (the field's float32 sums against scipy's float64 filter: a point
+    differs only where its missing probability lands within ~1e-6 of its uniform), ~10% of
+    the object pixels missing, as fitted; and without noise, the clean depth's points."""
+    from cloudpose.data.synth.online import scene_points
 
     for k in range(3):
         scene = synth3.sample_scene(np.random.default_rng([11, k]))
-        depth, index, _, (v0, _, u0, _) = synth3._raster_v3(scene, scene.poses())
+        depth, index, visible, (v0, _, u0, _) = synth3._raster_v3(scene, scene.poses())
         Kw = synth3.K.copy()
         Kw[0, 2] -= u0
         Kw[1, 2] -= v0
         clean = depth.copy()
         clean[5:, :3][index[5:, :3] < 0] = 0.9  # background on part of the border
-        v, u, inst, jump, cos = object_pixels(clean, index, np.linalg.inv(Kw))
-        lab = index + 1
-        vv, uu = np.nonzero(lab)
-        np.testing.assert_array_equal(v, vv)
-        np.testing.assert_array_equal(u, uu)
-        np.testing.assert_array_equal(inst, index[vv, uu])
-        with disabled():
-            j2, c2 = object_pixel_geometry(np.pad(clean, 1), np.pad(lab, 1), v, u, Kw)
-        np.testing.assert_array_equal(jump, j2)
-        np.testing.assert_allclose(cos, c2, rtol=0, atol=1e-12)
-        args = (clean, index, v, u, inst, jump, cos, scene.cls_ids)
-        got = scene_readings(*args, np.random.default_rng(k), compiled=True)
-        want = scene_readings(*args, np.random.default_rng(k), compiled=False)
-        differ = int((got != want).sum())
-        assert differ <= 1e-4 * len(v), f"{differ} of {len(v)} readings differ"
-        assert 0.8 * len(v) < (got > 0).sum() < len(v)  # ~10% missing, as fitted
+        args = (clean, index, visible, Kw, scene.cls_ids)
+        for rng in (k, None):
+            got = [
+                scene_points(
+                    *args, None if rng is None else np.random.default_rng(rng), 0.2, compiled
+                )
+                for compiled in (True, False)
+            ]
+            (p, off), (q, off_q) = got
+            assert np.abs(off - off_q).max() <= 1e-4 * visible.sum()
+            if rng is None:
+                np.testing.assert_array_equal(off, off_q)
+                np.testing.assert_allclose(p, q, rtol=0, atol=1e-12)
+                assert off[-1] == visible.sum()
+            else:
+                assert 0.8 * visible.sum() < off[-1] < visible.sum()
+                if np.array_equal(off, off_q):
+                    np.testing.assert_allclose(p, q, rtol=0, atol=1e-12)

@@ -27,9 +27,9 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
-from cloudpose.kernels.sensor import _ray, edge_distance_kernel
+from cloudpose.kernels.sensor import _ray, _squared_distance_1d
 
-__all__ = ["cut_points", "fps_soa", "object_pixels", "raster_scene", "sensor_readings"]
+__all__ = ["edge_squared_distance", "fps_soa", "raster_scene", "scene_points"]
 
 
 @njit(cache=True)
@@ -57,7 +57,7 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
     mtot = 0
     for i in range(n):
         mtot += vstart[cls[i] + 1] - vstart[cls[i]]
-    zs = np.empty(mtot)
+    zs = np.empty(mtot)  # 1 / depth of each posed vertex
     us = np.empty(mtot)
     vs = np.empty(mtot)
     vbase = np.empty(n + 1, np.int64)
@@ -77,7 +77,7 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
             u = (K[0, 0] * x + K[0, 1] * y + K[0, 2] * z) / z
             v = (K[1, 0] * x + K[1, 1] * y + K[1, 2] * z) / z
             k = vbase[i] + j - a
-            zs[k], us[k], vs[k] = z, u, v
+            zs[k], us[k], vs[k] = 1.0 / z, u, v
             umin, umax = min(umin, u), max(umax, u)
             vmin, vmax = min(vmin, v), max(vmax, v)
         if b == a:
@@ -121,7 +121,7 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
             if xlo > xhi or ylo > yhi:
                 continue
             s = 1.0 / area  # barycentric weights w_i / area: >= 0 inside, either winding
-            iza, izb, izc = 1.0 / zs[ia], 1.0 / zs[ib], 1.0 / zs[ic]
+            iza, izb, izc = zs[ia], zs[ib], zs[ic]
             # w0, w1 and 1/z are affine in the pixel: w = A x + B y + C
             a0, b0 = -(cy - by) * s, (cx - bx) * s
             c0 = -(a0 * bx + b0 * by)
@@ -172,95 +172,60 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
     return 0, box, depth, index, visible
 
 
-@njit(cache=True)
-def object_pixels(clean, index, Kinv):  # pragma: no cover - compiled
-    """The object pixels of a box, row-major, with what the sensor needs of them.
+@njit(cache=True, inline="always")
+def _jump_to(best, z, nb):  # pragma: no cover - compiled
+    """The jump to neighbour depth ``nb`` (0 = none) if it exceeds ``best`` (first on ties)."""
+    d = nb - z if (nb > 0 and z > 0) else 0.0
+    return d if abs(d) > abs(best) else best
 
-    Args:
-        clean: (h, w) float64 clean depth: the objects', and the background's on the ring of
-            pixels around them (0 elsewhere and where no background is hit).
-        index: (h, w) int64 instance of each pixel (-1 = background).
-        Kinv: (3, 3) inverse intrinsics of the box.
 
-    Returns:
-        ``(v, u, inst, jump, cos)``, (m,) each: row, column, instance, the depth jump to the
-        4-neighbour that differs most (metres) and the incidence cosine (1 where a 4-neighbour
-        has no depth or another instance, and on the box's border).
-    """
+@njit(cache=True, inline="always")
+def _geometry(clean, index, y, x, Kinv):  # pragma: no cover - compiled
+    """The depth jump and incidence cosine of object pixel (y, x): the jump to the
+    4-neighbour (up, down, left, right) that differs most, over those with depth (the first on
+    ties; 0 where the pixel has none); the cosine from central differences of the
+    back-projected neighbours, 1 where one has no depth or another instance and on the box's
+    border (:func:`cloudpose.kernels.sensor.object_pixel_geometry_kernel`'s expressions)."""
     h, w = index.shape
-    m = 0
-    for y in range(h):
-        for x in range(w):
-            if index[y, x] >= 0:
-                m += 1
-    v = np.empty(m, np.int64)
-    u = np.empty(m, np.int64)
-    inst = np.empty(m, np.int64)
-    jump = np.zeros(m)
-    cos = np.ones(m)
-    dv = (-1, 1, 0, 0)
-    du = (0, 0, -1, 1)
-    k = 0
-    for y in range(h):
-        for x in range(w):
-            c = index[y, x]
-            if c < 0:
-                continue
-            v[k], u[k], inst[k] = y, x, c
-            z = clean[y, x]
-            best = 0.0
-            all_valid = True
-            same = True
-            for t in range(4):
-                yy, xx = y + dv[t], x + du[t]
-                if 0 <= yy < h and 0 <= xx < w:
-                    nb = clean[yy, xx]
-                    other = index[yy, xx] != c
-                else:
-                    nb = 0.0
-                    other = True
-                if nb > 0:
-                    d = nb - z if z > 0 else 0.0
-                else:
-                    d = 0.0
-                    all_valid = False
-                if abs(d) > abs(best):
-                    best = d
-                if other:
-                    same = False
-            jump[k] = best
-            if all_valid and same and 1 <= y <= h - 2 and 1 <= x <= w - 2:
-                fx, fy = float(x), float(y)
-                zr, zl = clean[y, x + 1], clean[y, x - 1]
-                zd, zu = clean[y + 1, x], clean[y - 1, x]
-                gx0 = _ray(Kinv, 0, fx + 1, fy) * zr - _ray(Kinv, 0, fx - 1, fy) * zl
-                gx1 = _ray(Kinv, 1, fx + 1, fy) * zr - _ray(Kinv, 1, fx - 1, fy) * zl
-                gx2 = _ray(Kinv, 2, fx + 1, fy) * zr - _ray(Kinv, 2, fx - 1, fy) * zl
-                gy0 = _ray(Kinv, 0, fx, fy + 1) * zd - _ray(Kinv, 0, fx, fy - 1) * zu
-                gy1 = _ray(Kinv, 1, fx, fy + 1) * zd - _ray(Kinv, 1, fx, fy - 1) * zu
-                gy2 = _ray(Kinv, 2, fx, fy + 1) * zd - _ray(Kinv, 2, fx, fy - 1) * zu
-                n0 = gx1 * gy2 - gx2 * gy1
-                n1 = gx2 * gy0 - gx0 * gy2
-                n2 = gx0 * gy1 - gx1 * gy0
-                r0, r1, r2 = _ray(Kinv, 0, fx, fy), _ray(Kinv, 1, fx, fy), _ray(Kinv, 2, fx, fy)
-                norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * math.sqrt(
-                    r0 * r0 + r1 * r1 + r2 * r2
-                )
-                if norm > 0:
-                    cos[k] = min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
-            k += 1
-    return v, u, inst, jump, cos
+    c = index[y, x]
+    z = clean[y, x]
+    zu = clean[y - 1, x] if y > 0 else 0.0
+    zd = clean[y + 1, x] if y < h - 1 else 0.0
+    zl = clean[y, x - 1] if x > 0 else 0.0
+    zr = clean[y, x + 1] if x < w - 1 else 0.0
+    best = _jump_to(0.0, z, zu)
+    best = _jump_to(best, z, zd)
+    best = _jump_to(best, z, zl)
+    best = _jump_to(best, z, zr)
+    if not (1 <= y <= h - 2 and 1 <= x <= w - 2):
+        return best, 1.0
+    if not (zu > 0 and zd > 0 and zl > 0 and zr > 0):
+        return best, 1.0
+    if index[y - 1, x] != c or index[y + 1, x] != c or index[y, x - 1] != c or index[y, x + 1] != c:
+        return best, 1.0
+    fx, fy = float(x), float(y)
+    gx0 = _ray(Kinv, 0, fx + 1, fy) * zr - _ray(Kinv, 0, fx - 1, fy) * zl
+    gx1 = _ray(Kinv, 1, fx + 1, fy) * zr - _ray(Kinv, 1, fx - 1, fy) * zl
+    gx2 = _ray(Kinv, 2, fx + 1, fy) * zr - _ray(Kinv, 2, fx - 1, fy) * zl
+    gy0 = _ray(Kinv, 0, fx, fy + 1) * zd - _ray(Kinv, 0, fx, fy - 1) * zu
+    gy1 = _ray(Kinv, 1, fx, fy + 1) * zd - _ray(Kinv, 1, fx, fy - 1) * zu
+    gy2 = _ray(Kinv, 2, fx, fy + 1) * zd - _ray(Kinv, 2, fx, fy - 1) * zu
+    n0 = gx1 * gy2 - gx2 * gy1
+    n1 = gx2 * gy0 - gx0 * gy2
+    n2 = gx0 * gy1 - gx1 * gy0
+    r0, r1, r2 = _ray(Kinv, 0, fx, fy), _ray(Kinv, 1, fx, fy), _ray(Kinv, 2, fx, fy)
+    norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    if norm > 0:
+        return best, min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
+    return best, 1.0
 
 
 @njit(cache=True)
-def sensor_readings(
+def scene_points(
     clean,
     index,
-    v,
-    u,
-    inst,
-    jump,
-    cos,
+    visible,
+    Kinv,
     rate,
     normal,
     u_edge,
@@ -271,86 +236,203 @@ def sensor_readings(
     noise,
     drop,
     max_range,
+    radius,
+    noisy,
 ):  # pragma: no cover - compiled
-    """The version-2 sensor's readings of the object pixels ``(v, u)`` from their draws.
+    """Each instance's points of a scene's box: every object pixel's reading (the version-2
+    sensor from its draws, or the clean depth as float32 without noise), back-projected
+    (``z K^-1 [u, v, 1]``, row-major within an instance), less the points farther than
+    ``radius`` from their instance's mean (the segment path's outlier filter).
+
+    The sensor: Gaussian axial noise growing with depth, a flying pixel on a depth edge mixed
+    towards the neighbour across it, the disparity quantisation, the range; then missing
+    depth where the missing-depth field (white noise smoothed by ``weights``, the first pass
+    along the image's columns, over the object pixels' bounding box widened by the filter's
+    reach r, mapped to uniform) is below the fitted probability (edge distance, incidence
+    cosine, class rate).
 
     Args:
-        clean: (h, w) float64 clean depth; index: (h, w) int64 instance (-1 = background).
-        v, u, inst, jump, cos: (m,) from :func:`object_pixels`.
-        rate: (N,) float64 the missing rate of each instance's class.
-        normal: (m,) standard normal draws (axial noise).
-        u_edge: (m,) uniform draws, read only where ``|jump| > edge_jump`` (else any value).
-        mix: (m,) uniform draws, read only at the flying pixels.
-        white: (vb1 - vb0 + 2r, ub1 - ub0 + 2r) standard normal draws over the object pixels'
-            bounding box (rows vb0..vb1 - 1, columns ub0..ub1 - 1) widened by the filter's
-            reach r on every side.
+        clean: (h, w) float64 clean depth: the objects', and the background's on the ring of
+            pixels around them (0 elsewhere).
+        index: (h, w) int64 instance of each pixel (-1 = background).
+        visible: (N,) int64 pixels of each instance.
+        Kinv: (3, 3) inverse intrinsics of the box.
+        rate: (N,) missing rate of each instance's class.
+        normal, u_edge, mix: (m,) float32 draws of the m object pixels in row-major order:
+            standard normal (axial noise), uniform (flying or not), uniform (the mix).
+        white: (vb1 - vb0 + 2r, ub1 - ub0 + 2r) float32 standard normal draws over the object
+            pixels' bounding box (rows vb0..vb1 - 1, columns ub0..ub1 - 1) widened by r.
         weights: (2r + 1,) the smoothing kernel; std: the smoothed noise's standard deviation.
         noise: (sigma0, sigma2, focal_baseline, subpixel, edge_jump, edge_flying).
         drop: (edge_rate, edge_scale, graze_cos, graze_width).
-        max_range: metres.
+        max_range, radius: metres.
+        noisy: False: the readings are the clean depth (no draw is read).
 
     Returns:
-        (m,) float64 readings, metres, 0 = none.
+        (M, 3) float64 points, instance by instance, and (N + 1,) int64 offsets: instance i's
+        are ``[offsets[i], offsets[i + 1])``.
     """
     sigma0, sigma2, fb, sub, edge_jump, edge_flying = noise
     edge_rate, edge_scale, graze_cos, graze_width = drop
     h, w = index.shape
-    m = v.shape[0]
-    out = np.zeros(m)
-    if m == 0:
-        return out
-    r = weights.shape[0] // 2
+    n = visible.shape[0]
+    start = np.zeros(n + 1, np.int64)
+    for i in range(n):
+        start[i + 1] = start[i] + visible[i]
+    X = np.empty((start[n], 3))
+    fill = start[:-1].copy()
     vb0, vb1, ub0, ub1 = h, 0, w, 0
-    for i in range(m):
-        vb0, vb1 = min(vb0, v[i]), max(vb1, v[i] + 1)
-        ub0, ub1 = min(ub0, u[i]), max(ub1, u[i] + 1)
-    # first pass of the separable filter (along rows of the image) over the box's rows
-    hb, wb = vb1 - vb0, ub1 - ub0 + 2 * r
-    tmp = np.zeros((hb, wb), np.float32)
-    for y in range(hb):
-        for j in range(2 * r + 1):
-            wj = np.float32(weights[j])
-            src = white[y + j]
-            dst = tmp[y]
-            for x in range(wb):
-                dst[x] += wj * src[x]
-    # second pass (along columns) over the box: the smoothed noise at every pixel of it
-    sm = np.zeros((hb, ub1 - ub0), np.float32)
-    for y in range(hb):
-        src = tmp[y]
-        dst = sm[y]
-        for j in range(2 * r + 1):
-            wj = np.float32(weights[j])
-            for x in range(ub1 - ub0):
-                dst[x] += wj * src[x + j]
-    # the exact edge distance over the objects' box and the ring around it (every boundary)
+    for y in range(h):
+        for x in range(w):
+            if index[y, x] >= 0:
+                vb0, vb1 = min(vb0, y), max(vb1, y + 1)
+                ub0, ub1 = min(ub0, x), max(ub1, x + 1)
+    r = weights.shape[0] // 2
+    hb, wb = max(vb1 - vb0, 0), max(ub1 - ub0, 0)
+    sm = np.zeros((hb, wb), np.float32)
     ev0, ev1 = max(vb0 - 1, 0), min(vb1 + 1, h)
     eu0, eu1 = max(ub0 - 1, 0), min(ub1 + 1, w)
-    lab = np.empty((ev1 - ev0, eu1 - eu0), np.int64)
-    for y in range(ev0, ev1):
-        for x in range(eu0, eu1):
-            lab[y - ev0, x - eu0] = index[y, x]
-    dist = edge_distance_kernel(lab)
-    for i in range(m):
-        zi = clean[v[i], u[i]]
-        valid = zi > 0
-        rd = zi + normal[i] * (sigma0 + sigma2 * (zi - 0.4) ** 2)
-        if abs(jump[i]) > edge_jump and u_edge[i] < edge_flying:
-            rd = rd + mix[i] * jump[i]
-        disparity = fb / (rd if valid else 1.0)
-        disparity = max(np.round(disparity / sub), 1.0) * sub
-        rd = fb / disparity
-        if not valid or rd <= 0 or rd > max_range:
-            continue
-        p_edge = edge_rate * math.exp(-(dist[v[i] - ev0, u[i] - eu0] - 1.0) / edge_scale)
-        x = min(max((cos[i] - graze_cos) / graze_width, -50.0), 50.0)
-        p_graze = 1.0 / (1.0 + math.exp(x))
-        p = 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - rate[inst[i]])
-        zf = np.float64(sm[v[i] - vb0, u[i] - ub0]) / std
-        # the field is uniform: Phi(zf) >= 1/2 where zf >= 0 (no erfc needed when p <= 1/2)
-        if (zf >= 0.0 and p <= 0.5) or 0.5 * math.erfc(-zf / math.sqrt(2.0)) >= p:
-            out[i] = rd
-    return out
+    dist2 = np.zeros((max(eu1 - eu0, 0), max(ev1 - ev0, 0)))
+    phi_low = np.empty(81)
+    graze_high = np.empty(257)
+    edge_table = np.full(4096, -1.0)
+    if noisy and hb > 0:
+        # the field: first pass of the separable filter along the columns, then the rows
+        tmp = np.zeros((hb, wb + 2 * r), np.float32)
+        for y in range(hb):
+            dst = tmp[y]
+            for j in range(2 * r + 1):
+                wj = np.float32(weights[j])
+                src = white[y + j]
+                for x in range(wb + 2 * r):
+                    dst[x] += wj * src[x]
+        for y in range(hb):
+            src = tmp[y]
+            dst = sm[y]
+            for j in range(2 * r + 1):
+                wj = np.float32(weights[j])
+                for x in range(wb):
+                    dst[x] += wj * src[x + j]
+        # the exact edge distance over the objects' box and the ring around it
+        lab = np.empty((ev1 - ev0, eu1 - eu0), np.int64)
+        for y in range(ev0, ev1):
+            for x in range(eu0, eu1):
+                lab[y - ev0, x - eu0] = index[y, x]
+        dist2 = edge_squared_distance(lab)
+        # tables for a sufficient test of "the field keeps the reading": Phi(z) from below on
+        # a grid of z <= 0, the grazing term from above on a grid of cosines, the edge term by
+        # the integer squared distance (filled as met); the exact test where they do not decide
+        for k in range(81):
+            phi_low[k] = 0.5 * math.erfc(k / 8.0 / math.sqrt(2.0)) * (1.0 - 1e-9)
+        for k in range(257):
+            xk = min(max((k / 256.0 - graze_cos) / graze_width, -50.0), 50.0)
+            graze_high[k] = 1.0 / (1.0 + math.exp(xk)) * (1.0 + 1e-9)
+    k = 0
+    for y in range(vb0, vb1):
+        for x in range(ub0, ub1):
+            c = index[y, x]
+            if c < 0:
+                continue
+            zi = clean[y, x]
+            i = k
+            k += 1
+            if not noisy:
+                rd = np.float64(np.float32(zi))
+            else:
+                jump, cos = _geometry(clean, index, y, x, Kinv)
+                rd = zi + normal[i] * (sigma0 + sigma2 * (zi - 0.4) ** 2)
+                if abs(jump) > edge_jump and u_edge[i] < edge_flying:
+                    rd = rd + mix[i] * jump
+                disparity = fb / (rd if zi > 0 else 1.0)
+                disparity = max(np.round(disparity / sub), 1.0) * sub
+                rd = fb / disparity
+                if not zi > 0 or rd <= 0 or rd > max_range:
+                    continue
+                d2 = dist2[x - eu0, y - ev0]
+                if d2 < 4096:
+                    key = int(d2)
+                    if edge_table[key] < 0:
+                        edge_table[key] = edge_rate * math.exp(
+                            -(math.sqrt(d2) + 1.0 - 1.0) / edge_scale
+                        )
+                    p_edge = edge_table[key]
+                else:
+                    p_edge = edge_rate * math.exp(-(math.sqrt(d2) + 1.0 - 1.0) / edge_scale)
+                q = (1.0 - p_edge) * (1.0 - rate[c])
+                zf = np.float64(sm[y - vb0, x - ub0]) / std
+                kz = 0 if zf >= 0.0 else math.ceil(-zf * 8.0)
+                sure = kz <= 80 and phi_low[kz] > 1.0 - q * (1.0 - graze_high[int(cos * 256.0)])
+                if not sure:  # Phi(zf) > an upper bound of p failed: the exact test
+                    xg = min(max((cos - graze_cos) / graze_width, -50.0), 50.0)
+                    p_graze = 1.0 / (1.0 + math.exp(xg))
+                    p = 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - rate[c])
+                    if 0.5 * math.erfc(-zf / math.sqrt(2.0)) < p:
+                        continue
+            if rd > 0:
+                fu, fv = np.float64(x), np.float64(y)
+                j = fill[c]
+                fill[c] += 1
+                X[j, 0] = (fu * Kinv[0, 0] + fv * Kinv[0, 1] + Kinv[0, 2]) * rd
+                X[j, 1] = (fu * Kinv[1, 0] + fv * Kinv[1, 1] + Kinv[1, 2]) * rd
+                X[j, 2] = (fu * Kinv[2, 0] + fv * Kinv[2, 1] + Kinv[2, 2]) * rd
+    offsets = np.zeros(n + 1, np.int64)
+    keep = 0
+    for c in range(n):
+        a, b = start[c], fill[c]
+        mx, my, mz = 0.0, 0.0, 0.0
+        for j in range(a, b):
+            mx += X[j, 0]
+            my += X[j, 1]
+            mz += X[j, 2]
+        if b > a:
+            mx /= b - a
+            my /= b - a
+            mz /= b - a
+        for j in range(a, b):
+            dx, dy, dz = X[j, 0] - mx, X[j, 1] - my, X[j, 2] - mz
+            if math.sqrt(dx * dx + dy * dy + dz * dz) <= radius:
+                X[keep, 0], X[keep, 1], X[keep, 2] = X[j, 0], X[j, 1], X[j, 2]
+                keep += 1
+        offsets[c + 1] = keep
+    return X[:keep], offsets
+
+
+@njit(cache=True)
+def edge_squared_distance(label):  # pragma: no cover - compiled
+    """Squared pixels to the nearest pixel of another label, 0 on both sides of a boundary
+    (inf everywhere without one), as a (w, h) array (transposed): the exact transform of
+    :func:`cloudpose.kernels.sensor.edge_distance_kernel` (whose distance is ``sqrt`` of this
+    + 1), by rows first (each row's nearest boundary pixel, two sweeps) and then the lower
+    envelope of parabolas along the columns (Felzenszwalb & Huttenlocher), both over
+    contiguous memory."""
+    H, W = label.shape
+    gT = np.empty((W, H))
+    for y in range(H):
+        last = -1  # the row's nearest boundary pixel to the left
+        for x in range(W):
+            c = label[y, x]
+            b = (
+                (y > 0 and label[y - 1, x] != c)
+                or (y < H - 1 and label[y + 1, x] != c)
+                or (x > 0 and label[y, x - 1] != c)
+                or (x < W - 1 and label[y, x + 1] != c)
+            )
+            if b:
+                last = x
+            gT[x, y] = np.inf if last < 0 else float((x - last) * (x - last))
+        last = -1
+        for x in range(W - 1, -1, -1):
+            if gT[x, y] == 0.0:
+                last = x
+            elif last >= 0:
+                gT[x, y] = min(gT[x, y], float((last - x) * (last - x)))
+    d = np.empty(H)
+    v = np.empty(H, np.int64)
+    z = np.empty(H + 1)
+    for x in range(W):  # columns, each a row of gT
+        _squared_distance_1d(gT[x], d, v, z)
+        gT[x, :] = d
+    return gT
 
 
 @njit(cache=True)
@@ -391,21 +473,23 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
         fill[cell[i]] += 1
         index[j] = i
         QX[j], QY[j], QZ[j] = X[i], Y[i], Z[i]
-    box = np.empty((cells, 6))
+    bx0, by0, bz0 = np.full(cells, np.inf), np.full(cells, np.inf), np.full(cells, np.inf)
+    bx1, by1, bz1 = np.full(cells, np.inf), np.full(cells, np.inf), np.full(cells, np.inf)
     cmax = np.full(cells, np.inf, np.float32)
     carg = np.full(cells, -1, np.int64)  # stored position of the cell's farthest point
+    visit = np.zeros(cells, np.bool_)
     for c in range(cells):
         if cstart[c] == cstart[c + 1]:
+            cmax[c] = -1.0  # never visited, never picked
             continue
-        box[c, 0] = box[c, 1] = box[c, 2] = np.inf
-        box[c, 3] = box[c, 4] = box[c, 5] = -np.inf
+        bx1[c] = by1[c] = bz1[c] = -np.inf
         for j in range(cstart[c], cstart[c + 1]):
-            box[c, 0] = min(box[c, 0], np.float64(QX[j]))
-            box[c, 1] = min(box[c, 1], np.float64(QY[j]))
-            box[c, 2] = min(box[c, 2], np.float64(QZ[j]))
-            box[c, 3] = max(box[c, 3], np.float64(QX[j]))
-            box[c, 4] = max(box[c, 4], np.float64(QY[j]))
-            box[c, 5] = max(box[c, 5], np.float64(QZ[j]))
+            bx0[c] = min(bx0[c], np.float64(QX[j]))
+            by0[c] = min(by0[c], np.float64(QY[j]))
+            bz0[c] = min(bz0[c], np.float64(QZ[j]))
+            bx1[c] = max(bx1[c], np.float64(QX[j]))
+            by1[c] = max(by1[c], np.float64(QY[j]))
+            bz1[c] = max(bz1[c], np.float64(QZ[j]))
         carg[c] = cstart[c]
     near = np.full(n, np.inf, np.float32)
     out = np.empty(k, np.int64)
@@ -417,27 +501,29 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
         out[s] = index[cur]
         px, py, pz = QX[cur], QY[cur], QZ[cur]
         xs, ys, zs = np.float64(px), np.float64(py), np.float64(pz)
+        for c in range(cells):  # one vector loop: each cell's box distance to the sample
+            dx = max(bx0[c] - xs, 0.0, xs - bx1[c])
+            dy = max(by0[c] - ys, 0.0, ys - by1[c])
+            dz = max(bz0[c] - zs, 0.0, zs - bz1[c])
+            # visited when a point may get closer (margin 1e-6 >> float32 rounding of a
+            # squared distance; an empty cell's box is inf away)
+            visit[c] = (dx * dx + dy * dy + dz * dz) * (1.0 - 1e-6) <= cmax[c]
         for c in range(cells):
-            if carg[c] < 0:
-                continue
-            dx = max(box[c, 0] - xs, 0.0, xs - box[c, 3])
-            dy = max(box[c, 1] - ys, 0.0, ys - box[c, 4])
-            dz = max(box[c, 2] - zs, 0.0, zs - box[c, 5])
-            if (dx * dx + dy * dy + dz * dz) * (1.0 - 1e-6) > cmax[c]:
+            if not visit[c]:
                 continue
             a, b = cstart[c], cstart[c + 1]
-            for j in range(a, b):
+            top = np.float32(-1.0)
+            for j in range(a, b):  # one vector loop: the new distances and their largest
                 ex = QX[j] - px
                 ey = QY[j] - py
                 ez = QZ[j] - pz
-                near[j] = min(near[j], ex * ex + ey * ey + ez * ez)
-            best = a
-            best_v = near[a]
-            for j in range(a + 1, b):  # ascending index within a cell: ties to the last
-                if near[j] >= best_v:
-                    best_v = near[j]
-                    best = j
-            cmax[c] = best_v
+                d = min(near[j], ex * ex + ey * ey + ez * ez)
+                near[j] = d
+                top = max(top, d)
+            best = b - 1
+            while near[best] != top:  # ascending index within a cell: ties to the last
+                best -= 1
+            cmax[c] = top
             carg[c] = best
         best_v = np.float32(-1.0)
         for c in range(cells):
@@ -447,52 +533,3 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
                 best_v = cmax[c]
                 cur = carg[c]
     return out
-
-
-@njit(cache=True)
-def cut_points(v, u, inst, reading, Kinv, n, radius):  # pragma: no cover - compiled
-    """Each instance's points: the pixels with a reading back-projected (``z K^-1 [u, v, 1]``
-    in float64, row-major within an instance), less those farther than ``radius`` from their
-    instance's mean (the segment path's outlier filter).
-
-    Returns:
-        (M, 3) float64 points, instance by instance, and (n + 1,) int64 offsets: instance i's
-        are ``[offsets[i], offsets[i + 1])``.
-    """
-    m = v.shape[0]
-    counts = np.zeros(n + 1, np.int64)
-    for i in range(m):
-        if reading[i] > 0:
-            counts[inst[i] + 1] += 1
-    start = np.cumsum(counts)
-    fill = start[:-1].copy()
-    X = np.empty((start[n], 3))
-    for i in range(m):
-        z = reading[i]
-        if z > 0:
-            fu, fv = np.float64(u[i]), np.float64(v[i])
-            j = fill[inst[i]]
-            fill[inst[i]] += 1
-            X[j, 0] = (fu * Kinv[0, 0] + fv * Kinv[0, 1] + Kinv[0, 2]) * z
-            X[j, 1] = (fu * Kinv[1, 0] + fv * Kinv[1, 1] + Kinv[1, 2]) * z
-            X[j, 2] = (fu * Kinv[2, 0] + fv * Kinv[2, 1] + Kinv[2, 2]) * z
-    offsets = np.zeros(n + 1, np.int64)
-    keep = 0
-    for c in range(n):
-        a, b = start[c], start[c + 1]
-        mx, my, mz = 0.0, 0.0, 0.0
-        for j in range(a, b):
-            mx += X[j, 0]
-            my += X[j, 1]
-            mz += X[j, 2]
-        if b > a:
-            mx /= b - a
-            my /= b - a
-            mz /= b - a
-        for j in range(a, b):
-            dx, dy, dz = X[j, 0] - mx, X[j, 1] - my, X[j, 2] - mz
-            if math.sqrt(dx * dx + dy * dy + dz * dz) <= radius:
-                X[keep, 0], X[keep, 1], X[keep, 2] = X[j, 0], X[j, 1], X[j, 2]
-                keep += 1
-        offsets[c + 1] = keep
-    return X[:keep], offsets

@@ -132,83 +132,104 @@ class SegmentBatch:
         )
 
 
-def scene_readings(clean, index, v, u, inst, jump, cos, cls_ids, rng, compiled: bool) -> np.ndarray:
-    """The version-2 sensor's readings of a scene's object pixels, version 3's draws
-    (:mod:`cloudpose.kernels.scene_pass`): per object pixel a standard normal (axial noise),
-    per depth-edge pixel a uniform (flying or not), per flying pixel a uniform (its mix), all
-    float32; then white noise over the object pixels' bounding box widened by the blob
-    filter's reach, smoothed into the missing-depth field.
+def scene_points(
+    clean: np.ndarray,
+    index: np.ndarray,
+    visible: np.ndarray,
+    Kw: np.ndarray,
+    cls_ids: np.ndarray,
+    rng: np.random.Generator | None,
+    radius: float,
+    compiled: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each instance's points of a scene's box (version 3): the version-2 sensor's readings of
+    the object pixels from version 3's draws (none without ``rng``: the clean depth), back-
+    projected, less the outliers (:func:`cloudpose.kernels.scene_pass.scene_points`, or its
+    numpy twin).
+
+    The draws, all float32: per object pixel in row-major order a standard normal (axial
+    noise), a uniform (flying or not on a depth edge) and a uniform (the flying pixel's mix);
+    then white noise over the object pixels' bounding box widened by the blob filter's reach
+    (a stationary field, where version 2 wraps the box around), smoothed into the
+    missing-depth field.
 
     Args:
         clean: (h, w) float64 clean depth (the objects', the background's on their ring).
         index: (h, w) int64 instance of each pixel (-1 = background).
-        v, u, inst, jump, cos: (m,) the object pixels, row-major, their instance, depth jump
-            and incidence cosine (:func:`cloudpose.kernels.scene_pass.object_pixels`).
+        visible: (N,) int64 pixels of each instance.
+        Kw: (3, 3) intrinsics of the box.
         cls_ids: (N,) class id of each instance.
-        rng: the scene's generator.
-        compiled: :func:`cloudpose.kernels.scene_pass.sensor_readings`, else its numpy twin.
+        rng: the scene's generator; None: no noise.
+        radius: the outlier filter's, metres.
+        compiled: the kernel, else the numpy twin.
 
     Returns:
-        (m,) float64 readings, metres, 0 = none.
+        (M, 3) float64 points, instance by instance (row-major within each), and (N + 1,)
+        int64 offsets.
     """
     model, dropout = NoiseModel(), REAL_DROPOUT
-    m = len(v)
-    normal = rng.standard_normal(m, dtype=np.float32)
-    u_edge = np.ones(m, dtype=np.float32)
-    edge = np.abs(jump) > model.edge_jump
-    u_edge[edge] = rng.random(int(edge.sum()), dtype=np.float32)
-    mix = np.zeros(m, dtype=np.float32)
-    flying = u_edge < model.edge_flying
-    mix[flying] = rng.random(int(flying.sum()), dtype=np.float32)
     weights = _gaussian_weights(dropout.blob_sigma)
     r = len(weights) // 2
-    hb = int(v.max()) - int(v.min()) + 1 + 2 * r if m else 0
-    wb = int(u.max()) - int(u.min()) + 1 + 2 * r if m else 0
-    white = rng.standard_normal((hb, wb), dtype=np.float32)
+    m = int(visible.sum())
+    v, u = np.nonzero(index >= 0) if not compiled or rng is not None else (None, None)
+    if rng is not None:
+        normal = rng.standard_normal(m, dtype=np.float32)
+        u_edge = rng.random(m, dtype=np.float32)
+        mix = rng.random(m, dtype=np.float32)
+        hb = int(v.max()) - int(v.min()) + 1 + 2 * r if m else 0
+        wb = int(u.max()) - int(u.min()) + 1 + 2 * r if m else 0
+        white = rng.standard_normal((hb, wb), dtype=np.float32)
+    else:
+        normal = u_edge = mix = np.zeros(0, dtype=np.float32)
+        white = np.zeros((0, 0), dtype=np.float32)
     rate = dropout.rate_table()[np.asarray(cls_ids, dtype=np.int64)]
     std = _smoothed_std(float(dropout.blob_sigma))
-    if not compiled:
-        from scipy import ndimage
-        from scipy.special import ndtr
+    Kinv = np.linalg.inv(Kw)
+    if compiled:
+        from cloudpose.kernels.scene_pass import scene_points as kernel
 
-        z = clean[v, u]
-        out = _noisy(z, jump, normal.astype(np.float64), u_edge, mix, model)
-        if not m:
-            return out
+        return kernel(
+            clean,
+            index,
+            visible,
+            Kinv,
+            rate,
+            normal,
+            u_edge,
+            mix,
+            white,
+            weights,
+            std,
+            (
+                model.sigma0,
+                model.sigma2,
+                model.focal_baseline,
+                model.subpixel,
+                model.edge_jump,
+                model.edge_flying,
+            ),
+            (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width),
+            MAX_RANGE,
+            float(radius),
+            rng is not None,
+        )
+    from scipy import ndimage
+    from scipy.special import ndtr
+
+    inst = index[v, u]
+    z = clean[v, u]
+    if rng is None or not m:
+        reading = z.astype(np.float32).astype(np.float64)  # a frame's depth
+    else:
+        lab = index + 1
+        jump, cos = object_pixel_geometry(np.pad(clean, 1), np.pad(lab, 1), v, u, Kw)
+        reading = _noisy(z, jump, normal.astype(np.float64), u_edge, mix, model)
         smooth = ndimage.correlate1d(white.astype(np.float64), weights, axis=0, mode="constant")
         smooth = ndimage.correlate1d(smooth, weights, axis=1, mode="constant")[r:-r, r:-r]
         field = ndtr(smooth[v - v.min(), u - u.min()] / std)
-        p = dropout.probability(edge_distance(index + 1)[v, u], cos, np.asarray(cls_ids)[inst])
-        out[field < p] = 0.0
-        return out
-    from cloudpose.kernels.scene_pass import sensor_readings
-
-    return sensor_readings(
-        clean,
-        index,
-        v,
-        u,
-        inst,
-        jump,
-        cos,
-        rate,
-        normal,
-        u_edge,
-        mix,
-        white,
-        weights,
-        std,
-        (
-            model.sigma0,
-            model.sigma2,
-            model.focal_baseline,
-            model.subpixel,
-            model.edge_jump,
-            model.edge_flying,
-        ),
-        (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width),
-        MAX_RANGE,
-    )
+        p = dropout.probability(edge_distance(lab)[v, u], cos, np.asarray(cls_ids)[inst])
+        reading[field < p] = 0.0
+    return _cut_points_numpy(v, u, inst, reading, Kinv, len(cls_ids), radius)
 
 
 def _cut_points_numpy(v, u, inst, reading, Kinv, n, radius):
@@ -520,7 +541,6 @@ class OnlineSynth:
         Kw = self.K.copy()
         Kw[0, 2] -= u0
         Kw[1, 2] -= v0
-        Kinv = np.linalg.inv(Kw)
         compiled = enabled()
         clean = depth
         if self.settings.noise:
@@ -528,26 +548,17 @@ class OnlineSynth:
             clean[ring_v, ring_u] = background_depth_at(
                 Kw, ring_v, ring_u, scene.world_to_camera, scene.background
             )
-        if compiled:
-            from cloudpose.kernels.scene_pass import object_pixels
-
-            v, u, inst, jump, cos = object_pixels(clean, index, Kinv)
-        else:
-            lab = index + 1
-            v, u = np.nonzero(lab)
-            inst = index[v, u]
-            jump, cos = object_pixel_geometry(np.pad(clean, 1), np.pad(lab, 1), v, u, Kw)
-        if self.settings.noise:
-            reading = scene_readings(clean, index, v, u, inst, jump, cos, cls_ids, rng, compiled)
-        else:
-            reading = clean[v, u].astype(np.float32).astype(np.float64)  # a frame's depth
         n_fps, radius = self.settings.n_points, float(self.settings.outlier_radius)
-        if compiled:
-            from cloudpose.kernels.scene_pass import cut_points, fps_soa
-
-            pts, offsets = cut_points(v, u, inst, reading, Kinv, len(cls_ids), radius)
-        else:
-            pts, offsets = _cut_points_numpy(v, u, inst, reading, Kinv, len(cls_ids), radius)
+        pts, offsets = scene_points(
+            clean,
+            index,
+            visible,
+            Kw,
+            cls_ids,
+            rng if self.settings.noise else None,
+            radius,
+            compiled,
+        )
         streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
         keep = []
         for i, c in enumerate(cls_ids.tolist()):
@@ -560,6 +571,8 @@ class OnlineSynth:
                 continue
             p32 = pts[a:b].astype(np.float32)
             if compiled:
+                from cloudpose.kernels.scene_pass import fps_soa
+
                 first = int(streams[i].integers(b - a))  # farthest_point_sampling's start draw
                 k = min(n_fps, b - a)
                 xyz = (np.ascontiguousarray(p32[:, j]) for j in range(3))
