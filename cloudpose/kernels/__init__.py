@@ -27,7 +27,9 @@ object pixel, the exact edge distance and the readings of a scene in one pass), 
 z-buffer of the object meshes: the depth a ray cast through the pixel centres gives),
 ``segment_cut`` (each instance's pixels gathered and an exact FPS over a grid of buckets, the
 same order as ``fps``) and ``placement`` (the slide of a table scene's new object, which
-version 1's scenes use too: the same steps as the numpy loop).
+version 1's scenes use too: the same steps as the numpy loop). ``scene_pass`` serves version 3:
+a scene's objects into one z-buffer, every object pixel's sensor reading, back-projection and
+outlier filter in one pass, and an exact FPS over coordinate-wise buckets.
 
 The structures they share: ``kdtree`` (a k-d tree of arrays and its bounded search) and
 ``graph`` (a model's k-d tree with its Delaunay graph, or each point's nearest points where a

@@ -4,20 +4,21 @@ once.
 
 - ``raster_scene``: every object of a scene into one z-buffer: the meshes posed and projected,
   the objects' windows and the box around them (:meth:`~cloudpose.data.synth.render.Renderer.render_raster`'s
-  expressions), then each triangle tested at the pixel centres of its bounding box, the
-  nearest surface kept as the largest inverse depth (1/z is affine in the image over a planar
-  triangle: :mod:`cloudpose.kernels.raster`). The same hits as the ray cast to float rounding.
-- ``object_pixels``: the object pixels of the box in row-major order, with their instance,
-  clean depth, depth jump and incidence cosine (:func:`cloudpose.kernels.sensor.object_pixel_geometry_kernel`'s
-  expressions).
-- ``sensor_readings``: the version-2 sensor's readings of those pixels from their draws: the
-  missing-depth field smoothed at the object pixels only from white noise drawn over their
-  bounding box widened by the filter's reach (a stationary field, the same kernel as
-  :func:`cloudpose.data.synth.sensor.correlated_uniform`), mapped to uniform, and the fitted
-  missing probability with the exact edge distance
-  (:func:`cloudpose.kernels.sensor.edge_distance_kernel` on the objects' box).
+  expressions), then each triangle tested at the pixel centres of each row's span between its
+  edges, the nearest surface kept as the largest inverse depth (1/z is affine in the image
+  over a planar triangle: :mod:`cloudpose.kernels.raster`). The same hits as the ray cast to
+  float rounding.
+- ``scene_points``: every object pixel of the box in one pass, row-major: the version-2
+  sensor's depth jump, incidence cosine and reading from the pixel's draws
+  (:func:`cloudpose.kernels.sensor.object_pixel_geometry_kernel`'s and
+  ``object_readings_kernel``'s expressions), the missing-depth field smoothed over the object
+  pixels' box only (white noise drawn over it widened by the filter's reach: a stationary
+  field, the kernel of :func:`cloudpose.data.synth.sensor.correlated_uniform`), the fitted
+  missing probability with the exact edge distance (``edge_squared_distance``), then the
+  back-projection and the outlier filter of each instance's points.
 - ``fps_soa``: exact farthest point sampling over a grid of buckets, the points of a bucket
-  stored coordinate by coordinate so that a bucket's distance update is one vector loop.
+  stored coordinate by coordinate, so that a bucket's distance update and the box tests are
+  vector loops (the order of :func:`cloudpose.kernels.fps.fps_order`, ties included).
 """
 
 from __future__ import annotations

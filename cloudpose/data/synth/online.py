@@ -43,6 +43,26 @@ its own: the committed on-line runs are version 1, and a preset opts in with
 ``data.online_version = 2`` (``--set data.online_version=2`` on the command line). Without
 numba it runs the twins (ray cast, scipy, the k-d tree FPS): the same segments to rounding.
 
+Version 3 (``data.online_version = 3``): the same scenes (the same sampler and draws), the
+same z-buffer and the same sensor model, every object of a scene at once in a few compiled
+passes (:mod:`cloudpose.kernels.scene_pass`), and draws of its own, so other segments of the
+same distribution. One pass poses and projects every object, finds their windows and the box,
+and draws every triangle into one z-buffer along scan lines (:meth:`OnlineSynth._raster_v3`);
+one pass reads every object pixel (:func:`scene_points`: the jump, incidence cosine and
+reading of the version-2 sensor, the missing-depth test, the back-projection and the outlier
+filter; the exact missing probability only where a bound of it does not decide), and the FPS
+runs over coordinate-wise buckets (:func:`cloudpose.kernels.scene_pass.fps_soa`, the exact
+FPS order, the same start draws as the segment path). Its draws: float32, per object pixel a
+normal, a uniform and a uniform (as version 2 draws them, in one array each), and the white
+noise of the missing-depth field over the object pixels' bounding box widened by the blob
+filter's reach (version 2 draws it over the whole box and wraps the filter around it; here
+the field is stationary). The last scene of a batch cuts only the segments the batch keeps.
+Without noise its segments are the rendered frame's (tests/test_online.py); with noise they
+are other draws of the same law (the same classes and poses, as many points, each segment
+on the same surface: ``benchmarks/bench_online.py`` measures how near version 1's). Without
+numba it runs numpy twins (version 2's z-buffer, which casts rays; scipy's filter and edge
+distance; the k-d tree FPS): the same segments to rounding, far slower.
+
 Determinism: batch ``step`` of a run is a pure function of ``(seed, step)``: its scenes use
 ``np.random.default_rng([seed, ONLINE_STREAM, step, k])`` for k = 0, 1, ... until the batch is
 full, so a resumed run continues with the batches an uninterrupted one would have drawn, in any
