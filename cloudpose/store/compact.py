@@ -10,9 +10,10 @@ of the index) and git stores nothing again of the runs it had::
     DIR/runs/RUN_ID/run.json       the run's row (name, status, times, experiment), tags, params
     DIR/runs/RUN_ID/metrics.tsv    every logged value of every metric (key, step, timestamp,
                                    value as Python's shortest exact repr, is_nan), sorted
-    DIR/runs/RUN_ID/artifacts/     the run's artifacts; instance tables as Parquet float32
-                                   (:mod:`cloudpose.store.instances`), checkpoints only of the
+    DIR/runs/RUN_ID/artifacts/     the run's artifacts; instance tables packed
+                                   (:mod:`cloudpose.store.packed`), checkpoints only of the
                                    runs named
+    DIR/shared/SHA.parquet         the data's columns of instance tables, one per set of rows
 
 :func:`write_compact` writes it from a packed database copy (addresses made relative by
 :func:`cloudpose.store.archive.pack_store`); a file whose content did not change keeps its
@@ -42,11 +43,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cloudpose.files import CorruptFileError, atomic_text, why
-from cloudpose.store import instances
+from cloudpose.store import instances, packed
 from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 
-FORMAT = "# cloudpose MLflow store, compact form 1"
-"""First line of :data:`INDEX`."""
+FORMAT = "# cloudpose MLflow store, compact form 2"
+"""First line of :data:`INDEX` as :func:`write_compact` writes it."""
+
+FORMATS = ("# cloudpose MLflow store, compact form 1", FORMAT)
+"""First lines of the indexes this version reads: form 1 keeps each instance table in the
+evaluation's form, form 2 packed (:mod:`cloudpose.store.packed`)."""
 
 INDEX = "index.tsv"
 EXPERIMENTS = "experiments.json"
@@ -158,6 +163,36 @@ def _stage_artifacts(run: RunSource, dest: Path) -> tuple[int, int, int]:
     return files, kept, left
 
 
+def _pack_tables(staging: Path, run_ids: Sequence[str]) -> None:
+    """Pack every staged instance table (:mod:`cloudpose.store.packed`) in place, runs in the
+    order given (oldest first): the first table of each set of rows gives the shared table of
+    the data's columns, written under ``shared/``."""
+    shared: dict[str, tuple[object, str]] = {}
+    for rid in run_ids:
+        folder = staging / RUNS / rid / ARTIFACTS
+        if not folder.is_dir():
+            continue
+        for path in sorted(folder.rglob(instances.PARQUET)):
+            table = packed.read(path)
+            if packed.layout_of(table) is not None:
+                raise CorruptFileError(
+                    path, "an artifact is already a packed table; evaluate the run again"
+                )
+            reduced = packed.reduce(table)
+            key = packed.row_key(reduced)
+            if key is None:
+                packed.write(packed.encode(reduced), path)
+                continue
+            if key not in shared:
+                base = packed.shared_table(reduced)
+                ref = packed.shared_name(base)
+                (staging / packed.SHARED).mkdir(exist_ok=True)
+                packed.write(base, staging / ref)
+                shared[key] = (base, ref)
+            base, ref = shared[key]
+            packed.write(packed.encode(reduced, base, ref), path)
+
+
 def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int, int]:
     """The compact form of the store ``db`` (addresses relative) and its runs' artifacts,
     written into ``staging`` (no index yet)."""
@@ -181,6 +216,7 @@ def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int
         atomic_text(staging / EXPERIMENTS, _json({"experiments": exps}))
         by_id = {r.run_id: r for r in runs}
         files = kept = left = 0
+        order = []
         for row in _rows(con, "SELECT * FROM runs ORDER BY run_uuid"):
             rid = row["run_uuid"]
             folder = staging / RUNS / rid
@@ -200,16 +236,21 @@ def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int
             if rid in by_id:
                 n, k, lo = _stage_artifacts(by_id[rid], folder / ARTIFACTS)
                 files, kept, left = files + n, kept + k, left + lo
+            order.append((row["start_time"] or 0, rid))
+        _pack_tables(staging, [rid for _, rid in sorted(order)])
         return files, kept, left
     finally:
         con.close()
 
 
 def _listed(folder: Path) -> list[str]:
-    """The store's files in ``folder`` (experiments and runs), relative, sorted."""
+    """The store's files in ``folder`` (experiments, runs, shared tables), relative, sorted."""
     out = [EXPERIMENTS] if (folder / EXPERIMENTS).is_file() else []
-    if (folder / RUNS).is_dir():
-        out += [p.relative_to(folder).as_posix() for p in (folder / RUNS).rglob("*") if p.is_file()]
+    for sub in (RUNS, packed.SHARED):
+        if (folder / sub).is_dir():
+            out += [
+                p.relative_to(folder).as_posix() for p in (folder / sub).rglob("*") if p.is_file()
+            ]
     return sorted(out)
 
 
@@ -218,7 +259,10 @@ def _same(new: Path, old: Path) -> bool:
         return False
     if new.stat().st_size == old.stat().st_size and new.read_bytes() == old.read_bytes():
         return True
-    return new.suffix == ".parquet" and instances.same_table(new, old)
+    if new.suffix != ".parquet" or not instances.same_table(new, old):
+        return False
+    layouts = [packed.layout_of(packed.read(p)) for p in (new, old)]
+    return layouts[0] == layouts[1]
 
 
 def _sync(staging: Path, out: Path) -> None:
@@ -236,9 +280,12 @@ def _sync(staging: Path, out: Path) -> None:
         if not _same(staging / rel, out / rel):
             (out / rel).parent.mkdir(parents=True, exist_ok=True)
             os.replace(staging / rel, out / rel)
-    for d in sorted((out / RUNS).rglob("*"), key=lambda p: -len(p.parts)):
-        if d.is_dir() and not any(d.iterdir()):
-            d.rmdir()
+    for sub in (RUNS, packed.SHARED):
+        for d in sorted((out / sub).rglob("*"), key=lambda p: -len(p.parts)):
+            if d.is_dir() and not any(d.iterdir()):
+                d.rmdir()
+    if (out / packed.SHARED).is_dir() and not any((out / packed.SHARED).iterdir()):
+        (out / packed.SHARED).rmdir()
     lines = [FORMAT]
     lines += [f"{rel}\t{(out / rel).stat().st_size}\t{_sha256(out / rel)}" for rel in new]
     atomic_text(out / INDEX, "\n".join(lines) + "\n")
@@ -291,7 +338,7 @@ def check_compact(folder: Path) -> list[tuple[str, int, str]]:
         lines = index.read_text(encoding="utf-8").splitlines()
     except UnicodeDecodeError as exc:
         raise CorruptFileError(index, f"not a store index ({why(exc)}); {_restore(index)}") from exc
-    if not lines or lines[0] != FORMAT:
+    if not lines or lines[0] not in FORMATS:
         first = lines[0][:60] if lines else "nothing"
         raise CorruptFileError(index, f"starts with {first!r}, not {FORMAT!r}; {_restore(index)}")
     entries = []
@@ -395,6 +442,30 @@ def _runs_of(entries: list[tuple[str, int, str]]) -> list[str]:
     )
 
 
+def _unpack_table(
+    folder: Path, rel: str, listed: set[str], shared: dict[str, object], target: Path
+) -> None:
+    """Write the instance table ``rel`` of ``folder`` to ``target`` in the evaluation's form:
+    a packed table decoded (its shared table read once, into ``shared``), any other copied."""
+    table = packed.read(folder / rel)
+    layout = packed.layout_of(table)
+    if layout is None:
+        shutil.copyfile(folder / rel, target)
+        return
+    base = None
+    if layout.from_shared:
+        if layout.shared not in listed:
+            raise CorruptFileError(
+                folder / rel,
+                f"names the shared table {layout.shared}, which {INDEX} does not list; "
+                + _restore(folder),
+            )
+        if layout.shared not in shared:
+            shared[layout.shared] = packed.read(folder / layout.shared)
+        base = shared[layout.shared]
+    instances.write_arrow(packed.decode(table, base), target)
+
+
 def extract_compact(folder: Path, entries: list[tuple[str, int, str]], staging: Path) -> int:
     """Rebuild the store of the compact ``folder`` in ``staging``: its artifacts under
     ``mlartifacts/`` where each run's (relative) address points, and ``mlflow.db``.
@@ -412,6 +483,7 @@ def extract_compact(folder: Path, entries: list[tuple[str, int, str]], staging: 
     exps = _read_json(folder / EXPERIMENTS, "experiment list")["experiments"]
     records = {r: _read_json(folder / RUNS / r / RUN_FILE, "run record") for r in run_ids}
     listed = {rel for rel, _, _ in entries}
+    shared: dict[str, object] = {}
     for rid, rec in records.items():
         member = rec["run"].get("artifact_uri") or ""
         prefix = f"{RUNS}/{rid}/{ARTIFACTS}/"
@@ -424,7 +496,10 @@ def extract_compact(folder: Path, entries: list[tuple[str, int, str]], staging: 
         for rel in files:
             target = staging / member / rel[len(prefix) :]
             target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(folder / rel, target)
+            if target.name == instances.PARQUET:
+                _unpack_table(folder, rel, listed, shared, target)
+            else:
+                shutil.copyfile(folder / rel, target)
     db = staging / STORE_DB
     _new_database(db)
     con = sqlite3.connect(db)

@@ -196,19 +196,32 @@ def _with_quaternions(table) -> tuple[object, dict[str, str]]:
 
 def write_table(df: pd.DataFrame, path: str | Path) -> Path:
     """Write an instance table to ``path`` as Parquet (:func:`to_arrow`, rotations as
-    quaternions; byte stream split for every float and float list column, dictionaries for the
-    others, zstd). The same table gives the same bytes (with one pyarrow version)."""
+    quaternions; :func:`write_arrow`). The same table gives the same bytes (with one pyarrow
+    version)."""
     import json
 
+    table, replaced = _with_quaternions(to_arrow(df))
+    if replaced:
+        table = table.replace_schema_metadata(
+            {QUATERNIONS_KEY: json.dumps(replaced, sort_keys=True)}
+        )
+    return write_arrow(table, path)
+
+
+def write_arrow(table, path: str | Path) -> Path:
+    """Write an instance table already in Arrow form (quaternion columns named in its schema
+    metadata, :data:`QUATERNIONS_KEY`) as Parquet: byte stream split for every float and float
+    list column, dictionaries for the others, zstd; no statistics, no stored schema."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    table, replaced = _with_quaternions(to_arrow(df))
-    floats = [
-        f.name
-        for f in table.schema
-        if pa.types.is_floating(f.type) or pa.types.is_fixed_size_list(f.type)
-    ]
+    meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
+    table = table.replace_schema_metadata(None)
+
+    def is_list(t) -> bool:
+        return pa.types.is_fixed_size_list(t) or pa.types.is_list(t)
+
+    floats = [f.name for f in table.schema if pa.types.is_floating(f.type) or is_list(f.type)]
     with pq.ParquetWriter(
         str(path),
         table.schema,
@@ -217,7 +230,7 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
         use_dictionary=[n for n in table.column_names if n not in floats],
         # a list column's values are its leaf, NAME.list.element
         use_byte_stream_split=[
-            f"{f.name}.list.element" if pa.types.is_fixed_size_list(f.type) else f.name
+            f"{f.name}.list.element" if is_list(f.type) else f.name
             for f in table.schema
             if f.name in floats
         ],
@@ -225,8 +238,8 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
         store_schema=False,
     ) as writer:
         writer.write_table(table)
-        if replaced:
-            writer.add_key_value_metadata({QUATERNIONS_KEY: json.dumps(replaced, sort_keys=True)})
+        if meta:
+            writer.add_key_value_metadata(meta)
     return Path(path)
 
 
