@@ -230,3 +230,22 @@ def test_scene_points_are_the_numpy_twins(synth3):
                 assert 0.8 * visible.sum() < off[-1] < visible.sum()
                 if np.array_equal(off, off_q):
                     np.testing.assert_allclose(p, q, rtol=0, atol=1e-12)
+
+
+def test_ziggurat_normals_are_standard_normal():
+    """Version 3's normals (the 256-layer ziggurat on a bit generator's words): a standard
+    normal by the Kolmogorov-Smirnov test and in the tail beyond the ziggurat's base strip,
+    the same draws compiled and as plain Python, a pure function of the generator."""
+    from scipy import stats
+
+    from cloudpose.data.synth.online import standard_normals
+    from cloudpose.kernels.scene_pass import ZIGGURAT_R
+
+    x = standard_normals(np.random.default_rng(3), 400_000, True).astype(np.float64)
+    assert stats.kstest(x, "norm").pvalue > 1e-3
+    tail = (np.abs(x) > ZIGGURAT_R).sum()
+    expect = 2 * stats.norm.sf(ZIGGURAT_R) * len(x)  # ~103
+    assert abs(tail - expect) < 4 * np.sqrt(expect), (tail, expect)
+    np.testing.assert_array_equal(
+        standard_normals(np.random.default_rng(3), 5_000, False), x[:5_000].astype(np.float32)
+    )

@@ -534,3 +534,76 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
                 best_v = cmax[c]
                 cur = carg[c]
     return out
+
+
+ZIGGURAT_R = 3.6541528853610088
+"""Where the tail of the 256-layer normal ziggurat starts (Marsaglia & Tsang 2000)."""
+ZIGGURAT_V = 0.00492867323399
+"""The area of each of its layers (the base layer's with the tail)."""
+
+
+def ziggurat_tables() -> tuple[np.ndarray, np.ndarray]:
+    """(257,) float64 the right edges of the 256 layers of the normal ziggurat (layer 0's the
+    width whose rectangle has the area of the base strip and the tail) and (257,) float64
+    exp(-x^2 / 2) at them: layer i is the box [0, x_i] x [f(x_i), f(x_{i+1})]."""
+    r, v = ZIGGURAT_R, ZIGGURAT_V
+    x = np.zeros(257)
+    x[0] = v / math.exp(-0.5 * r * r)
+    x[1] = r
+    for i in range(1, 255):
+        x[i + 1] = math.sqrt(-2.0 * math.log(math.exp(-0.5 * x[i] ** 2) + v / x[i]))
+    x[256] = 0.0
+    return x, np.exp(-0.5 * x**2)
+
+
+@njit(cache=True)
+def normals_from_bits(raw, out, xs, fs):  # pragma: no cover - compiled
+    """Standard normal draws into ``out`` by the 256-layer ziggurat from the 64-bit words
+    ``raw`` of a bit generator, in order: of each word, bits 0-7 pick the layer, bit 8 the
+    sign and bits 11-63 the uniform; a draw outside its layer's core takes one more word (the
+    wedge's height) or two per try (Marsaglia's tail beyond ``ZIGGURAT_R``).
+
+    Args:
+        raw: (K,) uint64 words.
+        out: (n,) float32, filled.
+        xs, fs: :func:`ziggurat_tables`.
+
+    Returns:
+        The words used, or -1 when ``raw`` ran out first (the caller passes more).
+    """
+    n = out.shape[0]
+    nr = raw.shape[0]
+    scale = 1.0 / 9007199254740992.0  # 2^-53
+    r = xs[1]
+    j = 0
+    for k in range(n):
+        while True:
+            if j >= nr:
+                return -1
+            b = raw[j]
+            j += 1
+            i = np.int64(b & np.uint64(255))
+            neg = (b >> np.uint64(8)) & np.uint64(1)
+            x = np.float64(b >> np.uint64(11)) * scale * xs[i]
+            if x < xs[i + 1]:
+                break
+            if i == 0:  # the tail: x = r + a, a exponential, accepted as Marsaglia's
+                while True:
+                    if j + 1 >= nr:
+                        return -1
+                    u1 = 1.0 - np.float64(raw[j] >> np.uint64(11)) * scale
+                    u2 = 1.0 - np.float64(raw[j + 1] >> np.uint64(11)) * scale
+                    j += 2
+                    a = -math.log(u1) / r
+                    if -2.0 * math.log(u2) >= a * a:
+                        break
+                x = r + a
+                break
+            if j >= nr:
+                return -1
+            u = np.float64(raw[j] >> np.uint64(11)) * scale
+            j += 1
+            if fs[i] + u * (fs[i + 1] - fs[i]) < math.exp(-0.5 * x * x):
+                break
+        out[k] = -x if neg else x
+    return j

@@ -171,7 +171,7 @@ def scene_points(
     noise), a uniform (flying or not on a depth edge) and a uniform (the flying pixel's mix);
     then white noise over the object pixels' bounding box widened by the blob filter's reach
     (a stationary field, where version 2 wraps the box around), smoothed into the
-    missing-depth field.
+    missing-depth field. The normals by :func:`standard_normals`.
 
     Args:
         clean: (h, w) float64 clean depth (the objects', the background's on their ring).
@@ -193,12 +193,12 @@ def scene_points(
     m = int(visible.sum())
     v, u = np.nonzero(index >= 0) if not compiled or rng is not None else (None, None)
     if rng is not None:
-        normal = rng.standard_normal(m, dtype=np.float32)
+        normal = standard_normals(rng, m, compiled)
         u_edge = rng.random(m, dtype=np.float32)
         mix = rng.random(m, dtype=np.float32)
         hb = int(v.max()) - int(v.min()) + 1 + 2 * r if m else 0
         wb = int(u.max()) - int(u.min()) + 1 + 2 * r if m else 0
-        white = rng.standard_normal((hb, wb), dtype=np.float32)
+        white = standard_normals(rng, hb * wb, compiled).reshape(hb, wb)
     else:
         normal = u_edge = mix = np.zeros(0, dtype=np.float32)
         white = np.zeros((0, 0), dtype=np.float32)
@@ -250,6 +250,28 @@ def scene_points(
         p = dropout.probability(edge_distance(lab)[v, u], cos, np.asarray(cls_ids)[inst])
         reading[field < p] = 0.0
     return _cut_points_numpy(v, u, inst, reading, Kinv, len(cls_ids), radius)
+
+
+def standard_normals(rng: np.random.Generator, n: int, compiled: bool) -> np.ndarray:
+    """(n,) float32 standard normal draws of version 3: the 256-layer ziggurat on the 64-bit
+    words of ``rng``'s bit generator (:func:`cloudpose.kernels.scene_pass.normals_from_bits`;
+    ~2x numpy's float32 normals here), compiled or as plain Python (the same draws)."""
+    from cloudpose.kernels.scene_pass import normals_from_bits, ziggurat_tables
+
+    global _ZIGGURAT
+    if _ZIGGURAT is None:
+        _ZIGGURAT = ziggurat_tables()
+    fill = (
+        normals_from_bits if compiled else getattr(normals_from_bits, "py_func", normals_from_bits)
+    )
+    out = np.empty(n, dtype=np.float32)
+    raw = rng.bit_generator.random_raw(n + n // 16 + 64)
+    while fill(raw, out, *_ZIGGURAT) < 0:  # ~2% of the words go to rejections: rarely short
+        raw = np.concatenate([raw, rng.bit_generator.random_raw(n // 16 + 64)])
+    return out
+
+
+_ZIGGURAT: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def _cut_points_numpy(v, u, inst, reading, Kinv, n, radius):

@@ -103,7 +103,9 @@ class OnlineSettings:
             the same scenes, sensor and segment path computed by compiled kernels (a z-buffer
             of the meshes instead of the ray cast, the sensor's edge distance and correlated
             field compiled, segments cut in one pass): the same random draws and the same
-            numbers to float rounding (:mod:`cloudpose.data.synth.online`, "Version 2").
+            numbers to float rounding (:mod:`cloudpose.data.synth.online`, "Version 2"); 3,
+            the same scenes and sensor model, a scene's objects in a few compiled passes
+            with draws of their own: the same distribution, other segments ("Version 3").
     """
 
     synth_version: int = GENERATOR_VERSION
