@@ -166,9 +166,9 @@ def test_online_version_3_without_numba_is_its_twin():
     segments to float rounding."""
     from cloudpose.kernels.backend import disabled
 
-    a = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3)).batch(1, 0, 16)
+    a = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3)).batch(1, 0, 8)
     with disabled():
-        b = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3)).batch(1, 0, 16)
+        b = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3)).batch(1, 0, 8)
     np.testing.assert_array_equal(a.cls_id, b.cls_id)
     same, worst, count = _agreement(a, b)
     assert same >= ONLINE_V2_SAME and worst < ONLINE_V2_NEAR and count < ONLINE_V2_COUNT, (
