@@ -387,7 +387,7 @@ def _disk_full(exc: BaseException, client, run_id: str) -> DiskFullError | None:
     if db is not None and "database or disk is full" in str(exc):
         where = db
     else:
-        where = tracking.local_artifact(client.get_run(run_id).info.artifact_uri, "eval")
+        where = tracking.run_artifact(client, client.get_run(run_id), "eval")
     return disk_full(exc, where or tempfile.gettempdir(), then="rerun the evaluation")
 
 

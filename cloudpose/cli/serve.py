@@ -218,8 +218,9 @@ def store_unpack(
     ] = Path("."),
 ) -> None:
     """Unpack a store packed by store-pack (a compact folder, every file checked against its
-    index and mlflow.db rebuilt; or a .tar.xz, also one packed by hand) and point its artifacts
-    to this folder: then report, mlflow-ui and ablate work there on its runs."""
+    index and mlflow.db rebuilt; or a .tar.xz, also one packed by hand), its artifact addresses
+    and run folders relative to the folder (which can then be moved or copied): then report,
+    mlflow-ui and ablate work there on its runs."""
     from cloudpose.store.archive import unpack_store
     from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 

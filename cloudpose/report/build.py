@@ -22,7 +22,6 @@ import shutil
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
-from urllib.parse import unquote, urlparse
 
 from cloudpose.data.keys import DataKey
 from cloudpose.registry import get_group, groups
@@ -355,7 +354,7 @@ def log_report_run(
         f"tags.report_preset = '{preset}'",
     )
     for r in old:
-        _remove_local_artifacts(r.info.artifact_uri)
+        _remove_local_artifacts(tracking.run_artifact(client, r, ""))
         client.delete_run(r.info.run_id)
     note = _summary_note(group, preset, files, prov)
     tags = run_records.report_tags(
@@ -391,9 +390,8 @@ def _summary_note(group: str, preset: str, files: list[Path], prov: Provenance) 
     )
 
 
-def _remove_local_artifacts(uri: str | None) -> None:
-    if not uri or not uri.startswith("file:"):
+def _remove_local_artifacts(path: Path | None) -> None:
+    if path is None:
         return
-    path = Path(unquote(urlparse(uri).path))
     if path.is_dir() and path.name == "artifacts":
         shutil.rmtree(path, ignore_errors=True)

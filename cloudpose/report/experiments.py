@@ -135,14 +135,7 @@ def collect(
 
 
 def _config_path(client, run) -> str:
-    local = tracking.local_artifact(run.info.artifact_uri, "config.json")
-    if local is not None:
-        return str(local)
-    import mlflow
-
-    return mlflow.artifacts.download_artifacts(
-        run_id=run.info.run_id, artifact_path="config.json", tracking_uri=client.tracking_uri
-    )
+    return str(tracking.download_artifact(client, run, "config.json"))
 
 
 def experiment_table(experiments: list[Experiment]) -> pd.DataFrame:

@@ -70,7 +70,8 @@ class RunRecord:
         """
         key = ("instances", name)
         if key not in self._cache:
-            local = instances.local_table(self.artifact_uri, name)
+            store = getattr(self.client, "tracking_uri", None)
+            local = instances.local_table(self.artifact_uri, name, store)
             if local is not None:
                 self._cache[key] = self._checked(local, name) if local.exists() else None
             else:
@@ -166,7 +167,7 @@ def run_instance_table(client, run, name: str) -> pd.DataFrame:
         tags.get("preset", "?"),
         run.data.metrics.get(tracking.metric_key(name, "count")),
     )
-    local = instances.local_table(run.info.artifact_uri, name)
+    local = instances.local_table(run.info.artifact_uri, name, client.tracking_uri)
     if local is not None:
         if not local.is_file():
             raise FileNotFoundError(f"{local}: no such instance table")

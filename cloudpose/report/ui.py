@@ -448,15 +448,17 @@ def dead_reason(
     return None
 
 
-def _folder_locked(run_dir: str) -> bool:
-    """Whether a process on this machine holds the lock of run folder ``run_dir``."""
+def _folder_locked(run_dir: str | None, store: str | None = None) -> bool:
+    """Whether a process on this machine holds the lock of run folder ``run_dir`` (a relative
+    one under the folder of the SQLite store ``store``: :func:`tracking.store_path`)."""
     from filelock import FileLock, Timeout
 
     from cloudpose.store.runs import lock_path
 
-    if not run_dir or not Path(run_dir).is_dir():
+    folder = tracking.store_path(run_dir, store) if run_dir else None
+    if folder is None or not folder.is_dir():
         return False
-    path = lock_path(Path(run_dir))
+    path = lock_path(folder)
     if not path.exists():
         return False
     lock = FileLock(str(path))
@@ -497,7 +499,7 @@ def mark_dead(client, runs: Sequence, now_ms: int | None = None) -> list[tuple[o
             last,
             now_ms,
             max(later) if later else None,
-            _folder_locked(run.data.tags.get("run_dir")),
+            _folder_locked(run.data.tags.get("run_dir"), getattr(client, "tracking_uri", None)),
         )
         if why is None:
             continue

@@ -16,10 +16,14 @@ points when that is not under ``mlartifacts/`` (MLflow's ``./mlruns`` of a store
 archive is replaced only when asked (``force``, ``--force``).
 
 :func:`unpack_store` extracts such an archive into a hidden folder inside the target, points
-every address into the target's ``mlartifacts/`` (whatever machine the addresses came from:
-archives packed by hand, with absolute addresses, included) and only then moves the store into
-place, ``mlflow.db`` last: an unpack that is stopped (Ctrl-C, SIGTERM, an error) leaves no
-store behind, and its rerun is not refused. An archive with a member outside the folder (``../``,
+every address into the target's ``mlartifacts/`` relative to the store's folder (whatever
+machine the addresses came from: archives packed by hand, with absolute addresses, included),
+writes each run's ``run_dir`` tag relative to it too (``runs/VARIANT/PRESET/FOLDER``), and only
+then moves the store into place, ``mlflow.db`` last: an unpack that is stopped (Ctrl-C,
+SIGTERM, an error) leaves no store behind, and its rerun is not refused. Nothing in the
+unpacked ``mlflow.db`` names the folder it was unpacked into: the folder can be moved or
+copied, and every command reads its artifacts against the store's folder
+(:func:`cloudpose.store.tracking.artifact_address`). An archive with a member outside the folder (``../``,
 an absolute path, a link leading out) is refused before anything is written. Then
 ``cloudpose report``, ``cloudpose mlflow-ui`` and ``cloudpose ablate`` work in that folder as
 in the original project.
@@ -121,6 +125,53 @@ def _rewrite(db: Path, to: Callable[[str], str | None]) -> int:
         con.close()
 
 
+DEFAULT_ARTIFACTS = "mlruns"
+"""MLflow's own artifact folder of a store (its ``Default`` experiment's location)."""
+
+
+def _portable(uri: str) -> str | None:
+    """``to`` of :func:`_rewrite` at unpacking: an address under an artifact folder as
+    ``mlartifacts/...``, a local one under MLflow's :data:`DEFAULT_ARTIFACTS` as ``mlruns/...``,
+    both relative to the store's folder; None (kept) for any other."""
+    rel = _relative(uri)
+    if rel is not None or tracking.is_relative_address(uri):
+        return rel
+    local = tracking.local_artifact(uri, "")
+    if local is None:
+        return None
+    parts = local.parts
+    if DEFAULT_ARTIFACTS in parts:
+        i = len(parts) - 1 - parts[::-1].index(DEFAULT_ARTIFACTS)
+        return "/".join(parts[i:])
+    return None
+
+
+RUN_DIR_TAG = "run_dir"
+"""Tag of a training run: its run folder (``runs/VARIANT/PRESET/FOLDER`` of the project)."""
+
+
+def _relative_run_dirs(db: Path) -> None:
+    """Write each absolute ``run_dir`` tag as the run folder's place in the store's project,
+    ``runs/VARIANT/PRESET/FOLDER`` (its last three parts), relative to the store's folder
+    (:func:`cloudpose.store.tracking.store_path` reads it there)."""
+    con = sqlite3.connect(db)
+    try:
+        with con:
+            rows = con.execute(
+                "SELECT run_uuid, value FROM tags WHERE key = ?", (RUN_DIR_TAG,)
+            ).fetchall()
+            for run_id, value in rows:
+                path = Path(value or "")
+                if path.is_absolute() and len(path.parts) >= 4:
+                    rel = "/".join(("runs", *path.parts[-3:]))
+                    con.execute(
+                        "UPDATE tags SET value = ? WHERE run_uuid = ? AND key = ?",
+                        (rel, run_id, RUN_DIR_TAG),
+                    )
+    finally:
+        con.close()
+
+
 def _under_artifacts(base: str) -> Callable[[str], str | None]:
     """``to`` of :func:`_rewrite`: an address under an artifact folder moved under ``base``
     (the ``mlartifacts`` folder's URI, or ``mlartifacts`` itself for relative addresses)."""
@@ -195,7 +246,7 @@ def _artifact_plan(db: Path, project: Path) -> tuple[list[_RunArtifacts], dict[s
     for run_id, exp_id, uri in rows:
         uri = uri or ""
         rel = _relative(uri)
-        local = tracking.local_artifact(uri, "") if uri else None
+        local = tracking.local_artifact(uri, "", f"sqlite:///{project / STORE_DB}") if uri else None
         if rel is not None:
             source = project / rel
             if not source.exists() and local is not None:
@@ -410,7 +461,8 @@ def _outside_addresses(db: Path) -> list[str]:
 
 
 def unpack_store(archive: Path, into: Path) -> int:
-    """Extract a packed store into ``into`` and point its artifact addresses there.
+    """Extract a packed store into ``into``, its artifact addresses and ``run_dir`` tags
+    relative to that folder (which can then move).
 
     Args:
         archive: a ``.tar.xz`` of ``mlflow.db`` and ``mlartifacts/`` (from :func:`pack_store`,
@@ -462,9 +514,9 @@ def unpack_store(archive: Path, into: Path) -> int:
                 if full is None:
                     raise
                 raise full from exc
-            base = (into.resolve() / ARTIFACT_DIR).as_uri()
             try:
-                n = _rewrite(staging / STORE_DB, _under_artifacts(base))
+                n = _rewrite(staging / STORE_DB, _portable)
+                _relative_run_dirs(staging / STORE_DB)
             except sqlite3.DatabaseError as exc:
                 raise ValueError(
                     f"{archive}: its {STORE_DB} is not an MLflow store ({exc}); nothing unpacked"

@@ -333,12 +333,13 @@ def csv_to_parquet(src: str | Path, dst: str | Path) -> Path:
     return write_table(pd.read_csv(src), dst)
 
 
-def local_table(artifact_uri: str, name: str) -> Path | None:
+def local_table(artifact_uri: str, name: str, tracking: str | None = None) -> Path | None:
     """The file of evaluation ``name``'s instance table in a local artifact folder: the
     Parquet one if present, else the CSV one (which may not exist either); None for a remote
-    store (:func:`cloudpose.store.tracking.local_artifact`)."""
+    store. A relative address is read under the folder of the SQLite store ``tracking``
+    names (:func:`cloudpose.store.tracking.local_artifact`)."""
 
-    paths = [local_artifact(artifact_uri, rel) for rel in artifact_names(name)]
+    paths = [local_artifact(artifact_uri, rel, tracking) for rel in artifact_names(name)]
     if paths[0] is None:
         return None
     return next((p for p in paths if p.is_file()), paths[-1])
@@ -349,7 +350,7 @@ def read_artifact_table(client, run, rel: str) -> pd.DataFrame:
     twin is read where the run has that instead), read in place from a local store,
     downloaded from a remote one."""
     names = twins(rel)
-    local = [local_artifact(run.info.artifact_uri, r) for r in names]
+    local = [local_artifact(run.info.artifact_uri, r, client.tracking_uri) for r in names]
     if local[0] is not None:
         return read_table(next((p for p in local if p.is_file()), local[-1]))
     with tempfile.TemporaryDirectory() as tmp:

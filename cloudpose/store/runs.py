@@ -434,7 +434,9 @@ def drop_checkpoint_artifact(client, run_id: str) -> None:
     from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
 
     try:
-        uri = client.get_run(run_id).info.artifact_uri
+        uri = tracking.artifact_address(
+            client.get_run(run_id).info.artifact_uri, client.tracking_uri
+        )
         repo = get_artifact_repository(uri, tracking_uri=client.tracking_uri)
         repo.delete_artifacts(CHECKPOINT_ARTIFACT_DIR)
     except Exception as exc:  # any store's refusal: the checkpoint only costs space
@@ -561,16 +563,9 @@ def resolve_run(client, run: str, download_to: Path | None = None) -> tuple[str,
     run_id = resolve_run_id(client, run)
     if is_run_folder(run):
         return run_id, Path(run) / "model.pt"
-    local = Path(client.get_run(run_id).data.tags.get("run_dir", "")) / "model.pt"
-    if not local.exists():
-        import mlflow
-
-        local = Path(
-            mlflow.artifacts.download_artifacts(
-                run_id=run_id,
-                artifact_path="model.pt",
-                dst_path=None if download_to is None else str(download_to),
-                tracking_uri=client.tracking_uri,
-            )
-        )
+    run_info = client.get_run(run_id)
+    folder = run_info.data.tags.get("run_dir", "")
+    local = tracking.store_path(folder, client.tracking_uri) / "model.pt" if folder else None
+    if local is None or not local.exists():
+        local = tracking.download_artifact(client, run_info, "model.pt", download_to)
     return run_id, local

@@ -4,6 +4,12 @@
   artifacts under ``mlartifacts/``; ``MLFLOW_TRACKING_URI`` points it anywhere else, e.g. a shared
   tracking server (:func:`server_command`, ``make mlflow-server``), through which the artifacts
   then go too.
+- Artifact addresses: MLflow writes absolute ``file://`` ones; a store as ``store-pack`` and
+  ``store-unpack`` write it keeps them relative to its folder (``mlartifacts/GROUP/RUN/artifacts``),
+  so the folder can move. MLflow would read a relative address against the process's current
+  directory; every artifact this project reads or writes is found against the SQLite store's
+  folder instead (:func:`artifact_address`, :func:`local_artifact`, and the client
+  :func:`setup` returns), and so is a relative ``run_dir`` tag (:func:`store_path`).
 - One experiment per ablation group (``cloudpose-shared``, ``cloudpose-rotation``, ...). A run
   lives in the experiment of the group it was trained for; a variant listed in several groups
   (``shared-0``) is trained once and found by tags from every group's report.
@@ -155,6 +161,7 @@ def setup(project_dir: Path | None = None):
     db = sqlite_path(uri)
     if db is None:
         return mlflow.MlflowClient(tracking_uri=uri)
+    make = _store_client()
     # The first client of a new SQLite store creates its tables and runs every schema
     # migration; two processes doing that at once leave a store that no command can open again
     # (alembic's `_alembic_tmp_* already exists`). One process at a time, then every later one
@@ -164,7 +171,7 @@ def setup(project_dir: Path | None = None):
     db.parent.mkdir(parents=True, exist_ok=True)
     with FileLock(str(db) + ".lock"):
         try:
-            client = mlflow.MlflowClient(tracking_uri=uri)
+            client = make(uri)
             client.search_experiments(max_results=1)
         except Exception as e:
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
@@ -174,6 +181,45 @@ def setup(project_dir: Path | None = None):
                 "MLFLOW_TRACKING_URI to another store"
             ) from e
     return client
+
+
+@functools.cache
+def _store_client():
+    """The client class of a SQLite store: an ``MlflowClient`` whose artifact repository of a run
+    with a relative address is the folder under the store's folder (:func:`artifact_address`),
+    for every read and write (``log_artifact``, ``log_text``, ``list_artifacts``,
+    ``download_artifacts``); a plain ``MlflowClient`` with an MLflow that lacks the hook."""
+    import mlflow
+    from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+    from mlflow.tracking._tracking_service.client import TrackingServiceClient
+
+    if not hasattr(TrackingServiceClient, "_get_artifact_repo"):
+        return lambda uri: mlflow.MlflowClient(tracking_uri=uri)
+
+    class _Service(TrackingServiceClient):
+        def _get_artifact_repo(self, resource_id, *args, **kwargs):
+            if not args and kwargs.get("resource", "run") == "run":
+                address = self.get_run(resource_id).info.artifact_uri or ""
+                resolved = artifact_address(address, self.tracking_uri)
+                if resolved != address:  # MLflow caches repositories by run id: not this one
+                    return get_artifact_repository(resolved, tracking_uri=self.tracking_uri)
+            return super()._get_artifact_repo(resource_id, *args, **kwargs)
+
+    class StoreClient(mlflow.MlflowClient):
+        def __init__(self, tracking_uri: str):
+            super().__init__(tracking_uri=tracking_uri)
+            self._tracking_client = _Service(self._tracking_client.tracking_uri)
+
+        # MLflow's own download and listing go through a runs:/ address, which reads the
+        # run's address as it is (a relative one against the current directory)
+        def download_artifacts(self, run_id: str, path: str, dst_path: str | None = None):
+            repo = self._tracking_client._get_artifact_repo(run_id)
+            return repo.download_artifacts(path, dst_path)
+
+        def list_artifacts(self, run_id: str, path: str | None = None):
+            return self._tracking_client._get_artifact_repo(run_id).list_artifacts(path)
+
+    return StoreClient
 
 
 class StoreError(RuntimeError):
@@ -313,15 +359,79 @@ def newest_run_named(client, name: str) -> Any | None:
     return runs[0] if runs else None  # find_runs: newest first
 
 
-def local_artifact(uri: str, rel: str) -> Path | None:
-    """The file ``rel`` of a local (``file:`` or plain path) artifact store; None if remote."""
+def store_folder(uri: str | None = None) -> Path | None:
+    """The folder of the SQLite store that the tracking URI ``uri`` names (default
+    :func:`tracking_uri`), against which its relative artifact addresses and ``run_dir`` tags
+    are read; None for a store that is not a local SQLite file (a tracking server)."""
+    db = sqlite_path(tracking_uri() if uri is None else uri)
+    return None if db is None else db.resolve().parent
+
+
+def is_relative_address(uri: str) -> bool:
+    """Whether an artifact address is a relative path (no scheme, not absolute), such as
+    ``mlartifacts/GROUP/RUN/artifacts`` of a packed or unpacked store."""
+    from urllib.parse import urlparse
+
+    return bool(uri) and not urlparse(uri).scheme and not Path(uri).is_absolute()
+
+
+def artifact_address(uri: str, tracking: str | None = None) -> str:
+    """An artifact address as an artifact repository is to read it: a relative one as the
+    ``file:`` URI of that folder under the folder of the SQLite store ``tracking`` names
+    (default :func:`tracking_uri`; the current directory without a SQLite store, as MLflow
+    reads it); any other address as it is."""
+    if not is_relative_address(uri):
+        return uri
+    folder = store_folder(tracking) or Path.cwd()
+    return (folder / uri).resolve().as_uri()
+
+
+def local_artifact(uri: str, rel: str, tracking: str | None = None) -> Path | None:
+    """The file ``rel`` of the artifact folder at address ``uri`` (a run's ``artifact_uri``, an
+    experiment's ``artifact_location``) on this machine: a ``file:`` URI or an absolute path as
+    it is, a relative address under the folder of the SQLite store ``tracking`` names (default
+    :func:`tracking_uri`: :func:`artifact_address`); None for a remote one (``s3://``,
+    ``mlflow-artifacts:``)."""
     from urllib.parse import unquote, urlparse
 
+    uri = artifact_address(uri, tracking)
     if uri.startswith("file:"):
         return Path(unquote(urlparse(uri).path)) / rel
-    if uri and "://" not in uri:
+    if uri and "://" not in uri and ":" not in uri.split("/")[0]:
         return Path(uri) / rel
     return None
+
+
+def run_artifact(client, run, rel: str) -> Path | None:
+    """The local file ``rel`` of an MLflow ``run``'s artifacts in ``client``'s store
+    (:func:`local_artifact`; it may not exist), or None when they are remote."""
+    return local_artifact(run.info.artifact_uri or "", rel, client.tracking_uri)
+
+
+def download_artifact(client, run, rel: str, dst: str | Path | None = None) -> Path:
+    """The file (or folder) ``rel`` of ``run``'s artifacts as a local path: read in place from a
+    local store, else downloaded into ``dst`` (a new temporary folder when None).
+
+    Raises:
+        FileNotFoundError: a local store's run has no such artifact.
+        MlflowException, OSError: a remote store's download failed (no such artifact).
+    """
+    local = run_artifact(client, run, rel)
+    if local is not None:
+        if not local.exists():
+            raise FileNotFoundError(f"{local}: run {run.info.run_id} has no artifact {rel}")
+        return local
+    return Path(client.download_artifacts(run.info.run_id, rel, None if dst is None else str(dst)))
+
+
+def store_path(value: str, tracking: str | None = None) -> Path:
+    """A path a run records (its ``run_dir`` tag): an absolute one as it is, a relative one
+    (as ``store-unpack`` writes it) under the SQLite store's folder (:func:`store_folder`), else
+    the current directory."""
+    path = Path(value)
+    if path.is_absolute():
+        return path
+    return (store_folder(tracking) or Path.cwd()) / path
 
 
 def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:

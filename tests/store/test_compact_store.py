@@ -127,9 +127,8 @@ def test_a_compact_store_rebuilds_the_same_runs_and_tables(project, tmp_path):
     client = tracking.setup(into)
     runs = {r.info.run_name: r for r in tracking.find_runs(client)}
     assert sorted(runs) == ["shared-0/p/seed1", "shared-0/p/seed2"]
-    root_uri = (into.resolve() / "mlartifacts").as_uri()
     for name, run in runs.items():
-        assert run.info.artifact_uri.startswith(root_uri + "/shared/")
+        assert run.info.artifact_uri.startswith("mlartifacts/shared/")  # relative to `into`
         assert [m.value for m in client.get_metric_history(run.info.run_id, "train/loss")][:2] == [
             0.9,
             0.5,

@@ -63,8 +63,7 @@ def test_a_packed_store_unpacks_elsewhere_with_its_artifacts(project, tmp_path):
 
     into = tmp_path / "elsewhere"
     assert unpack_store(archive, into) == 2
-    root_uri = (into.resolve() / "mlartifacts").as_uri()
-    assert all(u.startswith(root_uri + "/shared/") for u in _uris(into / "mlflow.db"))
+    assert all(u.startswith("mlartifacts/shared/") for u in _uris(into / "mlflow.db"))
     tables = _tables(into)
     assert sorted(tables) == ["shared-0/p/seed1", "shared-0/p/seed2"]
     assert tables["shared-0/p/seed2"]["ads"].tolist() == [0.002]
@@ -79,6 +78,69 @@ def test_an_archive_packed_by_hand_with_absolute_addresses_unpacks_too(project, 
     into = tmp_path / "copy"
     assert unpack_store(archive, into) == 2
     assert _tables(into)["shared-0/p/seed1"]["ads"].tolist() == [0.001]
+
+
+def _texts(db) -> list[str]:
+    """Every text value of every table of a SQLite database."""
+    con = sqlite3.connect(db)
+    try:
+        out = []
+        for (table,) in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'"):
+            for row in con.execute(f'SELECT * FROM "{table}"'):
+                out += [v for v in row if isinstance(v, str)]
+        return out
+    finally:
+        con.close()
+
+
+@pytest.mark.parametrize("form", ["store.tar.xz", "compact"])
+def test_an_unpacked_store_can_move_and_is_read_from_any_directory(
+    project, tmp_path, monkeypatch, form
+):
+    """Unpacked into one folder, moved to another, read from a third current directory: the
+    runs' artifacts (instance table, config, checkpoint, listing) are found under the store's
+    folder, a new run's artifacts are written there, and nothing in mlflow.db names the folder
+    it was unpacked into."""
+    import shutil
+
+    from cloudpose.store.runs import resolve_run
+
+    client = tracking.setup(project)
+    run = tracking.newest_run_named(client, "shared-0/p/seed1")
+    client.set_tag(run.info.run_id, "run_dir", "/elsewhere/runs/shared-0/p/seed1-abc-def")
+    client.log_text(run.info.run_id, '{"seed": 1}', "config.json")
+    pack_store(project, tmp_path / form, checkpoints=["shared-0/p/seed1"])
+    first = tmp_path / "first-folder"
+    unpack_store(tmp_path / form, first)
+    assert not [t for t in _texts(first / "mlflow.db") if str(first) in t]
+    moved = tmp_path / "moved" / "store"
+    moved.parent.mkdir()
+    shutil.move(first, moved)
+    other = tmp_path / "other-cwd"
+    other.mkdir()
+    monkeypatch.chdir(other)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{moved / 'mlflow.db'}")
+    client = tracking.setup()
+    run = tracking.newest_run_named(client, "shared-0/p/seed1")
+    assert run.data.tags["run_dir"] == "runs/shared-0/p/seed1-abc-def"
+    assert tracking.store_path(run.data.tags["run_dir"], client.tracking_uri) == (
+        moved / "runs/shared-0/p/seed1-abc-def"
+    )
+    table = instances.read_artifact_table(client, run, "eval/test/instances.csv")
+    assert table["ads"].tolist() == pytest.approx([0.001], rel=1e-6)
+    config = tracking.download_artifact(client, run, "config.json")
+    assert config.is_relative_to(moved) and config.read_text() == '{"seed": 1}'
+    assert "model.pt" in {f.path for f in client.list_artifacts(run.info.run_id)}
+    _, ckpt = resolve_run(client, run.info.run_id, download_to=tmp_path / "dl")
+    assert ckpt.read_bytes() == b"weights" * 100
+    # a new run of the moved store writes its artifacts under it, not the current directory
+    exp = tracking.experiment_id(client, "shared")
+    new = client.create_run(exp, run_name="shared-0/p/seed3")
+    assert new.info.artifact_uri.startswith("mlartifacts/shared/")
+    client.log_text(new.info.run_id, "x", "note.txt")
+    assert (moved / new.info.artifact_uri / "note.txt").read_text() == "x"
+    assert not list(other.iterdir())
+    assert client.download_artifacts(new.info.run_id, "note.txt").endswith("note.txt")
 
 
 def test_unpacking_never_replaces_a_store_and_names_a_foreign_archive(project, tmp_path):
@@ -136,8 +198,7 @@ def test_an_unpack_stopped_midway_leaves_no_store_and_a_rerun_unpacks(
     assert not [e for e in _entries(into) if e.startswith(".")], _entries(into)
     monkeypatch.setattr(store_archive, "_rewrite", rewrite)
     assert unpack_store(archive, into) == 2
-    root_uri = (into.resolve() / "mlartifacts").as_uri()
-    assert all(u.startswith(root_uri + "/shared/") for u in _uris(into / "mlflow.db"))
+    assert all(u.startswith("mlartifacts/shared/") for u in _uris(into / "mlflow.db"))
     assert sorted(_tables(into)) == ["shared-0/p/seed1", "shared-0/p/seed2"]
 
 
