@@ -232,20 +232,41 @@ def test_scene_points_are_the_numpy_twins(synth3):
                     np.testing.assert_allclose(p, q, rtol=0, atol=1e-12)
 
 
-def test_ziggurat_normals_are_standard_normal():
-    """Version 3's normals (the 256-layer ziggurat on a bit generator's words): a standard
-    normal by the Kolmogorov-Smirnov test and in the tail beyond the ziggurat's base strip,
-    the same draws compiled and as plain Python, a pure function of the generator."""
+def test_counter_stream_normals_are_standard_normal():
+    """Version 3's normals (the 256-layer ziggurat on the words of a SplitMix64 counter
+    stream): a standard normal by the Kolmogorov-Smirnov test and in the tail beyond the
+    ziggurat's base strip, the same draws compiled and by the numpy twin, draw i the same
+    however many are taken, and the stream's uniforms the kernel's."""
     from scipy import stats
 
-    from cloudpose.data.synth.online import standard_normals
-    from cloudpose.kernels.scene_pass import ZIGGURAT_R
+    from cloudpose.data.synth.online import standard_normals, uniform_draws
+    from cloudpose.kernels.scene_pass import ZIGGURAT_R, uniform_draw
 
-    x = standard_normals(np.random.default_rng(3), 400_000, True).astype(np.float64)
+    key = 0x9E3779B97F4A7C15 ^ 12345
+    x = standard_normals(key, 400_000, True).astype(np.float64)
     assert stats.kstest(x, "norm").pvalue > 1e-3
     tail = (np.abs(x) > ZIGGURAT_R).sum()
     expect = 2 * stats.norm.sf(ZIGGURAT_R) * len(x)  # ~103
     assert abs(tail - expect) < 4 * np.sqrt(expect), (tail, expect)
-    np.testing.assert_array_equal(
-        standard_normals(np.random.default_rng(3), 5_000, False), x[:5_000].astype(np.float32)
-    )
+    np.testing.assert_array_equal(standard_normals(key, 5_000, False), x[:5_000].astype(np.float32))
+    np.testing.assert_array_equal(standard_normals(key, 70, True), x[:70].astype(np.float32))
+    assert not np.array_equal(standard_normals(key + 1, 70, True), x[:70].astype(np.float32))
+    u = uniform_draws(key, 200_000)
+    assert stats.kstest(u.astype(np.float64), "uniform").pvalue > 1e-3
+    np.testing.assert_array_equal(u[:50], [uniform_draw(np.uint64(key), i) for i in range(50)])
+
+
+def test_row_major_edge_distance_is_the_sensors():
+    """Version 3's edge distance (columns, then row envelopes) is the version-2 sensor's exact
+    transform, squared and less 1, boundaries and label-free images included."""
+    from cloudpose.kernels.scene_pass import edge_squared_distance
+    from cloudpose.kernels.sensor import edge_distance_kernel
+
+    rng = np.random.default_rng(5)
+    for shape in ((70, 90), (13, 21), (1, 9), (9, 1)):
+        lab = rng.integers(-1, 3, (shape[0] // 4 + 1, shape[1] // 4 + 1))
+        lab = np.kron(lab, np.ones((4, 4), np.int64))[: shape[0], : shape[1]]
+        want = edge_distance_kernel(np.ascontiguousarray(lab + 1, dtype=np.uint8))
+        got = edge_squared_distance(np.ascontiguousarray(lab))
+        np.testing.assert_array_equal(np.sqrt(got) + 1.0, want)
+    assert np.isinf(edge_squared_distance(np.zeros((5, 6), np.int64))).all()

@@ -9,7 +9,8 @@ once.
   over a planar triangle: :mod:`cloudpose.kernels.raster`). The same hits as the ray cast to
   float rounding.
 - ``scene_points``: every object pixel of the box in one pass, row-major: the version-2
-  sensor's depth jump, incidence cosine and reading from the pixel's draws
+  sensor's depth jump, incidence cosine and reading from the pixel's draws (counter
+  streams: ``stream_word``, ``normal_draw``, ``uniform_draw``, read where needed)
   (:func:`cloudpose.kernels.sensor.object_pixel_geometry_kernel`'s and
   ``object_readings_kernel``'s expressions), the missing-depth field smoothed over the object
   pixels' box only (white noise drawn over it widened by the filter's reach: a stationary
@@ -30,7 +31,16 @@ import numpy as np
 from cloudpose.kernels.backend import njit
 from cloudpose.kernels.sensor import _ray, _squared_distance_1d
 
-__all__ = ["edge_squared_distance", "fps_soa", "raster_scene", "scene_points"]
+__all__ = [
+    "edge_squared_distance",
+    "fps_soa",
+    "normal_draw",
+    "normal_draws",
+    "raster_scene",
+    "scene_points",
+    "stream_word",
+    "uniform_draw",
+]
 
 
 @njit(cache=True)
@@ -228,10 +238,9 @@ def scene_points(
     visible,
     Kinv,
     rate,
-    normal,
-    u_edge,
-    mix,
-    white,
+    keys,
+    xs,
+    fs,
     weights,
     std,
     noise,
@@ -259,10 +268,13 @@ def scene_points(
         visible: (N,) int64 pixels of each instance.
         Kinv: (3, 3) inverse intrinsics of the box.
         rate: (N,) missing rate of each instance's class.
-        normal, u_edge, mix: (m,) float32 draws of the m object pixels in row-major order:
-            standard normal (axial noise), uniform (flying or not), uniform (the mix).
-        white: (vb1 - vb0 + 2r, ub1 - ub0 + 2r) float32 standard normal draws over the object
-            pixels' bounding box (rows vb0..vb1 - 1, columns ub0..ub1 - 1) widened by r.
+        keys: (3,) uint64 the keys of the scene's three counter streams
+            (:func:`normal_draw`, :func:`uniform_draw`): object pixel k (row-major) reads
+            draw k of the first (standard normal, axial noise) and draws 2k, 2k + 1 of the
+            second (uniforms: flying or not, the mix; read on depth edges only); cell
+            (y, x) of the object pixels' bounding box widened by r reads draw
+            ``y * (wb + 2r) + x`` of the third (standard normal, the white noise).
+        xs, fs: :func:`ziggurat_tables`.
         weights: (2r + 1,) the smoothing kernel; std: the smoothed noise's standard deviation.
         noise: (sigma0, sigma2, focal_baseline, subpixel, edge_jump, edge_flying).
         drop: (edge_rate, edge_scale, graze_cos, graze_width).
@@ -293,12 +305,17 @@ def scene_points(
     sm = np.zeros((hb, wb), np.float32)
     ev0, ev1 = max(vb0 - 1, 0), min(vb1 + 1, h)
     eu0, eu1 = max(ub0 - 1, 0), min(ub1 + 1, w)
-    dist2 = np.zeros((max(eu1 - eu0, 0), max(ev1 - ev0, 0)))
+    dist2 = np.zeros((max(ev1 - ev0, 0), max(eu1 - eu0, 0)))
     phi_low = np.empty(81)
     graze_high = np.empty(257)
     edge_table = np.full(4096, -1.0)
     if noisy and hb > 0:
-        # the field: first pass of the separable filter along the columns, then the rows
+        # the white noise over the widened box, then the separable filter: first along the
+        # columns, then the rows
+        white = np.empty((hb + 2 * r, wb + 2 * r), np.float32)
+        for y in range(hb + 2 * r):
+            for x in range(wb + 2 * r):
+                white[y, x] = np.float32(normal_draw(keys[2], y * (wb + 2 * r) + x, xs, fs))
         tmp = np.zeros((hb, wb + 2 * r), np.float32)
         for y in range(hb):
             dst = tmp[y]
@@ -341,15 +358,16 @@ def scene_points(
                 rd = np.float64(np.float32(zi))
             else:
                 jump, cos = _geometry(clean, index, y, x, Kinv)
-                rd = zi + normal[i] * (sigma0 + sigma2 * (zi - 0.4) ** 2)
-                if abs(jump) > edge_jump and u_edge[i] < edge_flying:
-                    rd = rd + mix[i] * jump
+                nz = np.float32(normal_draw(keys[0], i, xs, fs))
+                rd = zi + nz * (sigma0 + sigma2 * (zi - 0.4) ** 2)
+                if abs(jump) > edge_jump and uniform_draw(keys[1], 2 * i) < edge_flying:
+                    rd = rd + uniform_draw(keys[1], 2 * i + 1) * jump
                 disparity = fb / (rd if zi > 0 else 1.0)
                 disparity = max(np.round(disparity / sub), 1.0) * sub
                 rd = fb / disparity
                 if not zi > 0 or rd <= 0 or rd > max_range:
                     continue
-                d2 = dist2[x - eu0, y - ev0]
+                d2 = dist2[y - ev0, x - eu0]
                 if d2 < 4096:
                     key = int(d2)
                     if edge_table[key] < 0:
@@ -401,15 +419,14 @@ def scene_points(
 @njit(cache=True)
 def edge_squared_distance(label):  # pragma: no cover - compiled
     """Squared pixels to the nearest pixel of another label, 0 on both sides of a boundary
-    (inf everywhere without one), as a (w, h) array (transposed): the exact transform of
+    (inf everywhere without one): the exact transform of
     :func:`cloudpose.kernels.sensor.edge_distance_kernel` (whose distance is ``sqrt`` of this
-    + 1), by rows first (each row's nearest boundary pixel, two sweeps) and then the lower
-    envelope of parabolas along the columns (Felzenszwalb & Huttenlocher), both over
-    contiguous memory."""
+    + 1), by columns first (each pixel's nearest boundary pixel in its column, a sweep down
+    and one up, row after row) and then the lower envelope of parabolas along each row
+    (Felzenszwalb & Huttenlocher), all over contiguous rows."""
     H, W = label.shape
-    gT = np.empty((W, H))
+    g = np.empty((H, W))
     for y in range(H):
-        last = -1  # the row's nearest boundary pixel to the left
         for x in range(W):
             c = label[y, x]
             b = (
@@ -418,22 +435,21 @@ def edge_squared_distance(label):  # pragma: no cover - compiled
                 or (x > 0 and label[y, x - 1] != c)
                 or (x < W - 1 and label[y, x + 1] != c)
             )
-            if b:
-                last = x
-            gT[x, y] = np.inf if last < 0 else float((x - last) * (x - last))
-        last = -1
-        for x in range(W - 1, -1, -1):
-            if gT[x, y] == 0.0:
-                last = x
-            elif last >= 0:
-                gT[x, y] = min(gT[x, y], float((last - x) * (last - x)))
-    d = np.empty(H)
-    v = np.empty(H, np.int64)
-    z = np.empty(H + 1)
-    for x in range(W):  # columns, each a row of gT
-        _squared_distance_1d(gT[x], d, v, z)
-        gT[x, :] = d
-    return gT
+            g[y, x] = 0.0 if b else (g[y - 1, x] + 1.0 if y > 0 else np.inf)
+    for y in range(H - 2, -1, -1):
+        up, below = g[y], g[y + 1]
+        for x in range(W):
+            up[x] = min(up[x], below[x] + 1.0)
+    d = np.empty(W)
+    v = np.empty(W, np.int64)
+    z = np.empty(W + 1)
+    for y in range(H):
+        row = g[y]
+        for x in range(W):
+            row[x] = row[x] * row[x]
+        _squared_distance_1d(row, d, v, z)
+        row[:] = d
+    return g
 
 
 @njit(cache=True)
@@ -556,54 +572,74 @@ def ziggurat_tables() -> tuple[np.ndarray, np.ndarray]:
     return x, np.exp(-0.5 * x**2)
 
 
+DRAW_WORDS = 256
+"""64-bit words each draw of a counter stream owns (:func:`stream_word`); a normal takes one
+word, ~1.2% of them two, the tail two per try: a draw never comes near 256."""
+
+
+@njit(cache=True, inline="always")
+def _mix64(z):  # pragma: no cover - compiled
+    """SplitMix64's output function (Steele, Lea & Flood 2014) of a uint64."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True, inline="always")
+def stream_word(key, i, j):  # pragma: no cover - compiled
+    """Word ``j`` of draw ``i`` of the counter stream ``key``: output ``i * DRAW_WORDS + j``
+    of the SplitMix64 generator seeded with ``key`` (a pure function of its arguments, so a
+    pass reads any draw where it needs it, in any order)."""
+    c = np.uint64(i) * np.uint64(DRAW_WORDS) + np.uint64(j + 1)
+    return _mix64(np.uint64(key) + c * np.uint64(0x9E3779B97F4A7C15))
+
+
+@njit(cache=True, inline="always")
+def uniform_draw(key, i):  # pragma: no cover - compiled
+    """Draw ``i`` of stream ``key`` as a float32 uniform on [0, 1) (the word's top 24 bits,
+    as numpy's float32 ``random``)."""
+    return np.float32(np.float64(stream_word(key, i, 0) >> np.uint64(40)) * (1.0 / 16777216.0))
+
+
 @njit(cache=True)
-def normals_from_bits(raw, out, xs, fs):  # pragma: no cover - compiled
-    """Standard normal draws into ``out`` by the 256-layer ziggurat from the 64-bit words
-    ``raw`` of a bit generator, in order: of each word, bits 0-7 pick the layer, bit 8 the
-    sign and bits 11-63 the uniform; a draw outside its layer's core takes one more word (the
-    wedge's height) or two per try (Marsaglia's tail beyond ``ZIGGURAT_R``).
-
-    Args:
-        raw: (K,) uint64 words.
-        out: (n,) float32, filled.
-        xs, fs: :func:`ziggurat_tables`.
-
-    Returns:
-        The words used, or -1 when ``raw`` ran out first (the caller passes more).
-    """
-    n = out.shape[0]
-    nr = raw.shape[0]
+def normal_draw(key, i, xs, fs):  # pragma: no cover - compiled
+    """Draw ``i`` of stream ``key`` as a standard normal (float64; version 3 rounds it to
+    float32) by the 256-layer ziggurat (Marsaglia & Tsang 2000) on the draw's words, in order:
+    of each word, bits 0-7 pick the layer, bit 8 the sign and bits 11-63 the uniform; a draw
+    outside its layer's core takes one more word (the wedge's height) or two per try
+    (Marsaglia's tail beyond ``ZIGGURAT_R``). ``xs``, ``fs``: :func:`ziggurat_tables`."""
     scale = 1.0 / 9007199254740992.0  # 2^-53
     r = xs[1]
     j = 0
-    for k in range(n):
-        while True:
-            if j >= nr:
-                return -1
-            b = raw[j]
-            j += 1
-            i = np.int64(b & np.uint64(255))
-            neg = (b >> np.uint64(8)) & np.uint64(1)
-            x = np.float64(b >> np.uint64(11)) * scale * xs[i]
-            if x < xs[i + 1]:
-                break
-            if i == 0:  # the tail: x = r + a, a exponential, accepted as Marsaglia's
-                while True:
-                    if j + 1 >= nr:
-                        return -1
-                    u1 = 1.0 - np.float64(raw[j] >> np.uint64(11)) * scale
-                    u2 = 1.0 - np.float64(raw[j + 1] >> np.uint64(11)) * scale
-                    j += 2
-                    a = -math.log(u1) / r
-                    if -2.0 * math.log(u2) >= a * a:
-                        break
-                x = r + a
-                break
-            if j >= nr:
-                return -1
-            u = np.float64(raw[j] >> np.uint64(11)) * scale
-            j += 1
-            if fs[i] + u * (fs[i + 1] - fs[i]) < math.exp(-0.5 * x * x):
-                break
-        out[k] = -x if neg else x
-    return j
+    while True:
+        b = stream_word(key, i, j)
+        j += 1
+        k = np.int64(b & np.uint64(255))
+        neg = (b >> np.uint64(8)) & np.uint64(1)
+        x = np.float64(b >> np.uint64(11)) * scale * xs[k]
+        if x < xs[k + 1]:
+            break
+        if k == 0:  # the tail: x = r + a, a exponential, accepted as Marsaglia's
+            while True:
+                u1 = 1.0 - np.float64(stream_word(key, i, j) >> np.uint64(11)) * scale
+                u2 = 1.0 - np.float64(stream_word(key, i, j + 1) >> np.uint64(11)) * scale
+                j += 2
+                a = -math.log(u1) / r
+                if -2.0 * math.log(u2) >= a * a:
+                    break
+            x = r + a
+            break
+        u = np.float64(stream_word(key, i, j) >> np.uint64(11)) * scale
+        j += 1
+        if fs[k] + u * (fs[k + 1] - fs[k]) < math.exp(-0.5 * x * x):
+            break
+    return -x if neg else x
+
+
+@njit(cache=True)
+def normal_draws(key, n, xs, fs):  # pragma: no cover - compiled
+    """(n,) float32 draws 0 .. n - 1 of :func:`normal_draw`."""
+    out = np.empty(n, np.float32)
+    for i in range(n):
+        out[i] = np.float32(normal_draw(key, i, xs, fs))
+    return out

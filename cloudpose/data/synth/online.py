@@ -52,11 +52,12 @@ one pass reads every object pixel (:func:`scene_points`: the jump, incidence cos
 reading of the version-2 sensor, the missing-depth test, the back-projection and the outlier
 filter; the exact missing probability only where a bound of it does not decide), and the FPS
 runs over coordinate-wise buckets (:func:`cloudpose.kernels.scene_pass.fps_soa`, the exact
-FPS order, the same start draws as the segment path). Its draws: float32, per object pixel a
-normal, a uniform and a uniform (as version 2 draws them, in one array each), and the white
-noise of the missing-depth field over the object pixels' bounding box widened by the blob
-filter's reach (version 2 draws it over the whole box and wraps the filter around it; here
-the field is stationary). The last scene of a batch cuts only the segments the batch keeps.
+FPS order, the same start draws as the segment path). Its draws come from three counter
+streams keyed by three words of the scene's generator (SplitMix64 outputs, read where the
+pass needs them, :func:`scene_points`): per object pixel a normal, and two uniforms where it
+lies on a depth edge; the white noise of the missing-depth field over the object pixels'
+bounding box widened by the blob filter's reach (version 2 draws it over the whole box and
+wraps the filter around it; here the field is stationary). The last scene of a batch cuts only the segments the batch keeps.
 Without noise its segments are the rendered frame's (tests/test_online.py); with noise they
 are other draws of the same law (the same classes and poses, as many points, each segment
 on the same surface: ``benchmarks/bench_online.py`` measures how near version 1's). Without
@@ -167,11 +168,13 @@ def scene_points(
     projected, less the outliers (:func:`cloudpose.kernels.scene_pass.scene_points`, or its
     numpy twin).
 
-    The draws, all float32: per object pixel in row-major order a standard normal (axial
-    noise), a uniform (flying or not on a depth edge) and a uniform (the flying pixel's mix);
-    then white noise over the object pixels' bounding box widened by the blob filter's reach
-    (a stationary field, where version 2 wraps the box around), smoothed into the
-    missing-depth field. The normals by :func:`standard_normals`.
+    The draws: three words of ``rng``'s bit generator key three counter streams
+    (:func:`cloudpose.kernels.scene_pass.stream_word`, SplitMix64 outputs), read where the
+    pass needs them: object pixel k (row-major) reads a standard normal (axial noise), and on
+    a depth edge two uniforms (flying or not, the mix); the white noise of the missing-depth
+    field is a standard normal per pixel of the object pixels' bounding box widened by the
+    blob filter's reach (a stationary field, where version 2 wraps the box around), smoothed
+    in float32. Normals by the ziggurat (:func:`standard_normals`), uniforms as float32.
 
     Args:
         clean: (h, w) float64 clean depth (the objects', the background's on their ring).
@@ -190,21 +193,11 @@ def scene_points(
     model, dropout = NoiseModel(), REAL_DROPOUT
     weights = _gaussian_weights(dropout.blob_sigma)
     r = len(weights) // 2
-    m = int(visible.sum())
-    v, u = np.nonzero(index >= 0) if not compiled or rng is not None else (None, None)
-    if rng is not None:
-        normal = standard_normals(rng, m, compiled)
-        u_edge = rng.random(m, dtype=np.float32)
-        mix = rng.random(m, dtype=np.float32)
-        hb = int(v.max()) - int(v.min()) + 1 + 2 * r if m else 0
-        wb = int(u.max()) - int(u.min()) + 1 + 2 * r if m else 0
-        white = standard_normals(rng, hb * wb, compiled).reshape(hb, wb)
-    else:
-        normal = u_edge = mix = np.zeros(0, dtype=np.float32)
-        white = np.zeros((0, 0), dtype=np.float32)
+    keys = rng.bit_generator.random_raw(3) if rng is not None else np.zeros(3, np.uint64)
     rate = dropout.rate_table()[np.asarray(cls_ids, dtype=np.int64)]
     std = _smoothed_std(float(dropout.blob_sigma))
     Kinv = np.linalg.inv(Kw)
+    xs, fs = _ziggurat()
     if compiled:
         from cloudpose.kernels.scene_pass import scene_points as kernel
 
@@ -214,10 +207,9 @@ def scene_points(
             visible,
             Kinv,
             rate,
-            normal,
-            u_edge,
-            mix,
-            white,
+            keys,
+            xs,
+            fs,
             weights,
             std,
             (
@@ -236,14 +228,21 @@ def scene_points(
     from scipy import ndimage
     from scipy.special import ndtr
 
+    v, u = np.nonzero(index >= 0)
+    m = len(v)
     inst = index[v, u]
     z = clean[v, u]
     if rng is None or not m:
         reading = z.astype(np.float32).astype(np.float64)  # a frame's depth
     else:
+        normal = standard_normals(int(keys[0]), m, False)
+        uni = uniform_draws(int(keys[1]), 2 * m)
+        hb = int(v.max()) - int(v.min()) + 1 + 2 * r
+        wb = int(u.max()) - int(u.min()) + 1 + 2 * r
+        white = standard_normals(int(keys[2]), hb * wb, False).reshape(hb, wb)
         lab = index + 1
         jump, cos = object_pixel_geometry(np.pad(clean, 1), np.pad(lab, 1), v, u, Kw)
-        reading = _noisy(z, jump, normal.astype(np.float64), u_edge, mix, model)
+        reading = _noisy(z, jump, normal.astype(np.float64), uni[0::2], uni[1::2], model)
         smooth = ndimage.correlate1d(white.astype(np.float64), weights, axis=0, mode="constant")
         smooth = ndimage.correlate1d(smooth, weights, axis=1, mode="constant")[r:-r, r:-r]
         field = ndtr(smooth[v - v.min(), u - u.min()] / std)
@@ -252,26 +251,77 @@ def scene_points(
     return _cut_points_numpy(v, u, inst, reading, Kinv, len(cls_ids), radius)
 
 
-def standard_normals(rng: np.random.Generator, n: int, compiled: bool) -> np.ndarray:
-    """(n,) float32 standard normal draws of version 3: the 256-layer ziggurat on the 64-bit
-    words of ``rng``'s bit generator (:func:`cloudpose.kernels.scene_pass.normals_from_bits`;
-    ~2x numpy's float32 normals here), compiled or as plain Python (the same draws)."""
-    from cloudpose.kernels.scene_pass import normals_from_bits, ziggurat_tables
-
+def _ziggurat() -> tuple[np.ndarray, np.ndarray]:
     global _ZIGGURAT
     if _ZIGGURAT is None:
+        from cloudpose.kernels.scene_pass import ziggurat_tables
+
         _ZIGGURAT = ziggurat_tables()
-    fill = (
-        normals_from_bits if compiled else getattr(normals_from_bits, "py_func", normals_from_bits)
-    )
-    out = np.empty(n, dtype=np.float32)
-    raw = rng.bit_generator.random_raw(n + n // 16 + 64)
-    while fill(raw, out, *_ZIGGURAT) < 0:  # ~2% of the words go to rejections: rarely short
-        raw = np.concatenate([raw, rng.bit_generator.random_raw(n // 16 + 64)])
-    return out
+    return _ZIGGURAT
 
 
 _ZIGGURAT: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def _stream_words(key: int, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """The numpy twin of :func:`cloudpose.kernels.scene_pass.stream_word` (uint64 arrays)."""
+    from cloudpose.kernels.scene_pass import DRAW_WORDS
+
+    c = np.asarray(i, dtype=np.uint64) * np.uint64(DRAW_WORDS) + (
+        np.asarray(j, dtype=np.uint64) + np.uint64(1)
+    )
+    z = np.uint64(key) + c * np.uint64(0x9E3779B97F4A7C15)  # uint64 arrays wrap
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def uniform_draws(key: int, n: int) -> np.ndarray:
+    """(n,) float32 draws 0 .. n - 1 of :func:`cloudpose.kernels.scene_pass.uniform_draw`."""
+    w = _stream_words(key, np.arange(n), np.zeros(n, dtype=np.int64))
+    return ((w >> np.uint64(40)).astype(np.float64) * (1.0 / 16777216.0)).astype(np.float32)
+
+
+def standard_normals(key: int, n: int, compiled: bool) -> np.ndarray:
+    """(n,) float32 standard normals: draws 0 .. n - 1 of the counter stream ``key`` by the
+    256-layer ziggurat (:func:`cloudpose.kernels.scene_pass.normal_draw`), compiled or by its
+    numpy twin (the same draws)."""
+    import math
+
+    xs, fs = _ziggurat()
+    if compiled:
+        from cloudpose.kernels.scene_pass import normal_draws
+
+        return normal_draws(np.uint64(key), n, xs, fs)
+    scale = 1.0 / 9007199254740992.0
+    out = np.empty(n)
+    used = np.zeros(n, dtype=np.int64)  # words each draw has read
+    todo = np.arange(n)
+    while len(todo):
+        b = _stream_words(key, todo, used[todo])
+        used[todo] += 1
+        k = (b & np.uint64(255)).astype(np.int64)
+        x = (b >> np.uint64(11)).astype(np.float64) * scale * xs[k]
+        done = x < xs[k + 1]
+        for t in np.flatnonzero(~done):
+            i = int(todo[t])
+            if k[t] == 0:  # the tail
+                while True:
+                    u1, u2 = _stream_words(key, [i, i], [used[i], used[i] + 1]) >> np.uint64(11)
+                    used[i] += 2
+                    a = -math.log(1.0 - float(u1) * scale) / xs[1]
+                    if -2.0 * math.log(1.0 - float(u2) * scale) >= a * a:
+                        break
+                x[t], done[t] = xs[1] + a, True
+            else:  # the wedge
+                h = float(_stream_words(key, [i], [used[i]])[0] >> np.uint64(11)) * scale
+                used[i] += 1
+                f0, f1 = fs[k[t]], fs[k[t] + 1]
+                done[t] = f0 + h * (f1 - f0) < math.exp(-0.5 * x[t] * x[t])
+        neg = ((b >> np.uint64(8)) & np.uint64(1)).astype(bool)
+        out[todo[done]] = np.where(neg, -x, x)[done]
+        todo = todo[~done]
+    return out.astype(np.float32)
 
 
 def _cut_points_numpy(v, u, inst, reading, Kinv, n, radius):
