@@ -6,9 +6,10 @@ YCB-Video toolbox counts it). Every evaluation names its frame list in words (ML
 ``eval/{name}/split``: ``YCB-Video keyframe (2949 frames)``, ``BOP19 ycbv test targets (900
 images)``).
 Summaries (:func:`cloudpose.metrics.summarize`) are logged as metrics ``{name}/...`` for the
-network alone and ``{name}_icp/...`` after ICP; the per-instance table is an artifact
-``eval/{name}/instances.parquet``. The names and metric keys are
-:mod:`cloudpose.store.metric_names`.
+network alone and ``{name}_icp/...`` after ICP, pooled and class-mean; the per-class detail
+(and per video, on the real frames) is a table ``eval/{name}/per_class.csv``
+(``per_video.csv``), the per-instance table an artifact ``eval/{name}/instances.parquet``. The
+names and metric keys are :mod:`cloudpose.store.metric_names`.
 """
 
 from __future__ import annotations
@@ -41,9 +42,13 @@ from cloudpose.store.metric_names import (
     OWN_TEST,
     REAL_DEV,
     data_evaluation_name,
+    detail_artifact,
+    detail_table,
     own_test_name,
+    split_detail,
     summary_metrics,
     video_metrics,
+    write_detail,
 )
 from cloudpose.store.pretrained import is_pretrained
 from cloudpose.store.runs import local_checkpoint
@@ -101,12 +106,13 @@ def _number_lists(rows: np.ndarray, miss: np.ndarray) -> list[str]:
 
 def evaluate_real(run: str, **kwargs) -> EvalOutcome:
     """:func:`evaluate` on the real development frames (:func:`real_dev_root`, all 61), logged
-    as :data:`REAL_DEV` with per-video metrics beside the pooled ones."""
+    as :data:`REAL_DEV` with per-video metrics beside the pooled ones (the table
+    ``eval/real/per_video.csv``)."""
     out = evaluate(run, data=str(real_dev_root()), frames="all", name=REAL_DEV, **kwargs)
     per_video = video_metrics(out.table, out.name)
     if kwargs.get("log", True) and out.run_id is not None:
         client = tracking.setup(kwargs.get("project_dir") or Path.cwd())
-        client.log_batch(out.run_id, metrics=tracking.metric_batch(per_video, finite_only=True))
+        log_detail(client, out.run_id, out.name, per_video)
     return dataclasses.replace(out, metrics={**out.metrics, **per_video})
 
 
@@ -391,18 +397,33 @@ def _disk_full(exc: BaseException, client, run_id: str) -> DiskFullError | None:
     return disk_full(exc, where or tempfile.gettempdir(), then="rerun the evaluation")
 
 
+def log_detail(client, run_id: str, name: str, metrics: dict[str, float]) -> dict[str, float]:
+    """Log the per-class and per-video keys among ``metrics`` as the run's detail tables
+    ``eval/{name}/per_class.csv`` and ``per_video.csv``
+    (:func:`cloudpose.store.metric_names.detail_table`); returns the other keys."""
+    summary, detail = split_detail(metrics)
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind, keys in sorted(detail.items()):
+            rel = detail_artifact(name, kind)
+            path = write_detail(detail_table(keys, kind), Path(tmp) / Path(rel).name)
+            client.log_artifact(run_id, str(path), artifact_path=str(Path(rel).parent))
+    return summary
+
+
 def log_evaluation(
     client, run_id: str, name: str, table: pd.DataFrame, metrics: dict[str, float]
 ) -> None:
     """An evaluation into its MLflow run: the instance table as ``eval/{name}/instances.parquet``
-    (what the reports read; float32, :mod:`cloudpose.store.instances`) and the finite metrics;
-    on the run's own test set (:data:`OWN_TEST`) also its headline metrics
+    (what the reports read; float32, :mod:`cloudpose.store.instances`), the per-class and
+    per-video detail as tables beside it (:func:`log_detail`) and the other finite metrics; on
+    the run's own test set (:data:`OWN_TEST`) also its headline metrics
     (:data:`cloudpose.store.headline.HEADLINE`)."""
     from cloudpose.store import instances
 
     with tempfile.TemporaryDirectory() as tmp:
         path = instances.write_table(table, Path(tmp) / instances.PARQUET)
         client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")
+    metrics = log_detail(client, run_id, name, metrics)
     if name == OWN_TEST:
         metrics = {**metrics, **headline(metrics)}
     client.log_batch(run_id, metrics=tracking.metric_batch(metrics, finite_only=True))

@@ -40,7 +40,44 @@ def test_evaluate_own_test_set_logs_table_and_metrics(project):
     run = client.get_run(out.run_id)
     assert run.data.metrics["test/ads_auc"] == pytest.approx(ev.metrics["test/ads_auc"])
     arts = [a.path for a in client.list_artifacts(out.run_id, "eval/test")]
-    assert arts == ["eval/test/instances.parquet"]
+    assert arts == ["eval/test/instances.parquet", "eval/test/per_class.csv"]
+    # the per-class detail is the table, read back as the keys it was computed as
+    from cloudpose.report.runs import RunRecord
+    from cloudpose.store.metric_names import detail_kind
+
+    assert not [k for k in run.data.metrics if detail_kind(k)]
+    info = (out.run_id, "shared-0", 1, "smoke", "d", "c", 0, {}, dict(run.data.metrics))
+    record = RunRecord(*info, artifact_uri=run.info.artifact_uri, client=client)
+    per_class = {k: v for k, v in ev.metrics.items() if detail_kind(k) == "class"}
+    assert per_class and all(
+        record.metric(k) == pytest.approx(v, rel=1e-12) for k, v in per_class.items()
+    )
+
+
+NEW_RUN_METRICS = 120
+"""The most metric keys a new run has, trained and evaluated on its test set and on the real
+frames: training's curves (train/, val/, fit/, time/), the pooled and class-mean summaries of
+each evaluation without and with ICP, the headline keys; per-class and per-video detail are
+tables (``eval/NAME/per_class.csv``, ``per_video.csv``)."""
+
+
+@pytest.mark.slow
+def test_a_new_run_logs_at_most_a_hundred_and_twenty_metric_keys(tmp_path, smoke_data):
+    from cloudpose.evaluate import evaluate_real
+    from tests.conftest import train_smoke_project
+
+    proj, out = train_smoke_project(tmp_path, smoke_data)
+    evaluate(str(out.run_dir), project_dir=proj, progress=False)
+    real = evaluate_real(str(out.run_dir), project_dir=proj, progress=False)
+    assert any("/video/" in k for k in real.metrics)  # computed, and logged as a table
+    from cloudpose.store import tracking
+
+    client = tracking.setup(proj)
+    keys = client.get_run(out.run_id).data.metrics
+    assert 0 < len(keys) <= NEW_RUN_METRICS, sorted(keys)
+    assert not [k for k in keys if "/class/" in k or "/video/" in k]
+    arts = {a.path for a in client.list_artifacts(out.run_id, "eval/real")}
+    assert {"eval/real/per_class.csv", "eval/real/per_video.csv"} <= arts
 
 
 @pytest.mark.slow

@@ -828,3 +828,48 @@ def test_the_verdict_table_of_a_readme_is_replaced_between_its_markers(rendered,
     readme.write_text("no markers\n")
     with pytest.raises(ValueError, match=f"<!-- verdicts {PRESET} -->"):
         update_verdicts_block(readme, PRESET, result.claims, prov)
+
+
+def test_table2_reads_the_per_class_detail_from_keys_or_from_the_runs_table(tmp_path):
+    """A run logged before the detail tables keeps its per-class keys as metrics; a new run
+    keeps them in ``eval/test/per_class.csv``: Table II is the same from either."""
+    from cloudpose.report.runs import RunRecord, RunSet
+    from cloudpose.report.tables import paper_table, table2_per_class
+    from cloudpose.store.metric_names import (
+        detail_artifact,
+        detail_table,
+        split_detail,
+        write_detail,
+    )
+
+    classes = list(paper_table("table2_per_class")["object"])
+    rng = np.random.default_rng(0)
+    stats = ("ad_auc", "ads_auc", "ads_lt_1cm", "count")
+
+    def metrics(seed: int) -> dict[str, float]:
+        out = {
+            f"{p}/class_mean/{m}": 0.5 + 0.01 * seed
+            for p in ("test", "test_icp")
+            for m in stats[:3]
+        }
+        for p in ("test", "test_icp"):
+            for c in classes[:-2]:  # two classes without a test instance: no keys
+                out.update({f"{p}/class/{c}/{m}": float(rng.random()) for m in stats})
+        return out
+
+    old, new = [], []
+    for seed in (1, 2, 3):
+        m = metrics(seed)
+        args = (f"r{seed}", "shared-0", seed, "p", "d", "c", 0, {})
+        old.append(RunRecord(*args, m))
+        summary, detail = split_detail(m)
+        folder = tmp_path / f"r{seed}" / "artifacts"
+        rel = Path(detail_artifact("test", "class"))
+        (folder / rel.parent).mkdir(parents=True)
+        write_detail(detail_table(detail["class"], "class"), folder / rel)
+        new.append(RunRecord(*args, summary, artifact_uri=folder.as_uri()))
+        assert not any("/class/" in k for k in summary)
+    a, b = table2_per_class(RunSet("p", "d", old)), table2_per_class(RunSet("p", "d", new))
+    assert a.rows == b.rows
+    pd.testing.assert_frame_equal(a.data, b.data)
+    assert sum(r is not None and r[4] != "–" for r in a.rows) == len(classes) - 2 + 1

@@ -21,6 +21,7 @@ import pandas as pd
 from cloudpose.data.keys import DataKey
 from cloudpose.files import CorruptFileError, why
 from cloudpose.store import instances, tracking
+from cloudpose.store.metric_names import DetailReader, detail_kind
 from cloudpose.store.runs import is_preset_config
 
 INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
@@ -55,8 +56,16 @@ class RunRecord:
         return int(v) if v not in (None, "") else None
 
     def metric(self, key: str) -> float:
-        """Value of a metric; NaN when the run does not have it."""
-        return float(self.metrics.get(key, math.nan))
+        """Value of a metric; NaN when the run does not have it. A per-class or per-video key
+        (``test_icp/class/025_mug/ads_auc``) is read from the run's detail table where its
+        metrics lack it (:class:`cloudpose.store.metric_names.DetailReader`)."""
+        if key in self.metrics or detail_kind(key) is None:
+            return float(self.metrics.get(key, math.nan))
+        if "detail" not in self._cache:
+            self._cache["detail"] = DetailReader(
+                self.client, self.run_id, self.artifact_uri, self.metrics
+            )
+        return self._cache["detail"].get(key)
 
     def instances(self, name: str = "test") -> pd.DataFrame | None:
         """The per-instance table ``eval/{name}/instances.parquet`` (or, logged before, its

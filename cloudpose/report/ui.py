@@ -1,8 +1,10 @@
 """The MLflow UI made ready to compare variants by their headline metrics
 (:mod:`cloudpose.store.headline`): the report's runs, tables and links, as saved views.
 
-A run logs hundreds of split-prefixed metrics (``test/...``, ``test_icp/class/<c>/...``), which
-the reports read and which stay as they are. Four of them are what a comparison of variants
+A run logs dozens of split-prefixed summary metrics (``test/...``, ``test_icp/class_mean/...``;
+a run logged before the per-class and per-video detail tables of
+:mod:`cloudpose.store.metric_names` also ~2,000 detail keys), which the reports read and which
+stay as they are. Four of them are what a comparison of variants
 starts from; they are logged again as top-level keys (:data:`HEADLINE`, 0-1), short names that
 a runs table can show without searching 2,000 columns.
 

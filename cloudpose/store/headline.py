@@ -1,7 +1,8 @@
 """Headline metrics: the four figures a comparison of variants starts from.
 
-A run logs hundreds of split-prefixed metrics (``test/...``, ``test_icp/class/<c>/...``), which
-the reports read. Four of them are logged again as top-level keys (:data:`HEADLINE`, 0-1), short
+A run logs dozens of split-prefixed summary metrics (``test/...``, ``test_icp/class_mean/...``;
+its per-class and per-video detail are tables, :mod:`cloudpose.store.metric_names`, where runs
+logged before keep ~2,000 keys), which the reports read. Four of them are logged again as top-level keys (:data:`HEADLINE`, 0-1), short
 names that a runs table can show without searching 2,000 columns; the MLflow UI's comparison
 views (:mod:`cloudpose.report.ui`) start from them.
 """
