@@ -13,8 +13,10 @@ load). Figures (JSON keys):
 - ``baseline_fpfh_ms_per_object``, ``baseline_ppf_ms_per_object`` (``benchmarks.bench_baselines``)
 - ``synth_frames_per_s``, ``prepare_frames_per_s`` (``benchmarks.bench_data``)
 - ``online_supply_ratio``: on-line synthesis against training consumption (``benchmarks.bench_online``)
-- ``online_v2_supply_ratio``: on-line synthesis version 2 (the compiled path) at reuse 1
-  against training consumption, version 1 beside it, stage times of both
+- ``online_v2_supply_ratio``: on-line synthesis version 2 (the compiled path, one process) at
+  reuse 1 against training consumption, version 1 beside it (``benchmarks.bench_online``)
+- ``online_v3_supply_ratio``: on-line synthesis version 3 (two worker processes) at reuse 1
+  against training consumption, version 1 beside it, stage times of versions 1, 2 and 3
   (``benchmarks.bench_online``)
 - ``cpu_variant_wall_s``: wall time of one ``cpu``-preset variant, train + evaluate. Not run by
   default (it takes minutes): read from the MLflow store (start to end of the newest finished
@@ -70,6 +72,7 @@ FIGURES = (
     "prepare_frames_per_s",
     "online_supply_ratio",
     "online_v2_supply_ratio",
+    "online_v3_supply_ratio",
     "cpu_variant_wall_s",
     "ray_executor_wall_s",
 )
@@ -82,7 +85,7 @@ GROUPS = {
     "fps": ("fps_ms_20k",),
     "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),
-    "online": ("online_supply_ratio", "online_v2_supply_ratio"),
+    "online": ("online_supply_ratio", "online_v2_supply_ratio", "online_v3_supply_ratio"),
     "cpu_variant": ("cpu_variant_wall_s",),
     "cluster": ("ray_executor_wall_s",),
 }

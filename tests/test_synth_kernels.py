@@ -87,6 +87,24 @@ def test_scenes_are_the_same_with_and_without_the_slide_kernel(synth):
         np.testing.assert_array_equal(a.world_to_camera, b.world_to_camera)
 
 
+def test_footprint_rasters_and_contact_cells_are_the_numpy_twins():
+    """The compiled footprint raster and the contact cells' membership of the scene sampler:
+    the numpy twins' cells, in their order (the scenes of every version depend on them)."""
+    from cloudpose.data.synth.scenes import _GRID, _member, _member_numpy, _raster_cells_numpy
+    from cloudpose.kernels.placement import raster_cells
+
+    rng = np.random.default_rng(4)
+    for n in (1, 5, 300):
+        pts = rng.normal(0.0, rng.uniform(0.001, 0.05), (n, 2)) + rng.uniform(-0.5, 0.5, 2)
+        for fill in (False, True):
+            np.testing.assert_array_equal(
+                raster_cells(pts, _GRID, fill), _raster_cells_numpy(pts, fill)
+            )
+    keys, of = rng.integers(0, 60, 40), rng.integers(0, 60, 25)
+    np.testing.assert_array_equal(_member(keys, of), _member_numpy(keys, of))
+    assert _member(keys[:0], of).shape == (0,)
+
+
 @pytest.mark.parametrize("n", [1, 2, 50, 3000])
 def test_grid_fps_is_the_numpy_loop(n):
     from cloudpose.kernels.segment_cut import grid_fps

@@ -15,7 +15,7 @@ import numpy as np
 
 from cloudpose.kernels.backend import njit
 
-__all__ = ["slide_steps"]
+__all__ = ["close_cells", "raster_cells", "slide_steps"]
 
 
 @njit(cache=True)
@@ -122,3 +122,37 @@ def close_cells(img, fill):  # pragma: no cover - compiled
         for x in range(w):
             a[y, x] = not outside[y, x]
     return a
+
+
+@njit(cache=True)
+def raster_cells(points_xy, grid, fill):  # pragma: no cover - compiled
+    """(C, 2) int64 grid cells ``floor(xy / grid)`` covered by the (P, 2) points, closed by
+    :func:`close_cells` (holes filled with ``fill``), row-major: the twin is
+    :func:`cloudpose.data.synth.scenes._raster_cells_numpy` (the same float64 division and
+    floor, the same raster, ``np.argwhere``'s order)."""
+    n = points_xy.shape[0]
+    ij = np.empty((n, 2), np.int64)
+    lo0, lo1 = np.iinfo(np.int64).max, np.iinfo(np.int64).max
+    hi0, hi1 = np.iinfo(np.int64).min, np.iinfo(np.int64).min
+    for k in range(n):
+        a = np.int64(math.floor(points_xy[k, 0] / grid))
+        b = np.int64(math.floor(points_xy[k, 1] / grid))
+        ij[k, 0], ij[k, 1] = a, b
+        lo0, lo1, hi0, hi1 = min(lo0, a), min(lo1, b), max(hi0, a), max(hi1, b)
+    lo0, lo1 = lo0 - 2, lo1 - 2
+    img = np.zeros((hi0 - lo0 + 3, hi1 - lo1 + 3), np.bool_)
+    for k in range(n):
+        img[ij[k, 0] - lo0, ij[k, 1] - lo1] = True
+    img = close_cells(img, fill)
+    c = 0
+    for y in range(img.shape[0]):
+        for x in range(img.shape[1]):
+            c += img[y, x]
+    out = np.empty((c, 2), np.int64)
+    c = 0
+    for y in range(img.shape[0]):
+        for x in range(img.shape[1]):
+            if img[y, x]:
+                out[c, 0], out[c, 1] = y + lo0, x + lo1
+                c += 1
+    return out

@@ -37,6 +37,7 @@ __all__ = [
     "normal_draw",
     "normal_draws",
     "raster_scene",
+    "ring_pixels",
     "scene_points",
     "stream_word",
     "uniform_draw",
@@ -183,6 +184,30 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
     return 0, box, depth, index, visible
 
 
+@njit(cache=True)
+def ring_pixels(index):  # pragma: no cover - compiled
+    """(rows, cols) int64 of the background pixels (``index`` < 0) with an object pixel among
+    their 4-neighbours, row-major: ``np.nonzero`` of
+    :func:`cloudpose.data.synth.sensor.object_ring` of ``index >= 0``."""
+    h, w = index.shape
+    rv = np.empty(h * w, np.int64)
+    ru = np.empty(h * w, np.int64)
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if index[y, x] >= 0:
+                continue
+            if (
+                (y > 0 and index[y - 1, x] >= 0)
+                or (y < h - 1 and index[y + 1, x] >= 0)
+                or (x > 0 and index[y, x - 1] >= 0)
+                or (x < w - 1 and index[y, x + 1] >= 0)
+            ):
+                rv[n], ru[n] = y, x
+                n += 1
+    return rv[:n].copy(), ru[:n].copy()
+
+
 @njit(cache=True, inline="always")
 def _jump_to(best, z, nb):  # pragma: no cover - compiled
     """The jump to neighbour depth ``nb`` (0 = none) if it exceeds ``best`` (first on ties)."""
@@ -306,7 +331,7 @@ def scene_points(
     ev0, ev1 = max(vb0 - 1, 0), min(vb1 + 1, h)
     eu0, eu1 = max(ub0 - 1, 0), min(ub1 + 1, w)
     dist2 = np.zeros((max(ev1 - ev0, 0), max(eu1 - eu0, 0)))
-    phi_low = np.empty(81)
+    phi_low = np.empty(641)
     graze_high = np.empty(257)
     edge_table = np.full(4096, -1.0)
     if noisy and hb > 0:
@@ -340,8 +365,8 @@ def scene_points(
         # tables for a sufficient test of "the field keeps the reading": Phi(z) from below on
         # a grid of z <= 0, the grazing term from above on a grid of cosines, the edge term by
         # the integer squared distance (filled as met); the exact test where they do not decide
-        for k in range(81):
-            phi_low[k] = 0.5 * math.erfc(k / 8.0 / math.sqrt(2.0)) * (1.0 - 1e-9)
+        for k in range(641):
+            phi_low[k] = 0.5 * math.erfc(k / 64.0 / math.sqrt(2.0)) * (1.0 - 1e-9)
         for k in range(257):
             xk = min(max((k / 256.0 - graze_cos) / graze_width, -50.0), 50.0)
             graze_high[k] = 1.0 / (1.0 + math.exp(xk)) * (1.0 + 1e-9)
@@ -379,8 +404,8 @@ def scene_points(
                     p_edge = edge_rate * math.exp(-(math.sqrt(d2) + 1.0 - 1.0) / edge_scale)
                 q = (1.0 - p_edge) * (1.0 - rate[c])
                 zf = np.float64(sm[y - vb0, x - ub0]) / std
-                kz = 0 if zf >= 0.0 else math.ceil(-zf * 8.0)
-                sure = kz <= 80 and phi_low[kz] > 1.0 - q * (1.0 - graze_high[int(cos * 256.0)])
+                kz = 0 if zf >= 0.0 else math.ceil(-zf * 64.0)
+                sure = kz <= 640 and phi_low[kz] > 1.0 - q * (1.0 - graze_high[int(cos * 256.0)])
                 if not sure:  # Phi(zf) > an upper bound of p failed: the exact test
                     xg = min(max((cos - graze_cos) / graze_width, -50.0), 50.0)
                     p_graze = 1.0 / (1.0 + math.exp(xg))

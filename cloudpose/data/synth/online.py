@@ -617,6 +617,24 @@ class OnlineSynth:
         index = lut[r.label]
         return r.depth.astype(np.float64), index, r.visible_pixels, box
 
+    @staticmethod
+    def _with_ring_v3(depth: np.ndarray, index: np.ndarray, Kw: np.ndarray, scene: Scene):
+        """``depth`` (changed in place) with the background's depth on the ring of pixels
+        around the objects (:func:`~cloudpose.data.synth.sensor.object_ring`; found by
+        :func:`cloudpose.kernels.scene_pass.ring_pixels` where the kernels are enabled)."""
+        from cloudpose.kernels.backend import enabled
+
+        if enabled():
+            from cloudpose.kernels.scene_pass import ring_pixels
+
+            ring_v, ring_u = ring_pixels(index)
+        else:
+            ring_v, ring_u = np.nonzero(object_ring(index >= 0))
+        depth[ring_v, ring_u] = background_depth_at(
+            Kw, ring_v, ring_u, scene.world_to_camera, scene.background
+        )
+        return depth
+
     def _scene_segments_v3(self, scene: Scene, rng: np.random.Generator, limit: int | None):
         """:meth:`scene_segments` of version 3 (see the module doc): the compiled passes of
         :mod:`cloudpose.kernels.scene_pass` where the kernels are enabled, else their numpy
@@ -634,12 +652,7 @@ class OnlineSynth:
         Kw[0, 2] -= u0
         Kw[1, 2] -= v0
         compiled = enabled()
-        clean = depth
-        if self.settings.noise:
-            ring_v, ring_u = np.nonzero(object_ring(index >= 0))
-            clean[ring_v, ring_u] = background_depth_at(
-                Kw, ring_v, ring_u, scene.world_to_camera, scene.background
-            )
+        clean = self._with_ring_v3(depth, index, Kw, scene) if self.settings.noise else depth
         n_fps, radius = self.settings.n_points, float(self.settings.outlier_radius)
         pts, offsets = scene_points(
             clean,
@@ -653,6 +666,7 @@ class OnlineSynth:
         )
         streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
         keep = []
+        soa = None
         for i, c in enumerate(cls_ids.tolist()):
             if limit is not None and len(keep) >= limit:
                 break
@@ -661,16 +675,17 @@ class OnlineSynth:
                 continue
             if self._kept is not None and c not in self._kept:
                 continue
-            p32 = pts[a:b].astype(np.float32)
             if compiled:
                 from cloudpose.kernels.scene_pass import fps_soa
 
+                if soa is None:  # every point's coordinates, x, y and z rows, float32
+                    soa = np.ascontiguousarray(pts.T, dtype=np.float32)
                 first = int(streams[i].integers(b - a))  # farthest_point_sampling's start draw
                 k = min(n_fps, b - a)
-                xyz = (np.ascontiguousarray(p32[:, j]) for j in range(3))
-                order = fps_soa(*xyz, k, first)
-                sample = p32[np.resize(order, n_fps) if k < n_fps else order]
+                order = fps_soa(soa[0, a:b], soa[1, a:b], soa[2, a:b], k, first)
+                sample = soa[:, a:b][:, np.resize(order, n_fps) if k < n_fps else order].T
             else:
+                p32 = pts[a:b].astype(np.float32)
                 sample = p32[farthest_point_sampling(p32, n_fps, streams[i])]
             R = poses[i, :, :3].astype(np.float32)
             t = poses[i, :, 3].astype(np.float32)

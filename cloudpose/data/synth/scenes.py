@@ -158,12 +158,7 @@ def _footprint_cells(points_xy: np.ndarray) -> np.ndarray:
     The projected model points are rasterised, closed and hole-filled (the surface points of a
     box cover its footprint; gaps between them do not make it porous).
     """
-    ij = np.floor(points_xy / _GRID).astype(np.int64)
-    lo = ij.min(axis=0) - 2
-    size = ij.max(axis=0) - lo + 3
-    img = np.zeros(size, dtype=bool)
-    img[ij[:, 0] - lo[0], ij[:, 1] - lo[1]] = True
-    return np.argwhere(_close(img, fill=True)) + lo
+    return _raster_cells(points_xy, True)
 
 
 def look_at_camera(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarray:
@@ -195,7 +190,20 @@ def _in_image_fraction(points_cam: np.ndarray, K: np.ndarray, shape: tuple[int, 
 
 def _raster_cells(points_xy: np.ndarray, fill: bool) -> np.ndarray:
     """(C, 2) grid cells (absolute, ``floor(xy / _GRID)``) covered by points, closed; holes
-    filled when ``fill`` (a footprint), kept otherwise (a top surface may be a ring)."""
+    filled when ``fill`` (a footprint), kept otherwise (a top surface may be a ring). The
+    compiled :func:`cloudpose.kernels.placement.raster_cells` where the kernels are enabled
+    (the same cells), else :func:`_raster_cells_numpy`."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        return _raster_cells_numpy(points_xy, fill)
+    from cloudpose.kernels.placement import raster_cells
+
+    return raster_cells(np.ascontiguousarray(points_xy, dtype=np.float64), _GRID, fill)
+
+
+def _raster_cells_numpy(points_xy: np.ndarray, fill: bool) -> np.ndarray:
+    """The numpy twin of :func:`_raster_cells`."""
     ij = np.floor(points_xy / _GRID).astype(np.int64)
     lo = ij.min(axis=0) - 2
     img = np.zeros(ij.max(axis=0) - lo + 3, dtype=bool)
@@ -261,6 +269,18 @@ def _cell_keys(cells: np.ndarray) -> np.ndarray:
     return (cells[:, 0] + (1 << 20)) * (1 << 21) + (cells[:, 1] + (1 << 20))
 
 
+def _member(keys: np.ndarray, of: np.ndarray) -> np.ndarray:
+    """(K,) bool: each of ``keys`` in ``of`` (``np.isin``, by a set: the same answer, without
+    sorting for the few dozen cells of a contact)."""
+    within = set(of.tolist())
+    return np.array([k in within for k in keys.tolist()], dtype=bool)
+
+
+def _member_numpy(keys: np.ndarray, of: np.ndarray) -> np.ndarray:
+    """The numpy twin of :func:`_member`."""
+    return np.isin(keys, of)
+
+
 class _Support(NamedTuple):
     """An object on the table that another may rest on: index, top height, top cells."""
 
@@ -307,7 +327,7 @@ def _try_stack(
         contact = _raster_cells(bottom + origin, fill=False)
         if k not in tops:
             tops[k] = _cell_keys(sup.top_cells)
-        contact = contact[np.isin(_cell_keys(contact), tops[k])].astype(np.float64)
+        contact = contact[_member(_cell_keys(contact), tops[k])].astype(np.float64)
         if len(contact) < 3:
             continue
         try:
