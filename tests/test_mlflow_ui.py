@@ -16,7 +16,7 @@ from cloudpose.evaluate import OWN_TEST, log_evaluation
 from cloudpose.registry import resolve
 from cloudpose.report import ui
 from cloudpose.report.stats import format_mean_std, mean_std
-from cloudpose.store import tracking
+from cloudpose.store import metric_names, tracking
 
 DETAIL = {
     "test/ads_auc": 0.9,
@@ -59,7 +59,13 @@ def test_own_test_evaluation_logs_headline_keys_beside_the_detail(tmp_path):
     log_evaluation(client, run_id, OWN_TEST, table, dict(DETAIL))
     metrics = client.get_run(run_id).data.metrics
     assert {k: metrics[k] for k in ui.HEADLINE} == ui.headline(DETAIL)
-    assert {k: metrics[k] for k in DETAIL} == DETAIL  # the detail stays as it was
+    # the summary detail stays as it was; the per-class key moves to the run's detail table
+    summary, _ = metric_names.split_detail(dict(DETAIL))
+    assert {k: metrics[k] for k in summary} == summary
+    assert "test/class/025_mug/ads_auc" not in metrics
+    run = client.get_run(run_id)
+    reader = metric_names.DetailReader(client, run_id, run.info.artifact_uri, metrics)
+    assert reader.get("test/class/025_mug/ads_auc") == pytest.approx(0.8)
     # an evaluation on other data is no headline of the run
     other = _run(client, exp, seed=2)
     log_evaluation(client, other, "real", table, {"real/ads_auc": 0.5, "real_icp/ads_auc": 0.6})
@@ -275,7 +281,13 @@ def test_prepare_ui_builds_each_comparison_from_the_reports_runs(sweep, tmp_path
     client, exps, ids, _ = sweep
     prepared = _prepare(client)
     comps = {c.key: c for c in prepared.comparisons}
-    assert set(comps) == {"shared.smoke", "rotation.smoke", "loss.smoke", "symmetry.smoke"}
+    assert set(comps) == {
+        "shared.smoke",
+        "rotation.smoke",
+        "loss.smoke",
+        "symmetry.smoke",
+        "centre.smoke",
+    }
     rot = comps["rotation.smoke"]
     rows = {r.variant: r for r in rot.rows}
     # the reference, logged in another experiment, is in the rotation view; newest run per seed

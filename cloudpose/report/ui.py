@@ -88,6 +88,7 @@ TITLES: dict[str, str] = {
     "rotation": "Rotation representation: axis-angle, quaternion or 6D",
     "loss": "Rotation loss: geodesic or L2",
     "symmetry": "Symmetry in the loss: geodesic modulo symmetry or plain",
+    "centre": "Translation centre: the segment's mean, median or trimmed mean",
     BASELINES: "Classical baselines beside the network: FPFH + RANSAC, PPF",
     "masks": "Test-time masks: shared-0 under ground-truth and degraded masks",
     "diagnostics": "Diagnostics: runs with overrides, outside the report's tables",
