@@ -111,6 +111,8 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
     h, w = bv1 - bv0, bu1 - bu0
     inv = np.zeros((h, w))  # 1 / depth of the nearest surface (0 = none)
     index = np.full((h, w), -1, np.int64)
+    flat_inv = inv.reshape(h * w)
+    flat_index = index.reshape(h * w)
     for i in range(n):
         if not (wins[i, 0] < wins[i, 1] and wins[i, 2] < wins[i, 3]):
             continue
@@ -162,18 +164,17 @@ def raster_scene(V, F, vstart, fstart, cls, poses, K, H, W, pad):  # pragma: no 
                 sh = min(math.floor(max(xa, xb) + 1e-6), xhi)
                 r0 = b0 * fy + c0
                 r1 = b1 * fy + c1
-                row = index[y - bv0]
-                irow = inv[y - bv0]
+                o = (y - bv0) * w - bu0  # pixel x of the row in the flat buffers
                 for x in range(sl, sh + 1):  # branch-free
                     fx = float(x)
                     w0 = a0 * fx + r0
                     w1 = a1 * fx + r1
                     w2 = 1.0 - w0 - w1
                     iz = w0 * iza + w1 * izb + w2 * izc
-                    cur = irow[x - bu0]
+                    cur = flat_inv[o + x]
                     take = (w0 >= 0.0) & (w1 >= 0.0) & (w2 >= 0.0) & (iz > cur)
-                    irow[x - bu0] = iz if take else cur
-                    row[x - bu0] = i if take else row[x - bu0]
+                    flat_inv[o + x] = iz if take else cur
+                    flat_index[o + x] = i if take else flat_index[o + x]
     depth = np.zeros((h, w))
     visible = np.zeros(n, np.int64)
     for y in range(h):
@@ -533,6 +534,12 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
             by1[c] = max(by1[c], np.float64(QY[j]))
             bz1[c] = max(bz1[c], np.float64(QZ[j]))
         carg[c] = cstart[c]
+    used = np.empty(cells, np.int64)  # the non-empty cells: the only ones ever visited
+    nu = 0
+    for c in range(cells):
+        if cstart[c] < cstart[c + 1]:
+            used[nu] = c
+            nu += 1
     near = np.full(n, np.inf, np.float32)
     out = np.empty(k, np.int64)
     cur = 0
@@ -543,14 +550,16 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
         out[s] = index[cur]
         px, py, pz = QX[cur], QY[cur], QZ[cur]
         xs, ys, zs = np.float64(px), np.float64(py), np.float64(pz)
-        for c in range(cells):  # one vector loop: each cell's box distance to the sample
+        for q in range(nu):  # each cell's box distance to the sample
+            c = used[q]
             dx = max(bx0[c] - xs, 0.0, xs - bx1[c])
             dy = max(by0[c] - ys, 0.0, ys - by1[c])
             dz = max(bz0[c] - zs, 0.0, zs - bz1[c])
             # visited when a point may get closer (margin 1e-6 >> float32 rounding of a
-            # squared distance; an empty cell's box is inf away)
+            # squared distance)
             visit[c] = (dx * dx + dy * dy + dz * dz) * (1.0 - 1e-6) <= cmax[c]
-        for c in range(cells):
+        for q in range(nu):
+            c = used[q]
             if not visit[c]:
                 continue
             a, b = cstart[c], cstart[c + 1]
@@ -568,9 +577,8 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
             cmax[c] = top
             carg[c] = best
         best_v = np.float32(-1.0)
-        for c in range(cells):
-            if carg[c] < 0:
-                continue
+        for q in range(nu):
+            c = used[q]
             if cmax[c] > best_v or (cmax[c] == best_v and index[carg[c]] > index[cur]):
                 best_v = cmax[c]
                 cur = carg[c]
@@ -626,7 +634,7 @@ def uniform_draw(key, i):  # pragma: no cover - compiled
     return np.float32(np.float64(stream_word(key, i, 0) >> np.uint64(40)) * (1.0 / 16777216.0))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def normal_draw(key, i, xs, fs):  # pragma: no cover - compiled
     """Draw ``i`` of stream ``key`` as a standard normal (float64; version 3 rounds it to
     float32) by the 256-layer ziggurat (Marsaglia & Tsang 2000) on the draw's words, in order:
