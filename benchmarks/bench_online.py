@@ -50,6 +50,7 @@ Usage: ``python -m benchmarks.bench_online [--quick]``
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 import time
 from pathlib import Path
@@ -419,6 +420,7 @@ def run(quick: bool = False) -> dict:
     """The figures ``online_supply_ratio``, ``online_v2_supply_ratio`` and
     ``online_v3_supply_ratio`` and their parts (see the module doc)."""
     n = 2 if quick else 12
+    load_start = os.getloadavg()
     train = _train_rate(5 if quick else 60)
     versions = _versions_rate(2 if quick else 12)
     workers = _workers_rate(NEWEST, 4 if quick else 48)
@@ -429,6 +431,16 @@ def run(quick: bool = False) -> dict:
     stream = _stream_rate(4 if quick else 60)
     parts = _scene_parts(3 if quick else 40)
     threads = torch.get_num_threads()
+    load_end = os.getloadavg()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    loaded = max(load_start[0], load_end[0]) > cores
+    load = (
+        f"load average {', '.join(f'{x:.2f}' for x in load_start)} at the start and "
+        f"{', '.join(f'{x:.2f}' for x in load_end)} at the end on {cores} cores; training's "
+        f"rate measured {'under load' if loaded else 'with the cores free'} "
+        f"({train['segments_per_s']:.0f} segments/s before the synthesis figures, "
+        f"{train_after['segments_per_s']:.0f} after)"
+    )
     ratio = synth["segments_per_s"] * REUSE / train["segments_per_s"]
     consume = (train["segments_per_s"] + train_after["segments_per_s"]) / 2
     rate = {v: versions[f"v{v}"]["segments_per_s"] for v in VERSIONS}
@@ -458,7 +470,7 @@ def run(quick: bool = False) -> dict:
         f"{agree3['points_ratio']:.4f}x version 1's points in all, each segment "
         f"{agree3['mean_nearest_mm_median']:.1f} mm (median; largest "
         f"{agree3['mean_nearest_mm_max']:.1f}) mean nearest-point distance from version 1's "
-        f"(two samples of {N_POINTS} points of one surface)"
+        f"(two samples of {N_POINTS} points of one surface); {load}"
     )
     v2_supply = rate[2] / consume
     return {
@@ -512,7 +524,7 @@ def run(quick: bool = False) -> dict:
             f"({speedup[2]:.2f}x per segment, timed alternately with versions 1 and 3: see "
             f"online_v3_supply_ratio's note for the stages and the load); {agree['same_points']} "
             f"of {agree['segments']} segments version 1's points, the others within "
-            f"{agree['others_mean_nearest_mm']:.2f} mm mean nearest-point distance",
+            f"{agree['others_mean_nearest_mm']:.2f} mm mean nearest-point distance; {load}",
             "detail": {
                 "train_segments_per_s": consume,
                 "v1_segments_per_s": rate[1],
