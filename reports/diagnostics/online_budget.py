@@ -195,9 +195,11 @@ def plot(t: pd.DataFrame, baselines: dict[str, list[float]], out: Path) -> None:
     s_grid = np.geomspace(1024, 2**16, 60)
     for ax, (i, (key, (_, label))) in zip(axes, enumerate(FIGURES.items()), strict=True):
         f = fit_figure(t, key)
-        for j, (reuse, g) in enumerate(w1[w1[key].notna()].groupby("reuse")):
+        have = w1[w1[key].notna()]
+        for j, reuse in enumerate(sorted(set(have["reuse"]) | {1, 2})):
             color = f"C{j}"
-            for version, marker in ((1, "o"), (2, "^")):
+            g = have[have["reuse"] == reuse]
+            for version, marker in ((1, "o"), (2, "^"), (3, "s")):
                 h = g[g["version"] == version]
                 if len(h):
                     ax.plot(h["steps"], h[key], marker, color=color, alpha=0.8)
@@ -218,7 +220,7 @@ def plot(t: pd.DataFrame, baselines: dict[str, list[float]], out: Path) -> None:
     axes[0].set_ylabel("percent, synthetic test set")
     axes[-1].legend(fontsize=7, loc="lower right")
     fig.suptitle(
-        "cpu-online shared-0: runs (o synthesis v1, ^ v2) and the fitted surface "
+        "cpu-online shared-0: runs (o synthesis v1, ^ v2, s v3) and the fitted surface "
         "y = A - B (D/32k)^-a - C (S/4k)^-c along each reuse"
     )
     fig.tight_layout()
