@@ -176,7 +176,8 @@ def run_instance_table(client, run, name: str) -> pd.DataFrame:
         tags.get("preset", "?"),
         run.data.metrics.get(tracking.metric_key(name, "count")),
     )
-    local = instances.local_table(run.info.artifact_uri, name, client.tracking_uri)
+    store = getattr(client, "tracking_uri", None)  # None: an absolute address needs none
+    local = instances.local_table(run.info.artifact_uri, name, store)
     if local is not None:
         if not local.is_file():
             raise FileNotFoundError(f"{local}: no such instance table")
