@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
-from cloudpose.kernels.sensor import _ray, _squared_distance_1d
+from cloudpose.kernels.sensor import _ray, _squared_distance_1d, on_boundary
 
 __all__ = [
     "edge_squared_distance",
@@ -454,13 +454,7 @@ def edge_squared_distance(label):  # pragma: no cover - compiled
     g = np.empty((H, W))
     for y in range(H):
         for x in range(W):
-            c = label[y, x]
-            b = (
-                (y > 0 and label[y - 1, x] != c)
-                or (y < H - 1 and label[y + 1, x] != c)
-                or (x > 0 and label[y, x - 1] != c)
-                or (x < W - 1 and label[y, x + 1] != c)
-            )
+            b = on_boundary(label, y, x, H, W)
             g[y, x] = 0.0 if b else (g[y - 1, x] + 1.0 if y > 0 else np.inf)
     for y in range(H - 2, -1, -1):
         up, below = g[y], g[y + 1]

@@ -113,6 +113,18 @@ def _squared_distance_1d(f, d, v, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def on_boundary(label, y, x, H, W):  # pragma: no cover - compiled
+    """Whether pixel (y, x) of the (H, W) label image has a 4-neighbour of another label."""
+    c = label[y, x]
+    return (
+        (y > 0 and label[y - 1, x] != c)
+        or (y < H - 1 and label[y + 1, x] != c)
+        or (x > 0 and label[y, x - 1] != c)
+        or (x < W - 1 and label[y, x + 1] != c)
+    )
+
+
+@njit(cache=True)
 def edge_distance_kernel(label):  # pragma: no cover - compiled
     """Pixels to the nearest pixel of another label, 1 on both sides of a boundary (the exact
     Euclidean distance transform by two passes of 1-D lower envelopes, Felzenszwalb &
@@ -129,13 +141,7 @@ def edge_distance_kernel(label):  # pragma: no cover - compiled
     g = np.empty((H, W))
     for y in range(H):
         for x in range(W):
-            c = label[y, x]
-            b = (
-                (y > 0 and label[y - 1, x] != c)
-                or (y < H - 1 and label[y + 1, x] != c)
-                or (x > 0 and label[y, x - 1] != c)
-                or (x < W - 1 and label[y, x + 1] != c)
-            )
+            b = on_boundary(label, y, x, H, W)
             g[y, x] = 0.0 if b else np.inf
     n = max(H, W)
     f = np.empty(n)
