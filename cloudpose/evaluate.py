@@ -27,7 +27,7 @@ import pandas as pd
 from cloudpose import runtime
 from cloudpose.data.cache import segments_for
 from cloudpose.data.dataset import Prepared, folder_segments, only_classes, prepare_data
-from cloudpose.data.keys import DataKey
+from cloudpose.data.keys import DataKey, same_data
 from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
@@ -361,7 +361,7 @@ def evaluate(
         )
     tag = f"eval/{name}/data"
     logged = client.get_run(run_id).data.tags.get(tag) if log else None
-    if logged is not None and logged != test.data_key:
+    if logged is not None and not same_data(logged, test.data_key):
         raise ValueError(
             f"run {run_id} already holds an evaluation named {name!r} of other data (key "
             f"{logged}, this data {test.data_key}); choose another --name"

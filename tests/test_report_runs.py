@@ -89,3 +89,25 @@ def test_no_runs_is_an_empty_set_and_a_real_root_is_named(store, tmp_path):
     add("shared-0", 1, "cccc", ads=0.3, config=cfg.fingerprint(), params={"data.root": root})
     rs = load_runs("smoke", client=client)
     assert rs.data_label() == "YCB_Video_Dataset (data cccc)"
+
+
+def test_runs_on_keys_of_the_same_data_are_pooled_and_found(store, tmp_path, monkeypatch):
+    from cloudpose.data import keys
+
+    same = tmp_path / "same_data.toml"
+    same.write_text('[[same]]\nkind = "data"\nkeys = ["aaaa", "cccc"]\n')
+    monkeypatch.setattr(keys, "SAME_DATA_FILE", same)
+    client, add = store
+    add("shared-0", 1, "aaaa", ads=0.50)
+    newer = add("shared-0", 1, "cccc", ads=0.52)  # the same data rendered on another CPU
+    add("shared-0", 2, "cccc", ads=0.60)
+    add("l2", 1, "bbbb", ads=0.40)  # other data
+    with pytest.warns(UserWarning, match="1 finished run.* other data than aaaa"):
+        rs = load_runs("smoke", client=client)
+    assert rs.data_key == "aaaa" and rs.seeds == [1, 2] and rs.variants == ["shared-0"]
+    assert rs.of("shared-0")[0].run_id == newer
+    with pytest.warns(UserWarning, match="1 finished run"):
+        assert load_runs("smoke", data_key="cccc", client=client).data_key == "aaaa"
+    found = tracking.find_runs(client, variant="shared-0", seed=1, data="aaaa")
+    assert [r.info.run_id for r in found][0] == newer and len(found) == 2
+    assert [r.data.tags["data"] for r in tracking.find_runs(client, data="bbbb")] == ["bbbb"]

@@ -167,6 +167,35 @@ def prepare(
         typer.echo(f"occlusion bins (10% wide): {counts.tolist()} -> {histogram}")
 
 
+@app.command("same-data")
+def same_data(
+    run: Annotated[str, typer.Option(help="MLflow run id of a run of a preset (its test set).")],
+) -> None:
+    """Whether a run's data is the data its preset makes here under another key (frames
+    rendered on another CPU): its test instances against today's, point by point count. If so,
+    prints the entries that cloudpose/resources/registry/same_data.toml needs for the runner
+    and the reports to take the run's data as today's."""
+    from cloudpose.store.rekey import SAME_POINT_SHARE, compare_test_segments
+
+    c = compare_test_segments(run, Path.cwd())
+    for kind, (old, new) in c.keys.items():
+        typer.echo(f"{kind} key: the run's {old}, here {new}" + (" (equal)" if old == new else ""))
+    typer.echo(
+        f"test instances: the run's {c.instances[0]}, here {c.instances[1]}; {c.unmatched} in "
+        f"one only, {c.other_class} of another class, {c.other_count} with another point count "
+        f"(largest change {100 * c.largest_share:.3f}% of a segment's points; the same data "
+        f"allows {100 * SAME_POINT_SHARE:.1f}%)"
+    )
+    if not c.same:
+        typer.echo("not the same data: its runs stay apart from today's")
+        raise typer.Exit(1)
+    entry = c.entry(f"checked by cloudpose same-data --run {run}")
+    if not entry:
+        typer.echo("the same data, already under the same or listed keys: nothing to add")
+        return
+    typer.echo(f"the same data; add to cloudpose/resources/registry/same_data.toml:\n\n{entry}")
+
+
 def _store_seeds(
     cfg: Config, class_names: list[str], seeds: int, workers: int | None, progress: bool
 ):

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.data.keys import DataKey
+from cloudpose.data.keys import DataKey, canonical_key, same_data
 from cloudpose.files import CorruptFileError, why
 from cloudpose.store import instances, tracking
 from cloudpose.store.metric_names import DetailReader, detail_kind
@@ -270,7 +270,8 @@ def load_runs(
 
     Args:
         preset: the training preset (tag ``preset``).
-        data_key: the data key to keep (tag ``data``); default the one with the most (variant,
+        data_key: the data key to keep (tag ``data``; with every key of the same data,
+            :func:`cloudpose.data.keys.same_data`); default the one with the most (variant,
             seed) pairs.
         client: an ``MlflowClient``; default :func:`cloudpose.store.tracking.setup` of ``project_dir``.
         project_dir: folder of the default MLflow store (cwd).
@@ -297,15 +298,16 @@ def load_runs(
         pairs: Counter[DataKey] = Counter()
         newest: dict[DataKey, int] = {}
         for r in runs:
-            run_key = DataKey(r.data.tags.get("data", ""))
+            run_key = canonical_key(r.data.tags.get("data", ""))
             pairs[run_key] += 1
             newest[run_key] = max(newest.get(run_key, 0), r.info.start_time or 0)
         data_key = max(pairs, key=lambda k: (pairs[k], newest[k]))
+    data_key = canonical_key(data_key)  # runs on every key of the same data count
     chosen: dict[tuple[str, int], RunRecord] = {}
     ignored = 0
     for r in runs:  # newest first
         tags = r.data.tags
-        if tags.get("data", "") != data_key:
+        if not same_data(tags.get("data", ""), data_key):
             ignored += 1
             continue
         key = (tags["variant"], int(tags["seed"]))

@@ -62,6 +62,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 from urllib.parse import quote
 
+from cloudpose.data.keys import same_data
 from cloudpose.store import tracking
 from cloudpose.store.headline import HEADLINE, headline
 
@@ -346,7 +347,7 @@ def superseded_reason(run, counted: Mapping[tuple[str, int], object], data: str 
             f"another config than the {tags.get('preset')} preset's own (overrides or an "
             "older preset): not in the report's tables"
         )
-    if data is not None and tags.get("data", "") != data:
+    if data is not None and not same_data(tags.get("data", ""), data):
         return f"trained on data {tags.get('data', '?')[:10]}; the report's runs on {data[:10]}"
     if chosen is not None:
         return (

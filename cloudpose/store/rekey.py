@@ -123,3 +123,123 @@ def rekey_runs(
                     client.set_tag(run.info.run_id, REKEYED_PREFIX + tag, tags[tag])
                 client.set_tag(run.info.run_id, tag, new)
     return changes
+
+
+SAME_POINT_SHARE = 0.001
+"""Largest change of a segment's point count (a share of its points) that still counts as the
+same segment rendered on another CPU: a ray grazing an edge hits on one and misses on the other,
+one point of thousands."""
+
+
+@dataclass(frozen=True)
+class SegmentComparison:
+    """A run's test segments (its instance table) against the same preset's made here.
+
+    Attributes:
+        run_id: the run compared.
+        keys: ``(run's, today's)`` for ``data`` (the run's data) and ``test`` (the test
+            segments).
+        instances: ``(run's, today's)`` instance counts.
+        unmatched: instances in one and not the other, by (frame, instance).
+        other_class: matched instances of another class.
+        other_count: matched instances with another point count.
+        largest_share: the largest change of a point count, a share of the run's count.
+    """
+
+    run_id: str
+    keys: dict[str, tuple[str, str]]
+    instances: tuple[int, int]
+    unmatched: int
+    other_class: int
+    other_count: int
+    largest_share: float
+
+    @property
+    def same(self) -> bool:
+        """The same frames and instances, classes, and point counts within
+        :data:`SAME_POINT_SHARE`."""
+        return (
+            self.unmatched == 0 and self.other_class == 0 and self.largest_share <= SAME_POINT_SHARE
+        )
+
+    def entry(self, what: str) -> str:
+        """What ``same_data.toml`` needs to say so: a ``[[same]]`` entry per kind of key not
+        yet listed as the same, or the key to add to the entry that lists the run's; empty when
+        every key is already the same data."""
+        from cloudpose.data.keys import same_data, same_data_keys
+
+        out = []
+        for kind, label in (("data", "data"), ("test", "segments")):
+            old, new = self.keys[kind]
+            if same_data(old, new):
+                continue
+            if len(same_data_keys(old)) > 1:  # a key has one entry: add the new key to it
+                out.append(f'add "{new}" to the keys of the entry that lists "{old}"\n')
+            else:
+                out.append(
+                    f'[[same]]\nkind = "{label}"\nwhat = "{what}"\nkeys = ["{old}", "{new}"]\n'
+                )
+        return "\n".join(out)
+
+
+def compare_test_segments(run_id: str, project_dir: Path | None = None) -> SegmentComparison:
+    """Compare the test segments a run was evaluated on with those of its preset made here
+    (rendered first if they are not), instance by instance: whether a data key that differs
+    names the same data (e.g. frames rendered on another CPU), before listing both in
+    :data:`cloudpose.data.keys.SAME_DATA_FILE` or rekeying.
+
+    Raises:
+        ValueError: the run has no preset or no test evaluation.
+    """
+    import numpy as np
+    import pandas as pd
+
+    from cloudpose.data.dataset import prepare_data
+    from cloudpose.registry import resolve
+    from cloudpose.report.runs import run_instance_table
+
+    project_dir = Path(project_dir or Path.cwd()).resolve()
+    client = tracking.setup(project_dir)
+    run = client.get_run(run_id)
+    tags = run.data.tags
+    if not tags.get("preset") or "eval/test/data" not in tags:
+        raise ValueError(
+            f"run {run_id}: expected a run of a preset with a test evaluation (tags preset and "
+            "eval/test/data)"
+        )
+    cfg = resolve(preset=tags["preset"]).data
+    here = prepare_data(cfg, project_dir, progress=False)
+    seg = here.test
+    today = pd.DataFrame(
+        {
+            "frame_id": seg.frame_id.astype(str),
+            "instance": seg.instance.astype(np.int64),
+            "cls_today": seg.cls_id.astype(np.int64),
+            "points_today": seg.count.astype(np.int64),
+        }
+    )
+    table = run_instance_table(client, run, "test")
+    theirs = pd.DataFrame(
+        {
+            "frame_id": table["frame_id"].astype(str),
+            "instance": table["instance"].astype(np.int64),
+            "cls_run": table["cls_id"].astype(np.int64),
+            "points_run": table["points"].astype(np.int64),
+        }
+    )
+    both = today.merge(theirs, on=["frame_id", "instance"], how="outer", indicator=True)
+    matched = both[both["_merge"] == "both"]
+    change = (matched["points_today"] - matched["points_run"]).abs()
+    share = change / matched["points_run"].clip(lower=1)
+    return SegmentComparison(
+        run_id=run_id,
+        keys={
+            "data": (tags.get("data", ""), here.data_key),
+            "test": (tags["eval/test/data"], seg.data_key),
+        },
+        instances=(len(theirs), len(today)),
+        unmatched=int((both["_merge"] != "both").sum()),
+        other_class=int((matched["cls_today"] != matched["cls_run"]).sum()),
+        other_count=int((change > 0).sum()),
+        largest_share=float(share.max()) if len(share) else 0.0,
+    )

@@ -31,6 +31,8 @@ import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from cloudpose.data.keys import same_data_keys
+
 EXPERIMENT_PREFIX = "cloudpose-"
 _KEY_BAD = re.compile(r"[^A-Za-z0-9_\-./ ]")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
@@ -333,23 +335,28 @@ def find_runs(
     status: str | None = "FINISHED",
     extra_filter: str = "",
 ) -> list[Any]:
-    """Runs of every cloudpose experiment matching the given tags, newest first."""
+    """Runs of every cloudpose experiment matching the given tags, newest first; ``data``
+    matches every key of the same data (:func:`cloudpose.data.keys.same_data_keys`)."""
     exps = [
         e.experiment_id for e in client.search_experiments() if e.name.startswith(EXPERIMENT_PREFIX)
     ]
     if not exps:
         return []
     clauses = []
-    for tag, value in (("variant", variant), ("preset", preset), ("seed", seed), ("data", data)):
+    for tag, value in (("variant", variant), ("preset", preset), ("seed", seed)):
         if value is not None:
             clauses.append(f"tags.{tag} = '{value}'")
     if status:
         clauses.append(f"attributes.status = '{status}'")
     if extra_filter:
         clauses.append(extra_filter)
-    return list(
-        client.search_runs(exps, " and ".join(clauses), order_by=["attributes.start_time DESC"])
-    )
+    keys = [None] if data is None else same_data_keys(data)
+    found: dict[str, Any] = {}
+    for key in keys:  # MLflow's filter has no "or": one search per key
+        where = " and ".join(clauses + ([] if key is None else [f"tags.data = '{key}'"]))
+        for r in client.search_runs(exps, where, order_by=["attributes.start_time DESC"]):
+            found.setdefault(r.info.run_id, r)
+    return sorted(found.values(), key=lambda r: r.info.start_time or 0, reverse=True)
 
 
 def newest_run_named(client, name: str) -> Any | None:
