@@ -873,3 +873,49 @@ def test_table2_reads_the_per_class_detail_from_keys_or_from_the_runs_table(tmp_
     assert a.rows == b.rows
     pd.testing.assert_frame_equal(a.data, b.data)
     assert sum(r is not None and r[4] != "–" for r in a.rows) == len(classes) - 2 + 1
+
+
+def test_claims_across_two_budgets_hold_change_or_stay_undecided():
+    from cloudpose.report.claims import (
+        Claim,
+        ClaimResult,
+        across_budgets,
+        budgets_frame,
+        budgets_markdown,
+    )
+
+    def result(other, metric, verdict, mean=0.02, n=3):
+        claim = Claim(
+            "t", f"shared-0 beats {other}", ("shared-0", "test"), (other, "test"), metric, 1.0
+        )
+        return ClaimResult(
+            claim, stats.Difference(mean, mean - 0.01, mean + 0.01, n, True, verdict)
+        )
+
+    small = [
+        result("l2", "ads_auc", stats.SUPPORTED),
+        result("quaternion", "ads_auc", stats.EQUIVALENT),
+        result("shared-all", "ads_auc", stats.UNRESOLVED),
+        result("geodesic-plain", "ads_auc", stats.SUPPORTED),
+    ]
+    large = [
+        result("geodesic-plain", "ads_auc", stats.UNRESOLVED, n=0),  # not run at this budget
+        result("l2", "ads_auc", stats.SUPPORTED, mean=0.03),
+        result("quaternion", "ads_auc", stats.CONTRADICTED, mean=-0.02),
+        result("shared-all", "ads_auc", stats.SUPPORTED),
+    ]
+    rows = across_budgets(large, small, ("big", "small"))
+    words = {r.claim.statement: (r.word, r.how) for r in rows}
+    assert words == {
+        "shared-0 beats l2": ("holds", ""),
+        "shared-0 beats quaternion": ("changes", "equivalent -> contradicted"),
+        "shared-0 beats shared-all": ("undecided", "not resolved at small"),
+        "shared-0 beats geodesic-plain": ("undecided", "not measured at big"),
+    }
+    md = budgets_markdown(rows, "big", "small", {"big": "4x", "small": "1x"})
+    assert "Summary: holds: 1; changes: 1; undecided: 2 (of 4)." in md
+    assert "| shared-0 beats l2 | ADS AUC | supported: +2.0 [+1.0, +3.0], 3 seeds |" in md
+    df = budgets_frame(rows, "small")
+    assert list(df["across_budgets"]) == ["holds", "changes", "undecided", "undecided"]
+    assert df["verdict_at_small"].iloc[1] == stats.EQUIVALENT
+    assert df["diff_pp_at_small"].iloc[0] == pytest.approx(2.0)

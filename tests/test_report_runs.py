@@ -111,3 +111,29 @@ def test_runs_on_keys_of_the_same_data_are_pooled_and_found(store, tmp_path, mon
     found = tracking.find_runs(client, variant="shared-0", seed=1, data="aaaa")
     assert [r.info.run_id for r in found][0] == newer and len(found) == 2
     assert [r.data.tags["data"] for r in tracking.find_runs(client, data="bbbb")] == ["bbbb"]
+
+
+def test_a_baseline_of_another_preset_on_the_same_data_serves_the_report(store):
+    from cloudpose.baselines.base import load_settings, settings_fingerprint
+
+    client, add = store
+    exp = client.get_experiment_by_name(f"{tracking.EXPERIMENT_PREFIX}shared").experiment_id
+
+    def baseline(preset, seed, data, ads, method="fpfh"):
+        fp = settings_fingerprint(load_settings(method))
+        tags = {"variant": f"baseline-{method}", "seed": str(seed), "preset": preset}
+        tags.update(data=data, kind="baseline", config=fp, subsample="all")
+        run = client.create_run(exp, tags=tags)
+        client.log_metric(run.info.run_id, TEST_KEY, ads)
+        client.set_terminated(run.info.run_id)
+        return run.info.run_id
+
+    add("shared-0", 1, "aaaa", ads=0.5)
+    own = baseline("smoke", 1, "aaaa", 0.71)
+    baseline("other", 1, "aaaa", 0.70)  # the preset has its own seed 1
+    other = baseline("other", 2, "aaaa", 0.72)
+    baseline("other", 3, "bbbb", 0.99)  # other data
+    rs = load_runs("smoke", client=client)
+    got = {r.seed: (r.run_id, r.preset) for r in rs.of("baseline-fpfh")}
+    assert got == {1: (own, "smoke"), 2: (other, "other")}
+    assert rs.data_label().endswith("; baselines of preset other on the same data")

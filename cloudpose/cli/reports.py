@@ -15,7 +15,7 @@ from cloudpose.cli.app import (
     app,
     recorded_command,
 )
-from cloudpose.registry import DEFAULT_PRESET
+from cloudpose.registry import DEFAULT_PRESET, presets
 
 
 def _committed_if_lacking(preset: str, lacking=None) -> None:
@@ -56,12 +56,24 @@ def report(
             "'<!-- verdicts PRESET -->' and '<!-- /verdicts PRESET -->' (reports/README.md)."
         ),
     ] = None,
+    against: Annotated[
+        str | None,
+        typer.Option(
+            help="Another preset (the same recipe at another budget): claims.md and claims.csv "
+            "set its verdicts beside this one's, each claim marked holds, changes or undecided."
+        ),
+    ] = None,
 ) -> None:
     """Render the tables, claims and figures of a preset from existing MLflow runs only."""
     from cloudpose.report import render_reports
     from cloudpose.store.tracking import check_name
 
     check_name("--preset", preset)  # it names the output folder reports/PRESET
+    if against is not None and against not in presets():
+        raise typer.BadParameter(
+            f"unknown preset {against!r}; valid presets: {', '.join(presets())}",
+            param_hint="--against",
+        )
     _committed_if_lacking(preset)
     groups = None if all_groups or not group else list(group)
     res = render_reports(
@@ -73,6 +85,7 @@ def report(
         command=recorded_command(ctx),
         out_dir=out,
         readme=readme,
+        against=against,
     )
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 

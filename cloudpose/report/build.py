@@ -28,6 +28,9 @@ from cloudpose.registry import get_group, groups
 from cloudpose.report import plots, segmentation
 from cloudpose.report.claims import (
     ClaimResult,
+    across_budgets,
+    budgets_frame,
+    budgets_markdown,
     claims_frame,
     claims_markdown,
     evaluate_claims,
@@ -95,6 +98,7 @@ def render_reports(
     log_mlflow: bool = True,
     client=None,
     readme: Path | None = None,
+    against: str | None = None,
 ) -> ReportResult:
     """Render the reports of ``group_names`` (default: every group) from MLflow runs.
 
@@ -114,6 +118,9 @@ def render_reports(
         readme: also replace the preset's verdict table in this hand-written file
             (:func:`~cloudpose.report.claims.update_verdicts_block`).
         client: an ``MlflowClient`` (default: the project's store).
+        against: another preset (e.g. the same recipe at another budget): claims.md and
+            claims.csv also give its verdicts and, per claim, whether the verdict holds,
+            changes or is undecided across the two (:func:`~cloudpose.report.claims.across_budgets`).
     """
     project_dir = (project_dir or Path.cwd()).resolve()
     if readme is not None and not readme.is_file():
@@ -141,10 +148,18 @@ def render_reports(
         written["overall"] += table2_per_class(with_baselines).write(out_dir, prov)
         written["overall"] += _occlusion_overall(with_baselines, out_dir, prov)
     results = evaluate_claims(runs)
-    (out_dir / "claims.md").write_text(claims_markdown(results, prov_all), encoding="utf-8")
-    claims_csv = f"# {prov_all.line()}\n" + claims_frame(results).to_csv(
-        index=False, float_format="%.3f"
-    )
+    claims_md, claims_df = claims_markdown(results, prov_all), claims_frame(results)
+    if against is not None:
+        rows = across_budgets(
+            results, evaluate_claims(load_runs(against, client=client)), (preset, against)
+        )
+        budgets = {p: budget_words(p) for p in (preset, against)}
+        claims_md += "\n" + budgets_markdown(rows, preset, against, budgets)
+        claims_df = claims_df.merge(
+            budgets_frame(rows, against), on=["claim", "metric"], how="outer", sort=False
+        )
+    (out_dir / "claims.md").write_text(claims_md, encoding="utf-8")
+    claims_csv = f"# {prov_all.line()}\n" + claims_df.to_csv(index=False, float_format="%.3f")
     (out_dir / "claims.csv").write_text(claims_csv, encoding="utf-8")
     written["overall"] += [out_dir / "claims.md", out_dir / "claims.csv"]
     if readme is not None:
@@ -395,3 +410,16 @@ def _remove_local_artifacts(path: Path | None) -> None:
         return
     if path.is_dir() and path.name == "artifacts":
         shutil.rmtree(path, ignore_errors=True)
+
+
+def budget_words(preset: str) -> str:
+    """A preset's training budget in words: Adam steps, batch and distinct on-line segments."""
+    from cloudpose.registry import resolve
+
+    cfg = resolve(preset=preset)
+    batch = cfg.train.batch_size
+    if cfg.data.train_source != "online":
+        return f"{cfg.train.epochs} epochs of batch {batch} on rendered frames"
+    steps = cfg.train.epochs * cfg.data.online_epoch_segments // batch
+    distinct = steps * batch // cfg.data.online_reuse
+    return f"{steps:,} Adam steps of batch {batch}, {distinct:,} distinct on-line segments"

@@ -576,3 +576,101 @@ def seeds_wanted(results: list[ClaimResult], cap: int = MAX_SEEDS) -> dict[str, 
         for v in {c.favoured[0], c.other[0]}:
             want[v] = max(want.get(v, 0), need)
     return {v: n for v, n in sorted(want.items()) if n > have.get(v, 0)}
+
+
+BUDGET_WORDS = ("holds", "changes", "undecided")
+"""How a claim's verdict reads at a second budget (:func:`across_budgets`)."""
+
+
+@dataclass(frozen=True)
+class BudgetRow:
+    """One claim and metric at two presets' budgets: each side's result (None: not measured
+    there) and one of :data:`BUDGET_WORDS` with what changed."""
+
+    claim: Claim
+    here: ClaimResult | None
+    there: ClaimResult | None
+    word: str
+    how: str
+
+
+def across_budgets(
+    here: list[ClaimResult], there: list[ClaimResult], names: tuple[str, str] = ("here", "there")
+) -> list[BudgetRow]:
+    """Each claim and metric measured at either budget, with one word: *holds* (the same
+    verdict at both), *changes* (another verdict; ``how`` says which way) or *undecided* (not
+    measured, or not resolved, at one of them). ``names``: the two presets, for ``how``."""
+
+    def key(r: ClaimResult) -> tuple[str, str]:
+        return (r.claim.statement, r.claim.metric)
+
+    # a claim with no seed on a side (its variants not run there) is not measured there
+    mine = {key(r): r for r in here if r.diff.n > 0}
+    theirs = {key(r): r for r in there if r.diff.n > 0}
+    rows = []
+    for k in [*mine, *(k for k in theirs if k not in mine)]:
+        a, b = mine.get(k), theirs.get(k)
+        missing = [n for n, r in zip(names, (a, b), strict=True) if r is None]
+        open_ = [
+            n for n, r in zip(names, (a, b), strict=True) if r and r.diff.verdict == UNRESOLVED
+        ]
+        if missing:
+            word, how = "undecided", f"not measured at {' and '.join(missing)}"
+        elif open_:
+            word, how = "undecided", f"not resolved at {' and '.join(open_)}"
+        elif a.diff.verdict == b.diff.verdict:
+            word, how = "holds", ""
+        else:
+            word, how = "changes", f"{b.diff.verdict} -> {a.diff.verdict}"
+        rows.append(BudgetRow((a or b).claim, a, b, word, how))
+    return rows
+
+
+def _cell(r: ClaimResult | None) -> str:
+    if r is None:
+        return "not measured"
+    d = r.diff
+    return f"{d.verdict}: {_pp(d.mean)} [{_pp(d.low)}, {_pp(d.high)}], {d.n} seeds"
+
+
+def budgets_markdown(rows: list[BudgetRow], here: str, there: str, budgets: dict[str, str]) -> str:
+    """The section of claims.md that sets a preset's verdicts beside another's (``budgets``:
+    preset -> its budget in words)."""
+    counts = {w: sum(r.word == w for r in rows) for w in BUDGET_WORDS}
+    lines = [
+        "## At two budgets",
+        "",
+        f"Each claim's verdict at this preset's budget ({here}: {budgets[here]}) beside "
+        f"{there}'s ({budgets[there]}), the same rule at both: *holds* (the same verdict), "
+        "*changes* (which way), *undecided* (not resolved, or not measured, at one of them).",
+        "",
+        "Summary: " + "; ".join(f"{w}: {n}" for w, n in counts.items()) + f" (of {len(rows)}).",
+        "",
+        f"| claim | metric | at {there} | at {here} | across budgets |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        word = f"**{r.word}**" + (f" ({r.how})" if r.how else "")
+        lines.append(
+            f"| {r.claim.statement} | {_label(r.claim.metric)} | {_cell(r.there)} | "
+            f"{_cell(r.here)} | {word} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def budgets_frame(rows: list[BudgetRow], there: str) -> pd.DataFrame:
+    """Per claim and metric: the other preset's verdict and difference, and the word
+    (columns to join to :func:`claims_frame`)."""
+    return pd.DataFrame(
+        [
+            {
+                "claim": r.claim.statement,
+                "metric": r.claim.metric,
+                f"verdict_at_{there}": r.there.diff.verdict if r.there else "not measured",
+                f"diff_pp_at_{there}": 100 * r.there.diff.mean if r.there else math.nan,
+                "across_budgets": r.word,
+                "across_budgets_how": r.how,
+            }
+            for r in rows
+        ]
+    )

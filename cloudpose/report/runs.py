@@ -245,9 +245,16 @@ class RunSet:
         short = (self.data_key or "?")[:10]
         if roots <= {""}:
             seeds = {r.params.get("data.synth_seed", "?") for r in self.records}
-            return f"synthetic YCB-Video-layout scenes (synth seed {','.join(sorted(seeds))}, data {short})"
+            return (
+                f"synthetic YCB-Video-layout scenes (synth seed {','.join(sorted(seeds))}, data "
+                f"{short})" + self._borrowed()
+            )
         names = ", ".join(sorted(Path(r).name or r for r in roots))
-        return f"{names} (data {short})"
+        return f"{names} (data {short})" + self._borrowed()
+
+    def _borrowed(self) -> str:
+        other = sorted({r.preset for r in self.records if r.preset != self.preset})
+        return f"; baselines of preset {', '.join(other)} on the same data" if other else ""
 
 
 def _current(run) -> bool:
@@ -259,6 +266,24 @@ def _current(run) -> bool:
     return is_preset_config(run)
 
 
+def _record(run, key: tuple[str, int], preset: str, data_key: DataKey, client) -> RunRecord:
+    tags = run.data.tags
+    return RunRecord(
+        run_id=run.info.run_id,
+        variant=key[0],
+        seed=key[1],
+        preset=preset,
+        data_key=data_key,
+        git_commit=tags.get("git_commit", "unknown"),
+        start_time=run.info.start_time or 0,
+        params=dict(run.data.params),
+        metrics=dict(run.data.metrics),
+        artifact_uri=run.info.artifact_uri or "",
+        subsample=tags.get("subsample", "all"),
+        client=client,
+    )
+
+
 def load_runs(
     preset: str,
     *,
@@ -266,7 +291,9 @@ def load_runs(
     client=None,
     project_dir: Path | None = None,
 ) -> RunSet:
-    """Finished runs of ``preset`` with test metrics, one per (variant, seed), on one dataset.
+    """Finished runs of ``preset`` with test metrics, one per (variant, seed), on one dataset;
+    a classical baseline (variant ``baseline-*``) that ``preset`` has not run is taken from
+    another preset's runs on the same data (its record names that preset).
 
     Args:
         preset: the training preset (tag ``preset``).
@@ -313,20 +340,16 @@ def load_runs(
         key = (tags["variant"], int(tags["seed"]))
         if key in chosen:
             continue
-        chosen[key] = RunRecord(
-            run_id=r.info.run_id,
-            variant=key[0],
-            seed=key[1],
-            preset=preset,
-            data_key=data_key,
-            git_commit=tags.get("git_commit", "unknown"),
-            start_time=r.info.start_time or 0,
-            params=dict(r.data.params),
-            metrics=dict(r.data.metrics),
-            artifact_uri=r.info.artifact_uri or "",
-            subsample=tags.get("subsample", "all"),
-            client=client,
-        )
+        chosen[key] = _record(r, key, preset, data_key, client)
+    # a classical baseline sees only the test segments: one run serves every preset of the
+    # same data, so a preset without its own takes another's
+    for r in tracking.find_runs(client, data=data_key, extra_filter="tags.kind = 'baseline'"):
+        tags = r.data.tags
+        if tags.get("preset") == preset or TEST_KEY not in r.data.metrics or not _current(r):
+            continue
+        key = (tags.get("variant", ""), int(tags.get("seed", 0) or 0))
+        if key not in chosen:
+            chosen[key] = _record(r, key, tags.get("preset", "?"), data_key, client)
     if ignored:
         warnings.warn(
             f"{ignored} finished run(s) of preset {preset!r} were trained on other data than "
