@@ -187,14 +187,38 @@ def store_pack(
         bool,
         typer.Option("--force", help="Replace an existing archive, or update a compact folder."),
     ] = False,
+    full_precision: Annotated[
+        bool,
+        typer.Option(
+            "--full-precision",
+            help="Keep every checkpoint float32 (a compact folder otherwise stores one in "
+            "float16 or float24 where no pose of the real frames moves over 0.01 deg / mm).",
+        ),
+    ] = False,
 ) -> None:
     """Pack this folder's MLflow store (mlflow.db and mlartifacts/) with artifact addresses
-    relative to the folder, checkpoints only of the runs named: as a compact folder that git
-    stores run by run (one folder per run, the database as text, instance tables as Parquet
-    float32; a repack rewrites only what changed), or as one .tar.xz."""
+    and run folders relative to the folder, checkpoints only of the runs named, runs left
+    RUNNING by a process that is gone recorded KILLED: as a compact folder that git stores run
+    by run (one folder per run, the database as text, instance tables packed, checkpoints in
+    fewer bytes where the poses do not move; a repack rewrites only what changed), or as one
+    .tar.xz."""
     from cloudpose.store.archive import is_archive_name, pack_store
 
-    s = pack_store(Path.cwd(), out, checkpoint or [], force=force)
+    s = pack_store(
+        Path.cwd(), out, checkpoint or [], force=force, reduce_checkpoints=not full_precision
+    )
+    for name, why in s.killed:
+        typer.echo(f"recorded KILLED: {name} ({why})")
+    for run_id, rec in s.checked:
+        change = rec["max_pose_change"]
+        tried = ", ".join(
+            f"{form} {c['rot_deg']:.4f} deg / {c['trans_mm']:.4f} mm" for form, c in change.items()
+        )
+        typer.echo(
+            f"checkpoint {rec['checkpoint']} of run {run_id[:8]}: stored as {rec['stored_as']} "
+            f"({rec['file']}); largest pose change on {rec['check_set']['segments']} segments "
+            f"of the {rec['check_set']['frames']}: {tried}"
+        )
     what = "" if is_archive_name(out) else " (compact form)"
     typer.echo(
         f"{out}{what}: {s.runs} runs, {s.files} artifact files ({s.checkpoints_kept} "

@@ -9,8 +9,10 @@ absolute ``file://`` address, so a store copied to another folder or machine poi
 one it came from. :func:`pack_store` writes ``mlflow.db`` (a consistent SQLite backup: runs
 may be writing) and every run's artifacts into a ``.tar.xz``, with every address made relative
 to the project (``mlartifacts/GROUP/RUN/artifacts``), and checkpoints (``*.pt``, the bulk of a
-store) left out but for the runs named. A run's artifacts are taken from where its address
-points when that is not under ``mlartifacts/`` (MLflow's ``./mlruns`` of a store named by
+store) left out but for the runs named; every ``run_dir`` tag is written relative too, and a
+run left RUNNING by a process that is gone as KILLED (:func:`_mark_dead`). A run's artifacts
+are taken from where its address points when that is not under ``mlartifacts/`` (MLflow's
+``./mlruns`` of a store named by
 ``MLFLOW_TRACKING_URI=sqlite:///...``); a store whose artifacts are not on this machine's disk
 (a tracking server's, an object store's) is refused, never packed without them. An existing
 archive is replaced only when asked (``force``, ``--force``).
@@ -38,6 +40,7 @@ import shutil
 import sqlite3
 import tarfile
 import tempfile
+import time
 import warnings
 import zlib
 from collections.abc import Callable, Sequence
@@ -95,6 +98,11 @@ class PackSummary:
     checkpoints_left_out: int
     bytes: int
     without_artifacts: tuple[str, ...] = ()
+    checked: tuple[tuple[str, dict], ...] = ()
+    """(run id, record) of each checkpoint whose form was checked (compact form only:
+    :mod:`cloudpose.store.checkpoints`)."""
+    killed: tuple[tuple[str, str], ...] = ()
+    """(run name, why) of each run left RUNNING by a process that is gone, packed KILLED."""
 
 
 def _relative(uri: str) -> str | None:
@@ -130,7 +138,8 @@ DEFAULT_ARTIFACTS = "mlruns"
 
 
 def _portable(uri: str) -> str | None:
-    """``to`` of :func:`_rewrite` at unpacking: an address under an artifact folder as
+    """``to`` of :func:`_rewrite` at unpacking (and at packing, for an address the pack does
+    not move: an experiment's location): an address under an artifact folder as
     ``mlartifacts/...``, a local one under MLflow's :data:`DEFAULT_ARTIFACTS` as ``mlruns/...``,
     both relative to the store's folder; None (kept) for any other."""
     rel = _relative(uri)
@@ -150,10 +159,11 @@ RUN_DIR_TAG = "run_dir"
 """Tag of a training run: its run folder (``runs/VARIANT/PRESET/FOLDER`` of the project)."""
 
 
-def _relative_run_dirs(db: Path) -> None:
-    """Write each absolute ``run_dir`` tag as the run folder's place in the store's project,
-    ``runs/VARIANT/PRESET/FOLDER`` (its last three parts), relative to the store's folder
-    (:func:`cloudpose.store.tracking.store_path` reads it there)."""
+def _relative_run_dirs(db: Path, project: Path | None = None) -> None:
+    """Write each absolute ``run_dir`` tag relative to the store's folder
+    (:func:`cloudpose.store.tracking.store_path` reads it there): a folder inside ``project``
+    (the folder of the store packed) relative to it, any other as the run folder's place in
+    the store's project, ``runs/VARIANT/PRESET/FOLDER`` (its last three parts)."""
     con = sqlite3.connect(db)
     try:
         with con:
@@ -162,12 +172,109 @@ def _relative_run_dirs(db: Path) -> None:
             ).fetchall()
             for run_id, value in rows:
                 path = Path(value or "")
-                if path.is_absolute() and len(path.parts) >= 4:
+                rel = None
+                if path.is_absolute() and project is not None:
+                    with contextlib.suppress(ValueError):
+                        rel = path.relative_to(project.resolve()).as_posix()
+                if rel is None and path.is_absolute() and len(path.parts) >= 4:
                     rel = "/".join(("runs", *path.parts[-3:]))
+                if rel is not None:
                     con.execute(
                         "UPDATE tags SET value = ? WHERE run_uuid = ? AND key = ?",
                         (rel, run_id, RUN_DIR_TAG),
                     )
+    finally:
+        con.close()
+
+
+def _folder_locked(run_dir: str, project: Path) -> bool:
+    """Whether a process on this machine holds the lock of the run folder ``run_dir`` (a
+    relative one under ``project``): it trains."""
+    from filelock import FileLock, Timeout
+
+    from cloudpose.store.runs import lock_path
+
+    folder = Path(run_dir) if Path(run_dir).is_absolute() else project / run_dir
+    path = lock_path(folder)
+    if not folder.is_dir() or not path.exists():
+        return False
+    lock = FileLock(str(path))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        return True
+    lock.release()
+    return False
+
+
+def _utc(ms: int) -> str:
+    return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(ms / 1000))
+
+
+def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple[str, str]]:
+    """Record as KILLED (end time: its last activity; tag ``marked_killed``: why) each active
+    run of the store copy ``db`` left RUNNING by a process that is gone, by the rule of the
+    MLflow UI's preparation (:func:`cloudpose.report.ui.dead_reason`: no process here holds
+    its run folder's lock, and a later run of the same variant, preset, seed and config
+    started after its last activity, or it logged nothing for
+    :data:`~cloudpose.report.ui.STALE_AFTER_S`). Returns (run name, why) of each."""
+    from cloudpose.report.ui import KILLED_TAG, STALE_AFTER_S, dead_reason
+    from cloudpose.store.runs import TRAINING_PREFIXES
+
+    now_ms = int(time.time() * 1000) if now_ms is None else now_ms
+    con = sqlite3.connect(db)
+    try:
+        runs = con.execute(
+            "SELECT run_uuid, name, status, start_time FROM runs WHERE lifecycle_stage = 'active'"
+        ).fetchall()
+        tags: dict[str, dict[str, str]] = {r[0]: {} for r in runs}
+        for rid, key, value in con.execute("SELECT run_uuid, key, value FROM tags"):
+            if rid in tags:
+                tags[rid][key] = value
+        by_config: dict[tuple, list[int]] = {}
+        for rid, _, _, start in runs:
+            t = tags[rid]
+            key = tuple(t.get(k) for k in ("variant", "preset", "seed", "config"))
+            by_config.setdefault(key, []).append(start or 0)
+        out = []
+        with con:
+            for rid, name, status, start in runs:
+                if status != "RUNNING":
+                    continue
+                last = start or 0
+                for key, ts in con.execute(
+                    "SELECT key, MAX(timestamp) FROM metrics WHERE run_uuid = ? GROUP BY key",
+                    (rid,),
+                ):
+                    if key.split("/")[0] in TRAINING_PREFIXES:
+                        last = max(last, ts)
+                t = tags[rid]
+                key = tuple(t.get(k) for k in ("variant", "preset", "seed", "config"))
+                later = [s for s in by_config[key] if s > (start or 0)]
+                locked = bool(t.get(RUN_DIR_TAG)) and _folder_locked(t[RUN_DIR_TAG], project)
+                if dead_reason(last, now_ms, max(later) if later else None, locked) is None:
+                    continue
+                # said without the time of packing, so that a repack writes the same tag
+                if later and max(later) > last:
+                    why = (
+                        f"RUNNING when packed, but a later run of the same config started "
+                        f"{_utc(max(later))}, after its last activity ({_utc(last)})"
+                    )
+                else:
+                    why = (
+                        f"RUNNING when packed, but nothing logged since {_utc(last)}, over "
+                        f"{STALE_AFTER_S / 3600:.0f} h before (a live run logs every epoch)"
+                    )
+                con.execute(
+                    "UPDATE runs SET status = 'KILLED', end_time = ? WHERE run_uuid = ?",
+                    (last, rid),
+                )
+                con.execute(
+                    "INSERT OR REPLACE INTO tags (key, value, run_uuid) VALUES (?, ?, ?)",
+                    (KILLED_TAG, f"{why}; marked by cloudpose store-pack", rid),
+                )
+                out.append((name, why))
+        return out
     finally:
         con.close()
 
@@ -298,7 +405,11 @@ def is_archive_name(path: Path) -> bool:
 
 
 def pack_store(
-    project_dir: Path, out: Path, checkpoints: Sequence[str] = (), force: bool = False
+    project_dir: Path,
+    out: Path,
+    checkpoints: Sequence[str] = (),
+    force: bool = False,
+    reduce_checkpoints: bool = True,
 ) -> PackSummary:
     """Pack the store of ``project_dir`` into ``out``: a ``.tar.xz`` archive written
     atomically, or under any other name a folder in the compact form
@@ -314,6 +425,11 @@ def pack_store(
             files are packed; every other run's are left out.
         force: replace (update, for a compact folder) ``out`` if it exists (else
             ``FileExistsError``).
+        reduce_checkpoints: in a compact folder, store a kept checkpoint in fewer bytes where
+            its poses do not move (:mod:`cloudpose.store.checkpoints`); False keeps float32.
+
+    In what it writes, every ``run_dir`` tag is relative (:func:`_relative_run_dirs`) and a run
+    left RUNNING by a process that is gone is KILLED (:func:`_mark_dead`).
     """
     out = Path(out)
     compact = not is_archive_name(out)
@@ -341,22 +457,36 @@ def pack_store(
             dst.close()
         keep = _run_ids(copy, list(checkpoints))
         plan, moved = _artifact_plan(copy, project)
-        runs = _rewrite(copy, lambda uri: moved.get(uri) or _under_artifacts(ARTIFACT_DIR)(uri))
+        runs = _rewrite(
+            copy,
+            lambda uri: moved.get(uri) or _under_artifacts(ARTIFACT_DIR)(uri) or _portable(uri),
+        )
+        killed = tuple(_mark_dead(copy, project))
+        _relative_run_dirs(copy, project)
         files = kept = left = 0
         without = tuple(r.run_id for r in plan if r.expected and not r.source.is_dir())
         if compact:
+            from cloudpose.store.checkpoints import PoseCheck
             from cloudpose.store.compact import RunSource, write_compact
 
             sources = [RunSource(r.run_id, r.source, r.run_id in keep) for r in plan]
+            check = PoseCheck(project) if reduce_checkpoints else None
             try:
-                c = write_compact(copy, sources, out)
+                c = write_compact(copy, sources, out, check)
             except OSError as exc:
                 full = disk_full(exc, out, then=f"pack again (cloudpose store-pack {out} --force)")
                 if full is None:
                     raise
                 raise full from exc
             return PackSummary(
-                runs, c.files, c.checkpoints_kept, c.checkpoints_left_out, c.bytes, without
+                runs,
+                c.files,
+                c.checkpoints_kept,
+                c.checkpoints_left_out,
+                c.bytes,
+                without,
+                c.checked,
+                killed,
             )
 
         def write(path: Path) -> None:
@@ -385,7 +515,7 @@ def pack_store(
             if full is None:
                 raise
             raise full from exc
-    return PackSummary(runs, files, kept, left, out.stat().st_size, without)
+    return PackSummary(runs, files, kept, left, out.stat().st_size, without, killed=killed)
 
 
 def _unreadable(archive: Path, exc: BaseException) -> ValueError:

@@ -12,7 +12,8 @@ of the index) and git stores nothing again of the runs it had::
                                    value as Python's shortest exact repr, is_nan), sorted
     DIR/runs/RUN_ID/artifacts/     the run's artifacts; instance tables packed
                                    (:mod:`cloudpose.store.packed`), checkpoints only of the
-                                   runs named
+                                   runs named, in fewer bytes where the poses do not move
+                                   (:mod:`cloudpose.store.checkpoints`)
     DIR/shared/SHA.parquet         the data's columns of instance tables, one per set of rows
 
 :func:`write_compact` writes it from a packed database copy (addresses made relative by
@@ -39,19 +40,25 @@ import shutil
 import sqlite3
 import warnings
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cloudpose.files import CorruptFileError, atomic_text, why
-from cloudpose.store import instances, packed
+from cloudpose.store import checkpoints, instances, packed
 from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 
-FORMAT = "# cloudpose MLflow store, compact form 2"
+FORMAT = "# cloudpose MLflow store, compact form 3"
 """First line of :data:`INDEX` as :func:`write_compact` writes it."""
 
-FORMATS = ("# cloudpose MLflow store, compact form 1", FORMAT)
+FORMATS = (
+    "# cloudpose MLflow store, compact form 1",
+    "# cloudpose MLflow store, compact form 2",
+    FORMAT,
+)
 """First lines of the indexes this version reads: form 1 keeps each instance table in the
-evaluation's form, form 2 packed (:mod:`cloudpose.store.packed`)."""
+evaluation's form, form 2 packed (:mod:`cloudpose.store.packed`), form 3 also checkpoints
+(:mod:`cloudpose.store.checkpoints`: ``model.fp16.pt``, ``model.f24.pt``, which a reader of
+form 2 would not unpack)."""
 
 INDEX = "index.tsv"
 EXPERIMENTS = "experiments.json"
@@ -80,13 +87,15 @@ class RunSource:
 
 @dataclass(frozen=True)
 class CompactSummary:
-    """Files written (artifact files packed, checkpoints kept and left out) and the folder's
-    size in bytes."""
+    """Files written (artifact files packed, checkpoints kept and left out), the folder's size
+    in bytes, and (run id, record) of each checkpoint whose form was checked
+    (:mod:`cloudpose.store.checkpoints`)."""
 
     files: int
     checkpoints_kept: int
     checkpoints_left_out: int
     bytes: int
+    checked: tuple[tuple[str, dict], ...] = ()
 
 
 def _sha256(path: Path) -> str:
@@ -130,22 +139,51 @@ def _left_out(con: sqlite3.Connection) -> list[str]:
     return out
 
 
-def _stage_artifacts(run: RunSource, dest: Path) -> tuple[int, int, int]:
-    """Copy a run's artifacts into ``dest``, instance tables as Parquet; returns (files,
-    checkpoints kept, checkpoints left out)."""
+@dataclass
+class _Staged:
+    """Counts of :func:`_stage_artifacts`, over every run."""
 
-    files = kept = left = 0
+    files: int = 0
+    kept: int = 0
+    left: int = 0
+    checked: list[tuple[str, dict]] = field(default_factory=list)
+
+
+def _checkpoint_record(f: Path) -> bool:
+    """Whether ``f`` is the record of a checkpoint beside it (written with the checkpoint)."""
+    if not f.name.endswith(checkpoints.RECORD_SUFFIX):
+        return False
+    stem = f.name.removesuffix(checkpoints.RECORD_SUFFIX)
+    return (f.parent / f"{stem}{CHECKPOINT_SUFFIX}").is_file()
+
+
+def _stage_artifacts(
+    run: RunSource,
+    dest: Path,
+    counts: _Staged,
+    check: checkpoints.PoseCheck | None,
+    shipped: set[str],
+) -> None:
+    """Copy a run's artifacts into ``dest``, instance tables as Parquet, kept checkpoints in
+    the form :func:`cloudpose.store.checkpoints.pack_checkpoint` chooses (with ``check``);
+    counts into ``counts``."""
     if not run.source.is_dir():
-        return files, kept, left
+        return
     for f in sorted(run.source.rglob("*")):
-        if not f.is_file():
+        if not f.is_file() or _checkpoint_record(f):
             continue
         rel = f.relative_to(run.source)
         if f.suffix == CHECKPOINT_SUFFIX:
             if not run.keep_checkpoints:
-                left += 1
+                counts.left += 1
                 continue
-            kept += 1
+            counts.kept += 1
+            counts.files += 1
+            written = checkpoints.pack_checkpoint(f, (dest / rel).parent, check, shipped)
+            if written.record is not None:
+                counts.files += 1
+                counts.checked.append((run.run_id, written.record))
+            continue
         target = dest / rel
         target.parent.mkdir(parents=True, exist_ok=True)
         if f.name == instances.CSV and not (f.parent / instances.PARQUET).is_file():
@@ -159,8 +197,7 @@ def _stage_artifacts(run: RunSource, dest: Path) -> tuple[int, int, int]:
                 ) from exc
         else:
             shutil.copyfile(f, target)
-        files += 1
-    return files, kept, left
+        counts.files += 1
 
 
 def _pack_tables(staging: Path, run_ids: Sequence[str]) -> None:
@@ -193,7 +230,9 @@ def _pack_tables(staging: Path, run_ids: Sequence[str]) -> None:
             packed.write(packed.encode(reduced, base, ref), path)
 
 
-def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int, int]:
+def _stage(
+    db: Path, runs: Sequence[RunSource], staging: Path, check: checkpoints.PoseCheck | None
+) -> _Staged:
     """The compact form of the store ``db`` (addresses relative) and its runs' artifacts,
     written into ``staging`` (no index yet)."""
     con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
@@ -215,7 +254,8 @@ def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int
             )
         atomic_text(staging / EXPERIMENTS, _json({"experiments": exps}))
         by_id = {r.run_id: r for r in runs}
-        files = kept = left = 0
+        counts = _Staged()
+        shipped = checkpoints.shipped_digests()
         order = []
         for row in _rows(con, "SELECT * FROM runs ORDER BY run_uuid"):
             rid = row["run_uuid"]
@@ -234,11 +274,10 @@ def _stage(db: Path, runs: Sequence[RunSource], staging: Path) -> tuple[int, int
             )
             atomic_text(folder / METRICS_FILE, _metrics_text(metrics))
             if rid in by_id:
-                n, k, lo = _stage_artifacts(by_id[rid], folder / ARTIFACTS)
-                files, kept, left = files + n, kept + k, left + lo
+                _stage_artifacts(by_id[rid], folder / ARTIFACTS, counts, check, shipped)
             order.append((row["start_time"] or 0, rid))
         _pack_tables(staging, [rid for _, rid in sorted(order)])
-        return files, kept, left
+        return counts
     finally:
         con.close()
 
@@ -259,6 +298,8 @@ def _same(new: Path, old: Path) -> bool:
         return False
     if new.stat().st_size == old.stat().st_size and new.read_bytes() == old.read_bytes():
         return True
+    if checkpoints.packed_form(new.name) is not None:
+        return checkpoints.same_packed(new, old)
     if new.suffix != ".parquet" or not instances.same_table(new, old):
         return False
     layouts = [packed.layout_of(packed.read(p)) for p in (new, old)]
@@ -291,9 +332,18 @@ def _sync(staging: Path, out: Path) -> None:
     atomic_text(out / INDEX, "\n".join(lines) + "\n")
 
 
-def write_compact(db: Path, runs: Sequence[RunSource], out: Path) -> CompactSummary:
+def write_compact(
+    db: Path,
+    runs: Sequence[RunSource],
+    out: Path,
+    check: checkpoints.PoseCheck | None = None,
+) -> CompactSummary:
     """Write the compact form of the store ``db`` (a copy whose addresses are relative) and
     the artifacts of ``runs`` into the folder ``out``, created or brought up to date.
+
+    ``check``: the pose check by which a kept checkpoint is stored in fewer bytes
+    (:func:`cloudpose.store.checkpoints.pack_checkpoint`); None keeps each as it is (but for
+    one that a record beside it says was packed so).
 
     Everything is written into a hidden folder beside ``out`` first (removed whatever
     happens), then moved in file by file where it changed.
@@ -304,12 +354,12 @@ def write_compact(db: Path, runs: Sequence[RunSource], out: Path) -> CompactSumm
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", dir=out.parent))
     try:
-        files, kept, left = _stage(db, runs, staging)
+        counts = _stage(db, runs, staging, check)
         _sync(staging, out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     size = sum((out / rel).stat().st_size for rel in [INDEX, *_listed(out)])
-    return CompactSummary(files, kept, left, size)
+    return CompactSummary(counts.files, counts.kept, counts.left, size, tuple(counts.checked))
 
 
 # ---------------------------------------------------------------------------- reading
@@ -498,6 +548,10 @@ def extract_compact(folder: Path, entries: list[tuple[str, int, str]], staging: 
             target.parent.mkdir(parents=True, exist_ok=True)
             if target.name == instances.PARQUET:
                 _unpack_table(folder, rel, listed, shared, target)
+            elif checkpoints.packed_form(target.name) is not None:
+                checkpoints.unpack_checkpoint(
+                    folder / rel, target.with_name(checkpoints.unpacked_name(target.name))
+                )
             else:
                 shutil.copyfile(folder / rel, target)
     db = staging / STORE_DB

@@ -1,0 +1,375 @@
+"""A run's checkpoint as a compact store keeps it: in fewer bytes where its poses do not move.
+
+A float32 checkpoint of the default network is 6.5 MB, and zlib (git's) takes 8% off it. The
+compact form (:mod:`cloudpose.store.compact`) stores a kept checkpoint ``NAME.pt``:
+
+- **as it is** when its bytes are a shipped network's (``resources/pretrained/*.pt``: git
+  stores the two as one blob), or when it is not a cloudpose checkpoint;
+- else in the first of these forms under which no pose of the check set (:class:`PoseCheck`:
+  the 61 packaged real development frames' segments) moves by more than
+  :data:`TOLERANCE_DEG` degrees (geodesic angle) or :data:`TOLERANCE_MM` millimetres from the
+  float32 network's:
+
+  - ``NAME.fp16.pt``, :data:`FLOAT16`: every float32 tensor of the network's state as float16;
+  - ``NAME.f24.pt``, :data:`FLOAT24`: every float32 tensor rounded to its three high bytes
+    (sign, exponent and 15 of the 23 mantissa bits, to nearest), stored as three byte planes
+    (uint8, ``(3, *shape)``: the plane of the sign and exponent compresses well);
+
+- else as it is (float32).
+
+State dict keys, integer buffers, float tensors of other dtypes and every other entry of the
+checkpoint (its config) are kept; the packed file names the form and the tensors it changed
+(:data:`FORM_KEY`). Beside a checkpoint that was checked goes its record, ``NAME.precision.json``:
+the form, the largest pose change each form tried gave, the check set, the original's SHA-256
+and the digest of the float32 state that unpacking gives (:func:`state_digest`).
+
+Unpacking (:func:`unpack_checkpoint`) writes ``NAME.pt`` back in float32, the same keys and
+dtypes as the original, the values as rounded, so every reader (``evaluate --run``,
+``stress``, ``mlflow-ui``) loads it as before; the record is an artifact beside it. Packing
+such a store again finds the record, sees that the checkpoint is the one it describes (the
+digest) and writes the same form and record without checking again: rounding is idempotent,
+so the packed file holds the same tensors.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import shutil
+import tempfile
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cloudpose.conventions import resource_path
+from cloudpose.store.pretrained import HALF_TOLERANCE_DEG, pose_difference
+
+FLOAT16 = "float16"
+FLOAT24 = "float24"
+FLOAT32 = "float32"
+
+REDUCED = {FLOAT16: ".fp16.pt", FLOAT24: ".f24.pt"}
+"""Form -> the ending of a packed checkpoint's name (``model.pt`` -> ``model.fp16.pt``), in
+the order they are tried (fewest bytes first)."""
+
+RECORD_SUFFIX = ".precision.json"
+"""Ending of a checkpoint's record (``model.pt`` -> ``model.precision.json``)."""
+
+FORM_KEY = "cloudpose_stored_as"
+"""Entry of a packed checkpoint: ``{"form": FORM, "keys": [state keys changed]}``."""
+
+TOLERANCE_DEG = HALF_TOLERANCE_DEG
+"""Largest rotation change (degrees, geodesic) a form may give a pose of the check set."""
+
+TOLERANCE_MM = 0.01
+"""Largest translation change (millimetres) a form may give a pose of the check set."""
+
+REAL_FRAMES = "real development frames"
+"""Name of :class:`PoseCheck`'s default check set (the packaged real frames' segments)."""
+
+_CHECKPOINT = ".pt"
+
+
+def record_name(checkpoint: str) -> str:
+    """``NAME.precision.json`` of the checkpoint ``NAME.pt``."""
+    return checkpoint.removesuffix(_CHECKPOINT) + RECORD_SUFFIX
+
+
+def packed_form(name: str) -> str | None:
+    """The form of a packed checkpoint's file name (``model.f24.pt`` -> ``float24``), else None."""
+    return next((form for form, end in REDUCED.items() if name.endswith(end)), None)
+
+
+def unpacked_name(name: str) -> str:
+    """``NAME.pt`` of a packed checkpoint's file name ``NAME.fp16.pt`` or ``NAME.f24.pt``."""
+    form = packed_form(name)
+    return name if form is None else name.removesuffix(REDUCED[form]) + _CHECKPOINT
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def shipped_digests(folder: Path | None = None) -> set[str]:
+    """SHA-256 of every shipped network's weights (``resources/pretrained/*.pt``)."""
+    folder = folder or resource_path("pretrained")
+    return {_sha256(p.read_bytes()) for p in sorted(Path(folder).glob(f"*{_CHECKPOINT}"))}
+
+
+# -- forms ---------------------------------------------------------------------------------
+
+
+def _float24(t: torch.Tensor) -> torch.Tensor:
+    """A float32 tensor's three high bytes, rounded to nearest: uint8 ``(3, *shape)``."""
+    u = t.detach().contiguous().cpu().numpy().view(np.uint32).astype(np.uint64)
+    finite = np.isfinite(t.detach().cpu().numpy())
+    top = np.where(finite, (u + 0x80) >> 8, u >> 8)  # a carry into the exponent is right
+    planes = np.stack([(top >> 16) & 0xFF, (top >> 8) & 0xFF, top & 0xFF]).astype(np.uint8)
+    return torch.from_numpy(np.ascontiguousarray(planes))
+
+
+def _from_float24(planes: torch.Tensor) -> torch.Tensor:
+    """The float32 tensor of :func:`_float24`'s byte planes."""
+    p = planes.numpy().astype(np.uint32)
+    u = (p[0] << 24) | (p[1] << 16) | (p[2] << 8)
+    return torch.from_numpy(np.ascontiguousarray(u.view(np.float32)))
+
+
+def encode(ckpt: Mapping[str, Any], form: str) -> dict[str, Any]:
+    """The packed checkpoint of ``ckpt`` (keys ``model``, ``config``, ...) in ``form``: each
+    float32 tensor of its ``model`` state in float16 or as float24 byte planes, the rest as it
+    is, and :data:`FORM_KEY` naming the tensors changed."""
+    if form not in REDUCED:
+        raise ValueError(f"unknown checkpoint form {form!r}; expected one of {list(REDUCED)}")
+    model, changed = {}, []
+    for key, value in ckpt["model"].items():
+        if isinstance(value, torch.Tensor) and value.dtype == torch.float32:
+            model[key] = value.half() if form == FLOAT16 else _float24(value)
+            changed.append(key)
+        else:
+            model[key] = value
+    out = {k: (model if k == "model" else v) for k, v in ckpt.items()}
+    out[FORM_KEY] = {"form": form, "keys": changed}
+    return out
+
+
+def decode(packed: Mapping[str, Any]) -> dict[str, Any]:
+    """The float32 checkpoint of a packed one (:func:`encode`): the same keys and dtypes as
+    the original, the values as the form rounded them."""
+    meta = packed[FORM_KEY]
+    form, changed = meta["form"], set(meta["keys"])
+    if form not in REDUCED:
+        raise ValueError(f"unknown checkpoint form {form!r}; expected one of {list(REDUCED)}")
+    model = {}
+    for key, value in packed["model"].items():
+        if key in changed:
+            value = value.float() if form == FLOAT16 else _from_float24(value)
+        model[key] = value
+    return {k: (model if k == "model" else v) for k, v in packed.items() if k != FORM_KEY}
+
+
+def round_trip(ckpt: Mapping[str, Any], form: str) -> dict[str, Any]:
+    """``ckpt`` as unpacking its ``form`` gives it back (float32, rounded)."""
+    return decode(encode(ckpt, form))
+
+
+def state_digest(ckpt: Mapping[str, Any]) -> str:
+    """SHA-256 of a checkpoint's values: every state tensor's key, dtype, shape and bytes, and
+    the other entries as sorted JSON (the same for the same values, whatever file holds
+    them)."""
+    h = hashlib.sha256()
+    for key, value in ckpt["model"].items():
+        h.update(key.encode() + b"\0")
+        if isinstance(value, torch.Tensor):
+            t = value.detach().cpu().contiguous()
+            h.update(f"{t.dtype}{tuple(t.shape)}".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        else:
+            h.update(repr(value).encode())
+    rest = {k: v for k, v in ckpt.items() if k not in ("model", FORM_KEY)}
+    h.update(json.dumps(rest, sort_keys=True, default=repr).encode())
+    return h.hexdigest()
+
+
+def to_bytes(obj: Mapping[str, Any]) -> bytes:
+    """``torch.save`` of ``obj`` as bytes (the same bytes for the same values, whatever the
+    file's name: torch names the archive's root after a file, ``archive`` in memory)."""
+    buf = io.BytesIO()
+    torch.save(dict(obj), buf)
+    return buf.getvalue()
+
+
+def load(path: Path) -> dict[str, Any] | None:
+    """A checkpoint file's content (tensors and plain data only), or None when it is not a
+    cloudpose checkpoint (keys ``model``, ``config``)."""
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # a torn file, a foreign or unsafe pickle: not ours to reduce
+        return None
+    if not isinstance(obj, dict) or not {"model", "config"} <= set(obj):
+        return None
+    if not isinstance(obj["model"], Mapping):
+        return None
+    return obj
+
+
+# -- the check ----------------------------------------------------------------------------
+
+
+@dataclass
+class PoseCheck:
+    """The poses a checkpoint's network gives on a check set, to compare forms by.
+
+    Args:
+        project_dir: the project whose ``data/cache`` holds the check set's segments (as
+            ``evaluate`` caches them).
+        segments: a fixed :class:`~cloudpose.data.segment_set.SegmentSet` to check on
+            instead of the real frames (tests).
+        name: what the check set is, for the record.
+    """
+
+    project_dir: Path | None = None
+    segments: Any = None
+    name: str = REAL_FRAMES
+    _sets: dict = field(default_factory=dict, repr=False)
+
+    def segment_set(self, cfg):
+        """The check set's segments under the data settings of ``cfg`` (a Config)."""
+        if self.segments is not None:
+            return self.segments
+        if cfg.data not in self._sets:
+            from cloudpose.data.dataset import folder_segments
+            from cloudpose.data.layout import open_dataset, real_dev_root
+
+            self._sets[cfg.data] = folder_segments(
+                open_dataset(real_dev_root()), "all", cfg.data, self.project_dir, progress=False
+            )
+        return self._sets[cfg.data]
+
+    def poses(self, ckpt: Mapping[str, Any]) -> tuple[Any, np.ndarray]:
+        """(:class:`~cloudpose.infer.Estimates`, valid rows) of ``ckpt``'s network on the set,
+        loaded as every reader loads a checkpoint (:func:`cloudpose.infer.load_checkpoint`)."""
+        from cloudpose.infer import estimate_poses, load_checkpoint
+
+        with tempfile.TemporaryDirectory(prefix="cloudpose-check-") as tmp:
+            path = Path(tmp) / "model.pt"
+            path.write_bytes(to_bytes(ckpt))
+            net, cfg = load_checkpoint(path)
+        segs = self.segment_set(cfg)
+        return estimate_poses(net, segs, cfg.train.n_points), np.asarray(segs.valid, bool)
+
+
+def within(change: tuple[float, float]) -> bool:
+    """Whether a (degrees, millimetres) pose change is within the tolerances."""
+    rot, trans = change
+    return rot <= TOLERANCE_DEG and trans <= TOLERANCE_MM
+
+
+def choose_form(
+    ckpt: Mapping[str, Any], check: PoseCheck
+) -> tuple[str, dict[str, tuple[float, float]], int]:
+    """The first form of :data:`REDUCED` whose round trip keeps every pose of the check set
+    within the tolerances, else :data:`FLOAT32`; with the largest change each form tried gave
+    (degrees, millimetres) and the number of segments checked."""
+    base, valid = check.poses(ckpt)
+    changes = {}
+    for form in REDUCED:
+        est, _ = check.poses(round_trip(ckpt, form))
+        changes[form] = pose_difference(base, est, valid)
+        if within(changes[form]):
+            return form, changes, int(valid.sum())
+    return FLOAT32, changes, int(valid.sum())
+
+
+# -- packing and unpacking ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Packed:
+    """What :func:`pack_checkpoint` wrote: the file and, for a checked checkpoint, its record."""
+
+    file: str
+    record: dict[str, Any] | None = None
+
+
+def _reusable(record_path: Path, ckpt: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The record beside a checkpoint when it describes this checkpoint as unpacked (its
+    digest), else None (no record, another checkpoint's, or unreadable)."""
+    if not record_path.is_file():
+        return None
+    try:
+        record = json.loads(record_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not isinstance(record, dict) or record.get("stored_as") not in (*REDUCED, FLOAT32):
+        return None
+    return record if record.get("unpacked_digest") == state_digest(ckpt) else None
+
+
+def pack_checkpoint(
+    src: Path,
+    dest: Path,
+    check: PoseCheck | None,
+    shipped: set[str] | None = None,
+    made_by: str = "cloudpose store-pack",
+) -> Packed:
+    """Write the checkpoint ``src`` (``NAME.pt``) into the folder ``dest`` as the compact form
+    keeps it (the module's docstring): its bytes, or a packed file and its record.
+
+    Args:
+        src: a run's checkpoint artifact.
+        dest: the folder to write into (created).
+        check: the pose check new forms are chosen by; None keeps every checkpoint float32
+            (a record beside ``src`` that describes it is still followed).
+        shipped: SHA-256 of the shipped networks' weights (default :func:`shipped_digests`).
+        made_by: the command, for the record.
+    """
+    dest.mkdir(parents=True, exist_ok=True)
+    data = src.read_bytes()
+    shipped = shipped_digests() if shipped is None else shipped
+    ckpt = None if _sha256(data) in shipped else load(src)
+    if ckpt is None or FORM_KEY in ckpt:
+        shutil.copyfile(src, dest / src.name)
+        return Packed(src.name)
+    record = _reusable(src.parent / record_name(src.name), ckpt)
+    if record is None and check is None:
+        shutil.copyfile(src, dest / src.name)
+        return Packed(src.name)
+    if record is None:
+        try:
+            form, changes, n = choose_form(ckpt, check)
+        except ValueError as exc:  # a config this version cannot build: kept as it is
+            warnings.warn(f"{src}: kept float32, its network was not checked ({exc})", stacklevel=2)
+            shutil.copyfile(src, dest / src.name)
+            return Packed(src.name)
+        unpacked = ckpt if form == FLOAT32 else round_trip(ckpt, form)
+        record = {
+            "checkpoint": src.name,
+            "stored_as": form,
+            "file": src.name
+            if form == FLOAT32
+            else src.name.removesuffix(_CHECKPOINT) + REDUCED[form],
+            "max_pose_change": {f: {"rot_deg": r, "trans_mm": t} for f, (r, t) in changes.items()},
+            "tolerance": {"rot_deg": TOLERANCE_DEG, "trans_mm": TOLERANCE_MM},
+            "check_set": {"frames": check.name, "segments": n},
+            "float32_sha256": _sha256(data),
+            "unpacked_digest": state_digest(unpacked),
+            "made_by": made_by,
+        }
+    form = record["stored_as"]
+    if form == FLOAT32:
+        shutil.copyfile(src, dest / src.name)
+    else:
+        (dest / record["file"]).write_bytes(to_bytes(encode(ckpt, form)))
+    text = json.dumps(record, indent=1, sort_keys=True) + "\n"
+    (dest / record_name(src.name)).write_text(text, encoding="utf-8")
+    return Packed(record["file"], record)
+
+
+def unpack_checkpoint(packed: Path, target: Path) -> Path:
+    """Write the float32 checkpoint of the packed file ``packed`` to ``target`` (a file)."""
+    obj = torch.load(packed, map_location="cpu", weights_only=True)
+    if not isinstance(obj, dict) or FORM_KEY not in obj:
+        raise ValueError(f"{packed}: not a packed checkpoint (no {FORM_KEY!r} entry)")
+    target.write_bytes(to_bytes(decode(obj)))
+    return target
+
+
+def same_packed(new: Path, old: Path) -> bool:
+    """Whether two packed checkpoint files hold the same form and values (another torch
+    version may write other bytes for them)."""
+    try:
+        a, b = (torch.load(p, map_location="cpu", weights_only=True) for p in (new, old))
+    except Exception:  # a damaged old file: written again
+        return False
+    if not all(isinstance(x, dict) and FORM_KEY in x for x in (a, b)):
+        return False
+    if a[FORM_KEY] != b[FORM_KEY]:
+        return False
+    return state_digest(a) == state_digest(b)
