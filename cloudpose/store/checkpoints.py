@@ -226,10 +226,13 @@ class PoseCheck:
         if cfg.data not in self._sets:
             from cloudpose.data.dataset import folder_segments
             from cloudpose.data.layout import open_dataset, real_dev_root
+            from cloudpose.data.segments import SegmentWarning
 
-            self._sets[cfg.data] = folder_segments(
-                open_dataset(real_dev_root()), "all", cfg.data, self.project_dir, progress=False
-            )
+            with warnings.catch_warnings():  # instances without points: misses, not checked
+                warnings.simplefilter("ignore", SegmentWarning)
+                self._sets[cfg.data] = folder_segments(
+                    open_dataset(real_dev_root()), "all", cfg.data, self.project_dir, False
+                )
         return self._sets[cfg.data]
 
     def poses(self, ckpt: Mapping[str, Any]) -> tuple[Any, np.ndarray]:
