@@ -1,4 +1,5 @@
-"""Compiled kernels against brute force: k-d tree, bounded nearest neighbour, ADS, exact FPS."""
+"""Compiled kernels against brute force or their numpy twins: k-d tree, bounded nearest
+neighbour, ADS, exact FPS, the table-scene sampler's loops, version 3's edge distance."""
 
 from __future__ import annotations
 
@@ -168,3 +169,129 @@ def test_icp_on_flat_and_tiny_models_equals_the_pykdtree_loop(P):
     np.testing.assert_allclose(a.R, b.R, atol=1e-12)
     np.testing.assert_allclose(a.t, b.t, atol=1e-12)
     assert a.fitness == b.fitness and a.inlier_rmse == pytest.approx(b.inlier_rmse, abs=1e-15)
+
+
+# --------------------------------------------------------------------------- scene sampler
+
+
+def test_slide_steps_is_the_numpy_loop():
+    """The slide's step (footprint box tests first, then its cells) is the numpy loop's, on
+    and off the grid, with and without occupied cells, for footprints of every size."""
+    from cloudpose.data.synth.scenes import _GRID, _GRID_HALF, _START, _slide_numpy
+    from cloudpose.kernels.placement import slide_steps
+
+    rng = np.random.default_rng(3)
+    n = 2 * _GRID_HALF
+    for t in range(200):
+        occupied = np.zeros((n, n), dtype=bool)
+        for _ in range(int(rng.integers(0, 4))):  # a few blobs near the centre
+            i, j = rng.integers(n // 2 - 40, n // 2 + 40, 2)
+            occupied[i : i + int(rng.integers(1, 30)), j : j + int(rng.integers(1, 30))] = True
+        cells = rng.integers(-int(rng.integers(1, 25)), int(rng.integers(1, 25)), (40, 2))
+        cells = np.unique(cells[: int(rng.integers(1, 41))], axis=0)
+        anchor = rng.normal(0.0, 0.1 if t % 4 else 0.7, 2)  # sometimes near the grid's edge
+        a = rng.uniform(0.0, 2.0 * np.pi)
+        step = np.array([np.cos(a), np.sin(a)])
+        want = _slide_numpy(cells, occupied, anchor, step)
+        k = slide_steps(cells, occupied, anchor, step, int(_START / _GRID), _GRID, _GRID_HALF)
+        got = None if k < 0 else anchor + step * (k * _GRID)
+        assert (got is None) == (want is None)
+        if got is not None:
+            np.testing.assert_array_equal(got, want)
+
+
+def test_hull_margin_is_qhulls():
+    """The support margin from the integer hull is qhull's facet margin to rounding (inside,
+    outside, on an edge), and collinear or repeated cells are the cells qhull rejects."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    from cloudpose.data.synth.scenes import _GRID, _supports, _supports_numpy
+    from cloudpose.kernels.placement import hull_margin
+
+    rng = np.random.default_rng(8)
+    for t in range(2000):
+        k = int(rng.integers(1, 40))
+        if t % 8 == 0:  # on one line
+            cells = rng.integers(-50, 50, 2) + np.outer(
+                rng.integers(0, 9, k), rng.integers(-2, 3, 2)
+            )
+        else:
+            cells = rng.integers(-60, 60, 2) + rng.integers(-9, 10, (k, 2))
+        cells = cells.astype(np.int64)
+        p = (cells.mean(axis=0) + 0.5 + rng.normal(0.0, 2.0, 2)) * _GRID
+        status, margin = hull_margin(cells, _GRID, p[0], p[1])
+        try:
+            eq = ConvexHull((cells + 0.5) * _GRID).equations
+        except QhullError:
+            assert status == 1
+        else:
+            assert status == 0
+            assert margin == pytest.approx(-(eq[:, :2] @ p + eq[:, 2]).max(), abs=1e-15)
+        assert _supports(cells, p) == _supports_numpy(cells, p)
+    square = np.array([[0, 0], [0, 4], [4, 0], [4, 4], [2, 2]], np.int64)
+    assert hull_margin(square, 1.0, 2.5, 2.5) == (0, 2.0)
+    assert hull_margin(square, 1.0, 0.5, 2.5)[1] == 0.0  # on an edge
+    assert hull_margin(square, 1.0, -0.5, 2.5)[1] == -1.0  # outside
+    assert hull_margin(np.zeros((4, 2), np.int64), 1.0, 0.5, 0.5)[0] == 1  # one cell 4 times
+
+
+def test_column_means_and_in_image_counts_are_numpys():
+    """The mean of an object's points is ``np.mean(axis=0)``'s to the bit (the same sums
+    in the same order), and the in-image share is the numpy test's, points behind the camera,
+    on the image's edges and outside it included."""
+    from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
+    from cloudpose.data.synth.scenes import _in_image_fraction, _in_image_fraction_numpy
+    from cloudpose.kernels.placement import column_means
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 7, 8, 9, 1000, 2621):
+        pts = rng.normal(0.0, 0.05, (n, 3)) @ Rotation.random(random_state=n).as_matrix().T
+        np.testing.assert_array_equal(column_means(pts), np.mean(pts, axis=0))
+        np.testing.assert_array_equal(column_means(pts[:, :2].copy()), np.mean(pts[:, :2], 0))
+    H, W = IMAGE_SHAPE
+    for _ in range(50):
+        cam = rng.normal(0.0, 0.3, (500, 3)) + np.array([0.0, 0.0, rng.uniform(-0.2, 1.0)])
+        uv = rng.integers(-1, [W + 1, H + 1], (100, 2)).astype(np.float64)  # on the edges
+        cam[:100] = np.c_[
+            (uv - YCB_INTRINSICS[:2, 2]) / YCB_INTRINSICS[[0, 1], [0, 1]], np.ones(100)
+        ]
+        assert _in_image_fraction(cam, YCB_INTRINSICS, IMAGE_SHAPE) == _in_image_fraction_numpy(
+            cam, YCB_INTRINSICS, IMAGE_SHAPE
+        )
+
+
+def test_contact_membership_is_isin():
+    from cloudpose.data.synth.scenes import _member, _member_numpy
+
+    rng = np.random.default_rng(1)
+    for n, m in ((0, 5), (5, 0), (30, 1), (200, 600)):
+        keys, of = rng.integers(0, 3 * max(n, m, 1), n), rng.integers(0, 3 * max(n, m, 1), m)
+        np.testing.assert_array_equal(_member(keys, of), _member_numpy(keys, of))
+
+
+# --------------------------------------------------------------------------- scene pass
+
+
+def test_edge_squared_distance_is_brute_force():
+    """Version 3's edge distance is the squared distance to the nearest boundary pixel by
+    brute force, on label images of every shape (one row, one column, one label, many)."""
+    from cloudpose.kernels.scene_pass import edge_squared_distance
+
+    rng = np.random.default_rng(6)
+    for shape in ((1, 1), (1, 7), (7, 1), (2, 2), (9, 13), (31, 24)):
+        for blocks in (1, 2, 4):
+            lab = rng.integers(-1, 3, (shape[0] // blocks + 1, shape[1] // blocks + 1))
+            lab = np.kron(lab, np.ones((blocks, blocks), np.int64))[: shape[0], : shape[1]]
+            lab = np.ascontiguousarray(lab)
+            H, W = lab.shape
+            bnd = np.zeros_like(lab, dtype=bool)
+            bnd[1:] |= lab[1:] != lab[:-1]
+            bnd[:-1] |= lab[:-1] != lab[1:]
+            bnd[:, 1:] |= lab[:, 1:] != lab[:, :-1]
+            bnd[:, :-1] |= lab[:, :-1] != lab[:, 1:]
+            want = np.full((H, W), np.inf)
+            if bnd.any():
+                yx = np.argwhere(bnd)
+                grid = np.stack(np.meshgrid(np.arange(H), np.arange(W), indexing="ij"), -1)
+                want = ((grid[:, :, None, :] - yx[None, None]) ** 2).sum(-1).min(-1).astype(float)
+            np.testing.assert_array_equal(edge_squared_distance(lab), want)

@@ -1,10 +1,11 @@
-"""The slide of a table scene's new object towards its cluster
-(:func:`cloudpose.data.synth.scenes.sample_table_scene`), in one compiled loop.
+"""The table-scene sampler's hot loops (:func:`cloudpose.data.synth.scenes.sample_table_scene`),
+compiled: the slide of a new object towards its cluster, the footprint and contact rasters,
+the support test of a stacked object (its centre of mass inside the contact's convex hull),
+the mean of an object's points and the in-image test of a camera.
 
-The twin is the numpy loop in that function (one fancy-indexing pass over the object's
-footprint cells per step); the kernel does the same float64 operations on each step's position
-(``anchor + step * (k * grid)``, floored in grid cells) and the same integer tests, so it
-stops at the same step: scenes stay identical, with or without numba.
+Each has a numpy twin in :mod:`cloudpose.data.synth.scenes` (the ``_numpy`` functions and
+qhull) and does the same float64 operations or an exact integer computation, so it gives the
+same answer: scenes stay identical, with or without numba.
 """
 
 from __future__ import annotations
@@ -15,13 +16,24 @@ import numpy as np
 
 from cloudpose.kernels.backend import njit
 
-__all__ = ["close_cells", "raster_cells", "slide_steps"]
+__all__ = [
+    "close_cells",
+    "column_means",
+    "count_in_image",
+    "hull_margin",
+    "raster_cells",
+    "slide_steps",
+]
 
 
 @njit(cache=True)
 def slide_steps(cells, occupied, anchor, step, k_max, grid, half):  # pragma: no cover
     """The last step ``k`` (counting down from ``k_max`` to 0) at which the footprint is on the
     grid and free, before the first step at which it touches an occupied cell; -1 if none.
+
+    A step is on the grid when the footprint's box is, and can touch only when that box meets
+    the box of the occupied cells: the cells themselves are read only then (the same step as
+    testing every cell at every step).
 
     Args:
         cells: (C, 2) int64 footprint cells relative to the object's origin.
@@ -32,23 +44,38 @@ def slide_steps(cells, occupied, anchor, step, k_max, grid, half):  # pragma: no
         half: cells each side of the grid's origin.
     """
     n = 2 * half
+    m = cells.shape[0]
+    if m == 0:  # on the grid and free at every step
+        return 0 if k_max >= 0 else -1
+    lo0, hi0, lo1, hi1 = cells[0, 0], cells[0, 0], cells[0, 1], cells[0, 1]
+    for c in range(1, m):
+        lo0, hi0 = min(lo0, cells[c, 0]), max(hi0, cells[c, 0])
+        lo1, hi1 = min(lo1, cells[c, 1]), max(hi1, cells[c, 1])
+    r0, r1, c0, c1 = n, -1, n, -1  # the occupied cells' box (none: r1 = -1)
+    for i in range(n):
+        row = occupied[i]
+        filled = False
+        for j in range(n):
+            filled |= row[j]
+        if filled:
+            r0, r1 = min(r0, i), i
+    for i in range(r0, r1 + 1):
+        row = occupied[i]
+        for j in range(n):
+            if row[j]:
+                c0, c1 = min(c0, j), max(c1, j)
     found = -1
     for k in range(k_max, -1, -1):
         off0 = np.int64(math.floor((anchor[0] + step[0] * (k * grid)) / grid)) + half
         off1 = np.int64(math.floor((anchor[1] + step[1] * (k * grid)) / grid)) + half
-        outside = False
-        for c in range(cells.shape[0]):
-            i, j = cells[c, 0] + off0, cells[c, 1] + off1
-            if i < 0 or j < 0 or i >= n or j >= n:
-                outside = True
-                break
-        if outside:
+        if lo0 + off0 < 0 or lo1 + off1 < 0 or hi0 + off0 >= n or hi1 + off1 >= n:
             continue
         hit = False
-        for c in range(cells.shape[0]):
-            if occupied[cells[c, 0] + off0, cells[c, 1] + off1]:
-                hit = True
-                break
+        if lo0 + off0 <= r1 and hi0 + off0 >= r0 and lo1 + off1 <= c1 and hi1 + off1 >= c0:
+            for c in range(m):
+                if occupied[cells[c, 0] + off0, cells[c, 1] + off1]:
+                    hit = True
+                    break
         if hit:
             break
         found = k
@@ -156,3 +183,94 @@ def raster_cells(points_xy, grid, fill):  # pragma: no cover - compiled
                 out[c, 0], out[c, 1] = y + lo0, x + lo1
                 c += 1
     return out
+
+
+@njit(cache=True)
+def hull_margin(cells, grid, px, py):  # pragma: no cover - compiled
+    """How far the point ``(px, py)`` (metres) lies inside the convex hull of the centres
+    ``(cells + 0.5) * grid`` of the (K, 2) int64 grid cells: the smallest signed distance to
+    a hull edge, positive inside (the largest of ``-(n . p + d)`` over qhull's facet equations
+    ``(n, d)``, to float rounding). The hull by Andrew's monotone chain in integers, so its
+    vertices are exact; collinear cells (no hull: qhull's error) give status 1.
+
+    Returns:
+        (status, margin): status 0 and the margin, metres, or 1 and 0.0.
+    """
+    k = cells.shape[0]
+    key = np.empty(k, np.int64)
+    for i in range(k):
+        key[i] = cells[i, 0] * (np.int64(1) << 32) + cells[i, 1]
+    order = np.argsort(key, kind="mergesort")
+    pts = np.empty((k, 2), np.int64)
+    for i in range(k):
+        pts[i, 0], pts[i, 1] = cells[order[i], 0], cells[order[i], 1]
+    hull = np.empty(2 * k + 1, np.int64)
+    m = 0
+    for i in range(k):  # lower chain
+        while m >= 2 and _turn(pts, hull[m - 2], hull[m - 1], i) <= 0:
+            m -= 1
+        hull[m] = i
+        m += 1
+    lower = m + 1
+    for i in range(k - 2, -1, -1):  # upper chain
+        while m >= lower and _turn(pts, hull[m - 2], hull[m - 1], i) <= 0:
+            m -= 1
+        hull[m] = i
+        m += 1
+    m -= 1  # the last vertex is the first
+    if m < 3:
+        return 1, 0.0
+    margin = np.inf
+    for e in range(m):
+        a, b = hull[e], hull[e + 1]
+        ax, ay = (pts[a, 0] + 0.5) * grid, (pts[a, 1] + 0.5) * grid
+        bx, by = (pts[b, 0] + 0.5) * grid, (pts[b, 1] + 0.5) * grid
+        ex, ey = bx - ax, by - ay
+        margin = min(margin, (ex * (py - ay) - ey * (px - ax)) / math.sqrt(ex * ex + ey * ey))
+    return 0, margin
+
+
+@njit(cache=True, inline="always")
+def _turn(pts, a, b, c):  # pragma: no cover - compiled
+    """Twice the signed area of the integer triangle (a, b, c): > 0 turning left."""
+    return (pts[b, 0] - pts[a, 0]) * (pts[c, 1] - pts[a, 1]) - (pts[b, 1] - pts[a, 1]) * (
+        pts[c, 0] - pts[a, 0]
+    )
+
+
+@njit(cache=True)
+def column_means(points):  # pragma: no cover - compiled
+    """(C,) float64 the mean of each column of the (P, C) float64 ``points``:
+    ``np.mean(points, axis=0)`` of a C-contiguous array, whose sum runs row after row
+    (the same additions in the same order), divided by P."""
+    n, m = points.shape
+    out = np.zeros(m)
+    if n == 0:
+        out[:] = np.nan
+        return out
+    for j in range(m):
+        out[j] = points[0, j]
+    for i in range(1, n):
+        for j in range(m):
+            out[j] += points[i, j]
+    for j in range(m):
+        out[j] /= n
+    return out
+
+
+@njit(cache=True)
+def count_in_image(cam, uvw, height, width):  # pragma: no cover - compiled
+    """How many of the (P, 3) camera-frame points ``cam`` (their projections ``uvw = cam @
+    K.T``) are in front of the camera (z > 1 mm) and project into the (height, width) image:
+    the count of :func:`cloudpose.data.synth.scenes._in_image_fraction_numpy`'s test (the
+    same divisions and comparisons)."""
+    c = 0
+    for i in range(cam.shape[0]):
+        z = cam[i, 2]
+        if not z > 1e-3:
+            continue
+        u = uvw[i, 0] / z
+        v = uvw[i, 1] / z
+        if u >= 0 and u < width and v >= 0 and v < height:
+            c += 1
+    return c

@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
-from cloudpose.kernels.sensor import _ray, _squared_distance_1d, on_boundary
+from cloudpose.kernels.sensor import _ray
 
 __all__ = [
     "edge_squared_distance",
@@ -284,7 +284,7 @@ def scene_points(
     towards the neighbour across it, the disparity quantisation, the range; then missing
     depth where the missing-depth field (white noise smoothed by ``weights``, the first pass
     along the image's columns, over the object pixels' bounding box widened by the filter's
-    reach r, mapped to uniform) is below the fitted probability (edge distance, incidence
+    reach r, mapped to uniform; drawn and smoothed only where an object pixel reads it) is below the fitted probability (edge distance, incidence
     cosine, class rate).
 
     Args:
@@ -321,56 +321,87 @@ def scene_points(
     X = np.empty((start[n], 3))
     fill = start[:-1].copy()
     vb0, vb1, ub0, ub1 = h, 0, w, 0
+    row_lo = np.full(h, w, np.int64)  # the columns [row_lo, row_hi) of each row's object pixels
+    row_hi = np.zeros(h, np.int64)
     for y in range(h):
         for x in range(w):
             if index[y, x] >= 0:
-                vb0, vb1 = min(vb0, y), max(vb1, y + 1)
-                ub0, ub1 = min(ub0, x), max(ub1, x + 1)
+                row_lo[y] = min(row_lo[y], x)
+                row_hi[y] = x + 1
+        if row_lo[y] < row_hi[y]:
+            vb0, vb1 = min(vb0, y), y + 1
+            ub0, ub1 = min(ub0, row_lo[y]), max(ub1, row_hi[y])
     r = weights.shape[0] // 2
     hb, wb = max(vb1 - vb0, 0), max(ub1 - ub0, 0)
-    sm = np.zeros((hb, wb), np.float32)
+    sm = np.empty((hb, wb), np.float32)  # the smoothed field, on each row's object span
     ev0, ev1 = max(vb0 - 1, 0), min(vb1 + 1, h)
     eu0, eu1 = max(ub0 - 1, 0), min(ub1 + 1, w)
     dist2 = np.zeros((max(ev1 - ev0, 0), max(eu1 - eu0, 0)))
     phi_low = np.empty(641)
+    phi_high = np.empty(1281)
     graze_high = np.empty(257)
+    graze_low = np.empty(257)
     edge_table = np.full(4096, -1.0)
     if noisy and hb > 0:
         # the white noise over the widened box, then the separable filter: first along the
-        # columns, then the rows
-        white = np.empty((hb + 2 * r, wb + 2 * r), np.float32)
-        for y in range(hb + 2 * r):
-            for x in range(wb + 2 * r):
-                white[y, x] = np.float32(normal_draw(keys[2], y * (wb + 2 * r) + x, xs, fs))
-        tmp = np.zeros((hb, wb + 2 * r), np.float32)
+        # columns, then the rows; each computed only where the field at an object pixel reads
+        # it (row y of the box reads the columns of its object span widened by 2r of the white
+        # noise's rows y .. y + 2r), the same sums in the same order
+        wr = wb + 2 * r
+        white_lo = np.full(hb + 2 * r, wr, np.int64)
+        white_hi = np.zeros(hb + 2 * r, np.int64)
         for y in range(hb):
-            dst = tmp[y]
+            a, b = row_lo[vb0 + y] - ub0, row_hi[vb0 + y] - ub0 + 2 * r
+            if a < b:
+                for j in range(2 * r + 1):
+                    white_lo[y + j] = min(white_lo[y + j], a)
+                    white_hi[y + j] = max(white_hi[y + j], b)
+        white = np.empty((hb + 2 * r, wr), np.float32)
+        for y in range(hb + 2 * r):
+            for x in range(white_lo[y], white_hi[y]):
+                white[y, x] = np.float32(normal_draw(keys[2], y * wr + x, xs, fs))
+        tmp = np.empty((hb, wr), np.float32)
+        for y in range(hb):
+            a, b = row_lo[vb0 + y] - ub0, row_hi[vb0 + y] - ub0 + 2 * r
+            if a >= b:
+                continue
+            dst = tmp[y, a:b]
+            dst[:] = 0.0
             for j in range(2 * r + 1):
                 wj = np.float32(weights[j])
-                src = white[y + j]
-                for x in range(wb + 2 * r):
+                src = white[y + j, a:b]
+                for x in range(b - a):
                     dst[x] += wj * src[x]
         for y in range(hb):
-            src = tmp[y]
-            dst = sm[y]
+            a, b = row_lo[vb0 + y] - ub0, row_hi[vb0 + y] - ub0
+            if a >= b:
+                continue
+            dst = sm[y, a:b]
+            dst[:] = 0.0
             for j in range(2 * r + 1):
                 wj = np.float32(weights[j])
-                for x in range(wb):
-                    dst[x] += wj * src[x + j]
+                src = tmp[y, a + j : b + j]
+                for x in range(b - a):
+                    dst[x] += wj * src[x]
         # the exact edge distance over the objects' box and the ring around it
         lab = np.empty((ev1 - ev0, eu1 - eu0), np.int64)
         for y in range(ev0, ev1):
             for x in range(eu0, eu1):
                 lab[y - ev0, x - eu0] = index[y, x]
         dist2 = edge_squared_distance(lab)
-        # tables for a sufficient test of "the field keeps the reading": Phi(z) from below on
-        # a grid of z <= 0, the grazing term from above on a grid of cosines, the edge term by
+        # tables for sufficient tests of "the field keeps the reading" and of "it drops it":
+        # Phi(z) from below on a grid of z <= 0 and from above on a grid of z in [-10, 10],
+        # the grazing term from above and from below on a grid of cosines, the edge term by
         # the integer squared distance (filled as met); the exact test where they do not decide
         for k in range(641):
             phi_low[k] = 0.5 * math.erfc(k / 64.0 / math.sqrt(2.0)) * (1.0 - 1e-9)
+        for k in range(1281):
+            phi_high[k] = 0.5 * math.erfc(-(k - 640) / 64.0 / math.sqrt(2.0)) * (1.0 + 1e-9)
         for k in range(257):
             xk = min(max((k / 256.0 - graze_cos) / graze_width, -50.0), 50.0)
             graze_high[k] = 1.0 / (1.0 + math.exp(xk)) * (1.0 + 1e-9)
+            xk = min(max(((k + 1) / 256.0 - graze_cos) / graze_width, -50.0), 50.0)
+            graze_low[k] = 1.0 / (1.0 + math.exp(xk)) * (1.0 - 1e-9)
     k = 0
     for y in range(vb0, vb1):
         for x in range(ub0, ub1):
@@ -406,8 +437,15 @@ def scene_points(
                 q = (1.0 - p_edge) * (1.0 - rate[c])
                 zf = np.float64(sm[y - vb0, x - ub0]) / std
                 kz = 0 if zf >= 0.0 else math.ceil(-zf * 64.0)
-                sure = kz <= 640 and phi_low[kz] > 1.0 - q * (1.0 - graze_high[int(cos * 256.0)])
-                if not sure:  # Phi(zf) > an upper bound of p failed: the exact test
+                kc = int(cos * 256.0)
+                if kz <= 640 and phi_low[kz] > 1.0 - q * (1.0 - graze_high[kc]):
+                    pass  # Phi(zf) above an upper bound of p: kept
+                elif zf <= 10.0 and (
+                    phi_high[max(math.ceil(zf * 64.0), -640) + 640]
+                    < 1.0 - q * (1.0 - graze_low[kc]) - 1e-12
+                ):
+                    continue  # Phi(zf) below a lower bound of p: missing
+                else:  # the exact test
                     xg = min(max((cos - graze_cos) / graze_width, -50.0), 50.0)
                     p_graze = 1.0 / (1.0 + math.exp(xg))
                     p = 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - rate[c])
@@ -447,29 +485,96 @@ def edge_squared_distance(label):  # pragma: no cover - compiled
     """Squared pixels to the nearest pixel of another label, 0 on both sides of a boundary
     (inf everywhere without one): the exact transform of
     :func:`cloudpose.kernels.sensor.edge_distance_kernel` (whose distance is ``sqrt`` of this
-    + 1), by columns first (each pixel's nearest boundary pixel in its column, a sweep down
-    and one up, row after row) and then the lower envelope of parabolas along each row
-    (Felzenszwalb & Huttenlocher), all over contiguous rows."""
+    + 1). Columns first: each pixel's nearest boundary pixel in its column (a sweep down, row
+    after row, the boundary test of a whole row at once, and one up); then along each row the
+    lower envelope of the parabolas ``(x - p)^2 + f(p)`` (Felzenszwalb & Huttenlocher), in
+    integers (:func:`_row_envelope`). Every value is an integer below 2^53, so this is the
+    float transform's result exactly."""
     H, W = label.shape
-    g = np.empty((H, W))
+    none = np.int64(1) << 40  # a column without a boundary pixel
+    g = np.empty((H, W), np.int64)
+    bnd = np.empty(W, np.bool_)
     for y in range(H):
-        for x in range(W):
-            b = on_boundary(label, y, x, H, W)
-            g[y, x] = 0.0 if b else (g[y - 1, x] + 1.0 if y > 0 else np.inf)
+        cur = label[y]
+        bnd[0] = W > 1 and cur[1] != cur[0]
+        for x in range(1, W - 1):
+            bnd[x] = (cur[x - 1] != cur[x]) | (cur[x + 1] != cur[x])
+        if W > 1:
+            bnd[W - 1] = cur[W - 2] != cur[W - 1]
+        if y > 0:
+            up = label[y - 1]
+            for x in range(W):
+                bnd[x] |= up[x] != cur[x]
+        if y < H - 1:
+            down = label[y + 1]
+            for x in range(W):
+                bnd[x] |= down[x] != cur[x]
+        row = g[y]
+        if y > 0:
+            prev = g[y - 1]
+            for x in range(W):
+                row[x] = 0 if bnd[x] else min(prev[x] + 1, none)
+        else:
+            for x in range(W):
+                row[x] = 0 if bnd[x] else none
     for y in range(H - 2, -1, -1):
         up, below = g[y], g[y + 1]
         for x in range(W):
-            up[x] = min(up[x], below[x] + 1.0)
-    d = np.empty(W)
+            up[x] = min(up[x], below[x] + 1)
+    out = np.empty((H, W))
+    f = np.empty(W, np.int64)
     v = np.empty(W, np.int64)
-    z = np.empty(W + 1)
+    zn = np.empty(W + 1, np.int64)
+    zd = np.empty(W + 1, np.int64)
     for y in range(H):
         row = g[y]
         for x in range(W):
-            row[x] = row[x] * row[x]
-        _squared_distance_1d(row, d, v, z)
-        row[:] = d
-    return g
+            f[x] = -1 if row[x] >= none else row[x] * row[x]
+        _row_envelope(f, out[y], v, zn, zd)
+    return out
+
+
+@njit(cache=True)
+def _row_envelope(f, d, v, zn, zd):  # pragma: no cover - compiled
+    """``d[q] = min_p (q - p)^2 + f[p]`` over the ``p`` with ``f[p] >= 0`` (inf where there is
+    none): Felzenszwalb & Huttenlocher's lower envelope of parabolas, each intersection kept as
+    the fraction ``zn / zd`` (``zd > 0``) and compared by products, so no division.
+
+    Args:
+        f: (n,) int64 squared column distances, -1 = none.
+        d: (n,) float64 out.
+        v, zn, zd: scratch of (n,), (n + 1,), (n + 1,) int64.
+    """
+    n = f.shape[0]
+    k = -1
+    for q in range(n):
+        fq = f[q]
+        if fq < 0:
+            continue
+        if k < 0:
+            k = 0
+            v[0] = q
+            continue
+        while True:  # drop the parabolas the new one hides: s <= z[k] (z[0] = -inf)
+            p = v[k]
+            sn = (fq + q * q) - (f[p] + p * p)
+            sd = 2 * (q - p)
+            if k == 0 or sn * zd[k] > zn[k] * sd:
+                break
+            k -= 1
+        k += 1
+        v[k], zn[k], zd[k] = q, sn, sd
+    if k < 0:
+        for q in range(n):
+            d[q] = np.inf
+        return
+    last = k
+    k = 0
+    for q in range(n):
+        while k < last and zn[k + 1] < q * zd[k + 1]:
+            k += 1
+        dq = q - v[k]
+        d[q] = dq * dq + f[v[k]]
 
 
 @njit(cache=True)

@@ -72,6 +72,7 @@ process (:class:`OnlineStream` has worker processes make them ahead of the train
 
 from __future__ import annotations
 
+import functools
 import os
 import warnings
 from dataclasses import dataclass
@@ -190,13 +191,11 @@ def scene_points(
         (M, 3) float64 points, instance by instance (row-major within each), and (N + 1,)
         int64 offsets.
     """
-    model, dropout = NoiseModel(), REAL_DROPOUT
-    weights = _gaussian_weights(dropout.blob_sigma)
+    weights, std, rates, noise, drop = _sensor_constants()
     r = len(weights) // 2
     keys = rng.bit_generator.random_raw(3) if rng is not None else np.zeros(3, np.uint64)
-    rate = dropout.rate_table()[np.asarray(cls_ids, dtype=np.int64)]
-    std = _smoothed_std(float(dropout.blob_sigma))
-    Kinv = np.linalg.inv(Kw)
+    rate = rates[np.asarray(cls_ids, dtype=np.int64)]
+    Kinv = _inverse(np.ascontiguousarray(Kw, dtype=np.float64).tobytes())
     xs, fs = _ziggurat()
     if compiled:
         from cloudpose.kernels.scene_pass import scene_points as kernel
@@ -212,15 +211,8 @@ def scene_points(
             fs,
             weights,
             std,
-            (
-                model.sigma0,
-                model.sigma2,
-                model.focal_baseline,
-                model.subpixel,
-                model.edge_jump,
-                model.edge_flying,
-            ),
-            (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width),
+            noise,
+            drop,
             MAX_RANGE,
             float(radius),
             rng is not None,
@@ -228,6 +220,7 @@ def scene_points(
     from scipy import ndimage
     from scipy.special import ndtr
 
+    model, dropout = NoiseModel(), REAL_DROPOUT
     v, u = np.nonzero(index >= 0)
     m = len(v)
     inst = index[v, u]
@@ -249,6 +242,37 @@ def scene_points(
         p = dropout.probability(edge_distance(lab)[v, u], cos, np.asarray(cls_ids)[inst])
         reading[field < p] = 0.0
     return _cut_points_numpy(v, u, inst, reading, Kinv, len(cls_ids), radius)
+
+
+@functools.cache
+def _sensor_constants() -> tuple[np.ndarray, float, np.ndarray, tuple, tuple]:
+    """What every scene of :func:`scene_points` uses: the blob filter's weights and the
+    smoothed noise's standard deviation, the class rates (by class id), the sensor's and the
+    missing-depth model's parameters as the kernel takes them."""
+    model, dropout = NoiseModel(), REAL_DROPOUT
+    weights = _gaussian_weights(dropout.blob_sigma)
+    weights.flags.writeable = False
+    rates = dropout.rate_table()
+    rates.flags.writeable = False
+    noise = (
+        model.sigma0,
+        model.sigma2,
+        model.focal_baseline,
+        model.subpixel,
+        model.edge_jump,
+        model.edge_flying,
+    )
+    drop = (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width)
+    return weights, _smoothed_std(float(dropout.blob_sigma)), rates, noise, drop
+
+
+@functools.lru_cache(maxsize=4096)
+def _inverse(K: bytes) -> np.ndarray:
+    """(3, 3) read-only inverse of the float64 intrinsics ``K`` (its bytes: a box's, which
+    repeat from scene to scene)."""
+    Kinv = np.linalg.inv(np.frombuffer(K, dtype=np.float64).reshape(3, 3))
+    Kinv.flags.writeable = False
+    return Kinv
 
 
 def _ziggurat() -> tuple[np.ndarray, np.ndarray]:

@@ -169,23 +169,49 @@ def look_at_camera(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np
     """
     f = target - eye
     f = f / np.linalg.norm(f)
-    right = np.cross(f, [0.0, 0.0, 1.0])
+    right = _cross(f, np.array([0.0, 0.0, 1.0]))
     right /= np.linalg.norm(right)
-    down = np.cross(f, right)
+    down = _cross(f, right)
     R = np.stack([right, down, f])  # rows: camera axes in world coordinates
     c, s = np.cos(roll), np.sin(roll)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
     return np.concatenate([R, (-R @ eye)[:, None]], axis=1)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3,) ``np.cross`` of two (3,) vectors (its products and differences, without its
+    broadcasting machinery)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
 def _in_image_fraction(points_cam: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> float:
+    """Share of the (P, 3) camera-frame points in front of the camera that project into the
+    image; the compiled :func:`cloudpose.kernels.placement.count_in_image` where the kernels
+    are enabled (the same test), else :func:`_in_image_fraction_numpy`."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        return _in_image_fraction_numpy(points_cam, K, shape)
+    from cloudpose.kernels.placement import count_in_image
+
+    uvw = points_cam @ K.T
+    return count_in_image(points_cam, uvw, shape[0], shape[1]) / len(points_cam)
+
+
+def _in_image_fraction_numpy(
+    points_cam: np.ndarray, K: np.ndarray, shape: tuple[int, int]
+) -> float:
+    """The numpy twin of :func:`_in_image_fraction`."""
     z = points_cam[:, 2]
     front = z > 1e-3
     uvw = points_cam @ K.T
-    u = uvw[:, 0] / np.where(front, z, 1.0)
-    v = uvw[:, 1] / np.where(front, z, 1.0)
+    zf = np.where(front, z, 1.0)
+    u = uvw[:, 0] / zf
+    v = uvw[:, 1] / zf
     inside = front & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
-    return float(inside.mean())
+    return np.count_nonzero(inside) / len(inside)
 
 
 def _raster_cells(points_xy: np.ndarray, fill: bool) -> np.ndarray:
@@ -270,15 +296,59 @@ def _cell_keys(cells: np.ndarray) -> np.ndarray:
 
 
 def _member(keys: np.ndarray, of: np.ndarray) -> np.ndarray:
-    """(K,) bool: each of ``keys`` in ``of`` (``np.isin``, by a set: the same answer, without
-    sorting for the few dozen cells of a contact)."""
-    within = set(of.tolist())
-    return np.array([k in within for k in keys.tolist()], dtype=bool)
+    """(K,) bool: each of ``keys`` in ``of`` (``np.isin``'s answer, by a binary search of
+    ``of`` sorted; the caller keeps a support's keys sorted, so the sort is a pass)."""
+    of = np.sort(of)
+    if not len(of):
+        return np.zeros(len(keys), dtype=bool)
+    return of[np.minimum(np.searchsorted(of, keys), len(of) - 1)] == keys
 
 
 def _member_numpy(keys: np.ndarray, of: np.ndarray) -> np.ndarray:
     """The numpy twin of :func:`_member`."""
     return np.isin(keys, of)
+
+
+def _supports(contact: np.ndarray, xy_com: np.ndarray) -> bool:
+    """Whether ``xy_com`` (2,) lies inside the convex hull of the (K, 2) contact cells'
+    centres by :data:`STACK_MARGIN` (False where the cells are collinear). The compiled
+    :func:`cloudpose.kernels.placement.hull_margin` where the kernels are enabled and its
+    margin is farther than 1e-9 m from :data:`STACK_MARGIN` (qhull's facets give the same
+    margin to ~1e-16 m, so the same answer), else :func:`_supports_numpy`."""
+    from cloudpose.kernels.backend import enabled
+
+    if enabled():
+        from cloudpose.kernels.placement import hull_margin
+
+        cells = np.ascontiguousarray(contact, dtype=np.int64)
+        status, margin = hull_margin(cells, _GRID, float(xy_com[0]), float(xy_com[1]))
+        if status == 1:  # no area: qhull raises, or finds a sliver no point is inside by a margin
+            return False
+        if abs(margin - STACK_MARGIN) > 1e-9:
+            return margin >= STACK_MARGIN
+    return _supports_numpy(contact, xy_com)
+
+
+def _supports_numpy(contact: np.ndarray, xy_com: np.ndarray) -> bool:
+    """The twin of :func:`_supports`, by qhull's facet equations."""
+    try:
+        eq = ConvexHull((np.asarray(contact, dtype=np.float64) + 0.5) * _GRID).equations
+    except QhullError:  # collinear contact cells: a line, no support area
+        return False
+    return not -(eq[:, :2] @ xy_com + eq[:, 2]).max() < STACK_MARGIN
+
+
+def _column_means(points: np.ndarray) -> np.ndarray:
+    """(C,) ``np.mean(points, axis=0)`` of (P, C) float64 points: the compiled
+    :func:`cloudpose.kernels.placement.column_means` where the kernels are enabled (the same
+    sums in the same order)."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        return np.mean(points, axis=0)
+    from cloudpose.kernels.placement import column_means
+
+    return column_means(np.ascontiguousarray(points, dtype=np.float64))
 
 
 class _Support(NamedTuple):
@@ -316,8 +386,8 @@ def _try_stack(
         indices), or None.
     """
     bottom = local[local[:, 2] <= local[:, 2].min() + STACK_CONTACT, :2]
-    com = local.mean(axis=0)[:2]
-    tops: dict[int, np.ndarray] = {}  # the top cells of each support tried, as keys
+    com = _column_means(local)[:2]
+    tops: dict[int, np.ndarray] = {}  # the top cells of each support tried, as sorted keys
     for _ in range(tries):
         k = int(rng.integers(len(supports)))
         sup = supports[k]
@@ -326,15 +396,9 @@ def _try_stack(
         origin = xy_com - com
         contact = _raster_cells(bottom + origin, fill=False)
         if k not in tops:
-            tops[k] = _cell_keys(sup.top_cells)
-        contact = contact[_member(_cell_keys(contact), tops[k])].astype(np.float64)
-        if len(contact) < 3:
-            continue
-        try:
-            eq = ConvexHull((contact + 0.5) * _GRID).equations
-        except QhullError:  # collinear contact cells: a line, no support area
-            continue
-        if -(eq[:, :2] @ xy_com + eq[:, 2]).max() < STACK_MARGIN:
+            tops[k] = np.sort(_cell_keys(sup.top_cells))
+        contact = contact[_member(_cell_keys(contact), tops[k])]
+        if len(contact) < 3 or not _supports(contact, xy_com):
             continue
         foot = _raster_cells(local[:, :2] + origin, fill=True) + _GRID_HALF
         if (foot < 0).any() or (foot >= 2 * _GRID_HALF).any():
@@ -355,6 +419,7 @@ class _Layout:
             when stacking).
         placed_xy: (2,) table position of each placed object's origin, metres.
         poses: (class id, (3, 4) model->world pose) of each placed object.
+        points: (P, 3) model points of each placed object in the world frame, metres.
         supports: the objects on the table that nothing rests on yet (stacking only).
         resting_on: index of the object each placed one rests on, -1 = the table (stacking
             only).
@@ -364,13 +429,14 @@ class _Layout:
     height_map: np.ndarray
     placed_xy: list[np.ndarray]
     poses: list[tuple[int, np.ndarray]]
+    points: list[np.ndarray]
     supports: list[_Support]
     resting_on: list[int]
 
     @classmethod
     def empty(cls) -> _Layout:
         occupied = np.zeros((2 * _GRID_HALF, 2 * _GRID_HALF), dtype=bool)
-        return cls(occupied, np.zeros(occupied.shape), [], [], [], [])
+        return cls(occupied, np.zeros(occupied.shape), [], [], [], [], [])
 
     def raise_heights(self, cells: np.ndarray, top: float) -> None:
         """Mark the (C, 2) grid indices ``cells`` occupied, reaching at least ``top`` metres."""
@@ -408,6 +474,7 @@ def _stack_object(
     layout.resting_on.append(layout.supports.pop(k).index)
     layout.placed_xy.append(origin[:2])
     layout.poses.append((c, np.concatenate([R, origin[:, None]], axis=1)))
+    layout.points.append(local + origin)
     return True
 
 
@@ -427,7 +494,7 @@ def _slide_object(
     cells = _footprint_cells(local[:, :2])
     direction = rng.uniform(0.0, 2.0 * np.pi)
     gap = rng.exponential(GAP_MEAN) if rng.random() > FAR_SHARE else rng.uniform(*FAR_GAP)
-    anchor = np.mean(layout.placed_xy, axis=0) if layout.placed_xy else np.zeros(2)
+    anchor = _mean_xy(layout.placed_xy)
     step = np.array([np.cos(direction), np.sin(direction)])
     xy = _slide(cells, layout.occupied, anchor, step)
     if xy is None:
@@ -437,18 +504,30 @@ def _slide_object(
     if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any() or layout.occupied[ij[:, 0], ij[:, 1]].any():
         return
     pose = np.concatenate([R, np.array([*xy, rp.heights[s]])[:, None]], axis=1)
+    world = local + pose[:, 3]
     layout.placed_xy.append(xy)
     layout.poses.append((c, pose))
+    layout.points.append(world)
     if not stacking:
         layout.occupied[ij[:, 0], ij[:, 1]] = True
         return
     layout.raise_heights(ij, rp.heights_up[s])
-    world = local + pose[:, 3]
     top = world[world[:, 2] >= world[:, 2].max() - STACK_CONTACT, :2]
     layout.supports.append(
         _Support(len(layout.poses) - 1, float(world[:, 2].max()), _raster_cells(top, False))
     )
     layout.resting_on.append(-1)
+
+
+def _mean_xy(xy: list[np.ndarray]) -> np.ndarray:
+    """(2,) ``np.mean(xy, axis=0)`` of the (2,) positions (its sums row after row, divided by
+    their number), without building the array; (0, 0) for none."""
+    if not xy:
+        return np.zeros(2)
+    x, y = float(xy[0][0]), float(xy[0][1])
+    for p in xy[1:]:
+        x, y = x + float(p[0]), y + float(p[1])
+    return np.array([x / len(xy), y / len(xy)])
 
 
 def _place_objects(
@@ -475,13 +554,14 @@ def _place_objects(
 def _view_table(
     rng: np.random.Generator,
     objects: Scene,
-    models: dict[int, np.ndarray],
+    points: list[np.ndarray],
     K: np.ndarray,
     shape: tuple[int, int],
     tries: int = 20,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Draw a camera looking down at the placed ``objects`` (their camera fields unused) that
-    keeps at least ``N_OBJECTS[0]`` of them mostly in the image.
+    keeps at least ``N_OBJECTS[0]`` of them mostly in the image; ``points``: each object's
+    (P, 3) model points in the world frame (:attr:`_Layout.points`).
 
     Returns:
         ((3, 4) world->camera extrinsics, (3,) look-at point, (N,) bool objects kept: in the
@@ -499,11 +579,7 @@ def _view_table(
         world_to_camera = look_at_camera(eye, target, roll=np.deg2rad(rng.normal(0.0, 5.0)))
         Rc, tc = world_to_camera[:, :3], world_to_camera[:, 3]
         in_image = np.array(
-            [
-                _in_image_fraction((models[int(c)] @ P[:, :3].T + P[:, 3]) @ Rc.T + tc, K, shape)
-                >= MIN_IN_IMAGE
-                for c, P in zip(objects.cls_ids, objects.model_to_world, strict=True)
-            ]
+            [_in_image_fraction(p @ Rc.T + tc, K, shape) >= MIN_IN_IMAGE for p in points]
         )
         keep = objects.supported(in_image)  # what rests on an object out of the image goes too
         if keep.sum() >= N_OBJECTS[0]:
@@ -576,7 +652,7 @@ def sample_table_scene(
             [],
             np.array(layout.resting_on, dtype=np.int64) if stack_share > 0 else None,
         )
-        view = _view_table(rng, objects, models, K, shape)
+        view = _view_table(rng, objects, layout.points, K, shape)
         if view is None:
             continue
         world_to_camera, look_at, keep = view
