@@ -209,7 +209,7 @@ def test_hull_margin_is_qhulls():
     from cloudpose.kernels.placement import hull_margin
 
     rng = np.random.default_rng(8)
-    for t in range(2000):
+    for t in range(500):
         k = int(rng.integers(1, 40))
         if t % 8 == 0:  # on one line
             cells = rng.integers(-50, 50, 2) + np.outer(
@@ -269,6 +269,38 @@ def test_contact_membership_is_isin():
         np.testing.assert_array_equal(_member(keys, of), _member_numpy(keys, of))
 
 
+def test_top_contact_and_placed_cells_are_the_numpy_steps():
+    """The top surface, the contact with it and the final place of an object, compiled: the
+    numpy steps' cells, in their order, and the same answer on and off the grid."""
+    from cloudpose.data.synth import scenes as S
+    from cloudpose.kernels.backend import disabled
+
+    rng = np.random.default_rng(9)
+    n = 2 * S._GRID_HALF
+    for t in range(60):
+        pts = rng.normal(0.0, rng.uniform(0.005, 0.05), (int(rng.integers(1, 800)), 3))
+        pts = pts @ Rotation.random(random_state=t).as_matrix().T + [*rng.uniform(-0.3, 0.3, 2), 0]
+        top, z = S._top_cells(pts)
+        bottom = pts[pts[:, 2] <= pts[:, 2].min() + S.STACK_CONTACT, :2]
+        origin = rng.normal(0.0, 0.01, 2)
+        keys = np.sort(S._cell_keys(top))
+        contact = S._contact_cells(bottom, origin, keys)
+        occupied = rng.random((n, n)) < 0.001 * (t % 3)
+        cells = S._footprint_cells(pts[:, :2] - pts[:, :2].mean(axis=0))
+        xy = rng.normal(0.0, 0.2 if t % 5 else 0.9, 2)
+        ij, free = S._placed_cells(cells, occupied, xy)
+        with disabled():
+            top_n, z_n = S._top_cells(pts)
+            np.testing.assert_array_equal(top, top_n)
+            assert z == z_n
+            np.testing.assert_array_equal(contact, S._contact_cells(bottom, origin, keys))
+            ij_n, free_n = S._placed_cells(cells, occupied, xy)
+        np.testing.assert_array_equal(ij, ij_n)
+        assert free == free_n
+    empty = S._contact_cells(bottom, origin, np.zeros(0, np.int64))
+    assert empty.shape == (0, 2)
+
+
 # --------------------------------------------------------------------------- scene pass
 
 
@@ -295,3 +327,23 @@ def test_edge_squared_distance_is_brute_force():
                 grid = np.stack(np.meshgrid(np.arange(H), np.arange(W), indexing="ij"), -1)
                 want = ((grid[:, :, None, :] - yx[None, None]) ** 2).sum(-1).min(-1).astype(float)
             np.testing.assert_array_equal(edge_squared_distance(lab), want)
+
+
+def test_edge_squared_distance_over_each_rows_objects_is_exact_there():
+    """Version 3 runs the row envelopes over the columns of each row's object pixels only:
+    at every object pixel, the full transform's value (images whose objects touch the edge
+    included)."""
+    from cloudpose.kernels.scene_pass import _edge_squared_distance, edge_squared_distance
+
+    rng = np.random.default_rng(11)
+    for t in range(40):
+        H, W = rng.integers(1, 40, 2)
+        lab = rng.integers(-3, 3, (H // 3 + 1, W // 3 + 1))
+        lab = np.kron(lab, np.ones((3, 3), np.int64))[:H, :W]
+        lab = np.ascontiguousarray(np.where(rng.random((H, W)) < 0.05, -1, lab) if t % 2 else lab)
+        obj = lab >= 0
+        lo = np.where(obj.any(1), obj.argmax(1), W)
+        hi = np.where(obj.any(1), W - obj[:, ::-1].argmax(1), 0)
+        got = _edge_squared_distance(lab, lo, hi)
+        want = edge_squared_distance(lab)
+        np.testing.assert_array_equal(np.where(got[obj] < 0, np.inf, got[obj]), want[obj])

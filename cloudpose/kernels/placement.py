@@ -1,7 +1,8 @@
 """The table-scene sampler's hot loops (:func:`cloudpose.data.synth.scenes.sample_table_scene`),
-compiled: the slide of a new object towards its cluster, the footprint and contact rasters,
-the support test of a stacked object (its centre of mass inside the contact's convex hull),
-the mean of an object's points and the in-image test of a camera.
+compiled: the slide of a new object towards its cluster and the test of its final place, the
+footprint, top-surface and contact rasters, the support test of a stacked object (its centre
+of mass inside the contact's convex hull), the mean of an object's points and the in-image
+test of a camera.
 
 Each has a numpy twin in :mod:`cloudpose.data.synth.scenes` (the ``_numpy`` functions and
 qhull) and does the same float64 operations or an exact integer computation, so it gives the
@@ -19,10 +20,13 @@ from cloudpose.kernels.backend import njit
 __all__ = [
     "close_cells",
     "column_means",
+    "contact_cells",
     "count_in_image",
     "hull_margin",
+    "placed_cells",
     "raster_cells",
     "slide_steps",
+    "top_cells",
 ]
 
 
@@ -274,3 +278,88 @@ def count_in_image(cam, uvw, height, width):  # pragma: no cover - compiled
         if u >= 0 and u < width and v >= 0 and v < height:
             c += 1
     return c
+
+
+@njit(cache=True)
+def top_cells(points, contact, grid):  # pragma: no cover - compiled
+    """The top surface of a posed object: the cells (:func:`raster_cells`, closed, holes kept)
+    of the (P, 3) points within ``contact`` metres of the highest, and that height (the
+    selection ``points[points[:, 2] >= z.max() - contact, :2]``, in order).
+
+    Returns:
+        ((C, 2) int64 cells, the highest z, metres).
+    """
+    n = points.shape[0]
+    top = -np.inf
+    for i in range(n):
+        top = max(top, points[i, 2])
+    low = top - contact
+    m = 0
+    for i in range(n):
+        m += points[i, 2] >= low
+    xy = np.empty((m, 2))
+    m = 0
+    for i in range(n):
+        if points[i, 2] >= low:
+            xy[m, 0], xy[m, 1] = points[i, 0], points[i, 1]
+            m += 1
+    return raster_cells(xy, grid, False), top
+
+
+@njit(cache=True)
+def contact_cells(bottom, origin, grid, of):  # pragma: no cover - compiled
+    """The cells of a resting face moved by ``origin`` that are also cells of a support's top:
+    :func:`raster_cells` of the (P, 2) ``bottom + origin`` (closed, holes kept), less the
+    cells whose key (:func:`cloudpose.data.synth.scenes._cell_keys`) is not in the sorted
+    int64 keys ``of``, in order.
+
+    Returns:
+        (C, 2) int64 cells.
+    """
+    n = bottom.shape[0]
+    pts = np.empty((n, 2))
+    for i in range(n):
+        pts[i, 0], pts[i, 1] = bottom[i, 0] + origin[0], bottom[i, 1] + origin[1]
+    cells = raster_cells(pts, grid, False)
+    keep = np.zeros(cells.shape[0], np.bool_)
+    m = 0
+    if of.shape[0] > 0:
+        for i in range(cells.shape[0]):
+            key = (cells[i, 0] + (1 << 20)) * (1 << 21) + (cells[i, 1] + (1 << 20))
+            j = np.searchsorted(of, key)
+            keep[i] = j < of.shape[0] and of[j] == key
+            m += keep[i]
+    out = np.empty((m, 2), np.int64)
+    m = 0
+    for i in range(cells.shape[0]):
+        if keep[i]:
+            out[m, 0], out[m, 1] = cells[i, 0], cells[i, 1]
+            m += 1
+    return out
+
+
+@njit(cache=True)
+def placed_cells(cells, occupied, xy, grid, half):  # pragma: no cover - compiled
+    """The grid indices of the footprint ``cells`` of an object at ``xy`` (2,) metres,
+    ``cells + floor(xy / grid) + half``, and whether they are all on the (2 half)^2 grid
+    and free.
+
+    Returns:
+        ((C, 2) int64 indices, bool).
+    """
+    n = 2 * half
+    off0 = np.int64(math.floor(xy[0] / grid)) + half
+    off1 = np.int64(math.floor(xy[1] / grid)) + half
+    ij = np.empty_like(cells)
+    ok = True
+    for c in range(cells.shape[0]):
+        i, j = cells[c, 0] + off0, cells[c, 1] + off1
+        ij[c, 0], ij[c, 1] = i, j
+        if i < 0 or j < 0 or i >= n or j >= n:
+            ok = False
+    if ok:
+        for c in range(cells.shape[0]):
+            if occupied[ij[c, 0], ij[c, 1]]:
+                ok = False
+                break
+    return ij, ok

@@ -336,7 +336,7 @@ def scene_points(
     sm = np.empty((hb, wb), np.float32)  # the smoothed field, on each row's object span
     ev0, ev1 = max(vb0 - 1, 0), min(vb1 + 1, h)
     eu0, eu1 = max(ub0 - 1, 0), min(ub1 + 1, w)
-    dist2 = np.zeros((max(ev1 - ev0, 0), max(eu1 - eu0, 0)))
+    dist2 = np.zeros((max(ev1 - ev0, 0), max(eu1 - eu0, 0)), np.int32)
     phi_low = np.empty(641)
     phi_high = np.empty(1281)
     graze_high = np.empty(257)
@@ -384,11 +384,10 @@ def scene_points(
                 for x in range(b - a):
                     dst[x] += wj * src[x]
         # the exact edge distance over the objects' box and the ring around it
-        lab = np.empty((ev1 - ev0, eu1 - eu0), np.int64)
-        for y in range(ev0, ev1):
-            for x in range(eu0, eu1):
-                lab[y - ev0, x - eu0] = index[y, x]
-        dist2 = edge_squared_distance(lab)
+        # (at the object pixels only: along each row, over the columns of its object pixels)
+        dist2 = _edge_squared_distance(
+            index[ev0:ev1, eu0:eu1], row_lo[ev0:ev1] - eu0, row_hi[ev0:ev1] - eu0
+        )
         # tables for sufficient tests of "the field keeps the reading" and of "it drops it":
         # Phi(z) from below on a grid of z <= 0 and from above on a grid of z in [-10, 10],
         # the grazing term from above and from below on a grid of cosines, the edge term by
@@ -425,15 +424,19 @@ def scene_points(
                 if not zi > 0 or rd <= 0 or rd > max_range:
                     continue
                 d2 = dist2[y - ev0, x - eu0]
-                if d2 < 4096:
+                if 0 <= d2 < 4096:
                     key = int(d2)
                     if edge_table[key] < 0:
                         edge_table[key] = edge_rate * math.exp(
-                            -(math.sqrt(d2) + 1.0 - 1.0) / edge_scale
+                            -(math.sqrt(np.float64(d2)) + 1.0 - 1.0) / edge_scale
                         )
                     p_edge = edge_table[key]
+                elif d2 < 0:  # no boundary in the box: an infinite distance
+                    p_edge = 0.0
                 else:
-                    p_edge = edge_rate * math.exp(-(math.sqrt(d2) + 1.0 - 1.0) / edge_scale)
+                    p_edge = edge_rate * math.exp(
+                        -(math.sqrt(np.float64(d2)) + 1.0 - 1.0) / edge_scale
+                    )
                 q = (1.0 - p_edge) * (1.0 - rate[c])
                 zf = np.float64(sm[y - vb0, x - ub0]) / std
                 kz = 0 if zf >= 0.0 else math.ceil(-zf * 64.0)
@@ -485,14 +488,33 @@ def edge_squared_distance(label):  # pragma: no cover - compiled
     """Squared pixels to the nearest pixel of another label, 0 on both sides of a boundary
     (inf everywhere without one): the exact transform of
     :func:`cloudpose.kernels.sensor.edge_distance_kernel` (whose distance is ``sqrt`` of this
-    + 1). Columns first: each pixel's nearest boundary pixel in its column (a sweep down, row
-    after row, the boundary test of a whole row at once, and one up); then along each row the
-    lower envelope of the parabolas ``(x - p)^2 + f(p)`` (Felzenszwalb & Huttenlocher), in
-    integers (:func:`_row_envelope`). Every value is an integer below 2^53, so this is the
-    float transform's result exactly."""
+    + 1), as float64 (:func:`_edge_squared_distance`'s integers over every row)."""
     H, W = label.shape
-    none = np.int64(1) << 40  # a column without a boundary pixel
-    g = np.empty((H, W), np.int64)
+    d = _edge_squared_distance(label, np.zeros(H, np.int64), np.full(H, W, np.int64))
+    out = np.empty(d.shape)
+    for y in range(d.shape[0]):
+        for x in range(d.shape[1]):
+            out[y, x] = np.inf if d[y, x] < 0 else np.float64(d[y, x])
+    return out
+
+
+@njit(cache=True)
+def _edge_squared_distance(label, lo, hi):  # pragma: no cover - compiled
+    """(H, W) int32 squared pixels from each pixel of the (H, W) label image to the nearest
+    pixel with a 4-neighbour of another label, -1 where there is none: exact at the pixels
+    of columns ``[lo[y], hi[y])`` of each row y whose run of one label (along the row) lies
+    within those columns, undefined elsewhere.
+
+    Columns first: each pixel's nearest boundary pixel in its column (a sweep down, row after
+    row, the boundary test of a whole row at once, and one up); then along each row the lower
+    envelope of the parabolas ``(x - p)^2 + f(p)`` over the columns ``[lo[y], hi[y])``
+    (Felzenszwalb & Huttenlocher), in integers (:func:`_row_envelope`), so the values are
+    exact. Why the columns suffice: a pixel's run [a, b] ends at boundary pixels (except at
+    the image's edge), the nearer at distance D; its nearest boundary pixel lies within D of
+    it, so its column lies in [x - D, x + D], within [a, b] (or past the edge)."""
+    H, W = label.shape
+    none = np.int32(1 << 30)  # a column without a boundary pixel
+    g = np.empty((H, W), np.int32)
     bnd = np.empty(W, np.bool_)
     for y in range(H):
         cur = label[y]
@@ -521,28 +543,31 @@ def edge_squared_distance(label):  # pragma: no cover - compiled
         up, below = g[y], g[y + 1]
         for x in range(W):
             up[x] = min(up[x], below[x] + 1)
-    out = np.empty((H, W))
     f = np.empty(W, np.int64)
     v = np.empty(W, np.int64)
     zn = np.empty(W + 1, np.int64)
     zd = np.empty(W + 1, np.int64)
     for y in range(H):
+        a, b = lo[y], hi[y]
+        if a >= b:
+            continue
         row = g[y]
-        for x in range(W):
-            f[x] = -1 if row[x] >= none else row[x] * row[x]
-        _row_envelope(f, out[y], v, zn, zd)
-    return out
+        for x in range(a, b):
+            c = np.int64(row[x])
+            f[x - a] = -1 if c >= none else c * c
+        _row_envelope(f[: b - a], row[a:b], v, zn, zd)
+    return g
 
 
 @njit(cache=True)
 def _row_envelope(f, d, v, zn, zd):  # pragma: no cover - compiled
-    """``d[q] = min_p (q - p)^2 + f[p]`` over the ``p`` with ``f[p] >= 0`` (inf where there is
+    """``d[q] = min_p (q - p)^2 + f[p]`` over the ``p`` with ``f[p] >= 0`` (-1 where there is
     none): Felzenszwalb & Huttenlocher's lower envelope of parabolas, each intersection kept as
     the fraction ``zn / zd`` (``zd > 0``) and compared by products, so no division.
 
     Args:
         f: (n,) int64 squared column distances, -1 = none.
-        d: (n,) float64 out.
+        d: (n,) int32 out.
         v, zn, zd: scratch of (n,), (n + 1,), (n + 1,) int64.
     """
     n = f.shape[0]
@@ -566,7 +591,7 @@ def _row_envelope(f, d, v, zn, zd):  # pragma: no cover - compiled
         v[k], zn[k], zd[k] = q, sn, sd
     if k < 0:
         for q in range(n):
-            d[q] = np.inf
+            d[q] = -1
         return
     last = k
     k = 0
@@ -657,30 +682,29 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
             # visited when a point may get closer (margin 1e-6 >> float32 rounding of a
             # squared distance)
             visit[c] = (dx * dx + dy * dy + dz * dz) * (1.0 - 1e-6) <= cmax[c]
-        for q in range(nu):
-            c = used[q]
-            if not visit[c]:
-                continue
-            a, b = cstart[c], cstart[c + 1]
-            top = np.float32(-1.0)
-            for j in range(a, b):  # one vector loop: the new distances and their largest
-                ex = QX[j] - px
-                ey = QY[j] - py
-                ez = QZ[j] - pz
-                d = min(near[j], ex * ex + ey * ey + ez * ez)
-                near[j] = d
-                top = max(top, d)
-            best = b - 1
-            while near[best] != top:  # ascending index within a cell: ties to the last
-                best -= 1
-            cmax[c] = top
-            carg[c] = best
+        nxt = cur  # the next sample: the farthest point, ties to the highest index
         best_v = np.float32(-1.0)
         for q in range(nu):
             c = used[q]
-            if cmax[c] > best_v or (cmax[c] == best_v and index[carg[c]] > index[cur]):
+            if visit[c]:
+                a, b = cstart[c], cstart[c + 1]
+                top = np.float32(-1.0)
+                for j in range(a, b):  # one vector loop: the new distances and their largest
+                    ex = QX[j] - px
+                    ey = QY[j] - py
+                    ez = QZ[j] - pz
+                    d = min(near[j], ex * ex + ey * ey + ez * ez)
+                    near[j] = d
+                    top = max(top, d)
+                best = b - 1
+                while near[best] != top:  # ascending index within a cell: ties to the last
+                    best -= 1
+                cmax[c] = top
+                carg[c] = best
+            if cmax[c] > best_v or (cmax[c] == best_v and index[carg[c]] > index[nxt]):
                 best_v = cmax[c]
-                cur = carg[c]
+                nxt = carg[c]
+        cur = nxt
     return out
 
 

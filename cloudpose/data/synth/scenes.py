@@ -309,6 +309,26 @@ def _member_numpy(keys: np.ndarray, of: np.ndarray) -> np.ndarray:
     return np.isin(keys, of)
 
 
+def _contact_cells(bottom: np.ndarray, origin: np.ndarray, top_keys: np.ndarray) -> np.ndarray:
+    """(C, 2) the cells of the (P, 2) resting face ``bottom`` moved by ``origin`` (2,) that
+    are cells of a support's top (their keys, :func:`_cell_keys`, sorted: ``top_keys``), in
+    raster order; the compiled :func:`cloudpose.kernels.placement.contact_cells` where the
+    kernels are enabled (the same cells)."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        contact = _raster_cells(bottom + origin, fill=False)
+        return contact[_member(_cell_keys(contact), top_keys)]
+    from cloudpose.kernels.placement import contact_cells
+
+    return contact_cells(
+        np.ascontiguousarray(bottom, dtype=np.float64),
+        np.asarray(origin, dtype=np.float64),
+        _GRID,
+        np.ascontiguousarray(top_keys, dtype=np.int64),
+    )
+
+
 def _supports(contact: np.ndarray, xy_com: np.ndarray) -> bool:
     """Whether ``xy_com`` (2,) lies inside the convex hull of the (K, 2) contact cells'
     centres by :data:`STACK_MARGIN` (False where the cells are collinear). The compiled
@@ -394,10 +414,9 @@ def _try_stack(
         cell = sup.top_cells[rng.integers(len(sup.top_cells))]
         xy_com = (cell + rng.random(2)) * _GRID
         origin = xy_com - com
-        contact = _raster_cells(bottom + origin, fill=False)
         if k not in tops:
             tops[k] = np.sort(_cell_keys(sup.top_cells))
-        contact = contact[_member(_cell_keys(contact), tops[k])]
+        contact = _contact_cells(bottom, origin, tops[k])
         if len(contact) < 3 or not _supports(contact, xy_com):
             continue
         foot = _raster_cells(local[:, :2] + origin, fill=True) + _GRID_HALF
@@ -478,6 +497,40 @@ def _stack_object(
     return True
 
 
+def _placed_cells(
+    cells: np.ndarray, occupied: np.ndarray, xy: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """The grid indices (C, 2) of the footprint ``cells`` of an object at ``xy`` (2,) metres,
+    and whether they are all on the grid and free of ``occupied``; the compiled
+    :func:`cloudpose.kernels.placement.placed_cells` where the kernels are enabled (the same
+    indices and answer)."""
+    from cloudpose.kernels.backend import enabled
+
+    if enabled():
+        from cloudpose.kernels.placement import placed_cells
+
+        return placed_cells(cells, occupied, np.asarray(xy, dtype=np.float64), _GRID, _GRID_HALF)
+    ij = cells + np.floor(xy / _GRID).astype(np.int64) + _GRID_HALF
+    off = (ij < 0).any() or (ij >= 2 * _GRID_HALF).any()
+    return ij, not (off or occupied[ij[:, 0], ij[:, 1]].any())
+
+
+def _top_cells(world: np.ndarray) -> tuple[np.ndarray, float]:
+    """The top surface of a posed object's (P, 3) world points: the cells (closed, holes kept)
+    of the points within :data:`STACK_CONTACT` of the highest, and that height, metres; the
+    compiled :func:`cloudpose.kernels.placement.top_cells` where the kernels are enabled (the
+    same cells)."""
+    from cloudpose.kernels.backend import enabled
+
+    if not enabled():
+        z = world[:, 2].max()
+        return _raster_cells(world[world[:, 2] >= z - STACK_CONTACT, :2], False), float(z)
+    from cloudpose.kernels.placement import top_cells
+
+    cells, z = top_cells(np.ascontiguousarray(world, dtype=np.float64), STACK_CONTACT, _GRID)
+    return cells, float(z)
+
+
 def _slide_object(
     rng: np.random.Generator,
     layout: _Layout,
@@ -500,8 +553,8 @@ def _slide_object(
     if xy is None:
         return
     xy = xy + step * gap
-    ij = cells + np.floor(xy / _GRID).astype(np.int64) + _GRID_HALF
-    if (ij < 0).any() or (ij >= 2 * _GRID_HALF).any() or layout.occupied[ij[:, 0], ij[:, 1]].any():
+    ij, free = _placed_cells(cells, layout.occupied, xy)
+    if not free:
         return
     pose = np.concatenate([R, np.array([*xy, rp.heights[s]])[:, None]], axis=1)
     world = local + pose[:, 3]
@@ -512,10 +565,8 @@ def _slide_object(
         layout.occupied[ij[:, 0], ij[:, 1]] = True
         return
     layout.raise_heights(ij, rp.heights_up[s])
-    top = world[world[:, 2] >= world[:, 2].max() - STACK_CONTACT, :2]
-    layout.supports.append(
-        _Support(len(layout.poses) - 1, float(world[:, 2].max()), _raster_cells(top, False))
-    )
+    top_cells, top_z = _top_cells(world)
+    layout.supports.append(_Support(len(layout.poses) - 1, top_z, top_cells))
     layout.resting_on.append(-1)
 
 
