@@ -313,12 +313,11 @@ def _contact_cells(bottom: np.ndarray, origin: np.ndarray, top_keys: np.ndarray)
     """(C, 2) the cells of the (P, 2) resting face ``bottom`` moved by ``origin`` (2,) that
     are cells of a support's top (their keys, :func:`_cell_keys`, sorted: ``top_keys``), in
     raster order; the compiled :func:`cloudpose.kernels.placement.contact_cells` where the
-    kernels are enabled (the same cells)."""
+    kernels are enabled (the same cells), else :func:`_contact_cells_numpy`."""
     from cloudpose.kernels.backend import enabled
 
     if not enabled():
-        contact = _raster_cells(bottom + origin, fill=False)
-        return contact[_member(_cell_keys(contact), top_keys)]
+        return _contact_cells_numpy(bottom, origin, top_keys)
     from cloudpose.kernels.placement import contact_cells
 
     return contact_cells(
@@ -327,6 +326,14 @@ def _contact_cells(bottom: np.ndarray, origin: np.ndarray, top_keys: np.ndarray)
         _GRID,
         np.ascontiguousarray(top_keys, dtype=np.int64),
     )
+
+
+def _contact_cells_numpy(
+    bottom: np.ndarray, origin: np.ndarray, top_keys: np.ndarray
+) -> np.ndarray:
+    """The numpy twin of :func:`_contact_cells`."""
+    contact = _raster_cells(bottom + origin, fill=False)
+    return contact[_member(_cell_keys(contact), top_keys)]
 
 
 def _supports(contact: np.ndarray, xy_com: np.ndarray) -> bool:
@@ -361,14 +368,19 @@ def _supports_numpy(contact: np.ndarray, xy_com: np.ndarray) -> bool:
 def _column_means(points: np.ndarray) -> np.ndarray:
     """(C,) ``np.mean(points, axis=0)`` of (P, C) float64 points: the compiled
     :func:`cloudpose.kernels.placement.column_means` where the kernels are enabled (the same
-    sums in the same order)."""
+    sums in the same order), else :func:`_column_means_numpy`."""
     from cloudpose.kernels.backend import enabled
 
     if not enabled():
-        return np.mean(points, axis=0)
+        return _column_means_numpy(points)
     from cloudpose.kernels.placement import column_means
 
     return column_means(np.ascontiguousarray(points, dtype=np.float64))
+
+
+def _column_means_numpy(points: np.ndarray) -> np.ndarray:
+    """The numpy twin of :func:`_column_means`."""
+    return np.mean(points, axis=0)
 
 
 class _Support(NamedTuple):
@@ -503,13 +515,20 @@ def _placed_cells(
     """The grid indices (C, 2) of the footprint ``cells`` of an object at ``xy`` (2,) metres,
     and whether they are all on the grid and free of ``occupied``; the compiled
     :func:`cloudpose.kernels.placement.placed_cells` where the kernels are enabled (the same
-    indices and answer)."""
+    indices and answer), else :func:`_placed_cells_numpy`."""
     from cloudpose.kernels.backend import enabled
 
-    if enabled():
-        from cloudpose.kernels.placement import placed_cells
+    if not enabled():
+        return _placed_cells_numpy(cells, occupied, xy)
+    from cloudpose.kernels.placement import placed_cells
 
-        return placed_cells(cells, occupied, np.asarray(xy, dtype=np.float64), _GRID, _GRID_HALF)
+    return placed_cells(cells, occupied, np.asarray(xy, dtype=np.float64), _GRID, _GRID_HALF)
+
+
+def _placed_cells_numpy(
+    cells: np.ndarray, occupied: np.ndarray, xy: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """The numpy twin of :func:`_placed_cells`."""
     ij = cells + np.floor(xy / _GRID).astype(np.int64) + _GRID_HALF
     off = (ij < 0).any() or (ij >= 2 * _GRID_HALF).any()
     return ij, not (off or occupied[ij[:, 0], ij[:, 1]].any())
@@ -519,16 +538,21 @@ def _top_cells(world: np.ndarray) -> tuple[np.ndarray, float]:
     """The top surface of a posed object's (P, 3) world points: the cells (closed, holes kept)
     of the points within :data:`STACK_CONTACT` of the highest, and that height, metres; the
     compiled :func:`cloudpose.kernels.placement.top_cells` where the kernels are enabled (the
-    same cells)."""
+    same cells), else :func:`_top_cells_numpy`."""
     from cloudpose.kernels.backend import enabled
 
     if not enabled():
-        z = world[:, 2].max()
-        return _raster_cells(world[world[:, 2] >= z - STACK_CONTACT, :2], False), float(z)
+        return _top_cells_numpy(world)
     from cloudpose.kernels.placement import top_cells
 
     cells, z = top_cells(np.ascontiguousarray(world, dtype=np.float64), STACK_CONTACT, _GRID)
     return cells, float(z)
+
+
+def _top_cells_numpy(world: np.ndarray) -> tuple[np.ndarray, float]:
+    """The numpy twin of :func:`_top_cells`."""
+    z = world[:, 2].max()
+    return _raster_cells(world[world[:, 2] >= z - STACK_CONTACT, :2], False), float(z)
 
 
 def _slide_object(
