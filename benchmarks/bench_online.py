@@ -90,15 +90,27 @@ def _synthesis_rate(batches: int) -> dict:
 @contextlib.contextmanager
 def _numpy_sampler(on: bool):
     """Within the block (when ``on``), the table-scene sampler runs its numpy twins (the slide
-    loop, the footprint rasters, closing and hole filling, the contact cells' membership), as
-    before it was compiled: the same scenes, the time the sampler took before. Version 1 is
+    loop, the footprint rasters, closing and hole filling, the contact cells and their
+    membership, the support test, the top surface, the placed cells, the points' means and
+    in-image share), as before they were compiled: the same scenes, the time the sampler took before. Version 1 is
     timed so: its stage times are the ones before."""
     from cloudpose.data.synth import scenes
 
     if not on:
         yield
         return
-    names = ("_slide", "_close", "_raster_cells", "_member")
+    names = (
+        "_slide",
+        "_close",
+        "_raster_cells",
+        "_member",
+        "_supports",
+        "_contact_cells",
+        "_column_means",
+        "_placed_cells",
+        "_top_cells",
+        "_in_image_fraction",
+    )
     saved = [getattr(scenes, k) for k in names]
     for k in names:
         setattr(scenes, k, getattr(scenes, f"{k}_numpy"))
