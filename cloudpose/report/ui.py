@@ -455,23 +455,9 @@ def dead_reason(
 def _folder_locked(run_dir: str | None, store: str | None = None) -> bool:
     """Whether a process on this machine holds the lock of run folder ``run_dir`` (a relative
     one under the folder of the SQLite store ``store``: :func:`tracking.store_path`)."""
-    from filelock import FileLock, Timeout
+    from cloudpose.store.runs import folder_locked
 
-    from cloudpose.store.runs import lock_path
-
-    folder = tracking.store_path(run_dir, store) if run_dir else None
-    if folder is None or not folder.is_dir():
-        return False
-    path = lock_path(folder)
-    if not path.exists():
-        return False
-    lock = FileLock(str(path))
-    try:
-        lock.acquire(timeout=0)
-    except Timeout:
-        return True
-    lock.release()
-    return False
+    return folder_locked(tracking.store_path(run_dir, store) if run_dir else None)
 
 
 def _last_activity(client, run) -> int:

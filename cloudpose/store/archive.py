@@ -190,21 +190,9 @@ def _relative_run_dirs(db: Path, project: Path | None = None) -> None:
 def _folder_locked(run_dir: str, project: Path) -> bool:
     """Whether a process on this machine holds the lock of the run folder ``run_dir`` (a
     relative one under ``project``): it trains."""
-    from filelock import FileLock, Timeout
+    from cloudpose.store.runs import folder_locked
 
-    from cloudpose.store.runs import lock_path
-
-    folder = Path(run_dir) if Path(run_dir).is_absolute() else project / run_dir
-    path = lock_path(folder)
-    if not folder.is_dir() or not path.exists():
-        return False
-    lock = FileLock(str(path))
-    try:
-        lock.acquire(timeout=0)
-    except Timeout:
-        return True
-    lock.release()
-    return False
+    return folder_locked(Path(run_dir) if Path(run_dir).is_absolute() else project / run_dir)
 
 
 def _utc(ms: int) -> str:

@@ -268,6 +268,25 @@ def lock_path(folder: Path) -> Path:
     return folder.parent / f".{folder.name}.lock"
 
 
+def folder_locked(folder: Path | None) -> bool:
+    """Whether a process on this machine holds the lock of run folder ``folder`` (it trains);
+    False for no folder, one that does not exist, or one without a lock file."""
+    from filelock import FileLock, Timeout
+
+    if folder is None or not Path(folder).is_dir():
+        return False
+    path = lock_path(folder)
+    if not path.exists():
+        return False
+    lock = FileLock(str(path))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        return True
+    lock.release()
+    return False
+
+
 @contextlib.contextmanager
 def run_lock(folder: Path) -> Iterator[None]:
     """Hold the run folder's lock: one process at a time trains (or restores) a run on this
