@@ -109,7 +109,7 @@ def test_runs_on_keys_of_the_same_data_are_pooled_and_found(store, tmp_path, mon
     with pytest.warns(UserWarning, match="1 finished run"):
         assert load_runs("smoke", data_key="cccc", client=client).data_key == "aaaa"
     found = tracking.find_runs(client, variant="shared-0", seed=1, data="aaaa")
-    assert [r.info.run_id for r in found][0] == newer and len(found) == 2
+    assert found[0].info.run_id == newer and len(found) == 2
     assert [r.data.tags["data"] for r in tracking.find_runs(client, data="bbbb")] == ["bbbb"]
 
 

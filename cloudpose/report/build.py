@@ -415,11 +415,12 @@ def _remove_local_artifacts(path: Path | None) -> None:
 def budget_words(preset: str) -> str:
     """A preset's training budget in words: Adam steps, batch and distinct on-line segments."""
     from cloudpose.registry import resolve
+    from cloudpose.train.loop import online_epoch_steps
 
     cfg = resolve(preset=preset)
     batch = cfg.train.batch_size
     if cfg.data.train_source != "online":
         return f"{cfg.train.epochs} epochs of batch {batch} on rendered frames"
-    steps = cfg.train.epochs * cfg.data.online_epoch_segments // batch
+    steps = cfg.train.epochs * online_epoch_steps(cfg)
     distinct = steps * batch // cfg.data.online_reuse
     return f"{steps:,} Adam steps of batch {batch}, {distinct:,} distinct on-line segments"
