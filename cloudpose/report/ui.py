@@ -59,11 +59,12 @@ import warnings
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from urllib.parse import quote
 
 from cloudpose.data.keys import same_data
 from cloudpose.store import tracking
+from cloudpose.store.archive import relative_run_dir
 from cloudpose.store.headline import HEADLINE, headline
 
 COLUMNS: dict[str, str] = {
@@ -505,22 +506,6 @@ def _config_key(run) -> tuple:
 
 
 # -- paths ------------------------------------------------------------------------------------
-
-
-def relative_run_dir(value: str, project: Path, exists=Path.exists) -> str | None:
-    """The ``run_dir`` tag to write instead of ``value``, or None to keep it: a folder inside
-    ``project`` relative to it; one that is not on this machine (``exists``) the run folder's
-    place in this project, ``runs/{variant}/{preset}/{folder}`` (its last three parts)."""
-    path = Path(value)
-    if not value or not path.is_absolute():
-        return None
-    try:
-        return str(PurePosixPath(path.relative_to(project)))
-    except ValueError:
-        pass
-    if exists(path) or len(path.parts) < 4:
-        return None
-    return str(PurePosixPath("runs", *path.parts[-3:]))
 
 
 # -- writing --------------------------------------------------------------------------------

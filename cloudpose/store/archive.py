@@ -45,7 +45,7 @@ import warnings
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from cloudpose.failures import disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write
@@ -159,11 +159,29 @@ RUN_DIR_TAG = "run_dir"
 """Tag of a training run: its run folder (``runs/VARIANT/PRESET/FOLDER`` of the project)."""
 
 
+def relative_run_dir(
+    value: str, project: Path | None, exists: Callable[[Path], bool] = Path.exists
+) -> str | None:
+    """The ``run_dir`` tag to write instead of ``value``, or None to keep it: a folder inside
+    ``project`` relative to it; one that is not on this machine (``exists``) the run folder's
+    place in this project, ``runs/{variant}/{preset}/{folder}`` (its last three parts)."""
+    path = Path(value)
+    if not value or not path.is_absolute():
+        return None
+    if project is not None:
+        with contextlib.suppress(ValueError):
+            return str(PurePosixPath(path.relative_to(project)))
+    if exists(path) or len(path.parts) < 4:
+        return None
+    return str(PurePosixPath("runs", *path.parts[-3:]))
+
+
 def _relative_run_dirs(db: Path, project: Path | None = None) -> None:
     """Write each absolute ``run_dir`` tag relative to the store's folder
-    (:func:`cloudpose.store.tracking.store_path` reads it there): a folder inside ``project``
-    (the folder of the store packed) relative to it, any other as the run folder's place in
-    the store's project, ``runs/VARIANT/PRESET/FOLDER`` (its last three parts)."""
+    (:func:`cloudpose.store.tracking.store_path` reads it there), by :func:`relative_run_dir`
+    with no run folder taken as on this machine: a folder inside ``project`` (the folder of the
+    store packed) relative to it, any other as its place in the store's project."""
+    project = project.resolve() if project is not None else None
     con = sqlite3.connect(db)
     try:
         with con:
@@ -171,13 +189,7 @@ def _relative_run_dirs(db: Path, project: Path | None = None) -> None:
                 "SELECT run_uuid, value FROM tags WHERE key = ?", (RUN_DIR_TAG,)
             ).fetchall()
             for run_id, value in rows:
-                path = Path(value or "")
-                rel = None
-                if path.is_absolute() and project is not None:
-                    with contextlib.suppress(ValueError):
-                        rel = path.relative_to(project.resolve()).as_posix()
-                if rel is None and path.is_absolute() and len(path.parts) >= 4:
-                    rel = "/".join(("runs", *path.parts[-3:]))
+                rel = relative_run_dir(value or "", project, exists=lambda _: False)
                 if rel is not None:
                     con.execute(
                         "UPDATE tags SET value = ? WHERE run_uuid = ? AND key = ?",
