@@ -31,7 +31,7 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
-from cloudpose.kernels.sensor import _ray
+from cloudpose.kernels.sensor import incidence_terms
 
 __all__ = [
     "edge_squared_distance",
@@ -242,20 +242,9 @@ def _geometry(clean, index, y, x, Kinv):  # pragma: no cover - compiled
         return best, 1.0
     if index[y - 1, x] != c or index[y + 1, x] != c or index[y, x - 1] != c or index[y, x + 1] != c:
         return best, 1.0
-    fx, fy = float(x), float(y)
-    gx0 = _ray(Kinv, 0, fx + 1, fy) * zr - _ray(Kinv, 0, fx - 1, fy) * zl
-    gx1 = _ray(Kinv, 1, fx + 1, fy) * zr - _ray(Kinv, 1, fx - 1, fy) * zl
-    gx2 = _ray(Kinv, 2, fx + 1, fy) * zr - _ray(Kinv, 2, fx - 1, fy) * zl
-    gy0 = _ray(Kinv, 0, fx, fy + 1) * zd - _ray(Kinv, 0, fx, fy - 1) * zu
-    gy1 = _ray(Kinv, 1, fx, fy + 1) * zd - _ray(Kinv, 1, fx, fy - 1) * zu
-    gy2 = _ray(Kinv, 2, fx, fy + 1) * zd - _ray(Kinv, 2, fx, fy - 1) * zu
-    n0 = gx1 * gy2 - gx2 * gy1
-    n1 = gx2 * gy0 - gx0 * gy2
-    n2 = gx0 * gy1 - gx1 * gy0
-    r0, r1, r2 = _ray(Kinv, 0, fx, fy), _ray(Kinv, 1, fx, fy), _ray(Kinv, 2, fx, fy)
-    norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    dot, norm = incidence_terms(Kinv, float(x), float(y), zl, zr, zu, zd)
     if norm > 0:
-        return best, min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
+        return best, min(max(dot / norm, 0.0), 1.0)
     return best, 1.0
 
 
@@ -286,18 +275,8 @@ def _row_geometry(clean, index, Kinv, y, x0, x1, jump, cos):  # pragma: no cover
         ok = (zu > 0) & (zd > 0) & (zl > 0) & (zr > 0)
         ok = ok & (iu[x] == c) & (idn[x] == c) & (ic[x - 1] == c) & (ic[x + 1] == c)
         fx = np.float64(x)
-        gx0 = _ray(Kinv, 0, fx + 1, fy) * zr - _ray(Kinv, 0, fx - 1, fy) * zl
-        gx1 = _ray(Kinv, 1, fx + 1, fy) * zr - _ray(Kinv, 1, fx - 1, fy) * zl
-        gx2 = _ray(Kinv, 2, fx + 1, fy) * zr - _ray(Kinv, 2, fx - 1, fy) * zl
-        gy0 = _ray(Kinv, 0, fx, fy + 1) * zd - _ray(Kinv, 0, fx, fy - 1) * zu
-        gy1 = _ray(Kinv, 1, fx, fy + 1) * zd - _ray(Kinv, 1, fx, fy - 1) * zu
-        gy2 = _ray(Kinv, 2, fx, fy + 1) * zd - _ray(Kinv, 2, fx, fy - 1) * zu
-        n0 = gx1 * gy2 - gx2 * gy1
-        n1 = gx2 * gy0 - gx0 * gy2
-        n2 = gx0 * gy1 - gx1 * gy0
-        r0, r1, r2 = _ray(Kinv, 0, fx, fy), _ray(Kinv, 1, fx, fy), _ray(Kinv, 2, fx, fy)
-        norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-        v = min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
+        dot, norm = incidence_terms(Kinv, fx, fy, zl, zr, zu, zd)
+        v = min(max(dot / norm, 0.0), 1.0)
         cos[x] = v if ok & (norm > 0) else 1.0
 
 

@@ -8,6 +8,8 @@ computes the same expressions pixel by pixel.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from cloudpose.kernels.backend import njit
@@ -19,6 +21,27 @@ __all__ = ["object_pixel_geometry_kernel"]
 def _ray(Kinv, s, x, y):  # pragma: no cover - compiled
     """Component ``s`` of ``Kinv @ (x, y, 1)``."""
     return Kinv[s, 0] * x + Kinv[s, 1] * y + Kinv[s, 2]
+
+
+@njit(cache=True, inline="always")
+def incidence_terms(Kinv, x, y, zl, zr, zu, zd):  # pragma: no cover - compiled
+    """``(|n . r|, |n| |r|)`` at pixel (x, y): n the surface normal from central differences
+    of the back-projected 4-neighbours (rays with z = 1 times the depths left, right, up and
+    down), r the pixel's ray; the incidence cosine is their ratio. One expression for the
+    version-2 kernel and the version-3 passes (:mod:`cloudpose.kernels.scene_pass`), which
+    must agree to the bit."""
+    gx0 = _ray(Kinv, 0, x + 1, y) * zr - _ray(Kinv, 0, x - 1, y) * zl
+    gx1 = _ray(Kinv, 1, x + 1, y) * zr - _ray(Kinv, 1, x - 1, y) * zl
+    gx2 = _ray(Kinv, 2, x + 1, y) * zr - _ray(Kinv, 2, x - 1, y) * zl
+    gy0 = _ray(Kinv, 0, x, y + 1) * zd - _ray(Kinv, 0, x, y - 1) * zu
+    gy1 = _ray(Kinv, 1, x, y + 1) * zd - _ray(Kinv, 1, x, y - 1) * zu
+    gy2 = _ray(Kinv, 2, x, y + 1) * zd - _ray(Kinv, 2, x, y - 1) * zu
+    n0 = gx1 * gy2 - gx2 * gy1
+    n1 = gx2 * gy0 - gx0 * gy2
+    n2 = gx0 * gy1 - gx1 * gy0
+    r0, r1, r2 = _ray(Kinv, 0, x, y), _ray(Kinv, 1, x, y), _ray(Kinv, 2, x, y)
+    norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    return abs(n0 * r0 + n1 * r1 + n2 * r2), norm
 
 
 @njit(cache=True)
@@ -55,25 +78,11 @@ def object_pixel_geometry_kernel(pad, lpad, v, u, Kinv):  # pragma: no cover - c
         if not (all_valid and same and 1 <= v[i] <= H - 2 and 1 <= u[i] <= W - 2):
             continue
         # central differences of the back-projected neighbours (rays with z = 1, times depth)
-        x = float(u[i])
-        y = float(v[i])
         zr, zl = pad[vp, up + 1], pad[vp, up - 1]
         zd, zu = pad[vp + 1, up], pad[vp - 1, up]
-        gx0 = _ray(Kinv, 0, x + 1, y) * zr - _ray(Kinv, 0, x - 1, y) * zl
-        gx1 = _ray(Kinv, 1, x + 1, y) * zr - _ray(Kinv, 1, x - 1, y) * zl
-        gx2 = _ray(Kinv, 2, x + 1, y) * zr - _ray(Kinv, 2, x - 1, y) * zl
-        gy0 = _ray(Kinv, 0, x, y + 1) * zd - _ray(Kinv, 0, x, y - 1) * zu
-        gy1 = _ray(Kinv, 1, x, y + 1) * zd - _ray(Kinv, 1, x, y - 1) * zu
-        gy2 = _ray(Kinv, 2, x, y + 1) * zd - _ray(Kinv, 2, x, y - 1) * zu
-        n0 = gx1 * gy2 - gx2 * gy1
-        n1 = gx2 * gy0 - gx0 * gy2
-        n2 = gx0 * gy1 - gx1 * gy0
-        r0 = _ray(Kinv, 0, x, y)
-        r1 = _ray(Kinv, 1, x, y)
-        r2 = _ray(Kinv, 2, x, y)
-        norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2) * np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        dot, norm = incidence_terms(Kinv, float(u[i]), float(v[i]), zl, zr, zu, zd)
         if norm > 0:
-            cos[i] = min(max(abs(n0 * r0 + n1 * r1 + n2 * r2) / norm, 0.0), 1.0)
+            cos[i] = min(max(dot / norm, 0.0), 1.0)
     return jump, cos
 
 
