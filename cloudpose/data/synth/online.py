@@ -254,16 +254,8 @@ def _sensor_constants() -> tuple[np.ndarray, float, np.ndarray, tuple, tuple]:
     weights.flags.writeable = False
     rates = dropout.rate_table()
     rates.flags.writeable = False
-    noise = (
-        model.sigma0,
-        model.sigma2,
-        model.focal_baseline,
-        model.subpixel,
-        model.edge_jump,
-        model.edge_flying,
-    )
-    drop = (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width)
-    return weights, _smoothed_std(float(dropout.blob_sigma)), rates, noise, drop
+    std = _smoothed_std(float(dropout.blob_sigma))
+    return weights, std, rates, model.kernel_args(), dropout.kernel_args()
 
 
 @functools.lru_cache(maxsize=4096)

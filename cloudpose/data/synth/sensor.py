@@ -95,6 +95,18 @@ class NoiseModel:
     edge_flying: float = 0.15
     dropout: float = 0.005
 
+    def kernel_args(self) -> tuple[float, ...]:
+        """The parameters as the compiled sensor kernels take them: (sigma0, sigma2,
+        focal_baseline, subpixel, edge_jump, edge_flying)."""
+        return (
+            self.sigma0,
+            self.sigma2,
+            self.focal_baseline,
+            self.subpixel,
+            self.edge_jump,
+            self.edge_flying,
+        )
+
 
 def add_sensor_noise(
     depth: np.ndarray, rng: np.random.Generator, model: NoiseModel = NoiseModel()
@@ -230,6 +242,11 @@ class DropoutModel:
         ids = np.asarray(label).astype(np.int64)
         p_class = self.rate_table(int(ids.max(initial=0)) + 1)[ids]
         return 1.0 - (1.0 - p_edge) * (1.0 - p_graze) * (1.0 - p_class)
+
+    def kernel_args(self) -> tuple[float, ...]:
+        """The parameters as the compiled sensor kernels take them: (edge_rate, edge_scale,
+        graze_cos, graze_width); the class term is :meth:`rate_table`."""
+        return (self.edge_rate, self.edge_scale, self.graze_cos, self.graze_width)
 
     def rate_table(self, size: int = 256) -> np.ndarray:
         """(max(256, size),) float64 the class term of every class id (0 for background)."""
@@ -557,15 +574,8 @@ def add_sensor_noise_v2_objects(
             field,
             dropout.rate_table(),
             c.astype(np.int64),
-            (
-                model.sigma0,
-                model.sigma2,
-                model.focal_baseline,
-                model.subpixel,
-                model.edge_jump,
-                model.edge_flying,
-            ),
-            (dropout.edge_rate, dropout.edge_scale, dropout.graze_cos, dropout.graze_width),
+            model.kernel_args(),
+            dropout.kernel_args(),
             MAX_RANGE,
         )
         return out
