@@ -19,6 +19,7 @@ from cloudpose.store import checkpoints, tracking
 from cloudpose.store.archive import pack_store, unpack_store
 from cloudpose.store.checkpoints import FLOAT16, FLOAT24, FLOAT32, FORM_KEY, PoseCheck
 from cloudpose.store.compact import INDEX, RUNS
+from tests.store.segments import segment_set
 
 
 def _config():
@@ -56,17 +57,7 @@ def _segments(n: int = 16) -> SegmentSet:
     rng = np.random.default_rng(0)
     pts = rng.normal(scale=0.03, size=(n, cfg.data.n_fps, 3)).astype(np.float32)
     pts[..., 2] += 0.8
-    return SegmentSet(
-        points=pts,
-        count=np.full(n, cfg.data.n_fps, np.int32),
-        cls_id=(np.arange(n) % 21 + 1).astype(np.int16),
-        R=np.full((n, 3, 3), np.nan, np.float32),
-        t=np.full((n, 3), np.nan, np.float32),
-        occlusion=np.full(n, np.nan, np.float32),
-        frame_id=np.array(["0000/000001"] * n),
-        instance=np.arange(n, dtype=np.int16),
-        valid=np.ones(n, bool),
-    )
+    return segment_set(pts, np.arange(n) % 21 + 1)
 
 
 @pytest.fixture(scope="module")

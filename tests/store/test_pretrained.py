@@ -21,6 +21,7 @@ from cloudpose.store.pretrained import (
     ship,
     shipped,
 )
+from tests.store.segments import segment_set
 
 
 def test_the_shipped_network_is_checked_and_recorded():
@@ -93,7 +94,6 @@ def _ship_smoke(ckpt: Path, out: Path, **kwargs) -> Path:
 def test_ship_keeps_half_precision_only_within_the_tolerance(smoke_run, tmp_path):
     """A run's checkpoint shipped: the record names the run and a checksum that
     :func:`shipped` accepts; half precision ships only if every pose stays within 0.01 deg."""
-    from cloudpose.data.segment_set import SegmentSet
     from cloudpose.infer import estimate_poses, load_checkpoint
 
     _, out = smoke_run
@@ -102,18 +102,7 @@ def test_ship_keeps_half_precision_only_within_the_tolerance(smoke_run, tmp_path
     rng = np.random.default_rng(0)
     pts = rng.normal(scale=0.03, size=(8, cfg.data.n_fps, 3)).astype(np.float32)
     pts[..., 2] += 0.8
-    m = len(pts)
-    segs = SegmentSet(
-        points=pts,
-        count=np.full(m, cfg.data.n_fps, np.int32),
-        cls_id=np.arange(1, m + 1, dtype=np.int16),
-        R=np.full((m, 3, 3), np.nan, np.float32),
-        t=np.full((m, 3), np.nan, np.float32),
-        occlusion=np.full(m, np.nan, np.float32),
-        frame_id=np.array(["0000/000001"] * m),
-        instance=np.arange(m, dtype=np.int16),
-        valid=np.ones(m, bool),
-    )
+    segs = segment_set(pts, np.arange(1, len(pts) + 1))
     path = _ship_smoke(
         ckpt,
         tmp_path,

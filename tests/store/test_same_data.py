@@ -10,25 +10,15 @@ import pandas as pd
 import pytest
 
 from cloudpose.data import keys
-from cloudpose.data.segment_set import SegmentSet
 from cloudpose.store import rekey, tracking
 from cloudpose.store.instances import write_table
+from tests.store.segments import segment_set
 
 
 def _segments(counts, classes, key="eeee0000"):
     m = len(counts)
-    return SegmentSet(
-        points=np.zeros((m, 4, 3), np.float32),
-        count=np.asarray(counts, np.int32),
-        cls_id=np.asarray(classes, np.int16),
-        R=np.zeros((m, 3, 3), np.float32),
-        t=np.zeros((m, 3), np.float32),
-        occlusion=np.zeros(m, np.float32),
-        frame_id=np.array([f"0000/{i:06d}" for i in range(m)]),
-        instance=np.zeros(m, np.int16),
-        valid=np.ones(m, bool),
-        data_key=keys.DataKey(key),
-    )
+    frames = [f"0000/{i:06d}" for i in range(m)]
+    return segment_set(np.zeros((m, 4, 3)), classes, counts, frames, keys.DataKey(key))
 
 
 @pytest.fixture
@@ -43,7 +33,7 @@ def run_with_table(tmp_path, monkeypatch):
     table = pd.DataFrame(
         {
             "frame_id": [f"0000/{i:06d}" for i in range(4)],
-            "instance": [0] * 4,
+            "instance": list(range(4)),
             "cls_id": [1, 2, 3, 4],
             "points": [1000, 2000, 3000, 4000],
             "miss": [False] * 4,
