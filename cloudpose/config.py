@@ -19,6 +19,7 @@ SHARED_CHOICES = (0, 1, 2, 3, 4, 5, "all")
 PRECISIONS = ("fp32", "bf16")
 ROTATION_INPUTS = ("raw", "centred")
 CENTRES = ("mean", "median", "trimmed")
+ROTATION_CENTRES = ("centre", "mean")
 SAMPLERS = ("shuffle", "class_balanced")
 LR_SCHEDULES = ("constant", "cosine")
 TRAIN_SOURCES = ("frames", "online")
@@ -109,6 +110,10 @@ class ModelConfig:
             points nearest the per-coordinate median, :data:`cloudpose.models.pose.TRIM_KEEP`
             of them). Points of a neighbour or the background that a mask lets in drag the
             mean sideways; the robust centres move less (docs/stress.md).
+        rotation_centre: what the rotation branch's centred input (``rotation_input =
+            "centred"``, ``shared_layers = 0``) is centred on: "centre" (``centre``, the
+            point the translation is a residual to) or "mean" (the segment mean whatever
+            ``centre`` is: a robust centre then serves the translation only).
     """
 
     shared_layers: int | str = 0
@@ -121,10 +126,24 @@ class ModelConfig:
     rotation_input: str = "raw"
     xyz_scale: float = 1.0
     centre: str = "mean"
+    rotation_centre: str = "centre"
 
     def __post_init__(self) -> None:
         if self.centre not in CENTRES:
             raise ValueError(f"model.centre must be one of {CENTRES}, got {self.centre!r}")
+        if self.rotation_centre not in ROTATION_CENTRES:
+            raise ValueError(
+                f"model.rotation_centre must be one of {ROTATION_CENTRES}, "
+                f"got {self.rotation_centre!r}"
+            )
+        if self.rotation_centre == "mean" and (
+            self.rotation_input != "centred" or self.shared_layers != 0
+        ):
+            raise ValueError(
+                'model.rotation_centre = "mean" needs a rotation branch of its own on centred '
+                'points: model.rotation_input = "centred" and model.shared_layers = 0, got '
+                f"{self.rotation_input!r} and {self.shared_layers!r}"
+            )
         if self.rotation_input not in ROTATION_INPUTS:
             raise ValueError(
                 f"model.rotation_input must be one of {ROTATION_INPUTS}, "
@@ -512,7 +531,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
     },
     "train": {"threads": 2, "augment_depth_noise_mm": 0.0, "seed_streams": "arithmetic"},
     "loss": {"symmetry_table": 1},
-    "model": {"centre": "mean"},
+    "model": {"centre": "mean", "rotation_centre": "centre"},
 }
 """Fields that a stored config (checkpoint, run.json) without them had at a fixed value: the
 synthetic frames of every run stored before ``data.synth_version`` existed are version 1, and
@@ -525,7 +544,8 @@ the ``icp`` section existed was refined without the guard, and every run stored 
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads, and
 without depth-noise augmentation; every run stored before ``train.seed_streams`` existed drew
 its random streams by the seed arithmetic; every run stored before ``model.centre`` existed
-took the translation as a residual to the segment mean.
+took the translation as a residual to the segment mean, and every run stored before
+``model.rotation_centre`` existed centred its rotation input on that same point.
 :meth:`Config.from_dict` fills them in, and :meth:`Config.fingerprint` leaves them out at that
 value, so those runs keep their identity."""
 

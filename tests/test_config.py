@@ -194,7 +194,12 @@ def test_groups_as_the_issue_lists_them():
     assert g["loss"].members == ("shared-0", "l2")
     assert groups_of("shared-0") == ["shared", "rotation", "loss", "symmetry", "centre"]
     assert g["symmetry"].members == ("shared-0", "geodesic-plain")
-    assert g["centre"].members == ("shared-0", "centre-median", "centre-trimmed")
+    assert g["centre"].members == (
+        "shared-0",
+        "centre-median",
+        "centre-trimmed",
+        "centre-trimmed-translation",
+    )
     assert groups_of("rot6d") == ["rotation"]
     # every variant belongs to some group
     assert all(groups_of(name) for name in variants())
@@ -225,6 +230,18 @@ def test_config_fingerprint():
         dataclasses.replace(a, data=dataclasses.replace(a.data, test_frames=151)),
     ]
     assert len({a.fingerprint(), *(o.fingerprint() for o in others)}) == 1 + len(others)
+
+
+def test_rotation_centre_at_its_implied_value_keeps_a_stored_runs_identity():
+    cfg = resolve("centre-trimmed", "cpu-online", seed=1)
+    assert cfg.model.rotation_centre == "centre"
+    stored = cfg.to_dict()
+    del stored["model"]["rotation_centre"]  # a run stored before the field existed
+    assert Config.from_dict(stored) == cfg
+    assert Config.from_dict(stored).fingerprint() == cfg.fingerprint()
+    translation_only = resolve("centre-trimmed-translation", "cpu-online", seed=1)
+    assert translation_only.fingerprint() != cfg.fingerprint()
+    assert dataclasses.replace(translation_only.model, rotation_centre="centre") == cfg.model
 
 
 def test_cpu_long_is_cpu_paper_with_the_papers_epochs():
@@ -283,6 +300,13 @@ def test_new_training_fields_are_checked():
         config.ModelConfig(rotation_input="world")
     with pytest.raises(ValueError, match="xyz_scale"):
         config.ModelConfig(xyz_scale=0.0)
+    with pytest.raises(ValueError, match="rotation_centre"):
+        config.ModelConfig(rotation_centre="median")
+    # the mean-centred rotation input needs a rotation branch of its own on centred points
+    with pytest.raises(ValueError, match="rotation_input"):
+        config.ModelConfig(rotation_centre="mean", rotation_input="raw")
+    with pytest.raises(ValueError, match="shared_layers"):
+        config.ModelConfig(rotation_centre="mean", rotation_input="centred", shared_layers=2)
     assert config.DataConfig(classes=["011_banana"]).classes == ("011_banana",)
 
 

@@ -79,6 +79,30 @@ def test_rotation_input_changes_only_what_the_rotation_branch_sees():
     torch.testing.assert_close(b2.t, b.t + shift)
 
 
+def test_rotation_centre_mean_gives_the_rotation_of_the_mean_and_the_translation_of_the_centre():
+    """Same weights: with ``rotation_centre = "mean"`` the rotation is the mean-centred
+    network's and the translation the trimmed-centre network's; folded the same."""
+    settings = {"xyz_scale": 0.03, "rotation_input": "centred"}
+    mean = trained_like("shared-0", torch.float64, {"model": settings})
+    trimmed = trained_like("centre-trimmed", torch.float64, {"model": settings})
+    both = trained_like("centre-trimmed-translation", torch.float64, {"model": settings})
+    for net in (trimmed, both):
+        net.load_state_dict(mean.state_dict())
+    pts, cls = batch(torch.float64)
+    pts[:, :6] += torch.tensor([0.0, 0.0, 0.15], dtype=torch.float64)  # background bled in
+    with torch.no_grad():
+        a, b, c = mean(pts, cls), trimmed(pts, cls), both(pts, cls)
+    torch.testing.assert_close(c.rot_raw, a.rot_raw)
+    torch.testing.assert_close(c.R, a.R)
+    assert not torch.allclose(b.rot_raw, a.rot_raw)  # the trimmed centre's rotation moves
+    torch.testing.assert_close(c.mu, b.mu)
+    torch.testing.assert_close(c.t, b.t)
+    assert not torch.allclose(c.mu, a.mu)
+    folded = fold_for_inference(both)(pts, cls)
+    for name, x, y in zip(c._fields, folded, c, strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12, msg=name)
+
+
 def test_fused_model_folds_the_same_and_paired_branches_are_used():
     model = trained_like("shared-0")
     pts, cls = batch(torch.float32)

@@ -124,7 +124,8 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
     The points are centred on mu (their mean, or a robust centre: ``ModelConfig.centre``,
     :func:`segment_centre`); the translation branch (and a trunk) sees the
     centred points, the rotation branch of layout "pair" the centred or the raw points
-    (``ModelConfig.rotation_input``); the rotation output becomes R, and ``t = dt + mu``.
+    (``ModelConfig.rotation_input``; centred on mu or on the mean,
+    ``ModelConfig.rotation_centre``); the rotation output becomes R, and ``t = dt + mu``.
     ``net`` supplies how its layers run (:class:`PoseBranches`).
 
     Args:
@@ -148,6 +149,12 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
         rot_raw, t_residual = net.run_trunk(centred, cls_id)
     else:
         rot_xyz = centred if cfg.rotation_input == "centred" else points
+        if (
+            cfg.rotation_input == "centred"
+            and cfg.rotation_centre == "mean"
+            and cfg.centre != "mean"
+        ):
+            rot_xyz = points - points.mean(dim=1, keepdim=True)
         rot_raw, t_residual = net.run_pair(rot_xyz, centred, cls_id)
     R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)  # (B, 3, 3)
     return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
