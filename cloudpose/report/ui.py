@@ -57,9 +57,10 @@ import math
 import time
 import warnings
 from collections import defaultdict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, NamedTuple
 from urllib.parse import quote
 
 from cloudpose.data.keys import same_data
@@ -473,31 +474,62 @@ def _last_activity(client, run) -> int:
     return last
 
 
+class DeadRun(NamedTuple):
+    """A RUNNING run that :func:`dead_reason` finds dead (:func:`dead_runs`)."""
+
+    run: Any
+    last_activity_ms: int
+    later_start_ms: int | None
+    """The latest start of a later run of the same config, if any."""
+    why: str
+
+
+def dead_runs(
+    runs: Sequence[tuple[Any, str, int | None, tuple]],
+    now_ms: int,
+    last_activity: Callable[[Any], int],
+    locked: Callable[[Any], bool],
+) -> list[DeadRun]:
+    """Each RUNNING run of ``runs`` that :func:`dead_reason` finds dead.
+
+    Args:
+        runs: (run, status, start ms, config key: variant, preset, seed, config) of every
+            run of the store; the later starts of each config are found among them.
+        now_ms: now.
+        last_activity: a run's start or its last training metric's time, ms (asked of
+            RUNNING runs only).
+        locked: whether a process on this machine holds the run's folder lock.
+    """
+    by_config: dict[tuple, list[int]] = defaultdict(list)
+    for _, _, start, config in runs:
+        by_config[config].append(start or 0)
+    out = []
+    for run, status, start, config in runs:
+        if status != "RUNNING":
+            continue
+        last = last_activity(run)
+        later = max((s for s in by_config[config] if s > (start or 0)), default=None)
+        why = dead_reason(last, now_ms, later, locked(run))
+        if why is not None:
+            out.append(DeadRun(run, last, later, why))
+    return out
+
+
 def mark_dead(client, runs: Sequence, now_ms: int | None = None) -> list[tuple[object, str]]:
     """Mark KILLED each RUNNING run among ``runs`` that :func:`dead_reason` finds dead (end
     time: its last activity), with the tag :data:`KILLED_TAG`; returns (run, why) of each."""
     now_ms = now_ms if now_ms is not None else int(time.time() * 1000)
-    by_config: dict[tuple, list[int]] = defaultdict(list)
-    for r in runs:
-        by_config[_config_key(r)].append(r.info.start_time or 0)
-    out = []
-    for run in runs:
-        if run.info.status != "RUNNING":
-            continue
-        last = _last_activity(client, run)
-        later = [s for s in by_config[_config_key(run)] if s > (run.info.start_time or 0)]
-        why = dead_reason(
-            last,
-            now_ms,
-            max(later) if later else None,
-            _folder_locked(run.data.tags.get("run_dir"), getattr(client, "tracking_uri", None)),
-        )
-        if why is None:
-            continue
-        client.set_tag(run.info.run_id, KILLED_TAG, f"{why}; marked by cloudpose mlflow-ui")
-        client.set_terminated(run.info.run_id, "KILLED", end_time=last)
-        out.append((run, why))
-    return out
+    store = getattr(client, "tracking_uri", None)
+    dead = dead_runs(
+        [(r, r.info.status, r.info.start_time, _config_key(r)) for r in runs],
+        now_ms,
+        lambda r: _last_activity(client, r),
+        lambda r: _folder_locked(r.data.tags.get("run_dir"), store),
+    )
+    for d in dead:
+        client.set_tag(d.run.info.run_id, KILLED_TAG, f"{d.why}; marked by cloudpose mlflow-ui")
+        client.set_terminated(d.run.info.run_id, "KILLED", end_time=d.last_activity_ms)
+    return [(d.run, d.why) for d in dead]
 
 
 def _config_key(run) -> tuple:

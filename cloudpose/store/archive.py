@@ -218,7 +218,7 @@ def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple
     its run folder's lock, and a later run of the same variant, preset, seed and config
     started after its last activity, or it logged nothing for
     :data:`~cloudpose.report.ui.STALE_AFTER_S`). Returns (run name, why) of each."""
-    from cloudpose.report.ui import KILLED_TAG, STALE_AFTER_S, dead_reason
+    from cloudpose.report.ui import KILLED_TAG, STALE_AFTER_S, dead_runs
     from cloudpose.store.runs import TRAINING_PREFIXES
 
     now_ms = int(time.time() * 1000) if now_ms is None else now_ms
@@ -231,34 +231,41 @@ def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple
         for rid, key, value in con.execute("SELECT run_uuid, key, value FROM tags"):
             if rid in tags:
                 tags[rid][key] = value
-        by_config: dict[tuple, list[int]] = {}
-        for rid, _, _, start in runs:
-            t = tags[rid]
-            key = tuple(t.get(k) for k in ("variant", "preset", "seed", "config"))
-            by_config.setdefault(key, []).append(start or 0)
+        start_of = {rid: start or 0 for rid, _, _, start in runs}
+        name_of = {rid: name for rid, name, _, _ in runs}
+
+        def last_activity(rid: str) -> int:
+            last = start_of[rid]
+            for key, ts in con.execute(
+                "SELECT key, MAX(timestamp) FROM metrics WHERE run_uuid = ? GROUP BY key", (rid,)
+            ):
+                if key.split("/")[0] in TRAINING_PREFIXES:
+                    last = max(last, ts)
+            return last
+
+        def locked(rid: str) -> bool:
+            run_dir = tags[rid].get(RUN_DIR_TAG)
+            return bool(run_dir) and _folder_locked(run_dir, project)
+
+        config = ("variant", "preset", "seed", "config")
+        dead = dead_runs(
+            [
+                (rid, status, start, tuple(tags[rid].get(k) for k in config))
+                for rid, _, status, start in runs
+            ],
+            now_ms,
+            last_activity,
+            locked,
+        )
         out = []
         with con:
-            for rid, name, status, start in runs:
-                if status != "RUNNING":
-                    continue
-                last = start or 0
-                for key, ts in con.execute(
-                    "SELECT key, MAX(timestamp) FROM metrics WHERE run_uuid = ? GROUP BY key",
-                    (rid,),
-                ):
-                    if key.split("/")[0] in TRAINING_PREFIXES:
-                        last = max(last, ts)
-                t = tags[rid]
-                key = tuple(t.get(k) for k in ("variant", "preset", "seed", "config"))
-                later = [s for s in by_config[key] if s > (start or 0)]
-                locked = bool(t.get(RUN_DIR_TAG)) and _folder_locked(t[RUN_DIR_TAG], project)
-                if dead_reason(last, now_ms, max(later) if later else None, locked) is None:
-                    continue
+            for d in dead:
+                rid, last, later = d.run, d.last_activity_ms, d.later_start_ms
                 # said without the time of packing, so that a repack writes the same tag
-                if later and max(later) > last:
+                if later is not None and later > last:
                     why = (
                         f"RUNNING when packed, but a later run of the same config started "
-                        f"{_utc(max(later))}, after its last activity ({_utc(last)})"
+                        f"{_utc(later)}, after its last activity ({_utc(last)})"
                     )
                 else:
                     why = (
@@ -273,7 +280,7 @@ def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple
                     "INSERT OR REPLACE INTO tags (key, value, run_uuid) VALUES (?, ?, ?)",
                     (KILLED_TAG, f"{why}; marked by cloudpose store-pack", rid),
                 )
-                out.append((name, why))
+                out.append((name_of[rid], why))
         return out
     finally:
         con.close()
