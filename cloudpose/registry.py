@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -48,6 +49,19 @@ class Group:
     name: str
     members: tuple[str, ...]
     labels: dict[str, str]
+
+    def pick(self, only: Sequence[str] | None = None) -> tuple[str, ...]:
+        """The members, or those named in ``only`` (in the group's order); ValueError naming
+        any name of ``only`` that is not a member."""
+        if not only:
+            return self.members
+        unknown = [v for v in only if v not in self.members]
+        if unknown:
+            raise ValueError(
+                f"group {self.name!r} has no member {', '.join(map(repr, unknown))}; "
+                f"its members: {', '.join(self.members)}"
+            )
+        return tuple(v for v in self.members if v in set(only))
 
 
 @cache

@@ -55,6 +55,13 @@ def ablate(
     max_seeds: Annotated[
         int, typer.Option(help="With --until-resolved: the cap on seeds per variant.")
     ] = 10,
+    only: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Only this member of the group (repeatable), e.g. --group shared --only "
+            "shared-0 --only shared-all."
+        ),
+    ] = None,
 ) -> None:
     """Train + evaluate every variant of a group over seeds (finished runs skipped), then report.
 
@@ -65,7 +72,12 @@ def ablate(
     from cloudpose.suite.plan import plan_group
 
     overrides = parse_overrides(set_) or None
-    plan = plan_group(group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out)
+    try:
+        plan = plan_group(
+            group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out, only=only
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--only") from exc
     typer.echo(plan.text())
     if dry_run:
         return
@@ -84,6 +96,7 @@ def ablate(
         ray=ray,
         out_dir=out,
         report=not until_resolved,
+        only=only,
     )
     if until_resolved:
         from cloudpose.report import render_reports
@@ -98,6 +111,7 @@ def ablate(
             keep_going=keep_going,
             executor=executor,
             ray=ray,
+            only=only,
         )
         res.report = render_reports(preset, [group], project_dir=Path.cwd(), out_dir=out)
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -330,6 +330,7 @@ def run_group(
     executor: str = "local",
     ray: RayOptions | None = None,
     out_dir: Path | None = None,
+    only: Sequence[str] | None = None,
 ) -> SuiteResult:
     """Train and evaluate every member of ``group`` over ``seeds``, then render its reports.
 
@@ -346,11 +347,12 @@ def run_group(
         echo: where progress lines go (default: print).
         executor, ray: where the runs train (:func:`ensure_runs`).
         out_dir: the reports' folder (default :func:`cloudpose.report.build.default_out_dir`).
+        only: these members of the group only (:meth:`cloudpose.registry.Group.pick`).
     """
-    g = get_group(group)
+    members = get_group(group).pick(only)
     project_dir = (project_dir or Path.cwd()).resolve()
     statuses = ensure_runs(
-        list(g.members),
+        list(members),
         preset,
         seeds,
         group=group,
@@ -392,6 +394,7 @@ def resolve_claims(
     overrides: dict | None = None,
     echo: Callable[[str], None] | None = None,
     replicates: int = 500,
+    only: Sequence[str] | None = None,
     **ensure_kwargs,
 ) -> list[ResolveRound]:
     """Add seeds to the variants of ``group``'s claims until each is decided or at the cap.
@@ -415,6 +418,8 @@ def resolve_claims(
         overrides: config overrides of every run.
         echo: where progress lines go (default: print).
         replicates: bootstrap replicates per claim in the rounds' measurements.
+        only: these members of the group only (:meth:`cloudpose.registry.Group.pick`): the
+            claims between two of them.
         **ensure_kwargs: passed to :func:`ensure_runs` (progress, keep_going, executor, ray).
 
     Returns:
@@ -422,7 +427,7 @@ def resolve_claims(
     """
     if max_seeds < 1 or step < 1:
         raise ValueError(f"max_seeds and step must be >= 1, got {max_seeds} and {step}")
-    members = set(get_group(group).members)
+    members = set(get_group(group).pick(only))
     claims = [c for c in paper_claims() if {c.favoured[0], c.other[0]} <= members]
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))

@@ -10,7 +10,7 @@ the preset (:func:`estimate_run_s`). Nothing here trains, renders or writes.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -350,12 +350,13 @@ def plan_group(
     overrides: dict | None = None,
     report: bool = True,
     out_dir: Path | None = None,
+    only: Sequence[str] | None = None,
 ) -> Plan:
-    """The plan of :func:`run_group`: the group's runs, then its reports."""
+    """The plan of :func:`run_group`: the group's runs (its members, or those of ``only``),
+    then its reports."""
     project_dir = (project_dir or Path.cwd()).resolve()
-    g = get_group(group)
     plan = plan_runs(
-        list(g.members),
+        list(get_group(group).pick(only)),
         preset,
         seeds,
         title=f"ablation {group}/{preset}, seeds {_seed_text(seeds)}",

@@ -91,6 +91,29 @@ def test_ablate_dry_run_prints_the_plan_and_trains_nothing(project, monkeypatch)
     assert not (project / "data").exists()
 
 
+def test_ablate_only_plans_the_named_members_and_refuses_a_stranger(project, monkeypatch):
+    def no_training(*args, **kwargs):
+        raise AssertionError("a dry run trained")
+
+    monkeypatch.setattr(ablate, "run_group", no_training)
+    args = ["ablate", "--group", "shared", "--preset", "smoke", "--seeds", "3", "--dry-run"]
+    res = CliRunner().invoke(app, [*args, "--only", "shared-all", "--only", "shared-0"])
+    assert res.exit_code == 0, res.output
+    assert "6 to train + evaluate" in res.output
+    assert "shared-all" in res.output and "shared-3" not in res.output
+    res = CliRunner().invoke(app, [*args, "--only", "quaternion"])
+    assert res.exit_code != 0
+    assert "no member 'quaternion'" in res.output and "shared-all-2x" in res.output
+
+
+def test_group_pick_keeps_the_groups_order():
+    g = get_group("rotation")
+    assert g.pick(None) == g.pick([]) == g.members
+    assert g.pick(["quaternion", "shared-0"]) == ("shared-0", "quaternion")
+    with pytest.raises(ValueError, match="no member 'l2'"):
+        g.pick(["l2"])
+
+
 def test_masks_and_main_job_dry_runs(project):
     res = CliRunner().invoke(
         app, ["ablate-masks", "--preset", "smoke", "--seeds", "1", "--dry-run"]
