@@ -61,7 +61,7 @@ MLFLOW_PORT ?= 5000
 GROUP ?=
 EXECUTOR ?= local
 MLFLOW_HOST ?= 127.0.0.1
-.PHONY: ablations-resolve ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report occlusion-runs real-report tables mlflow-ui mlflow-server
+.PHONY: headline-claims ablations-resolve ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report occlusion-runs real-report tables mlflow-ui mlflow-server
 
 ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
 	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
@@ -80,6 +80,12 @@ ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## 
 MAX_SEEDS ?= 10
 ablations-resolve: ## every group x SEEDS, then more seeds (up to MAX_SEEDS) for the variants of each undecided claim; then the reports
 	for g in shared rotation loss symmetry; do $(CLI) ablate --group $$g --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) --until-resolved --max-seeds $(MAX_SEEDS) || exit 1; done
+
+AGAINST ?= cpu-online
+headline-claims: ## the paper's headline claims on PRESET (e.g. PRESET=cpu-online-4x): shared-0, shared-all, quaternion, l2, geodesic-plain x SEEDS (finished runs skipped), then claims.md with AGAINST's verdicts beside
+	$(CLI) ablate --group shared --only shared-0 --only shared-all --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
+	for g in rotation:quaternion loss:l2 symmetry:geodesic-plain; do $(CLI) ablate --group $${g%%:*} --only shared-0 --only $${g#*:} --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) || exit 1; done
+	$(CLI) report --preset $(PRESET) --against $(AGAINST)
 
 ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
 	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS)
