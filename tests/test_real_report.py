@@ -98,6 +98,29 @@ def _store(root: Path, seeds=(1, 2), baselines=("fpfh",)) -> dict:
     return logged
 
 
+def _baseline_run(client, root: Path, method: str, preset: str, data: str, rng) -> pd.DataFrame:
+    """A baseline's evaluation on the real frames, logged as a run of ``preset`` on ``data``."""
+    from cloudpose.baselines import load_settings
+    from cloudpose.baselines.base import settings_fingerprint
+    from cloudpose.store import tracking
+
+    tags = {
+        "variant": f"baseline-{method}",
+        "group": "baselines",
+        "preset": preset,
+        "seed": "1",
+        "data": data,
+        "config": settings_fingerprint(load_settings(method)),
+        "kind": "baseline",
+        "subsample": "all",
+        "split": "real",
+    }
+    table = _instances(rng)
+    exp = tracking.experiment_id(client, "baselines", root)
+    _log(client, exp, tags, f"baseline-{method}/{preset}/seed1+real", {"real": table})
+    return table
+
+
 def _share(table: pd.DataFrame, col: str, limit: float, video: str | None) -> float:
     sel = table if video is None else table[table["frame_id"].str.startswith(video + "/")]
     return float((sel[col] < limit).mean())
@@ -217,3 +240,32 @@ def test_versus_baseline_resamples_object_poses_not_instances():
     shuffled = better.sample(frac=1.0, random_state=0)
     r2 = versus_baseline([shuffled, one], base, "rot_sym_lt_10deg", "net", replicates=200)
     assert r2["diff"] == pytest.approx((0.5 + 0.25) / 2)
+
+
+@pytest.mark.slow  # a fresh MLflow store: ~40 s on 2 shared cores
+def test_a_baseline_the_preset_lacks_comes_from_another_preset_on_the_same_data(tmp_path):
+    from cloudpose.report.real import render_real_report
+    from cloudpose.store import tracking
+
+    _store(tmp_path, seeds=(1,), baselines=())
+    client = tracking.setup(tmp_path)
+    rng = np.random.default_rng(9)
+    fpfh = _baseline_run(client, tmp_path, "fpfh", "cpu-online", DATA, rng)
+    _baseline_run(client, tmp_path, "ppf", "cpu", "0ther0data0key0000", rng)  # other data
+    report, files = render_real_report(PRESET, tmp_path, command="cloudpose real-report", seeds=1)
+    assert report.seeds == {"shared-0": [1], "fpfh": [1]}
+    assert report.borrowed == {"fpfh": ["cpu-online"]}
+    rows = pd.read_csv(files[1], dtype={"video": str})
+    r = rows[
+        (rows.method == "fpfh")
+        & (rows.icp == "icp")
+        & (rows.video == "pooled")
+        & (rows.metric == "trans_lt_1cm")
+    ]
+    assert r["mean"].tolist() == pytest.approx([_share(fpfh, "icp_trans_err", 0.01, None)])
+    assert [m for m in report.missing if "ppf" in m] == [
+        f"baseline-ppf/{PRESET}: not run on the real frames "
+        f"(`cloudpose baseline --method ppf --preset {PRESET} --split real`)"
+    ]
+    md = files[0].read_text()
+    assert "FPFH + RANSAC: the runs of preset cpu-online on the same data" in md

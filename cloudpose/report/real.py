@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose.data.keys import canonical_key
 from cloudpose.report.runs import run_instance_table
 from cloudpose.store import tracking
 from cloudpose.store.metric_names import REAL_DEV, method_prefixes, summary_metrics, video_metrics
@@ -66,6 +67,8 @@ class RealReport:
     missing: list[str] = field(default_factory=list)
     seeds: dict[str, list[int]] = field(default_factory=dict)
     versus: pd.DataFrame = field(default_factory=pd.DataFrame)
+    borrowed: dict[str, list[str]] = field(default_factory=dict)
+    """Baseline -> the other presets whose runs it took (:func:`find_evaluations`)."""
 
 
 def video_of(frame_id: pd.Series) -> pd.Series:
@@ -110,17 +113,20 @@ def _load(client, run, method: str, name: str) -> Evaluation | None:
 
 def find_evaluations(
     client, preset: str, seeds: int = 3
-) -> tuple[list[Evaluation], list[str], dict[str, list[int]]]:
+) -> tuple[list[Evaluation], list[str], dict[str, list[int]], dict[str, list[str]]]:
     """Every real-frame evaluation of ``preset``'s network and baselines in the store.
 
     The network: the newest FINISHED ``shared-0`` run per seed trained with the preset's own
     config (:func:`cloudpose.store.runs.is_preset_config`). Baselines: the newest FINISHED run per
-    seed of ``baseline-{method}`` on split ``real`` with the method's default settings.
+    seed of ``baseline-{method}`` on split ``real`` with the method's default settings; a
+    baseline that ``preset`` has not run is taken from another preset's runs on the same data
+    as the network's runs (a baseline sees only the segments, which the data key fixes), as
+    :func:`cloudpose.report.runs.load_runs` does for the test set.
 
     Returns:
         The evaluations; what is missing, each with the command that makes it (seeds
         ``1..seeds`` of the network and seed 1 of each baseline are expected); the seeds found
-        per method.
+        per method; the other presets each borrowed baseline came from.
     """
     from cloudpose.baselines import load_settings
     from cloudpose.baselines.base import settings_fingerprint
@@ -155,6 +161,10 @@ def find_evaluations(
         guarded = _load(client, run, NETWORK, f"{REAL_DEV}-fallback")
         if guarded is not None:
             found.append(guarded)
+    data_keys = sorted(
+        {canonical_key(r.data.tags["data"]) for r in newest.values() if r.data.tags.get("data")}
+    )
+    borrowed: dict[str, list[str]] = {}
     for method in BASELINES:
         fp = settings_fingerprint(load_settings(method))
         extra = (
@@ -164,6 +174,13 @@ def find_evaluations(
         runs = tracking.find_runs(
             client, variant=f"baseline-{method}", preset=preset, extra_filter=extra
         )
+        for key in [] if runs else data_keys:
+            runs += tracking.find_runs(
+                client, variant=f"baseline-{method}", data=key, extra_filter=extra
+            )
+        others = sorted({r.data.tags.get("preset", "?") for r in runs} - {preset})
+        if others:
+            borrowed[method] = others
         per_seed: dict[int, object] = {}
         for run in runs:
             per_seed.setdefault(int(run.data.tags.get("seed", 0)), run)
@@ -177,7 +194,7 @@ def find_evaluations(
                 f"baseline-{method}/{preset}: not run on the real frames "
                 f"(`cloudpose baseline --method {method} --preset {preset} --split real`)"
             )
-    return found, missing, seeds_found
+    return found, missing, seeds_found, borrowed
 
 
 def _label(method: str, icp: str) -> str:
@@ -349,6 +366,12 @@ def markdown(report: RealReport, preset: str, command: str, store: str = "the st
     ]
     seeds = "; ".join(f"{m} seed {', '.join(map(str, s))}" for m, s in report.seeds.items())
     lines += [f"Runs found in {store}: {seeds or 'none'}.", ""]
+    for method, others in report.borrowed.items():
+        lines += [
+            f"{BASELINES[method]}: the runs of preset {', '.join(others)} on the same data "
+            f"({preset} has none of its own; a baseline sees only the segments).",
+            "",
+        ]
     if df.empty:
         lines += ["No evaluation on the real frames was found.", ""]
     else:
@@ -414,8 +437,8 @@ def render_real_report(
     """Write ``real_frames.md`` and ``real_frames.csv`` into ``out_dir`` (default
     ``{project_dir}/reports/{preset}``) from the evaluations in the project's store."""
     client = tracking.setup(project_dir)
-    evaluations, missing, found = find_evaluations(client, preset, seeds)
-    report = RealReport(build(evaluations), missing, found, comparison(evaluations))
+    evaluations, missing, found, borrowed = find_evaluations(client, preset, seeds)
+    report = RealReport(build(evaluations), missing, found, comparison(evaluations), borrowed)
     out_dir = Path(out_dir or project_dir / "reports" / preset)
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or f"cloudpose real-report --preset {preset}"
