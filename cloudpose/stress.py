@@ -2,7 +2,7 @@
 steps, each method measured at every step (``cloudpose stress``; issue 39).
 
 A *perturbation* acts either on the frame's pixels before segmentation (the instance's mask
-dilated or eroded by k pixels, the depth dropped in blobs) or on the back-projected points of
+dilated, eroded or shifted by k pixels, the depth dropped in blobs) or on the back-projected points of
 the segment before farthest point sampling (depth noise and a bias growing with distance along
 each pixel's ray, a cut plane, the number of points, one side of the visible part missing). The
 segment is then made as :func:`cloudpose.data.segments.extract_segments` makes it (the 0.2 m
@@ -75,6 +75,21 @@ def erode_mask(mask: np.ndarray, k: float) -> np.ndarray:
     """(H, W) bool ``mask`` shrunk by a disk of radius ``k`` pixels (its boundary band gone)."""
     k = round(k)
     return mask.copy() if k <= 0 else ndimage.binary_erosion(mask, structure=_disk(k))
+
+
+def shift_mask(mask: np.ndarray, k: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) bool ``mask`` moved by ``k`` pixels in a random direction against the depth (a
+    label misregistered to the depth image): one side takes in what lies beside the object,
+    the other loses the object's rim. The direction is drawn first whatever ``k`` is, so
+    every level of one instance moves the same way."""
+    angle = rng.uniform(0.0, 2 * np.pi)
+    dy, dx = round(k * np.sin(angle)), round(k * np.cos(angle))
+    out = np.zeros_like(mask)
+    H, W = mask.shape
+    out[max(dy, 0) : H + min(dy, 0), max(dx, 0) : W + min(dx, 0)] = mask[
+        max(-dy, 0) : H + min(-dy, 0), max(-dx, 0) : W + min(-dx, 0)
+    ]
+    return out
 
 
 def drop_depth_blobs(
@@ -218,6 +233,10 @@ PERTURBATIONS: dict[str, Perturbation] = {
             "erode", "mask eroded", "px", (0, 1, 2, 4, 6, 10), "pixels", "boundary",
         ),
         Perturbation(
+            "shift", "mask shifted against the depth (one side bleeds, the other is cut)",
+            "px", (0, 1, 2, 4, 6, 10), "pixels", "off_model",
+        ),
+        Perturbation(
             "holes", "depth missing in blobs over a share of the mask", "share",
             (0, 0.1, 0.2, 0.35, 0.5, 0.7), "pixels", "no_depth",
         ),
@@ -270,6 +289,8 @@ def perturb_pixels(
         return dilate_mask(mask, level), depth
     if p.name == "erode":
         return erode_mask(mask, level), depth
+    if p.name == "shift":
+        return shift_mask(mask, level, rng), depth
     if p.name == "holes":
         return mask, drop_depth_blobs(depth, mask, level, rng)
     return mask, depth

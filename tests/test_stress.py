@@ -38,6 +38,27 @@ def test_erosion_removes_the_boundary_band_and_dilation_adds_one():
     assert np.array_equal(st.dilate_mask(mask, 0), mask)
 
 
+def test_shift_moves_the_mask_k_pixels_the_same_way_at_every_level():
+    mask = np.zeros((40, 40), dtype=bool)
+    mask[10:30, 12:26] = True
+    centre = np.argwhere(mask).mean(axis=0)
+    moves = {}
+    for k in (0, 1, 2, 4, 6):
+        shifted = st.shift_mask(mask, k, np.random.default_rng(3))  # one instance's stream
+        assert shifted.sum() == mask.sum()  # moved whole, nothing cut at the image border
+        moves[k] = np.argwhere(shifted).mean(axis=0) - centre
+        assert np.linalg.norm(moves[k]) == pytest.approx(k, abs=0.75)  # whole pixels
+    assert np.array_equal(st.shift_mask(mask, 0, np.random.default_rng(3)), mask)
+    direction = moves[6] / 6
+    for k in (2, 4):
+        assert np.linalg.norm(moves[k] / k - direction) < 0.3
+    edge = np.zeros((10, 10), dtype=bool)
+    edge[:, :2] = True  # pushed out of the image on one side it loses pixels, never wraps
+    for seed in range(8):
+        out = st.shift_mask(edge, 3, np.random.default_rng(seed))
+        assert out.sum() <= edge.sum() and not out[:, 6:].any()
+
+
 def test_holes_drop_about_the_share_inside_the_mask_only():
     depth = np.full((60, 60), 0.8)
     mask = np.zeros((60, 60), dtype=bool)
@@ -146,6 +167,12 @@ def test_pixel_statistics_follow_the_pixels():
     _, pd_ = st.perturbed_segment(fd, 0, p["dilate"], 4, seed=1, source="real")
     _, pe = st.perturbed_segment(fd, 0, p["erode"], 4, seed=1, source="real")
     assert pe["mask_px"] < px0["mask_px"] < pd_["mask_px"]
+    # a shifted mask keeps its size (less what leaves the image) and moves the segment
+    seg_s, ps = st.perturbed_segment(fd, 0, p["shift"], 4, seed=1, source="real")
+    seg_0, p_0 = st.perturbed_segment(fd, 0, p["shift"], 0, seed=1, source="real")
+    assert ps["mask_px"] <= p_0["mask_px"] == px0["mask_px"]
+    moved = seg_s.points[: seg_s.count].mean(axis=0) - seg_0.points[: seg_0.count].mean(axis=0)
+    assert np.linalg.norm(moved) > 1e-3  # metres
 
 
 def test_real_level_interpolates_the_synthetic_curve():
