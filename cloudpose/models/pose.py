@@ -149,11 +149,7 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
         rot_raw, t_residual = net.run_trunk(centred, cls_id)
     else:
         rot_xyz = centred if cfg.rotation_input == "centred" else points
-        if (
-            cfg.rotation_input == "centred"
-            and cfg.rotation_centre == "mean"
-            and cfg.centre != "mean"
-        ):
+        if cfg.rotation_centre == "mean" and cfg.centre != "mean":  # ModelConfig: centred input
             rot_xyz = points - points.mean(dim=1, keepdim=True)
         rot_raw, t_residual = net.run_pair(rot_xyz, centred, cls_id)
     R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)  # (B, 3, 3)
