@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from PIL import Image
@@ -22,10 +22,12 @@ from cloudpose.data.bop.format import (
 )
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, SegmentWarning, extract_segments
-from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
+
+if TYPE_CHECKING:  # Open3D is imported where a frame is rendered, not to read this module
+    from cloudpose.data.synth.render import Renderer
 
 
 @dataclass(frozen=True)
@@ -244,6 +246,8 @@ def export_bop(
     splits = _export_splits(src, frames, train)
     models = src.models()
     check_export_units(src, [fid for _, ids in splits for fid in ids], models)
+    from cloudpose.data.synth.render import Renderer
+
     # the surfaces that render a real frame's occlusion counts, so both layouts give one factor
     renderer = Renderer(
         {c: p.copy() for c, p in models.items()}, surface_version=ALONE_SURFACE_VERSION

@@ -8,12 +8,19 @@ mesh the ray hits first.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import open3d as o3d
 
-from cloudpose.data.synth.surfaces import build_mesh, check_surface_version, load_packaged_models
+from cloudpose.data.synth.surfaces import (
+    build_mesh,
+    check_surface_version,
+    load_packaged_models,
+    surface_arrays,
+)
+
+if TYPE_CHECKING:  # Open3D is imported where it casts rays: the compiled raster needs none
+    import open3d as o3d
 
 
 class Rendering(NamedTuple):
@@ -124,12 +131,12 @@ class Renderer:
         return self._meshes[c]
 
     def _mesh_arrays(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`mesh`'s vertices (float64) and triangles (uint32), without Open3D."""
+        if c not in self.models:
+            raise ValueError(f"class id {c} has no model; known ids {sorted(self.models)}")
         if c not in self._arrays:
-            m = self.mesh(c)
-            self._arrays[c] = (
-                np.asarray(m.vertices, dtype=np.float64),
-                np.asarray(m.triangles, dtype=np.uint32),
-            )
+            V, F = surface_arrays(self.models[c], self.use_cache, self.surface_version)
+            self._arrays[c] = (V, F.astype(np.uint32))
         return self._arrays[c]
 
     def _unit_rays(self, K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -147,6 +154,8 @@ class Renderer:
             depth (h, w) float32 metres (0 = no hit) and index (h, w) int64 of the instance
             hit first (-1 = none), over the window.
         """
+        import open3d as o3d
+
         scene = o3d.t.geometry.RaycastingScene()
         gid_to_inst = {}
         for i, (c, P) in enumerate(zip(cls_ids, poses, strict=True)):
@@ -192,6 +201,8 @@ class Renderer:
         """A ray-casting scene of class ``c``'s mesh in its model frame, built once (its BVH
         too: the first cast commits it) and kept."""
         if c not in self._scenes:
+            import open3d as o3d
+
             V, F = self._mesh_arrays(c)
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F))
@@ -220,6 +231,8 @@ class Renderer:
         Returns:
             :class:`Rendering` over the output window.
         """
+        import open3d as o3d
+
         K, shape, cls_ids, poses = _check_inputs(K, shape, cls_ids, poses)
         _check_labels(cls_ids)
         windows = np.asarray(windows, dtype=np.int64).reshape(-1, 4)

@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 from pykdtree.kdtree import KDTree
 from scipy import ndimage
 
 from cloudpose.conventions import packaged_classes, resource_path
+
+if TYPE_CHECKING:  # Open3D is imported where a surface is built: the packaged ones need none
+    import open3d as o3d
 
 
 def load_packaged_models() -> dict[int, np.ndarray]:
@@ -49,6 +52,8 @@ the plane fitted to those points."""
 
 
 def _alpha_shape(pcd: o3d.geometry.PointCloud, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
     mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(pcd, alpha)
     return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
 
@@ -119,6 +124,8 @@ def surface_triangles(points: np.ndarray, version: int = 1) -> np.ndarray:
 
 def _union_triangles(points: np.ndarray) -> np.ndarray:
     """The version-1 surface of :func:`surface_triangles` (points already checked)."""
+    import open3d as o3d
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     spacing = float(np.median(np.asarray(pcd.compute_nearest_neighbor_distance())))
     if not spacing > 0:
@@ -260,26 +267,33 @@ def carve_through_holes(points: np.ndarray, F: np.ndarray) -> np.ndarray:
     return keep
 
 
-def build_mesh(
+def surface_arrays(
     points: np.ndarray, use_cache: bool = True, version: int = 1
-) -> o3d.geometry.TriangleMesh:
-    """The surface mesh of a model (:func:`surface_triangles`, or the packaged cache of it).
+) -> tuple[np.ndarray, np.ndarray]:
+    """A model's surface as arrays (:func:`surface_triangles`, or the packaged cache of it):
+    ``(V, F)``, V the (P, 3) float64 model points in metres (model frame), F the (T, 3) int32
+    point indices of its triangles. The packaged models' need no Open3D.
 
     Args:
         points: (P, 3) model points in metres (model frame).
         use_cache: look the surface up in the packaged cache first (same points and settings).
         version: surface version, one of :data:`SURFACE_VERSIONS`.
-
-    Returns:
-        Triangle mesh in the model frame, metres; its vertices are all P points.
     """
     points = np.array(points, dtype=np.float64)
     F = _cached_triangles(points, version) if use_cache else None
     if F is None:
         F = surface_triangles(points, version)
-    return o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(points), o3d.utility.Vector3iVector(F.astype(np.int32))
-    )
+    return points, F.astype(np.int32)
+
+
+def build_mesh(
+    points: np.ndarray, use_cache: bool = True, version: int = 1
+) -> o3d.geometry.TriangleMesh:
+    """:func:`surface_arrays` as an Open3D triangle mesh; its vertices are all P points."""
+    import open3d as o3d
+
+    V, F = surface_arrays(points, use_cache, version)
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F))
 
 
 SURFACE_VERSION = 1
