@@ -13,8 +13,9 @@ checkpoint, where a run resumes anyway (:mod:`cloudpose.train.loop`):
    (device, seconds, steps). Rerun on the same folder, it resumes.
 3. ``adopt`` (here): creates the run's MLflow record with the training device's params, logs
    the epochs' metrics, puts ``last.pt`` into the run folder, then runs the pipeline
-   (:func:`cloudpose.suite.pipeline.train_and_evaluate`): training resumes at its end, saves
-   ``model.pt`` and the run is evaluated on the synthetic test set and the real development
+   (:func:`cloudpose.suite.pipeline.train_and_evaluate`): training resumes where it stopped
+   (a run cut short there trains its remaining steps here, on the same stream of segments),
+   saves ``model.pt`` and the run is evaluated on the synthetic test set and the real development
    frames, with and without ICP, as every run is.
 
 Usage::
@@ -215,10 +216,9 @@ def adopt(
 
     info = json.loads((src / "train.json").read_text())
     cfg = resolve(variant, preset, seed, parse_overrides(overrides))
-    if not info["finished"] or info["config"] != cfg.fingerprint():
+    if info["config"] != cfg.fingerprint():
         raise SystemExit(
-            f"{src}: the run is {'finished' if info['finished'] else 'unfinished'} "
-            f"with config {info['config']}; this preset resolves to {cfg.fingerprint()}"
+            f"{src}: trained config {info['config']}; this preset resolves to {cfg.fingerprint()}"
         )
     project = Path.cwd()
     data = prepare_data(cfg.data, project)
@@ -228,8 +228,10 @@ def adopt(
     if runs.read_info(folder).get("run_id") is None:
         sets = loop._training_sets(cfg, data, project, torch.device("cpu"))
         model, _ = loop._network(cfg, torch.device("cpu"))
-        params = loop._run_params(cfg, data.data_key, model, sets, info["device"])
+        here = "" if info["finished"] else ", then cpu"
+        params = loop._run_params(cfg, data.data_key, model, sets, info["device"] + here)
         params["train.machine"] = f"{info['gpu'] or info['device']}, {info['cpu_cores']} cores"
+        params["train.machine_steps"] = info["steps"]
         client = tracking.setup(project)
         group = (groups_of(cfg.variant) or ["misc"])[0]
         rec = runs.open_training_run(
@@ -239,10 +241,14 @@ def adopt(
             row = json.loads(line)
             metrics = {k: float(x) for k, x in row.items() if k not in ("epoch", "elapsed_s")}
             client.log_batch(rec["run_id"], metrics=tracking.metric_batch(metrics, row["epoch"]))
-        client.log_metric(rec["run_id"], "time/train_s", info["train_s"])
+        client.log_metric(rec["run_id"], "time/train_machine_s", info["train_s"])
         blob = join(src)
         atomic_write(folder / "last.pt", lambda tmp: tmp.write_bytes(blob))
-        print(f"{folder}: MLflow run {rec['run_id']}, {info['steps']} steps on {info['gpu']}")
+        print(
+            f"{folder}: MLflow run {rec['run_id']}, steps 1-{info['steps']} of "
+            f"{info['total_steps']} on {info['gpu'] or info['device']}"
+            + ("" if info["finished"] else "; the rest train here")
+        )
     out = train_and_evaluate(cfg, project_dir=project, data=data)
     print(f"evaluated: {out.train.run_id}")
 
