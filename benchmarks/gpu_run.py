@@ -23,6 +23,7 @@ Usage::
     python -m benchmarks.gpu_run export --preset gpu --out .gpu/val.npz
     python -m benchmarks.gpu_run train --preset gpu --seed 1 --val .gpu/val.npz --out DIR
     python -m benchmarks.gpu_run adopt --preset gpu --seed 1 --from DIR
+    python -m benchmarks.gpu_run profile --preset gpu --val .gpu/val.npz   # what bounds it there
 
 ``--set KEY=VALUE`` (train and adopt alike) overrides the preset as ``cloudpose run --set`` does.
 """
@@ -92,26 +93,14 @@ class _EpochLog:
         raise AssertionError("log_epoch is overridden")
 
 
-def train(
-    preset: str,
-    seed: int,
-    val_file: Path,
-    out: Path,
-    deadline_s: float,
-    overrides: list[str] | None = None,
-    variant: str = "shared-0",
-) -> int:
-    """Train ``variant`` x ``preset`` x ``seed`` into ``out`` (resuming from its ``last.pt``);
-    stop at ``deadline_s`` seconds with the last checkpoint kept. Returns 0 when the run
-    reached its last step."""
+def _setup(cfg, val_file: Path):
+    """``(device, TrainingSets, the val file)`` of an on-line run, as
+    :func:`cloudpose.train.loop._training_sets` makes them, from the exported file."""
     from cloudpose.data.batches import Batchable
     from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
-    from cloudpose.registry import parse_overrides, resolve
     from cloudpose.train import loop, seeds
     from cloudpose.train.distributed import SINGLE
 
-    t0 = time.monotonic()
-    cfg = resolve(variant, preset, seed, parse_overrides(overrides))
     v = np.load(val_file)
     class_names = [str(c) for c in v["classes"]]
     models = {int(c): v[f"model_{int(c)}"].astype(np.float64) for c in v["model_ids"]}
@@ -125,6 +114,90 @@ def train(
     if cfg.loss.symmetric:
         symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)
     sets = loop.TrainingSets(fit, val, probe, online, None, class_names, models, symmetry)
+    return device, sets, v
+
+
+def profile(preset: str, val_file: Path, seconds: float, variant: str = "shared-0") -> dict:
+    """What bounds an on-line run here: the run's training step alone (one batch, on the
+    device, synchronised), the synthesis of ``data.online_workers`` processes alone, and the
+    two together as training sees them (the on-line stream's batches), each for ``seconds``."""
+    from cloudpose.registry import resolve
+    from cloudpose.train import loop
+    from cloudpose.train.distributed import SINGLE
+    from cloudpose.train.step import Batch
+
+    cfg = resolve(variant, preset, 1)
+    device, sets, _ = _setup(cfg, val_file)
+    model, opt = loop._network(cfg, device)
+    trainer = loop.Trainer(cfg, model, opt, device, SINGLE, sets, loop.RunRecord(Path("."), {}))
+    bs = cfg.train.batch_size
+    batch = Batch(
+        *(x[:bs].to(device) for x in (sets.fit.points, sets.fit.cls_id, sets.fit.R, sets.fit.t))
+    )
+
+    def sync() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    def rate(fn, warm: int = 20) -> float:
+        for _ in range(warm):
+            fn()
+        sync()
+        n, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            fn()
+            n += 1
+        sync()
+        return n / (time.perf_counter() - t0)
+
+    out: dict[str, Any] = {"device": str(device), "threads": torch.get_num_threads()}
+    out["train_steps_per_s"] = rate(lambda: trainer._step(batch, loop.Position()))
+    stream = loop.OnlineStream(
+        sets.online,
+        1,
+        bs,
+        cfg.data.online_reuse,
+        10**6,
+        start=10**5,
+        workers=cfg.data.online_workers,
+    )
+    out["stream_threads"] = torch.get_num_threads()
+    out["supply_steps_per_s"] = rate(lambda: stream.next(), warm=200)
+    out["both_steps_per_s"] = rate(
+        lambda: trainer._step(Batch(*(x.to(device) for x in stream.next())), loop.Position()),
+        warm=50,
+    )
+    stream.close()
+    out |= {
+        "batch_size": bs,
+        "workers": cfg.data.online_workers,
+        "seconds": seconds,
+        "cpu_cores": len(os.sched_getaffinity(0)),
+        "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def train(
+    preset: str,
+    seed: int,
+    val_file: Path,
+    out: Path,
+    deadline_s: float,
+    overrides: list[str] | None = None,
+    variant: str = "shared-0",
+) -> int:
+    """Train ``variant`` x ``preset`` x ``seed`` into ``out`` (resuming from its ``last.pt``);
+    stop at ``deadline_s`` seconds with the last checkpoint kept. Returns 0 when the run
+    reached its last step."""
+    from cloudpose.registry import parse_overrides, resolve
+    from cloudpose.train import loop
+    from cloudpose.train.distributed import SINGLE
+
+    t0 = time.monotonic()
+    cfg = resolve(variant, preset, seed, parse_overrides(overrides))
+    device, sets, v = _setup(cfg, val_file)
     model, opt = loop._network(cfg, device)
     out.mkdir(parents=True, exist_ok=True)
     log = out / "epochs.jsonl"
@@ -266,6 +339,10 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--out", type=Path, required=True)
     t.add_argument("--deadline-s", type=float, default=1e9)
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p = sub.add_parser("profile")
+    p.add_argument("--preset", default="gpu")
+    p.add_argument("--val", type=Path, required=True)
+    p.add_argument("--seconds", type=float, default=15.0)
     a = sub.add_parser("adopt")
     a.add_argument("--preset", default="gpu")
     a.add_argument("--seed", type=int, default=1)
@@ -277,6 +354,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.cmd == "train":
         return train(args.preset, args.seed, args.val, args.out, args.deadline_s, args.set)
+    if args.cmd == "profile":
+        profile(args.preset, args.val, args.seconds)
+        return 0
     adopt(args.preset, args.seed, args.src, args.set)
     return 0
 
