@@ -51,14 +51,16 @@ PART_BYTES = 15 * 2**20
 at most 16 MiB)."""
 
 
-def export(preset: str, out: Path, variant: str = "shared-0") -> None:
+def export(
+    preset: str, out: Path, overrides: list[str] | None = None, variant: str = "shared-0"
+) -> None:
     """Write ``preset``'s validation segments (every rendered training frame's, as an on-line
     run validates on), its class names and model points to ``out``."""
     from cloudpose.data.batches import Batchable
     from cloudpose.data.dataset import prepare_data
-    from cloudpose.registry import resolve
+    from cloudpose.registry import parse_overrides, resolve
 
-    cfg = resolve(variant, preset, 1)
+    cfg = resolve(variant, preset, 1, parse_overrides(overrides))
     if cfg.data.train_source != "online":
         raise SystemExit(
             f"preset {preset}: data.train_source must be 'online' (training on "
@@ -186,11 +188,12 @@ def train(
     out: Path,
     deadline_s: float,
     overrides: list[str] | None = None,
+    max_steps: int | None = None,
     variant: str = "shared-0",
 ) -> int:
     """Train ``variant`` x ``preset`` x ``seed`` into ``out`` (resuming from its ``last.pt``);
-    stop at ``deadline_s`` seconds with the last checkpoint kept. Returns 0 when the run
-    reached its last step."""
+    stop at ``deadline_s`` seconds (the last checkpoint kept) or after ``max_steps`` steps
+    (checkpointed there). Returns 0 when the run reached its last step, else 3."""
     from cloudpose.registry import parse_overrides, resolve
     from cloudpose.train import loop
     from cloudpose.train.distributed import SINGLE
@@ -225,8 +228,10 @@ def train(
     signal.alarm(max(1, int(deadline_s - (time.monotonic() - t0))))
     t_train, finished = time.monotonic(), False
     try:
-        trainer.run(position, progress=False, checkpoint_every_s=60.0, max_steps=None)
+        trainer.run(position, progress=False, checkpoint_every_s=60.0, max_steps=max_steps)
         finished = True
+    except loop.TrainingInterrupted:
+        print(f"stopped after {max_steps} steps; last.pt holds them", flush=True)
     except KeyboardInterrupt:
         print("deadline: stopped; last.pt holds the last checkpoint", flush=True)
     finally:
@@ -310,7 +315,8 @@ def adopt(
         rec = runs.open_training_run(
             client, cfg, data.data_key, folder, group=group, params=params, project_dir=project
         )
-        for line in (src / "epochs.jsonl").read_text().splitlines():
+        epochs = src / "epochs.jsonl"  # none when no epoch ended there
+        for line in epochs.read_text().splitlines() if epochs.exists() else []:
             row = json.loads(line)
             metrics = {k: float(x) for k, x in row.items() if k not in ("epoch", "elapsed_s")}
             client.log_batch(rec["run_id"], metrics=tracking.metric_batch(metrics, row["epoch"]))
@@ -332,12 +338,14 @@ def main(argv: list[str] | None = None) -> int:
     e = sub.add_parser("export")
     e.add_argument("--preset", default="gpu")
     e.add_argument("--out", type=Path, required=True)
+    e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     t = sub.add_parser("train")
     t.add_argument("--preset", default="gpu")
     t.add_argument("--seed", type=int, default=1)
     t.add_argument("--val", type=Path, required=True)
     t.add_argument("--out", type=Path, required=True)
     t.add_argument("--deadline-s", type=float, default=1e9)
+    t.add_argument("--max-steps", type=int, default=None)
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p = sub.add_parser("profile")
     p.add_argument("--preset", default="gpu")
@@ -350,10 +358,12 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args(argv)
     if args.cmd == "export":
-        export(args.preset, args.out)
+        export(args.preset, args.out, args.set)
         return 0
     if args.cmd == "train":
-        return train(args.preset, args.seed, args.val, args.out, args.deadline_s, args.set)
+        return train(
+            args.preset, args.seed, args.val, args.out, args.deadline_s, args.set, args.max_steps
+        )
     if args.cmd == "profile":
         profile(args.preset, args.val, args.seconds)
         return 0
