@@ -4,9 +4,9 @@ the classical baselines.
 
 Reads the CSV that ``cloudpose experiments --group shared --group diagnostics --preset
 cpu-online --against cpu-online --out reports/diagnostics/cpu_online_experiments.md`` writes
-beside its Markdown. A run of shared-0 is kept when it changes nothing but ``train.epochs``,
-``data.online_reuse``, ``data.online_version`` and ``model.width`` (its steps, its distinct
-segments = steps x batch / reuse, its synthesis version and its width)::
+beside its Markdown. A run of shared-0 is kept when it changes nothing but :data:`KEPT`: its
+steps (``train.epochs``, ``data.online_epoch_segments``), its distinct segments (steps x batch /
+``data.online_reuse``), its synthesis version and workers, and its width::
 
     python reports/diagnostics/online_budget.py reports/diagnostics/cpu_online_experiments.csv \\
         --out reports/diagnostics/online_budget.png \\
@@ -47,7 +47,16 @@ from cloudpose.registry import resolve
 
 _PRESET = resolve("shared-0", "cpu-online")
 BATCH, REUSE = _PRESET.train.batch_size, _PRESET.data.online_reuse
-KEPT = ("train.epochs", "data.online_reuse", "data.online_version", "model.width")
+KEPT = (
+    "train.epochs",
+    "data.online_reuse",
+    "data.online_version",
+    "model.width",
+    # where chunks are made and how many steps an epoch counts (when validation runs): neither
+    # changes a step's batch nor the schedule, which spans the run (the `gpu` preset sets both)
+    "data.online_workers",
+    "data.online_epoch_segments",
+)
 FIGURES = {
     "test": ("test < 10° mod sym (%)", "rotation < 10° mod sym (%)"),
     "test_icp": ("test + ICP < 10° mod sym (%)", "+ ICP: rotation < 10° mod sym (%)"),
