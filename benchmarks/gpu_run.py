@@ -84,17 +84,6 @@ def export(
     print(f"{out}: {len(val)} validation segments of data {data.data_key}, {len(models)} models")
 
 
-class _EpochLog:
-    """What :class:`~cloudpose.train.loop.RunRecord` asks of its MLflow client while training,
-    kept in ``epochs.jsonl``."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-
-    def log_batch(self, run_id: str, metrics: list) -> None:  # pragma: no cover - unused
-        raise AssertionError("log_epoch is overridden")
-
-
 def _setup(cfg, val_file: Path):
     """``(device, TrainingSets, the val file)`` of an on-line run, as
     :func:`cloudpose.train.loop._training_sets` makes them, from the exported file."""
@@ -212,7 +201,7 @@ def train(
                 f.write(json.dumps(row) + "\n")
             print(json.dumps({k: row[k] for k in row if not k.startswith("fit/")}), flush=True)
 
-    run = Record(out, {}, client=_EpochLog(log), run_id="local")
+    run = Record(out, {}, run_id="local")  # no MLflow client: log_epoch writes the file
     position = loop._resume(run, model, opt, cfg, SINGLE, device)
     trainer = loop.Trainer(cfg, model, opt, device, SINGLE, sets, run)
     print(

@@ -396,3 +396,59 @@ def test_frames_at_the_same_steps_do_not_reach_it(tmp_path, monkeypatch):
     assert out.metrics["fit/rot_sym_err_median_deg"] < 20.0  # it fits what it sees ...
     err = _held_out_rotation_error(out.checkpoint, cfg.train.n_points)
     assert err > LEARN_THRESHOLD_DEG, err  # ... and does not carry it to fresh segments
+
+
+def test_a_bleeding_mask_grows_by_one_pixel_into_its_neighbours():
+    """:func:`bleed_masks`: a pixel changes owner only when it is a 4-neighbour of a pixel of
+    the object it joins; share 0 changes nothing; share 1 takes some, not all, of the ring."""
+    from cloudpose.data.synth.online import bleed_masks
+
+    index = np.full((12, 16), -1, dtype=np.int64)
+    index[3:8, 3:7] = 0
+    index[3:8, 7:11] = 1  # touches object 0
+    same = bleed_masks(index, 2, 0.0, np.random.default_rng(0))
+    np.testing.assert_array_equal(same, index)
+    grown = bleed_masks(index, 2, 1.0, np.random.default_rng(1))
+    changed = np.argwhere(grown != index)
+    assert 0 < len(changed) < (index < 0).sum()
+    for v, u in changed:
+        owner = grown[v, u]
+        neighbours = [index[v + dv, u + du] for dv, du in ((0, -1), (0, 1), (-1, 0), (1, 0))]
+        assert owner in neighbours and owner != index[v, u], (v, u)
+    np.testing.assert_array_equal(
+        bleed_masks(index, 2, 1.0, np.random.default_rng(1)), grown
+    )  # a function of the draws
+
+
+def test_bleeding_masks_add_points_off_the_object():
+    """``data.online_bleed`` (version 3): the same scenes, more points a segment, some of them
+    off the posed model (the background's or a neighbour's depth), and deterministic."""
+    from scipy.spatial import cKDTree
+
+    plain = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3))
+    bled = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_bleed=1.0))
+    a, b = plain.batch(0, 3, 24), bled.batch(0, 3, 24)
+    np.testing.assert_array_equal(a.cls_id, b.cls_id)
+    np.testing.assert_array_equal(a.R, b.R)
+    assert b.count.sum() > a.count.sum()
+
+    def off(batch) -> float:
+        far = []
+        for p, c, R, t in zip(batch.points, batch.cls_id, batch.R, batch.t, strict=True):
+            d, _ = cKDTree(plain._gen.models[int(c)] @ R.T + t).query(p)
+            far.append(np.mean(d > 0.01))
+        return float(np.mean(far))
+
+    assert off(b) > off(a)
+    again = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_bleed=1.0))
+    np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
+
+
+def test_online_bleed_is_checked():
+    from cloudpose.config import DataConfig
+
+    with pytest.raises(ValueError, match=r"data.online_bleed must be in \[0, 1\]"):
+        DataConfig(train_source="online", online_version=3, online_bleed=1.5)
+    with pytest.raises(ValueError, match=r"needs data\.train_source='online' and"):
+        DataConfig(train_source="online", online_version=2, online_bleed=0.5)
+    assert DataConfig(train_source="online", online_version=3, online_bleed=0.5).online_bleed

@@ -154,6 +154,48 @@ class SegmentBatch:
         )
 
 
+BLEED_NEIGHBOURS = ((0, -1), (0, 1), (-1, 0), (1, 0))
+"""The 4-neighbours a bleeding mask grows into, in the order a pixel next to several objects
+takes the first."""
+
+
+def bleed_masks(
+    index: np.ndarray, n: int, share_max: float, rng: np.random.Generator
+) -> np.ndarray:
+    """``index`` with each object's mask grown by up to one pixel (``data.online_bleed``).
+
+    Each pixel that is not an object's own but is a 4-neighbour of one of its pixels
+    (background or another object: the first such object of :data:`BLEED_NEIGHBOURS`) goes to
+    that object with probability ``p``, ``p`` drawn per object uniformly in
+    ``[0, share_max]``: a segmentation mask that bleeds, as a real one does, by a share of a
+    pixel that differs from object to object. The draws: ``n`` uniforms (the shares), then one
+    per pixel of the box, row-major.
+
+    Args:
+        index: (h, w) int64 instance of each pixel (-1 = background).
+        n: the scene's instances.
+        share_max: the largest share, in [0, 1].
+        rng: the scene's generator.
+
+    Returns:
+        (h, w) int64, a new array.
+    """
+    share = rng.uniform(0.0, share_max, n)
+    u = rng.random(index.shape)
+    h, w = index.shape
+    take = np.full(index.shape, -1, dtype=np.int64)
+    for dv, du in BLEED_NEIGHBOURS:  # the label of the neighbour at (v + dv, u + du)
+        nb = np.full(index.shape, -1, dtype=np.int64)
+        nb[max(-dv, 0) : h - max(dv, 0), max(-du, 0) : w - max(du, 0)] = index[
+            max(dv, 0) : h - max(-dv, 0), max(du, 0) : w - max(-du, 0)
+        ]
+        free = (take < 0) & (nb >= 0) & (nb != index)
+        take[free] = nb[free]
+    grow = take >= 0
+    grow[grow] = u[grow] < share[take[grow]]
+    return np.where(grow, take, index)
+
+
 def scene_points(
     clean: np.ndarray,
     index: np.ndarray,
@@ -669,11 +711,15 @@ class OnlineSynth:
         Kw[1, 2] -= v0
         compiled = enabled()
         clean = self._with_ring_v3(depth, index, Kw, scene) if self.settings.noise else depth
+        masks, counts = index, visible
+        if self.settings.online_bleed:  # the ring's depth is the background's: grow into it
+            masks = bleed_masks(index, len(cls_ids), self.settings.online_bleed, rng)
+            counts = np.bincount(masks[masks >= 0], minlength=len(cls_ids)).astype(np.int64)
         n_fps, radius = self.settings.n_points, float(self.settings.outlier_radius)
         pts, offsets = scene_points(
             clean,
-            index,
-            visible,
+            masks,
+            counts,
             Kw,
             cls_ids,
             rng if self.settings.noise else None,

@@ -106,6 +106,8 @@ class OnlineSettings:
             numbers to float rounding (:mod:`cloudpose.data.synth.online`, "Version 2"); 3,
             the same scenes and sensor model, a scene's objects in a few compiled passes
             with draws of their own: the same distribution, other segments ("Version 3").
+        online_bleed: version 3's masks grown into the pixels next to them
+            (``data.online_bleed``: the largest share of them an object takes).
     """
 
     synth_version: int = GENERATOR_VERSION
@@ -115,6 +117,7 @@ class OnlineSettings:
     class_ids: tuple[int, ...] | None = None
     online_scenes: str = "all"
     online_version: int = 1
+    online_bleed: float = 0.0
 
     def __post_init__(self) -> None:
         check_synth_version(self.synth_version)
@@ -161,6 +164,7 @@ class OnlineSettings:
             class_ids=classes,
             online_scenes=d.online_scenes,
             online_version=d.online_version,
+            online_bleed=d.online_bleed,
         )
 
 
@@ -230,6 +234,8 @@ def store_settings(settings: OnlineSettings, chunk_size: int) -> dict[str, Any]:
     """The parts of a store's key, as written to its ``settings.json``: the synthesis settings
     field by field, the chunk size and the synthesis code (:func:`code_digest`)."""
     synth = dataclasses.asdict(settings)
+    if not synth["online_bleed"]:  # a field at its default is left out: older keys stay
+        del synth["online_bleed"]
     if synth["class_ids"] is not None:
         synth["class_ids"] = list(synth["class_ids"])
     return {"synth": synth, "chunk_size": int(chunk_size), "code": code_digest()}
