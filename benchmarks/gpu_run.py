@@ -85,11 +85,10 @@ def export(
 
 
 def _setup(cfg, val_file: Path):
-    """``(device, TrainingSets, the val file)`` of an on-line run, as
-    :func:`cloudpose.train.loop._training_sets` makes them, from the exported file."""
+    """``(device, TrainingSets, the val file)`` of an on-line run from the exported file
+    (:func:`cloudpose.train.loop.online_training_sets`, no chunk store)."""
     from cloudpose.data.batches import Batchable
-    from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
-    from cloudpose.train import loop, seeds
+    from cloudpose.train import loop
     from cloudpose.train.distributed import SINGLE
 
     v = np.load(val_file)
@@ -97,15 +96,7 @@ def _setup(cfg, val_file: Path):
     models = {int(c): v[f"model_{int(c)}"].astype(np.float64) for c in v["model_ids"]}
     val = Batchable(*(torch.from_numpy(v[k]) for k in ("points", "cls_id", "R", "t")))
     device = loop._training_device(cfg, SINGLE)
-    online = loop.OnlineSettings.from_config(cfg, class_names)
-    fit = loop.online_probe(online, cfg.seed, 256, None)
-    g = seeds.generator(cfg.seed, "probe", streams=cfg.train.seed_streams)
-    probe = fit.subset(torch.randperm(len(fit), generator=g)[:512])
-    symmetry = None
-    if cfg.loss.symmetric:
-        symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)
-    sets = loop.TrainingSets(fit, val, probe, online, None, class_names, models, symmetry)
-    return device, sets, v
+    return device, loop.online_training_sets(cfg, class_names, val, models, None, device), v
 
 
 def profile(preset: str, val_file: Path, seconds: float, variant: str = "shared-0") -> dict:

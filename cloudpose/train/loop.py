@@ -483,15 +483,46 @@ def _training_sets(
     """The run's :class:`TrainingSets`: held-out frames validate (``train.val_fraction``), or
     on line, the rendered training frames do and fitting draws fresh segments."""
     class_names = list(data.dataset.classes)
-    n_points, online, store = cfg.train.n_points, None, online_store_root(project_dir)
+    n_points, store = cfg.train.n_points, online_store_root(project_dir)
+    models = data.dataset.models()
     if cfg.data.train_source == "online":
-        online = OnlineSettings.from_config(cfg, class_names)
         val = Batchable.from_segments(data.train, n_points)
-        fit = online_probe(online, cfg.seed, 256, store)
-    else:
-        held = split_frames(data.train.frame_id, cfg.train.val_fraction)
-        fit = Batchable.from_segments(data.train.subset(~held), n_points)
-        val = Batchable.from_segments(data.train.subset(held), n_points)
+        return online_training_sets(cfg, class_names, val, models, store, device)
+    held = split_frames(data.train.frame_id, cfg.train.val_fraction)
+    fit = Batchable.from_segments(data.train.subset(~held), n_points)
+    val = Batchable.from_segments(data.train.subset(held), n_points)
+    return _assemble(cfg, fit, val, None, store, class_names, models, device)
+
+
+def online_training_sets(
+    cfg: Config,
+    class_names: list[str],
+    val: Batchable,
+    models: dict,
+    store: Path | None,
+    device: torch.device,
+) -> TrainingSets:
+    """The :class:`TrainingSets` of an on-line run from its validation segments and model
+    points: fitting draws fresh segments (the first step's, from the chunk store ``store``,
+    re-estimate BatchNorm statistics); what a machine without the rendered frames needs
+    (``benchmarks/gpu_run.py``)."""
+    online = OnlineSettings.from_config(cfg, class_names)
+    fit = online_probe(online, cfg.seed, 256, store)
+    return _assemble(cfg, fit, val, online, store, class_names, models, device)
+
+
+def _assemble(
+    cfg: Config,
+    fit: Batchable,
+    val: Batchable,
+    online: OnlineSettings | None,
+    store: Path | None,
+    class_names: list[str],
+    models: dict,
+    device: torch.device,
+) -> TrainingSets:
+    """:class:`TrainingSets` of ``fit`` and ``val``: the probe (the seed's ``probe`` stream)
+    and the symmetry tensors on the device."""
     if len(fit) < cfg.train.batch_size:
         raise ValueError(
             f"only {len(fit)} valid training segments, fewer than train.batch_size="
@@ -502,7 +533,6 @@ def _training_sets(
         symmetry = SymmetryTensors(symmetries_for(class_names, cfg.loss.symmetry_table)).to(device)
     g = seeds.generator(cfg.seed, "probe", streams=cfg.train.seed_streams)
     probe = fit.subset(torch.randperm(len(fit), generator=g)[:512])
-    models = data.dataset.models()
     return TrainingSets(fit, val, probe, online, store, class_names, models, symmetry)
 
 
