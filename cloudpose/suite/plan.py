@@ -222,11 +222,16 @@ def estimate_run_s(cfg: Config) -> tuple[float, str]:
 
 def _measured_run_s(client, preset: str, variants: list[str]) -> tuple[float, int] | None:
     """Median wall time of the finished runs of ``preset`` in the store (of ``variants`` when
-    they have any), and how many runs it is from."""
+    they have any), and how many runs it is from. A run that trained some of its steps on
+    another machine (``train.machine_steps``, ``benchmarks/gpu_run.py``) is left out: its wall
+    time here is only part of a run."""
     found = [
         r
         for r in tracking.find_runs(client, preset=preset)
-        if r.info.end_time and r.info.start_time and TEST_KEY in r.data.metrics
+        if r.info.end_time
+        and r.info.start_time
+        and TEST_KEY in r.data.metrics
+        and "train.machine_steps" not in r.data.params
     ]
     own = [r for r in found if r.data.tags.get("variant") in variants]
     runs = own or found

@@ -70,6 +70,13 @@ def test_plan_time_comes_from_the_store_when_it_has_runs(project):
     assert len(plan.to_train) == 2 and plan.matched_elsewhere == 1
 
 
+def test_plan_time_leaves_out_a_run_trained_partly_elsewhere(project):
+    run_id = _finished_run(project, "shared-0", "smoke", 1)
+    tracking.setup(project).log_param(run_id, "train.machine_steps", 3)
+    plan = plans.plan_runs(["shared-0"], "smoke", [2], title="t", project_dir=project)
+    assert "from the preset" in plan.per_run_source
+
+
 def test_estimate_grows_with_the_preset():
     smoke, _ = plans.estimate_run_s(resolve("shared-0", "smoke"))
     cpu, _ = plans.estimate_run_s(resolve("shared-0", "cpu"))
