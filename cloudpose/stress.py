@@ -871,7 +871,7 @@ def collect_icp_selection(out_dir: Path) -> pd.DataFrame:
                 "source": path.parent.parent.name,
                 "setting": path.parent.name,
                 "method": path.stem,
-                **_summary_of(table, "icp"),
+                **summary_of(table, "icp"),
                 "seconds_per_instance": float(table["seconds"].iloc[0]) / max(len(table), 1),
             }
         )
@@ -898,7 +898,9 @@ SUMMARY_COLUMNS = ("ads_auc", "rot_sym_lt_10deg", "trans_lt_1cm", "trans_median_
 < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation error (mm)."""
 
 
-def _summary_of(table: pd.DataFrame, stage: str) -> dict[str, float]:
+def summary_of(table: pd.DataFrame, stage: str) -> dict[str, float]:
+    """:data:`SUMMARY_COLUMNS` of one method's result table at ``stage`` (``net``: its own
+    estimate, ``icp``: after ICP), pooled over its instances."""
     from cloudpose.metrics import summarize
 
     cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
@@ -948,7 +950,7 @@ def collect(out_dir: Path) -> pd.DataFrame:
                                 "level": float(lv),
                                 "method": m,
                                 "stage": stage,
-                                **_summary_of(table, stage),
+                                **summary_of(table, stage),
                                 "seconds_per_instance": float(table["seconds"].iloc[0])
                                 / max(len(table), 1),
                             }

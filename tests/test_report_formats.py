@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 
+import numpy as np
 import pandas as pd
 
 from cloudpose.report.formats import Provenance, Table
@@ -72,3 +73,18 @@ def test_csv_holds_the_numbers_and_write_makes_all_three(tmp_path):
     paths = _table().write(tmp_path / "cpu", PROV)
     assert [p.name for p in paths] == [f"table3_shared_layers.{e}" for e in ("md", "tex", "csv")]
     assert paths[0].read_text(encoding="utf-8") == _table().markdown(PROV)
+
+
+def test_a_figure_rendered_again_by_other_code_is_the_same_file(tmp_path):
+    from dataclasses import replace
+
+    from cloudpose.report.plots import Series, plot_occlusion
+
+    rng = np.random.default_rng(0)
+    table = pd.DataFrame({"occlusion": rng.uniform(0, 1, 50), "net_ads": rng.uniform(0, 0.02, 50)})
+    series = [Series("shared-0", [table])]
+    a = plot_occlusion(series, tmp_path / "a.png", replace(PROV, renderer="abc1234"), "t")
+    b = plot_occlusion(series, tmp_path / "b.png", replace(PROV, renderer="def5678"), "t")
+    assert a.read_bytes() == b.read_bytes()
+    c = plot_occlusion(series, tmp_path / "c.png", replace(PROV, seeds=(1, 2, 3)), "t")
+    assert c.read_bytes() != a.read_bytes()  # the runs' provenance is still drawn

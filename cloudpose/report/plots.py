@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import matplotlib
@@ -51,10 +51,14 @@ class Series:
 
 
 def _footer(fig, prov: Provenance) -> None:
+    """The runs' provenance under a figure, without the commit that rendered it: a figure
+    rendered again from the same runs is the same file, byte for byte, so a re-render adds
+    nothing to the repository where only the renderer moved (the tables beside it say which
+    code rendered them)."""
     fig.text(
         0.01,
         0.005,
-        prov.line().replace("`", ""),
+        replace(prov, renderer="").line().replace("`", ""),
         fontsize=6,
         color="0.35",
         ha="left",
