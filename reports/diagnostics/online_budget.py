@@ -10,10 +10,13 @@ steps (``train.epochs``, ``data.online_epoch_segments``), its distinct segments 
 
     python reports/diagnostics/online_budget.py reports/diagnostics/cpu_online_experiments.csv \\
         --out reports/diagnostics/online_budget.png \\
-        --baseline "FPFH + RANSAC=55.9,69.7,89.9,93.2" --baseline "point-pair features=..."
+        --baseline-run "FPFH + RANSAC=cpu-online:baseline-fpfh" \\
+        --baseline-run "point-pair features=cpu-online:baseline-ppf"
 
-Each ``--baseline NAME=ROT,ROT_ICP,ADS,ADS_ICP`` is a classical method's row of Table I
-(rotation < 10 deg modulo symmetry and ADS AUC, without and with ICP, percent).
+Each ``--baseline-run NAME=PRESET:VARIANT`` reads a classical method's figures from the MLflow
+store (rotation < 10 deg modulo symmetry and ADS AUC, without and with ICP: the mean over its
+seeds of the runs on every test instance, as Table I has them); ``--baseline
+NAME=ROT,ROT_ICP,ADS,ADS_ICP`` gives them as numbers (percent) instead.
 
 The surface, for each of the four figures y (percent), over the width-1 runs:
 
@@ -31,6 +34,7 @@ A lies below the baseline.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import warnings
 from pathlib import Path
@@ -247,6 +251,41 @@ def _baselines(specs: list[str]) -> dict[str, list[float]]:
     return out
 
 
+STORE_METRICS = (
+    "test/rot_sym_lt_10deg",
+    "test_icp/rot_sym_lt_10deg",
+    "test/ads_auc",
+    "test_icp/ads_auc",
+)
+"""The logged metrics (fractions) of :data:`FIGURES`, in its order."""
+
+
+def _baselines_from_store(specs: list[str]) -> dict[str, list[float]]:
+    """``NAME=PRESET:VARIANT`` -> the mean over seeds of the variant's runs in the MLflow store
+    (the runs Table I is rendered from: ``cloudpose.report.runs.load_runs``), in percent."""
+    from cloudpose.report.runs import load_runs
+
+    out: dict[str, list[float]] = {}
+    for spec in specs:
+        name, _, where = spec.partition("=")
+        preset, _, variant = where.partition(":")
+        if not (name and preset and variant):
+            raise SystemExit(f"--baseline-run {spec!r}: expected NAME=PRESET:VARIANT")
+        records = [r for r in load_runs(preset).of(variant) if r.subsample == "all"]
+        if not records:
+            raise SystemExit(
+                f"--baseline-run {spec!r}: no finished run of {variant} on every test instance "
+                f"of {preset} in the MLflow store ({os.environ.get('MLFLOW_TRACKING_URI', 'mlflow.db')})"
+            )
+        out[name] = [100 * float(np.nanmean([r.metric(k) for r in records])) for k in STORE_METRICS]
+        seeds = ", ".join(str(r.seed) for r in records)
+        print(
+            f"{name}: {variant} of {preset}, seeds {seeds}: "
+            + ", ".join(f"{v:.1f}" for v in out[name])
+        )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("log", type=Path, help="CSV of the cpu-online experiment log")
@@ -254,8 +293,14 @@ def main() -> None:
         "--out", type=Path, required=True, help="PNG to write (the tables beside it as .csv)"
     )
     ap.add_argument("--baseline", action="append", default=[], help="NAME=ROT,ROT_ICP,ADS,ADS_ICP")
+    ap.add_argument(
+        "--baseline-run",
+        action="append",
+        default=[],
+        help="NAME=PRESET:VARIANT: a baseline's figures read from the MLflow store",
+    )
     a = ap.parse_args()
-    baselines = _baselines(a.baseline)
+    baselines = {**_baselines(a.baseline), **_baselines_from_store(a.baseline_run)}
     t = budget_table(pd.read_csv(a.log))
     t.to_csv(a.out.with_suffix(".csv"), index=False, float_format="%.1f")
     fits = fit_table(t, baselines)
