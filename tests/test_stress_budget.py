@@ -71,7 +71,8 @@ def test_each_network_is_scored_on_the_baselines_instances_only(stress_budget, t
     np.testing.assert_allclose(got["trans_median_mm"], [2.0, 2.0], atol=1e-9)
     fpfh = df[(df["method"] == "fpfh") & (df["stage"] == "icp")]
     np.testing.assert_allclose(fpfh["trans_median_mm"], [4.0, 6.0], atol=1e-9)
-    text = stress_budget.markdown(df, "dilate", "python stress_budget.py ...")
+    text = stress_budget.markdown(df, {"dilate": 0.5}, "python stress_budget.py ...")
+    assert "Real frames' level: 0.5 px." in text
     assert "| real | 2 | 6.0 / 6.0 | 2.0 / 2.0 |" in text  # median translation (mm)
 
 

@@ -1,19 +1,22 @@
-"""One perturbation of the stress curves at several training budgets, paired on the instances
-a classical baseline ran on.
+"""Stress perturbations at several training budgets, paired on the instances a classical
+baseline ran on.
 
 Each ``--net LABEL=DIR`` is the results folder of a ``cloudpose stress`` sweep that evaluated
-one network (method ``--method``, e.g. ``net-seed1``) under ``--perturbation``; ``--baseline``
-is the folder whose sweep also ran FPFH + RANSAC (method ``fpfh``) on a subsample. Every
-network is scored on the baseline's instances only (matched by frame and instance), so the
-rows compare the same segments::
+one network (method ``--method``, e.g. ``net-seed1``); ``--baseline`` is the folder whose sweep
+also ran FPFH + RANSAC (method ``fpfh``) on a subsample. Every network is scored on the
+baseline's instances only (matched by frame and instance), so the rows compare the same
+segments; a network whose sweep lacks a perturbation is left out of that perturbation's rows::
 
-    python reports/diagnostics/stress_budget.py --perturbation dilate --method net-seed1 \\
+    python reports/diagnostics/stress_budget.py --perturbation dilate --perturbation bias \\
+        --perturbation points --method net-seed1 \\
         --net cpu-online=runs/stress/x1 --net cpu-online-4x=runs/stress/x4 \\
         --net gpu=runs/stress/gpu1 --baseline runs/stress/gpu1 \\
         --out reports/diagnostics/stress_budget.md
 
-Writes the Markdown (ADS AUC, rotation < 10 deg modulo symmetry and median translation per
-level, without / with ICP), a CSV beside it and a plot (``.png``).
+Writes the Markdown (per perturbation: where the real development frames sit, then ADS AUC,
+rotation < 10 deg modulo symmetry and median translation per level, without / with ICP), a
+CSV beside it and a plot (``.png``: ADS AUC after ICP and the median translation without it,
+the real frames' level marked).
 """
 
 from __future__ import annotations
@@ -28,10 +31,18 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
 import pandas as pd
 
 from cloudpose.files import atomic_write
-from cloudpose.stress import PERTURBATIONS, identity_level, result_path, summary_of
+from cloudpose.stress import (
+    PERTURBATIONS,
+    collect_stats,
+    identity_level,
+    real_level,
+    result_path,
+    summary_of,
+)
 
 BASELINE = "fpfh"
 FIGURES = (  # column, scale, heading
@@ -46,7 +57,7 @@ def _levels(folder: Path, perturbation: str) -> list[float]:
     meta = json.loads((folder / "sweep.json").read_text())
     if perturbation not in meta["perturbations"]:
         raise ValueError(f"{folder}/sweep.json: no {perturbation!r} in its perturbations")
-    return [float(lv) for lv in meta["perturbations"][perturbation]]
+    return sorted(float(lv) for lv in meta["perturbations"][perturbation])
 
 
 def _table(folder: Path, source: str, perturbation: str, level: float, method: str) -> Path:
@@ -60,8 +71,10 @@ def _table(folder: Path, source: str, perturbation: str, level: float, method: s
 
 
 def paired(nets: dict[str, Path], baseline: Path, perturbation: str, method: str) -> pd.DataFrame:
-    """One row per (source, level, method, stage): the summary on the baseline's instances."""
+    """One row per (source, level, method, stage) of ``perturbation``: the summary on the
+    baseline's instances. A network whose sweep lacks the perturbation is left out."""
     sources = json.loads((baseline / "sweep.json").read_text())["sources"]
+    nets = {k: v for k, v in nets.items() if perturbation in _sweep_perturbations(v)}
     rows = []
     for src in sources:
         for lv in _levels(baseline, perturbation):
@@ -80,6 +93,7 @@ def paired(nets: dict[str, Path], baseline: Path, perturbation: str, method: str
                 for stage in ("net", "icp"):
                     rows.append(
                         {
+                            "perturbation": perturbation,
                             "source": src,
                             "level": lv,
                             "method": label,
@@ -90,58 +104,85 @@ def paired(nets: dict[str, Path], baseline: Path, perturbation: str, method: str
     return pd.DataFrame(rows)
 
 
-def markdown(df: pd.DataFrame, perturbation: str, command: str) -> str:
-    p = PERTURBATIONS[perturbation]
-    methods = list(dict.fromkeys(df["method"]))
+def _sweep_perturbations(folder: Path) -> dict:
+    return json.loads((folder / "sweep.json").read_text())["perturbations"]
+
+
+def real_levels(baseline: Path, perturbations: list[str]) -> dict[str, float]:
+    """Where the real development frames sit on each perturbation's axis
+    (:func:`cloudpose.stress.real_level` from the baseline sweep's segment statistics)."""
+    stats = collect_stats(baseline)
+    return {p: float(real_level(PERTURBATIONS[p], stats)[0]) for p in perturbations}
+
+
+def markdown(df: pd.DataFrame, levels: dict[str, float], command: str) -> str:
     n = sorted({int(c) for c in df["count"]})
     lines = [
-        f"# {perturbation}: {p.what} [{p.unit}], networks at several budgets against FPFH + RANSAC",
+        "# Stress curves of networks at several budgets against FPFH + RANSAC",
         "",
         f"Made by `{command}`. Every method on the same instances ({', '.join(map(str, n))} "
         "per source, FPFH + RANSAC's subsample of the stress sweep): read the differences, "
-        "not the decimals. Cells: without ICP / with ICP (each method's own ICP).",
+        "not the decimals. Cells: without ICP / with ICP (each method's own ICP). The real "
+        "development frames' level on each axis is `cloudpose.stress.real_level`'s.",
         "",
     ]
-    for col, scale, head in FIGURES:
-        lines += [f"## {head}", "", "| source | level | " + " | ".join(methods) + " |"]
-        lines.append("|---|---:|" + "---:|" * len(methods))
-        for (src, lv), g in df.groupby(["source", "level"], sort=False):
-            cells = []
-            for m in methods:
-                v = g[g["method"] == m].set_index("stage")[col] * scale
-                cells.append(f"{v['net']:.1f} / {v['icp']:.1f}")
-            lines.append(f"| {src} | {lv:g} | " + " | ".join(cells) + " |")
-        lines.append("")
+    for pert, part in df.groupby("perturbation", sort=False):
+        p = PERTURBATIONS[pert]
+        methods = list(dict.fromkeys(part["method"]))
+        real = levels.get(pert, float("nan"))
+        where = f"{real:.3g} {p.unit}" if np.isfinite(real) else "not placed"
+        lines += [f"## {pert}: {p.what} [{p.unit}]", "", f"Real frames' level: {where}.", ""]
+        for col, scale, head in FIGURES:
+            lines += [f"### {head}", "", "| source | level | " + " | ".join(methods) + " |"]
+            lines.append("|---|---:|" + "---:|" * len(methods))
+            for (src, lv), g in part.groupby(["source", "level"], sort=False):
+                cells = []
+                for m in methods:
+                    v = g[g["method"] == m].set_index("stage")[col] * scale
+                    cells.append(f"{v['net']:.1f} / {v['icp']:.1f}")
+                lines.append(f"| {src} | {lv:g} | " + " | ".join(cells) + " |")
+            lines.append("")
     return "\n".join(lines)
 
 
-def plot(df: pd.DataFrame, perturbation: str, out: Path) -> None:
+def plot(df: pd.DataFrame, levels: dict[str, float], out: Path) -> None:
+    perts = list(dict.fromkeys(df["perturbation"]))
     sources = list(dict.fromkeys(df["source"]))
     shown = (
         ("ads_auc", 100.0, "icp", "ADS AUC + ICP"),
         ("trans_median_mm", 1.0, "net", "median translation, no ICP (mm)"),
     )
-    fig, axes = plt.subplots(len(shown), len(sources), figsize=(5 * len(sources), 7), squeeze=False)
-    for j, src in enumerate(sources):
-        for i, (col, scale, stage, title) in enumerate(shown):
+    cols = [(src, s) for s in shown for src in sources]
+    nets = [m for m in dict.fromkeys(df["method"]) if m != BASELINE]
+    colour = {m: f"C{k}" for k, m in enumerate(nets)}  # one colour a network in every panel
+    fig, axes = plt.subplots(
+        len(perts), len(cols), figsize=(4.2 * len(cols), 3.3 * len(perts)), squeeze=False
+    )
+    for i, pert in enumerate(perts):
+        for j, (src, (col, scale, stage, title)) in enumerate(cols):
             ax = axes[i][j]
-            for m, g in df[(df["source"] == src) & (df["stage"] == stage)].groupby(
-                "method", sort=False
-            ):
-                style = "k--" if m == BASELINE else "-o"
-                ax.plot(g["level"], g[col] * scale, style, label=m, markersize=4)
-            ax.set_title(f"{src}: {title}")
-            ax.set_xlabel(f"{perturbation} [{PERTURBATIONS[perturbation].unit}]")
+            sub = df[(df["perturbation"] == pert) & (df["source"] == src) & (df["stage"] == stage)]
+            for m, g in sub.groupby("method", sort=False):
+                g = g.sort_values("level")
+                if m == BASELINE:
+                    ax.plot(g["level"], g[col] * scale, "k--", label=m)
+                else:
+                    ax.plot(g["level"], g[col] * scale, "-o", color=colour[m], label=m, ms=4)
+            real = levels.get(pert, float("nan"))
+            if np.isfinite(real):
+                ax.axvline(real, color="tab:red", lw=0.8, ls=":", label="real frames' level")
+            ax.set_title(f"{src}: {title}", fontsize=9)
+            ax.set_xlabel(f"{pert} [{PERTURBATIONS[pert].unit}]", fontsize=8)
             ax.grid(alpha=0.3)
-    axes[0][0].legend()
+    axes[0][0].legend(fontsize=7)
     fig.tight_layout()
-    atomic_write(out, lambda tmp: fig.savefig(tmp, dpi=110), suffix=".png")
+    atomic_write(out, lambda tmp: fig.savefig(tmp, dpi=100), suffix=".png")
     plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--perturbation", required=True, choices=sorted(PERTURBATIONS))
+    ap.add_argument("--perturbation", action="append", required=True, choices=sorted(PERTURBATIONS))
     ap.add_argument("--method", default="net-seed1", help="the network's method in each sweep")
     ap.add_argument("--net", action="append", required=True, metavar="LABEL=DIR")
     ap.add_argument("--baseline", required=True, type=Path, help="sweep that ran fpfh")
@@ -153,18 +194,16 @@ def main(argv: list[str] | None = None) -> None:
         if not sep:
             ap.error(f"--net {item!r}: expected LABEL=DIR")
         nets[label] = Path(folder)
-    df = paired(nets, args.baseline, args.perturbation, args.method)
+    df = pd.concat([paired(nets, args.baseline, p, args.method) for p in args.perturbation])
+    levels = real_levels(args.baseline, args.perturbation)
     command = "python " + shlex.join(
         ["reports/diagnostics/stress_budget.py", *(argv or sys.argv[1:])]
     )
     out = args.out
-    atomic_write(
-        out,
-        lambda tmp: Path(tmp).write_text(markdown(df, args.perturbation, command)),
-        suffix=".md",
-    )
+    text = markdown(df, levels, command)
+    atomic_write(out, lambda tmp: Path(tmp).write_text(text), suffix=".md")
     atomic_write(out.with_suffix(".csv"), lambda tmp: df.to_csv(tmp, index=False), suffix=".csv")
-    plot(df, args.perturbation, out.with_suffix(".png"))
+    plot(df, levels, out.with_suffix(".png"))
     print(f"wrote {out}, {out.with_suffix('.csv')}, {out.with_suffix('.png')}")
 
 
