@@ -638,6 +638,14 @@ def result_path(out_dir: Path, source: str, pert: str, level: float, what: str) 
     return out_dir / "results" / source / pert / level_name(level) / f"{what}.csv"
 
 
+def level_result_path(out_dir: Path, source: str, pert: str, level: float, what: str) -> Path:
+    """:func:`result_path` of ``pert`` at ``level``, where the identity of every perturbation
+    is the one result computed under ``dilate`` at 0."""
+    if level == identity_level(PERTURBATIONS[pert]):
+        return result_path(out_dir, source, "dilate", 0.0, what)
+    return result_path(out_dir, source, pert, float(level), what)
+
+
 def conditions(perts: list[Perturbation]) -> list[tuple[Perturbation, float]]:
     """Every (perturbation, level) once; the identity of all of them is computed once, under
     the first."""
@@ -925,14 +933,10 @@ def collect(out_dir: Path) -> pd.DataFrame:
     rows = []
     for src in meta["sources"]:
         for pname, levels in meta["perturbations"].items():
-            p = PERTURBATIONS[pname]
             for lv in levels:
-                folder_p, folder_lv = (
-                    ("dilate", 0.0) if lv == identity_level(p) else (pname, float(lv))
-                )
                 tables = {}
                 for m in meta["methods"]:
-                    path = result_path(out_dir, src, folder_p, folder_lv, m)
+                    path = level_result_path(out_dir, src, pname, lv, m)
                     if path.is_file():
                         tables[m] = pd.read_csv(path)
                 for m, v in meta["methods"].items():  # each network on each baseline's rows
@@ -966,10 +970,8 @@ def collect_stats(out_dir: Path) -> pd.DataFrame:
     rows = []
     for src in meta["sources"]:
         for pname, levels in meta["perturbations"].items():
-            p = PERTURBATIONS[pname]
             for lv in levels:
-                fp, fl = ("dilate", 0.0) if lv == identity_level(p) else (pname, float(lv))
-                path = result_path(out_dir, src, fp, fl, "stats")
+                path = level_result_path(out_dir, src, pname, lv, "stats")
                 if not path.is_file():
                     continue
                 st = pd.read_csv(path)

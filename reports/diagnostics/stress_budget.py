@@ -38,9 +38,8 @@ from cloudpose.files import atomic_write
 from cloudpose.stress import (
     PERTURBATIONS,
     collect_stats,
-    identity_level,
+    level_result_path,
     real_level,
-    result_path,
     summary_of,
 )
 
@@ -61,10 +60,8 @@ def _levels(folder: Path, perturbation: str) -> list[float]:
 
 
 def _table(folder: Path, source: str, perturbation: str, level: float, method: str) -> Path:
-    """The result file of ``method`` at ``level`` (the identity is stored once, under dilate)."""
-    p = PERTURBATIONS[perturbation]
-    name, lv = ("dilate", 0.0) if level == identity_level(p) else (perturbation, level)
-    path = result_path(folder, source, name, lv, method)
+    """The result file of ``method`` at ``level``."""
+    path = level_result_path(folder, source, perturbation, level, method)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no result of {method} (run its stress sweep first)")
     return path
