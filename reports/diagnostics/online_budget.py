@@ -34,7 +34,6 @@ A lies below the baseline.
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import warnings
 from pathlib import Path
@@ -264,18 +263,22 @@ def _baselines_from_store(specs: list[str]) -> dict[str, list[float]]:
     """``NAME=PRESET:VARIANT`` -> the mean over seeds of the variant's runs in the MLflow store
     (the runs Table I is rendered from: ``cloudpose.report.runs.load_runs``), in percent."""
     from cloudpose.report.runs import load_runs
+    from cloudpose.store.tracking import tracking_uri
 
     out: dict[str, list[float]] = {}
+    loaded = {}  # preset -> its RunSet, read from the store once
     for spec in specs:
         name, _, where = spec.partition("=")
         preset, _, variant = where.partition(":")
         if not (name and preset and variant):
             raise SystemExit(f"--baseline-run {spec!r}: expected NAME=PRESET:VARIANT")
-        records = [r for r in load_runs(preset).of(variant) if r.subsample == "all"]
+        if preset not in loaded:
+            loaded[preset] = load_runs(preset)
+        records = [r for r in loaded[preset].of(variant) if r.subsample == "all"]
         if not records:
             raise SystemExit(
                 f"--baseline-run {spec!r}: no finished run of {variant} on every test instance "
-                f"of {preset} in the MLflow store ({os.environ.get('MLFLOW_TRACKING_URI', 'mlflow.db')})"
+                f"of {preset} in the MLflow store ({tracking_uri()})"
             )
         out[name] = [100 * float(np.nanmean([r.metric(k) for r in records])) for k in STORE_METRICS]
         seeds = ", ".join(str(r.seed) for r in records)

@@ -51,12 +51,17 @@ FIGURES = (  # column, scale, heading
 )
 
 
+def _sweep(folder: Path) -> dict:
+    """The ``sweep.json`` of the stress sweep in ``folder``."""
+    return json.loads((folder / "sweep.json").read_text())
+
+
 def _levels(folder: Path, perturbation: str) -> list[float]:
-    """Levels of ``perturbation`` in the sweep of ``folder`` (its ``sweep.json``)."""
-    meta = json.loads((folder / "sweep.json").read_text())
-    if perturbation not in meta["perturbations"]:
+    """Levels of ``perturbation`` in the sweep of ``folder``."""
+    perturbations = _sweep(folder)["perturbations"]
+    if perturbation not in perturbations:
         raise ValueError(f"{folder}/sweep.json: no {perturbation!r} in its perturbations")
-    return sorted(float(lv) for lv in meta["perturbations"][perturbation])
+    return sorted(float(lv) for lv in perturbations[perturbation])
 
 
 def _table(folder: Path, source: str, perturbation: str, level: float, method: str) -> Path:
@@ -70,11 +75,12 @@ def _table(folder: Path, source: str, perturbation: str, level: float, method: s
 def paired(nets: dict[str, Path], baseline: Path, perturbation: str, method: str) -> pd.DataFrame:
     """One row per (source, level, method, stage) of ``perturbation``: the summary on the
     baseline's instances. A network whose sweep lacks the perturbation is left out."""
-    sources = json.loads((baseline / "sweep.json").read_text())["sources"]
-    nets = {k: v for k, v in nets.items() if perturbation in _sweep_perturbations(v)}
+    sources = _sweep(baseline)["sources"]
+    levels = _levels(baseline, perturbation)
+    nets = {k: v for k, v in nets.items() if perturbation in _sweep(v)["perturbations"]}
     rows = []
     for src in sources:
-        for lv in _levels(baseline, perturbation):
+        for lv in levels:
             base = pd.read_csv(_table(baseline, src, perturbation, lv, BASELINE))
             keys = base[["frame_id", "instance"]]
             tables = {BASELINE: base}
@@ -99,10 +105,6 @@ def paired(nets: dict[str, Path], baseline: Path, perturbation: str, method: str
                         }
                     )
     return pd.DataFrame(rows)
-
-
-def _sweep_perturbations(folder: Path) -> dict:
-    return json.loads((folder / "sweep.json").read_text())["perturbations"]
 
 
 def real_levels(baseline: Path, perturbations: list[str]) -> dict[str, float]:
