@@ -269,3 +269,26 @@ def test_a_baseline_the_preset_lacks_comes_from_another_preset_on_the_same_data(
     ]
     md = files[0].read_text()
     assert "FPFH + RANSAC: the runs of preset cpu-online on the same data" in md
+
+
+def test_misses_cap_their_video_and_are_named():
+    """An instance whose mask leaves no usable point fails for every method: the report counts
+    them per video, names their classes and says how far they cap the video's rows."""
+    from cloudpose.report.real import Evaluation, RealReport, build, markdown, misses
+
+    table = _instances(np.random.default_rng(3))
+    first_0001 = int(np.flatnonzero(table["frame_id"].str.startswith("0001"))[0])
+    table.loc[first_0001, ["miss", "class"]] = True, "025_mug"
+    evs = [Evaluation("shared-0", 1, "real", table, 2.0, 5.0, "r1")]
+    got = misses(evs)
+    assert got.to_dict("records") == [
+        {"video": "0000", "instances": 6, "misses": 0, "classes": ""},
+        {"video": "0001", "instances": 4, "misses": 1, "classes": "025_mug"},
+    ]
+    md = markdown(RealReport(build(evs), misses=got), PRESET, "cloudpose real-report")
+    assert "0001: 1 of 4 (025_mug), at most 75.0%" in md
+    assert "0000: 0 of" not in md
+    # without a miss, no such line
+    clean = [Evaluation("shared-0", 1, "real", _instances(np.random.default_rng(3)), 2.0, 5.0, "r")]
+    assert "Misses," not in markdown(RealReport(build(clean), misses=misses(clean)), PRESET, "c")
+    assert misses([]).empty

@@ -69,6 +69,34 @@ class RealReport:
     versus: pd.DataFrame = field(default_factory=pd.DataFrame)
     borrowed: dict[str, list[str]] = field(default_factory=dict)
     """Baseline -> the other presets whose runs it took (:func:`find_evaluations`)."""
+    misses: pd.DataFrame = field(default_factory=pd.DataFrame)
+    """Per video: instances and misses (:func:`misses`)."""
+
+
+def misses(evaluations: list[Evaluation]) -> pd.DataFrame:
+    """Per video: its instances and the classes of its misses, the instances whose
+    ground-truth mask leaves no usable point (the ``miss`` column of an instance table). Every
+    method sees the same segments, so a miss is a failure for all of them and caps what any
+    reaches on that video; read from the first evaluation of the real frames. Columns: video,
+    instances, misses, classes (comma-separated); empty when there is no evaluation."""
+    tables = [ev.table for ev in evaluations if ev.name == REAL_DEV]
+    if not tables:
+        return pd.DataFrame(columns=["video", "instances", "misses", "classes"])
+    t = tables[0].assign(video=video_of(tables[0]["frame_id"]))
+    if "miss" not in t:  # a table logged before the column existed
+        t["miss"] = False
+    rows = []
+    for video, g in t.groupby("video", sort=True):
+        missed = g[g["miss"].astype(bool)]
+        rows.append(
+            {
+                "video": video,
+                "instances": len(g),
+                "misses": len(missed),
+                "classes": ", ".join(sorted(set(missed["class"].astype(str)))),
+            }
+        )
+    return pd.DataFrame(rows)
 
 
 def video_of(frame_id: pd.Series) -> pd.Series:
@@ -393,6 +421,19 @@ def markdown(report: RealReport, preset: str, command: str, store: str = "the st
                 lines += [f"| {label} | " + " | ".join(cells) + f" | {ms:.1f} |"]
             lines += [""]
         lines += ["Column headers: video (instances). Video 0003 holds one frame.", ""]
+        missed = report.misses[report.misses["misses"] > 0] if len(report.misses) else []
+        if len(missed):
+            parts = [
+                f"{r.video}: {r.misses} of {r.instances} ({r.classes}), at most "
+                f"{100 * (1 - r.misses / r.instances):.1f}%"
+                for r in missed.itertuples()
+            ]
+            lines += [
+                "Misses, instances whose ground-truth mask leaves no usable point (listed in "
+                "the frame's meta, no labelled pixel with depth): a failure for every method, "
+                "so they cap every row of their video: " + "; ".join(parts) + ".",
+                "",
+            ]
     vs = report.versus
     if not vs.empty:
         n_poses, n_inst = int(vs["poses"].iloc[0]), int(vs["instances"].iloc[0])
@@ -438,7 +479,9 @@ def render_real_report(
     ``{project_dir}/reports/{preset}``) from the evaluations in the project's store."""
     client = tracking.setup(project_dir)
     evaluations, missing, found, borrowed = find_evaluations(client, preset, seeds)
-    report = RealReport(build(evaluations), missing, found, comparison(evaluations), borrowed)
+    report = RealReport(
+        build(evaluations), missing, found, comparison(evaluations), borrowed, misses(evaluations)
+    )
     out_dir = Path(out_dir or project_dir / "reports" / preset)
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or f"cloudpose real-report --preset {preset}"
