@@ -16,7 +16,7 @@ from cloudpose.evaluate import OWN_TEST, log_evaluation
 from cloudpose.registry import resolve
 from cloudpose.report import ui
 from cloudpose.report.stats import format_mean_std, mean_std
-from cloudpose.store import metric_names, tracking
+from cloudpose.store import liveness, metric_names, tracking
 
 DETAIL = {
     "test/ads_auc": 0.9,
@@ -197,11 +197,11 @@ H = 3600 * 1000
 
 def test_a_running_run_is_dead_when_stale_or_abandoned_and_never_while_its_folder_is_held():
     now = 100 * H
-    assert ui.dead_reason(now - 1 * H, now) is None  # logged an hour ago
-    assert "nothing logged" in ui.dead_reason(now - 7 * H, now)
-    assert "later run" in ui.dead_reason(now - 1 * H, now, later_start_ms=now - H // 2)
-    assert ui.dead_reason(now - 1 * H, now, later_start_ms=now - 2 * H) is None
-    assert ui.dead_reason(now - 70 * H, now, now - H, folder_locked=True) is None
+    assert liveness.dead_reason(now - 1 * H, now) is None  # logged an hour ago
+    assert "nothing logged" in liveness.dead_reason(now - 7 * H, now)
+    assert "later run" in liveness.dead_reason(now - 1 * H, now, later_start_ms=now - H // 2)
+    assert liveness.dead_reason(now - 1 * H, now, later_start_ms=now - 2 * H) is None
+    assert liveness.dead_reason(now - 70 * H, now, now - H, folder_locked=True) is None
 
 
 def test_a_run_folder_held_by_a_process_is_alive(tmp_path):
@@ -355,7 +355,7 @@ def test_prepare_ui_marks_dead_runs_killed_and_writes_nothing_the_second_time(sw
     assert [name for name, _ in prepared.killed] == [client.get_run(ids["dead"]).info.run_name]
     dead = client.get_run(ids["dead"])
     assert dead.info.status == "KILLED" and dead.info.end_time == dead.info.start_time
-    assert "nothing logged" in dead.data.tags[ui.KILLED_TAG]
+    assert "nothing logged" in dead.data.tags[liveness.KILLED_TAG]
     assert dead.data.tags["run_dir"] == "runs/q/smoke/s3"  # not this machine's folder
     again = _prepare(client, hours_later=20)
     assert again.written == 0 and again.killed == []

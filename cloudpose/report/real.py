@@ -29,8 +29,8 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.data.keys import canonical_key
-from cloudpose.report.runs import run_instance_table
 from cloudpose.store import tracking
+from cloudpose.store.instances import run_instance_table
 from cloudpose.store.metric_names import REAL_DEV, method_prefixes, summary_metrics, video_metrics
 
 NETWORK = "shared-0"

@@ -19,13 +19,9 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.data.keys import DataKey, canonical_key, same_data
-from cloudpose.files import CorruptFileError, why
 from cloudpose.store import instances, tracking
 from cloudpose.store.metric_names import DetailReader, detail_kind
 from cloudpose.store.runs import is_preset_config
-
-INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
-"""Columns every evaluation's instance table has (:func:`cloudpose.evaluate.instance_table`)."""
 
 TEST_KEY = "test/ads_auc"
 """A run counts as evaluated when it has this metric."""
@@ -97,98 +93,13 @@ class RunRecord:
 
     def _checked(self, path: str | Path, name: str) -> pd.DataFrame:
         count = self.metrics.get(tracking.metric_key(name, "count"))
-        return read_instance_table(
+        return instances.read_instance_table(
             path, name, self.run_id, self.variant, self.seed, self.preset, count
         )
 
     def history(self, key: str) -> pd.Series:
         """Per-epoch values of ``key`` (index: epoch); empty if never logged."""
         return metric_history(self.client, self.run_id, key)
-
-
-def read_instance_table(
-    path: str | Path,
-    name: str,
-    run_id: str,
-    variant: str,
-    seed: int,
-    preset: str,
-    count: float | None = None,
-) -> pd.DataFrame:
-    """An evaluation's instance table ``eval/{name}/instances.parquet`` or ``.csv`` of a run
-    (:func:`cloudpose.store.instances.read_table`), checked: whole (a CSV ends with a line end,
-    as pandas writes every row; a Parquet file is read whole), with the columns an evaluation writes
-    (:data:`INSTANCE_COLUMNS`) and, when the run logged its metric ``{name}/count``, as many
-    rows.
-
-    Raises:
-        CorruptFileError: empty, cut short, unreadable, lacking columns or rows; the message
-            names the file, the run and the command that writes the table anew.
-    """
-    path = Path(path)
-    what = f"instance table of run {run_id} ({variant} seed {seed})"
-
-    def damaged(problem: str) -> CorruptFileError:
-        if variant.startswith("baseline-"):
-            split = "" if name == "test" else f" --split {name}"
-            command = (
-                f"cloudpose baseline --method {variant.removeprefix('baseline-')} --preset "
-                f"{preset} --seed {seed}{split} --rerun"
-            )
-        else:
-            command = f"cloudpose evaluate --run {run_id}" + (" --real" if name == "real" else "")
-        return CorruptFileError(
-            path, f"{what} {problem}; evaluate the run again to write it anew: {command}"
-        )
-
-    raw = path.read_bytes()
-    if not raw.strip():
-        raise damaged("is empty")
-    if path.suffix == ".csv" and not raw.endswith(b"\n"):
-        raise damaged("is cut short in its last row")
-    try:
-        df = instances.read_table(path)
-    except (ValueError, OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
-        raise damaged(f"is unreadable ({why(e)})") from e
-    missing = [c for c in INSTANCE_COLUMNS if c not in df.columns]
-    if missing:
-        raise damaged(f"lacks the columns {missing}")
-    if count is not None and math.isfinite(count) and len(df) != int(count):
-        raise damaged(f"has {len(df)} rows, where the run's metric {name}/count has {int(count)}")
-    return df
-
-
-def run_instance_table(client, run, name: str) -> pd.DataFrame:
-    """The instance table ``eval/{name}/instances.parquet`` (or ``.csv``) of an MLflow
-    ``run``, read in place from a local store or downloaded, and checked
-    (:func:`read_instance_table`).
-
-    Raises:
-        FileNotFoundError, MlflowException: the run has no such table.
-        CorruptFileError: as :func:`read_instance_table`.
-    """
-    tags = run.data.tags
-    args = (
-        name,
-        run.info.run_id,
-        tags.get("variant", "?"),
-        int(tags.get("seed", 0)),
-        tags.get("preset", "?"),
-        run.data.metrics.get(tracking.metric_key(name, "count")),
-    )
-    store = getattr(client, "tracking_uri", None)  # None: an absolute address needs none
-    local = instances.local_table(run.info.artifact_uri, name, store)
-    if local is not None:
-        if not local.is_file():
-            raise FileNotFoundError(f"{local}: no such instance table")
-        return read_instance_table(local, *args)
-    parquet, csv = instances.artifact_names(name)
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            path = client.download_artifacts(run.info.run_id, parquet, tmp)
-        except Exception:  # logged as CSV (before Parquet), or missing: the CSV name says
-            path = client.download_artifacts(run.info.run_id, csv, tmp)
-        return read_instance_table(path, *args)
 
 
 def metric_history(client, run_id: str, key: str) -> pd.Series:

@@ -42,7 +42,7 @@ a runs table can show without searching 2,000 columns.
   naming its comparison in words, then the comparison's table (the same numbers as the grid),
   links to its views and report run, and the report's own note.
 - **Dead runs.** A run left RUNNING by a process that is gone (no lock on its run folder here,
-  and a later run of its seed, or no metric logged for :data:`STALE_AFTER_S`) is marked KILLED
+  and a later run of its seed, or no metric logged for :data:`~cloudpose.store.liveness.STALE_AFTER_S`) is marked KILLED
   with the tag ``marked_killed`` saying why; resuming it works as for any unfinished run.
 - **Paths.** A ``run_dir`` tag naming another machine's folder becomes the run folder's place
   in this project (``runs/{variant}/{preset}/{folder}``), one inside the project relative to it.
@@ -57,16 +57,16 @@ import math
 import time
 import warnings
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, NamedTuple
 from urllib.parse import quote
 
 from cloudpose.data.keys import same_data
 from cloudpose.store import tracking
 from cloudpose.store.archive import relative_run_dir
 from cloudpose.store.headline import HEADLINE, headline
+from cloudpose.store.liveness import KILLED_TAG, dead_runs, when
 
 COLUMNS: dict[str, str] = {
     "ads_auc": "ADS AUC",
@@ -107,13 +107,6 @@ REPORT_ROW = "report: tables and plots"
 
 SUPERSEDED = "superseded"
 """Tag of an evaluated run the report does not count: why."""
-
-KILLED_TAG = "marked_killed"
-"""Tag of a run :func:`prepare_ui` marked KILLED: why."""
-
-STALE_AFTER_S = 6 * 3600
-"""A RUNNING run that logged nothing for this long (and whose folder no process here holds) is
-dead: training logs every epoch, an evaluation takes minutes."""
 
 RUNS_VIEW = "runs"
 """Share key of the view of an experiment that holds no comparison (finished runs, newest first)."""
@@ -354,7 +347,7 @@ def superseded_reason(run, counted: Mapping[tuple[str, int], object], data: str 
     if chosen is not None:
         return (
             f"a newer run of {key[0]} seed {key[1]} counts instead: "
-            f"{chosen.run_id} (started {_when(chosen.start_time)})"
+            f"{chosen.run_id} (started {when(chosen.start_time)})"
         )
     return "not among the report's runs"
 
@@ -368,10 +361,6 @@ def _current(run) -> bool:
     from cloudpose.store.runs import is_preset_config
 
     return is_preset_config(run)
-
-
-def _when(ms: int | None) -> str:
-    return time.strftime("%Y-%m-%d %H:%M", time.localtime((ms or 0) / 1000))
 
 
 def counted_runs(client, presets: Iterable[str]) -> dict[str, object]:
@@ -421,39 +410,6 @@ def build_comparisons(
 # -- dead runs ---------------------------------------------------------------------------
 
 
-def dead_reason(
-    last_activity_ms: int,
-    now_ms: int,
-    later_start_ms: int | None = None,
-    folder_locked: bool = False,
-    stale_after_s: float = STALE_AFTER_S,
-) -> str | None:
-    """Why a RUNNING run is dead, or None while it may be alive.
-
-    Args:
-        last_activity_ms: its start or its last logged metric, whichever is later.
-        now_ms: now.
-        later_start_ms: the start of a later run of the same variant, preset, seed and config
-            (its process abandoned this run), if there is one.
-        folder_locked: a process on this machine holds the run folder's lock (it trains).
-        stale_after_s: silence after which a run is dead.
-    """
-    if folder_locked:
-        return None
-    if later_start_ms is not None and later_start_ms > last_activity_ms:
-        return (
-            f"RUNNING, but a later run of the same config started {_when(later_start_ms)} "
-            f"after its last activity ({_when(last_activity_ms)})"
-        )
-    silent_s = (now_ms - last_activity_ms) / 1000
-    if silent_s > stale_after_s:
-        return (
-            f"RUNNING, but nothing logged since {_when(last_activity_ms)} "
-            f"({silent_s / 3600:.0f} h; a live run logs every epoch)"
-        )
-    return None
-
-
 def _folder_locked(run_dir: str | None, store: str | None = None) -> bool:
     """Whether a process on this machine holds the lock of run folder ``run_dir`` (a relative
     one under the folder of the SQLite store ``store``: :func:`tracking.store_path`)."""
@@ -474,49 +430,8 @@ def _last_activity(client, run) -> int:
     return last
 
 
-class DeadRun(NamedTuple):
-    """A RUNNING run that :func:`dead_reason` finds dead (:func:`dead_runs`)."""
-
-    run: Any
-    last_activity_ms: int
-    later_start_ms: int | None
-    """The latest start of a later run of the same config, if any."""
-    why: str
-
-
-def dead_runs(
-    runs: Sequence[tuple[Any, str, int | None, tuple]],
-    now_ms: int,
-    last_activity: Callable[[Any], int],
-    locked: Callable[[Any], bool],
-) -> list[DeadRun]:
-    """Each RUNNING run of ``runs`` that :func:`dead_reason` finds dead.
-
-    Args:
-        runs: (run, status, start ms, config key: variant, preset, seed, config) of every
-            run of the store; the later starts of each config are found among them.
-        now_ms: now.
-        last_activity: a run's start or its last training metric's time, ms (asked of
-            RUNNING runs only).
-        locked: whether a process on this machine holds the run's folder lock.
-    """
-    by_config: dict[tuple, list[int]] = defaultdict(list)
-    for _, _, start, config in runs:
-        by_config[config].append(start or 0)
-    out = []
-    for run, status, start, config in runs:
-        if status != "RUNNING":
-            continue
-        last = last_activity(run)
-        later = max((s for s in by_config[config] if s > (start or 0)), default=None)
-        why = dead_reason(last, now_ms, later, locked(run))
-        if why is not None:
-            out.append(DeadRun(run, last, later, why))
-    return out
-
-
 def mark_dead(client, runs: Sequence, now_ms: int | None = None) -> list[tuple[object, str]]:
-    """Mark KILLED each RUNNING run among ``runs`` that :func:`dead_reason` finds dead (end
+    """Mark KILLED each RUNNING run among ``runs`` that :func:`~cloudpose.store.liveness.dead_reason` finds dead (end
     time: its last activity), with the tag :data:`KILLED_TAG`; returns (run, why) of each."""
     now_ms = now_ms if now_ms is not None else int(time.time() * 1000)
     store = getattr(client, "tracking_uri", None)

@@ -214,11 +214,11 @@ def _utc(ms: int) -> str:
 def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple[str, str]]:
     """Record as KILLED (end time: its last activity; tag ``marked_killed``: why) each active
     run of the store copy ``db`` left RUNNING by a process that is gone, by the rule of the
-    MLflow UI's preparation (:func:`cloudpose.report.ui.dead_reason`: no process here holds
+    MLflow UI's preparation (:func:`cloudpose.store.liveness.dead_reason`: no process here holds
     its run folder's lock, and a later run of the same variant, preset, seed and config
     started after its last activity, or it logged nothing for
-    :data:`~cloudpose.report.ui.STALE_AFTER_S`). Returns (run name, why) of each."""
-    from cloudpose.report.ui import KILLED_TAG, STALE_AFTER_S, dead_runs
+    :data:`~cloudpose.store.liveness.STALE_AFTER_S`). Returns (run name, why) of each."""
+    from cloudpose.store.liveness import KILLED_TAG, STALE_AFTER_S, dead_runs
     from cloudpose.store.runs import TRAINING_PREFIXES
 
     now_ms = int(time.time() * 1000) if now_ms is None else now_ms

@@ -196,7 +196,7 @@ def compare_test_segments(run_id: str, project_dir: Path | None = None) -> Segme
 
     from cloudpose.data.dataset import prepare_data
     from cloudpose.registry import resolve
-    from cloudpose.report.runs import run_instance_table
+    from cloudpose.store.instances import run_instance_table
 
     project_dir = Path(project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)

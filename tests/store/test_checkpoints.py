@@ -276,7 +276,7 @@ def _files(folder: Path) -> dict[str, bytes]:
 def test_a_pack_writes_run_folders_relative_and_dead_runs_killed(store, tmp_path):
     from filelock import FileLock
 
-    from cloudpose.report.ui import KILLED_TAG
+    from cloudpose.store.liveness import KILLED_TAG
     from cloudpose.store.runs import lock_path
 
     root, ids, locked_dir = store
