@@ -915,6 +915,11 @@ def test_claims_across_two_budgets_hold_change_or_stay_undecided():
     md = budgets_markdown(rows, "big", "small", {"big": "4x", "small": "1x"})
     assert "Summary: holds: 1; changes: 1; undecided: 2 (of 4)." in md
     assert "| shared-0 beats l2 | ADS AUC | supported: +2.0 [+1.0, +3.0], 3 seeds |" in md
+    # a claim measured at one budget only is named once, not given a row
+    assert "| shared-0 beats geodesic-plain |" not in md
+    assert "Not measured at big, so *undecided* across budgets (1 claim-metric pair, " in md
+    assert "measured at small only): shared-0 beats geodesic-plain." in md
+    assert "Not measured at small" not in md
     df = budgets_frame(rows, "small")
     assert list(df["across_budgets"]) == ["holds", "changes", "undecided", "undecided"]
     assert df["verdict_at_small"].iloc[1] == stats.EQUIVALENT

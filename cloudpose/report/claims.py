@@ -635,8 +635,10 @@ def _cell(r: ClaimResult | None) -> str:
 
 def budgets_markdown(rows: list[BudgetRow], here: str, there: str, budgets: dict[str, str]) -> str:
     """The section of claims.md that sets a preset's verdicts beside another's (``budgets``:
-    preset -> its budget in words)."""
+    preset -> its budget in words): a row per claim and metric measured at both, then the
+    claims measured at one budget only, named once each (claims.csv keeps their rows)."""
     counts = {w: sum(r.word == w for r in rows) for w in BUDGET_WORDS}
+    both = [r for r in rows if r.here is not None and r.there is not None]
     lines = [
         "## At two budgets",
         "",
@@ -646,16 +648,33 @@ def budgets_markdown(rows: list[BudgetRow], here: str, there: str, budgets: dict
         "",
         "Summary: " + "; ".join(f"{w}: {n}" for w, n in counts.items()) + f" (of {len(rows)}).",
         "",
-        f"| claim | metric | at {there} | at {here} | across budgets |",
-        "|---|---|---|---|---|",
     ]
-    for r in rows:
-        word = f"**{r.word}**" + (f" ({r.how})" if r.how else "")
-        lines.append(
-            f"| {r.claim.statement} | {_label(r.claim.metric)} | {_cell(r.there)} | "
-            f"{_cell(r.here)} | {word} |"
-        )
-    return "\n".join(lines) + "\n"
+    if both:
+        lines += [
+            f"Measured at both budgets ({len(both)} claim-metric pairs):",
+            "",
+            f"| claim | metric | at {there} | at {here} | across budgets |",
+            "|---|---|---|---|---|",
+        ]
+        for r in both:
+            word = f"**{r.word}**" + (f" ({r.how})" if r.how else "")
+            lines.append(
+                f"| {r.claim.statement} | {_label(r.claim.metric)} | {_cell(r.there)} | "
+                f"{_cell(r.here)} | {word} |"
+            )
+        lines.append("")
+    for side, other in ((here, there), (there, here)):
+        only = [r for r in rows if (r.here if side == here else r.there) is None]
+        if only:
+            claims = list(dict.fromkeys(r.claim.statement for r in only))
+            lines += [
+                f"Not measured at {side}, so *undecided* across budgets ({len(only)} "
+                f"claim-metric pair{'s' * (len(only) != 1)}, measured at {other} only): "
+                + "; ".join(claims)
+                + ".",
+                "",
+            ]
+    return "\n".join(lines).rstrip("\n") + "\n"
 
 
 def budgets_frame(rows: list[BudgetRow], there: str) -> pd.DataFrame:
