@@ -913,7 +913,10 @@ def test_claims_across_two_budgets_hold_change_or_stay_undecided():
         "shared-0 beats geodesic-plain": ("undecided", "not measured at big"),
     }
     md = budgets_markdown(rows, "big", "small", {"big": "4x", "small": "1x"})
-    assert "Summary: holds: 1; changes: 1; undecided: 2 (of 4)." in md
+    assert (
+        "Summary: holds: 1; changes: 1; undecided: 2 (of 4); 1 of the undecided not measured at "
+        "one budget." in md
+    )
     assert "| shared-0 beats l2 | ADS AUC | supported: +2.0 [+1.0, +3.0], 3 seeds |" in md
     # a claim measured at one budget only is named once, not given a row
     assert "| shared-0 beats geodesic-plain |" not in md

@@ -646,7 +646,15 @@ def budgets_markdown(rows: list[BudgetRow], here: str, there: str, budgets: dict
         f"{there}'s ({budgets[there]}), the same rule at both: *holds* (the same verdict), "
         "*changes* (which way), *undecided* (not resolved, or not measured, at one of them).",
         "",
-        "Summary: " + "; ".join(f"{w}: {n}" for w, n in counts.items()) + f" (of {len(rows)}).",
+        "Summary: "
+        + "; ".join(f"{w}: {n}" for w, n in counts.items())
+        + f" (of {len(rows)})"
+        + (
+            f"; {len(rows) - len(both)} of the undecided not measured at one budget"
+            if len(both) < len(rows)
+            else ""
+        )
+        + ".",
         "",
     ]
     if both:
