@@ -671,8 +671,8 @@ def budgets_markdown(rows: list[BudgetRow], here: str, there: str, budgets: dict
                 f"{_cell(r.here)} | {word} |"
             )
         lines.append("")
-    for side, other in ((here, there), (there, here)):
-        only = [r for r in rows if (r.here if side == here else r.there) is None]
+    for side, other, attr in ((here, there, "here"), (there, here, "there")):
+        only = [r for r in rows if getattr(r, attr) is None]
         if only:
             claims = list(dict.fromkeys(r.claim.statement for r in only))
             lines += [

@@ -377,8 +377,8 @@ def read_instance_table(
     count: float | None = None,
 ) -> pd.DataFrame:
     """An evaluation's instance table ``eval/{name}/instances.parquet`` or ``.csv`` of a run
-    (:func:`read_table`), checked: whole (a CSV ends with a line end,
-    as pandas writes every row; a Parquet file is read whole), with the columns an evaluation writes
+    (:func:`read_table`), checked: whole (a CSV ends with a line end, as pandas writes every
+    row; a Parquet file is read whole), with the columns an evaluation writes
     (:data:`INSTANCE_COLUMNS`) and, when the run logged its metric ``{name}/count``, as many
     rows.
 
