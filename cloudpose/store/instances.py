@@ -21,15 +21,17 @@ Parquet one first.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from cloudpose.files import CorruptFileError, why
-from cloudpose.store.tracking import local_artifact, metric_key
+from cloudpose.store.tracking import download_artifact, local_artifact, metric_key
 
 INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
 """Columns every evaluation's instance table has (:func:`cloudpose.evaluate.instance_table`)."""
@@ -350,21 +352,36 @@ def local_table(artifact_uri: str, name: str, tracking: str | None = None) -> Pa
     return next((p for p in paths if p.is_file()), paths[-1])
 
 
+@contextlib.contextmanager
+def artifact_file(client, run, rel: str) -> Iterator[Path]:
+    """The file of a run's artifact ``rel`` for the block (an instance table's Parquet twin
+    where the run has that instead of ``rel``, :func:`twins`): in place in a local store,
+    else downloaded into a folder removed after the block
+    (:func:`cloudpose.store.tracking.download_artifact`).
+
+    Raises:
+        FileNotFoundError: a local store has no such file.
+        MlflowException, OSError: a remote store has none.
+    """
+    *first, last = twins(rel)
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in first:
+            try:
+                path = download_artifact(client, run, r, tmp)
+                break
+            except Exception:  # not there (FileNotFoundError, MlflowException): the CSV name
+                continue
+        else:
+            path = download_artifact(client, run, last, tmp)
+        yield path
+
+
 def read_artifact_table(client, run, rel: str) -> pd.DataFrame:
     """A run's table artifact ``rel`` (CSV, or an instance table in either form: its Parquet
     twin is read where the run has that instead), read in place from a local store,
-    downloaded from a remote one."""
-    names = twins(rel)
-    local = [local_artifact(run.info.artifact_uri, r, client.tracking_uri) for r in names]
-    if local[0] is not None:
-        return read_table(next((p for p in local if p.is_file()), local[-1]))
-    with tempfile.TemporaryDirectory() as tmp:
-        for r in names[:-1]:
-            try:
-                return read_table(client.download_artifacts(run.info.run_id, r, tmp))
-            except Exception:  # not there (MlflowException, OSError): try the CSV name
-                continue
-        return read_table(client.download_artifacts(run.info.run_id, names[-1], tmp))
+    downloaded from a remote one (:func:`artifact_file`)."""
+    with artifact_file(client, run, rel) as path:
+        return read_table(path)
 
 
 def read_instance_table(
@@ -437,16 +454,5 @@ def run_instance_table(client, run, name: str) -> pd.DataFrame:
         tags.get("preset", "?"),
         run.data.metrics.get(metric_key(name, "count")),
     )
-    store = getattr(client, "tracking_uri", None)  # None: an absolute address needs none
-    local = local_table(run.info.artifact_uri, name, store)
-    if local is not None:
-        if not local.is_file():
-            raise FileNotFoundError(f"{local}: no such instance table")
-        return read_instance_table(local, *args)
-    parquet, csv = artifact_names(name)
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            path = client.download_artifacts(run.info.run_id, parquet, tmp)
-        except Exception:  # logged as CSV (before Parquet), or missing: the CSV name says
-            path = client.download_artifacts(run.info.run_id, csv, tmp)
+    with artifact_file(client, run, artifact_names(name)[0]) as path:
         return read_instance_table(path, *args)

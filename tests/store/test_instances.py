@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from types import SimpleNamespace
+
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
+import pytest
 from scipy.spatial.transform import Rotation
 
 from cloudpose.geometry.rigid import rotation_error_deg
@@ -119,3 +123,61 @@ def test_the_same_table_gives_the_same_bytes_and_a_reread_table_the_same_rotatio
     qa = np.array([v or [0.0] * 4 for v in pq.read_table(a)["net_q"].to_pylist()])
     qc = np.array([v or [0.0] * 4 for v in pq.read_table(c)["net_q"].to_pylist()])
     np.testing.assert_allclose(qc, qa, atol=1e-7)
+
+
+class _RemoteStore:
+    """A client of a remote artifact store holding ``files`` (artifact path -> bytes); it
+    counts the downloads it serves."""
+
+    tracking_uri = "http://tracking.invalid"
+
+    def __init__(self, files: dict[str, bytes]):
+        self.files = files
+        self.served: list[str] = []
+
+    def download_artifacts(self, run_id: str, rel: str, dst: str) -> str:
+        if rel not in self.files:
+            raise OSError(f"run {run_id} has no artifact {rel}")
+        path = Path(dst) / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(self.files[rel])
+        self.served.append(rel)
+        return str(path)
+
+
+def _run(artifact_uri: str):
+    return SimpleNamespace(info=SimpleNamespace(run_id="r1", artifact_uri=artifact_uri))
+
+
+def test_an_instance_table_is_read_from_its_parquet_twin_in_place_or_downloaded(tmp_path):
+    df, _ = _table(2)
+    local = tmp_path / "artifacts"
+    (local / "eval" / "test").mkdir(parents=True)
+    parquet = instances.write_table(df, local / "eval" / "test" / "instances.parquet")
+    client = SimpleNamespace(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
+    # asked by its CSV name, read in place from the Parquet file the run has
+    with instances.artifact_file(client, _run(local.as_uri()), "eval/test/instances.csv") as p:
+        assert p == parquet
+    pd.testing.assert_frame_equal(
+        instances.read_artifact_table(client, _run(local.as_uri()), "eval/test/instances.csv"),
+        instances.read_table(parquet),
+    )
+    # a remote store: the Parquet name first, then the CSV one; the download is gone after
+    csv = df.to_csv(index=False).encode()
+    remote = _RemoteStore({"eval/test/instances.csv": csv})
+    with instances.artifact_file(
+        remote, _run("mlflow-artifacts:/1/r1"), "eval/test/instances.parquet"
+    ) as p:
+        assert p.read_bytes() == csv
+        fetched = p
+    assert remote.served == ["eval/test/instances.csv"]
+    assert not fetched.exists()
+    # neither name: the store's own error
+    with pytest.raises(OSError, match=r"instances\.csv"):
+        instances.read_artifact_table(
+            _RemoteStore({}), _run("mlflow-artifacts:/1/r1"), "eval/test/instances.csv"
+        )
+    with pytest.raises(FileNotFoundError, match=r"instances\.csv"):
+        instances.read_artifact_table(
+            client, _run((tmp_path / "none").as_uri()), "eval/test/instances.csv"
+        )
