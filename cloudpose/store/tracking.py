@@ -411,8 +411,10 @@ def local_artifact(uri: str, rel: str, tracking: str | None = None) -> Path | No
 
 def run_artifact(client, run, rel: str) -> Path | None:
     """The local file ``rel`` of an MLflow ``run``'s artifacts in ``client``'s store
-    (:func:`local_artifact`; it may not exist), or None when they are remote."""
-    return local_artifact(run.info.artifact_uri or "", rel, client.tracking_uri)
+    (:func:`local_artifact`; it may not exist), or None when they are remote. ``client`` may be
+    None for a run whose artifact address is absolute."""
+    store = getattr(client, "tracking_uri", None)  # None: an absolute address needs none
+    return local_artifact(run.info.artifact_uri or "", rel, store)
 
 
 def download_artifact(client, run, rel: str, dst: str | Path | None = None) -> Path:
