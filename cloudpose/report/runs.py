@@ -8,12 +8,12 @@ on, ties to the newest; or the one asked for) and, per (variant, seed), the newe
 from __future__ import annotations
 
 import math
-import tempfile
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -46,6 +46,12 @@ class RunRecord:
     _cache: dict = field(repr=False, default_factory=dict)
 
     @property
+    def info(self) -> SimpleNamespace:
+        """``run_id`` and ``artifact_uri``, as an MLflow run's ``info`` holds them: what the
+        artifact readers (:func:`cloudpose.store.instances.artifact_file`) read of a run."""
+        return SimpleNamespace(run_id=self.run_id, artifact_uri=self.artifact_uri)
+
+    @property
     def parameters(self) -> int | None:
         """Parameter count of the network (param ``model.parameters``), if logged."""
         v = self.params.get("model.parameters")
@@ -75,20 +81,9 @@ class RunRecord:
         """
         key = ("instances", name)
         if key not in self._cache:
-            store = getattr(self.client, "tracking_uri", None)
-            local = instances.local_table(self.artifact_uri, name, store)
-            if local is not None:
-                self._cache[key] = self._checked(local, name) if local.exists() else None
-            else:
-                with tempfile.TemporaryDirectory() as tmp:
-                    path = None
-                    for rel in instances.artifact_names(name):
-                        try:
-                            path = self.client.download_artifacts(self.run_id, rel, tmp)
-                            break
-                        except Exception:
-                            continue
-                    self._cache[key] = None if path is None else self._checked(path, name)
+            rel = instances.artifact_names(name)[0]
+            with instances.artifact_file(self.client, self, rel, missing_ok=True) as path:
+                self._cache[key] = None if path is None else self._checked(path, name)
         return self._cache[key]
 
     def _checked(self, path: str | Path, name: str) -> pd.DataFrame:

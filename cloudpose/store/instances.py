@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.files import CorruptFileError, why
-from cloudpose.store.tracking import download_artifact, local_artifact, metric_key
+from cloudpose.store.tracking import download_artifact, metric_key
 
 INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
 """Columns every evaluation's instance table has (:func:`cloudpose.evaluate.instance_table`)."""
@@ -340,39 +340,28 @@ def csv_to_parquet(src: str | Path, dst: str | Path) -> Path:
     return write_table(pd.read_csv(src), dst)
 
 
-def local_table(artifact_uri: str, name: str, tracking: str | None = None) -> Path | None:
-    """The file of evaluation ``name``'s instance table in a local artifact folder: the
-    Parquet one if present, else the CSV one (which may not exist either); None for a remote
-    store. A relative address is read under the folder of the SQLite store ``tracking``
-    names (:func:`cloudpose.store.tracking.local_artifact`)."""
-
-    paths = [local_artifact(artifact_uri, rel, tracking) for rel in artifact_names(name)]
-    if paths[0] is None:
-        return None
-    return next((p for p in paths if p.is_file()), paths[-1])
-
-
 @contextlib.contextmanager
-def artifact_file(client, run, rel: str) -> Iterator[Path]:
+def artifact_file(client, run, rel: str, missing_ok: bool = False) -> Iterator[Path | None]:
     """The file of a run's artifact ``rel`` for the block (an instance table's Parquet twin
     where the run has that instead of ``rel``, :func:`twins`): in place in a local store,
     else downloaded into a folder removed after the block
-    (:func:`cloudpose.store.tracking.download_artifact`).
+    (:func:`cloudpose.store.tracking.download_artifact`). With ``missing_ok``, None where the
+    run has none of the names.
 
     Raises:
-        FileNotFoundError: a local store has no such file.
-        MlflowException, OSError: a remote store has none.
+        FileNotFoundError: a local store has no such file (unless ``missing_ok``).
+        MlflowException, OSError: a remote store has none (unless ``missing_ok``).
     """
-    *first, last = twins(rel)
+    names = twins(rel)
     with tempfile.TemporaryDirectory() as tmp:
-        for r in first:
+        path = None
+        for r in names:
             try:
                 path = download_artifact(client, run, r, tmp)
                 break
-            except Exception:  # not there (FileNotFoundError, MlflowException): the CSV name
-                continue
-        else:
-            path = download_artifact(client, run, last, tmp)
+            except Exception:  # not there (FileNotFoundError, MlflowException): the next name
+                if r == names[-1] and not missing_ok:
+                    raise
         yield path
 
 

@@ -127,7 +127,7 @@ def test_the_same_table_gives_the_same_bytes_and_a_reread_table_the_same_rotatio
 
 class _RemoteStore:
     """A client of a remote artifact store holding ``files`` (artifact path -> bytes); it
-    counts the downloads it serves."""
+    records the downloads it serves, in order."""
 
     tracking_uri = "http://tracking.invalid"
 
@@ -172,7 +172,11 @@ def test_an_instance_table_is_read_from_its_parquet_twin_in_place_or_downloaded(
         fetched = p
     assert remote.served == ["eval/test/instances.csv"]
     assert not fetched.exists()
-    # neither name: the store's own error
+    # neither name: None where that is allowed, else the store's own error
+    with instances.artifact_file(
+        _RemoteStore({}), _run("mlflow-artifacts:/1/r1"), "eval/test/instances.csv", missing_ok=True
+    ) as p:
+        assert p is None
     with pytest.raises(OSError, match=r"instances\.csv"):
         instances.read_artifact_table(
             _RemoteStore({}), _run("mlflow-artifacts:/1/r1"), "eval/test/instances.csv"
