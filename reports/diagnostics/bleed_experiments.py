@@ -1,0 +1,238 @@
+"""Mask bleeding in synthesis (``data.online_bleed``): every share against the same runs
+without it, paired by seed, on the synthetic test set and the real development frames.
+
+The runs are the finished shared-0 runs of each ``--preset`` whose config differs from the
+preset's own at most in ``data.online_version`` and ``data.online_bleed``, with synthesis
+version 3 (the version that can bleed). For each share above 0 and each seed that also has a
+run at share 0 (the same scenes and initial weights; only the masks differ), the difference of
+every figure, without and with ICP, with the two-level bootstrap interval of the paper's claims
+(:func:`cloudpose.report.stats.bootstrap_difference`: seeds and instances redrawn together)::
+
+    python reports/diagnostics/bleed_experiments.py --preset cpu-online --preset cpu-online-4x \\
+        --out reports/diagnostics/bleed_experiments.md
+
+Run it in the project folder that holds the runs (the MLflow store of ``MLFLOW_TRACKING_URI``
+or ``./mlruns``). Writes the Markdown and a CSV beside it (one row per preset, share, set,
+stage and figure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cloudpose.config import Config
+from cloudpose.files import atomic_text
+from cloudpose.report.experiments import config_changes
+from cloudpose.report.real import object_pose
+from cloudpose.report.runs import TEST_KEY, RunRecord, _record
+from cloudpose.report.stats import Difference, auc_of_rows, bootstrap_difference, share_below
+from cloudpose.store import tracking
+
+AXES = frozenset({"data.online_version", "data.online_bleed"})
+"""The settings a bleeding experiment may change from its preset."""
+
+FIGURES = (  # metric, per-instance column (after the stage's prefix), stat of (R, N) rows
+    ("ADS AUC", "ads", auc_of_rows),
+    ("rot < 10 deg mod sym", "rot_sym_err_deg", share_below(10.0)),
+    ("translation < 1 cm", "trans_err", share_below(0.01)),
+)
+SETS = (("test", "synthetic test set"), ("real", "real development frames"))
+STAGES = (("net_", "network"), ("icp_", "+ ICP"))
+
+
+def bleed_runs(client, preset: str) -> dict[float, dict[int, RunRecord]]:
+    """share -> seed -> the newest finished shared-0 run of ``preset`` at that share."""
+    out: dict[float, dict[int, RunRecord]] = {}
+    for run in tracking.find_runs(client, variant="shared-0", preset=preset):  # newest first
+        tags = run.data.tags
+        if not tags.get("seed") or TEST_KEY not in run.data.metrics:
+            continue
+        try:  # a run kept as metadata only (no artifacts) cannot say what it changed
+            path = tracking.download_artifact(client, run, "config.json")
+            cfg = Config.from_dict(json.loads(Path(path).read_text()))
+        except (OSError, ValueError):
+            continue
+        changes = set(config_changes(cfg)) - {"preset"}
+        if changes - AXES or cfg.data.train_source != "online" or cfg.data.online_version < 3:
+            continue
+        seed = int(tags["seed"])
+        by_seed = out.setdefault(float(cfg.data.online_bleed), {})
+        if seed not in by_seed:
+            by_seed[seed] = _record(run, ("shared-0", seed), preset, tags.get("data", ""), client)
+    return out
+
+
+def _tables(runs: dict[int, RunRecord], name: str) -> dict[int, pd.DataFrame]:
+    """seed -> the instance table of evaluation ``name``, sorted by (frame, instance)."""
+    out = {}
+    for seed, run in runs.items():
+        df = run.instances(name)
+        if df is None:
+            raise FileNotFoundError(
+                f"run {run.run_id} ({run.preset} seed {seed}): no per-instance table of "
+                f"eval/{name} (evaluate it again: cloudpose evaluate --run ...)"
+            )
+        out[seed] = df.sort_values(["frame_id", "instance"], kind="stable")
+    return out
+
+
+def _column(tables: dict[int, pd.DataFrame], column: str) -> dict[int, np.ndarray]:
+    """seed -> per-instance values of ``column``; a miss is infinitely far off."""
+    out = {}
+    for seed, df in tables.items():
+        x = df[column].to_numpy(dtype=float)
+        out[seed] = np.where(np.isnan(x), np.inf, x)
+    return out
+
+
+def pose_bootstrap(
+    a: dict[int, np.ndarray],
+    b: dict[int, np.ndarray],
+    stat,
+    poses: np.ndarray,
+    replicates: int,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """Mean paired difference ``stat(a) - stat(b)`` over seeds, and the 2.5 / 97.5 percentiles
+    of replicates that draw the seeds and the object poses (every instance of a drawn pose)
+    with replacement: the real frames' instances are 17 poses seen many times
+    (:func:`cloudpose.report.real.object_pose`), not independent draws."""
+    seeds = sorted(a)
+    xa = np.stack([a[s] for s in seeds])
+    xb = np.stack([b[s] for s in seeds])
+    units = [np.flatnonzero(poses == p) for p in sorted(set(poses))]
+    mean = float(np.mean(stat(xa) - stat(xb)))
+    rng = np.random.default_rng(seed)
+    draws = np.empty(replicates)
+    for r in range(replicates):
+        idx = np.concatenate([units[i] for i in rng.integers(0, len(units), len(units))])
+        pick = rng.integers(0, len(seeds), len(seeds))
+        draws[r] = float(np.mean(stat(xa[pick][:, idx]) - stat(xb[pick][:, idx])))
+    low, high = np.quantile(draws, [0.025, 0.975])
+    return mean, float(low), float(high)
+
+
+def measure(preset: str, runs: dict[float, dict[int, RunRecord]], replicates: int) -> pd.DataFrame:
+    """One row per (share > 0, set, stage, figure): each seed's value at share 0 and at the
+    share, and the paired difference with its interval (percentage points)."""
+    base = runs.get(0.0, {})
+    rows = []
+    for share in sorted(s for s in runs if s > 0):
+        seeds = sorted(set(runs[share]) & set(base))
+        if not seeds:
+            continue
+        a_runs = {s: runs[share][s] for s in seeds}
+        b_runs = {s: base[s] for s in seeds}
+        for name, set_label in SETS:
+            ta, tb = _tables(a_runs, name), _tables(b_runs, name)
+            first = next(iter(ta.values()))
+            for t in [*ta.values(), *tb.values()]:
+                if not first[["frame_id", "instance"]].equals(t[["frame_id", "instance"]]):
+                    raise ValueError(f"{preset}: the runs' eval/{name} tables differ in instances")
+            poses = object_pose(first)
+            for prefix, stage in STAGES:
+                for figure, column, stat in FIGURES:
+                    xa = _column(ta, prefix + column)
+                    xb = _column(tb, prefix + column)
+                    if name == "real":
+                        mean, low, high = pose_bootstrap(xa, xb, stat, poses, replicates)
+                        how = "object poses x seeds"
+                    else:
+                        d: Difference = bootstrap_difference(xa, xb, stat, replicates=replicates)
+                        mean, low, high = d.mean, d.low, d.high
+                        how = "instances x seeds"
+                    per_seed = "; ".join(
+                        f"{100 * stat(xb[s][None])[0]:.1f} -> {100 * stat(xa[s][None])[0]:.1f}"
+                        for s in seeds
+                    )
+                    rows.append(
+                        dict(
+                            preset=preset,
+                            share=share,
+                            seeds=" ".join(map(str, seeds)),
+                            set=set_label,
+                            stage=stage,
+                            figure=figure,
+                            per_seed=per_seed,
+                            difference=100 * mean,
+                            low=100 * low,
+                            high=100 * high,
+                            interval=how,
+                        )
+                    )
+    return pd.DataFrame(rows)
+
+
+def _pp(x: float) -> str:
+    return "–" if math.isnan(x) else f"{x:+.1f}"
+
+
+def markdown(table: pd.DataFrame, runs: dict[str, dict[float, dict[int, RunRecord]]], argv) -> str:
+    lines = [
+        "# Mask bleeding in synthesis: each share against the same runs without it",
+        "",
+        f"_made by `python {' '.join(shlex.quote(a) for a in argv)}` in the project folder "
+        "that holds the runs; see the script's docstring for what is compared._",
+        "",
+        "Cells: per seed, the figure at share 0 -> at the share (%), then the mean paired "
+        "difference in percentage points with its 95% interval: a bootstrap that redraws "
+        "the seeds together with the test instances (synthetic) or with the 17 object poses "
+        "(real; each pose is one object seen in up to 20 frames). The synthetic test set has "
+        "no bleeding; the real development frames have what the sensor and labels give.",
+        "",
+        "Runs:",
+        "",
+    ]
+    for preset, by_share in runs.items():
+        for share in sorted(by_share):
+            names = ", ".join(
+                f"seed {s} `{by_share[share][s].run_id[:8]}`" for s in sorted(by_share[share])
+            )
+            lines.append(f"- {preset}, share {share:g}: {names}")
+    for (preset, share), part in table.groupby(["preset", "share"], sort=False):
+        lines += [
+            "",
+            f"## {preset}: share {share:g} against 0 (seeds {part['seeds'].iloc[0]})",
+            "",
+            "| set | stage | figure | per seed | difference [95%] |",
+            "|---|---|---|---|---:|",
+        ]
+        for r in part.itertuples():
+            lines.append(
+                f"| {r.set} | {r.stage} | {r.figure} | {r.per_seed} | "
+                f"{_pp(r.difference)} [{_pp(r.low)}, {_pp(r.high)}] |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--preset", action="append", required=True, help="preset (repeatable)")
+    p.add_argument("--out", type=Path, required=True, help="Markdown to write (CSV beside it)")
+    p.add_argument("--replicates", type=int, default=2000, help="bootstrap replicates")
+    args = p.parse_args(argv)
+    client = tracking.setup()
+    runs = {preset: bleed_runs(client, preset) for preset in args.preset}
+    tables = [measure(preset, by_share, args.replicates) for preset, by_share in runs.items()]
+    table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+    if table.empty:
+        print("no preset has runs both with and without bleeding at a common seed", file=sys.stderr)
+        return 1
+    text = markdown(table, runs, ["reports/diagnostics/bleed_experiments.py", *argv])
+    atomic_text(args.out, text)
+    atomic_text(args.out.with_suffix(".csv"), table.to_csv(index=False, float_format="%.2f"))
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""reports/diagnostics/bleed_experiments.py: each bleeding share against the same seeds without
+it, with intervals over seeds and instances (synthetic) or object poses (real)."""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "reports" / "diagnostics" / "bleed_experiments.py"
+
+
+@pytest.fixture(scope="module")
+def bleed():
+    spec = importlib.util.spec_from_file_location("bleed_experiments", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _table(frames: list[str], trans_m: np.ndarray, rot_deg: np.ndarray) -> pd.DataFrame:
+    """One instance a frame, class by frame index mod 2; ADS = translation error."""
+    n = len(frames)
+    cols = {
+        "frame_id": frames,
+        "instance": np.zeros(n, int),
+        "class": [f"c{i % 2}" for i in range(n)],
+    }
+    for prefix in ("net_", "icp_"):
+        cols[prefix + "ads"] = trans_m
+        cols[prefix + "trans_err"] = trans_m
+        cols[prefix + "rot_sym_err_deg"] = rot_deg
+    return pd.DataFrame(cols)
+
+
+@dataclass
+class _Run:
+    """What the script reads of a run: its id and its instance tables."""
+
+    run_id: str
+    tables: dict = field(default_factory=dict)
+
+    def instances(self, name: str):
+        return self.tables.get(name)
+
+
+def _runs(n: int, good: float, bad: float, seed: int):
+    """A run whose first half of instances is off by ``good`` metres and second by ``bad``;
+    the real frames are two videos of two object poses each."""
+    trans = np.r_[np.full(n // 2, good), np.full(n - n // 2, bad)]
+    rot = np.r_[np.full(n // 2, 5.0), np.full(n - n // 2, 30.0)]
+    synth = _table([f"synth/{i:06d}" for i in range(n)], trans, rot)
+    real_frames = [f"{v}/{i:06d}" for v in ("0000", "0001") for i in range(n // 2)]
+    real = _table(real_frames, trans, rot)
+    return _Run(f"run{seed}-{good}-{bad}", {"test": synth, "real": real})
+
+
+def test_measure_pairs_seeds_and_reports_each_figure(bleed):
+    runs = {
+        0.0: {1: _runs(8, 0.005, 0.02, 1), 2: _runs(8, 0.005, 0.02, 2)},
+        1.0: {1: _runs(8, 0.005, 0.005, 1), 2: _runs(8, 0.005, 0.005, 2), 3: _runs(8, 0.1, 0.1, 3)},
+    }
+    table = bleed.measure("p", runs, replicates=50)
+    # one share x two sets x two stages x three figures; seed 3 has no run at share 0
+    assert len(table) == 12
+    assert set(table["seeds"]) == {"1 2"}
+    trans = table[(table["figure"] == "translation < 1 cm") & (table["stage"] == "network")]
+    # half the instances move from 2 cm to 5 mm: +50 points on both sets
+    np.testing.assert_allclose(trans["difference"], 50.0)
+    assert list(trans["per_seed"]) == ["50.0 -> 100.0; 50.0 -> 100.0"] * 2
+    rot = table[table["figure"] == "rot < 10 deg mod sym"]
+    np.testing.assert_allclose(rot["difference"], 0.0)
+
+
+def test_real_interval_resamples_object_poses_not_instances(bleed):
+    """Two videos x two classes = four poses: the pose bootstrap's interval is wider than
+    one over 16 independent instances would be, and it contains the mean."""
+    rng = np.random.default_rng(0)
+    n = 16
+    poses = np.array([f"{v}/c{i % 2}" for v in ("0000", "0001") for i in range(n // 2)])
+    # the gain is all in one pose: a clustered effect
+    gain = (poses == "0000/c0").astype(float)
+    b = {s: rng.uniform(0, 1, n) for s in (1, 2, 3)}
+    a = {s: b[s] - 0.5 * gain for s in (1, 2, 3)}  # smaller errors where gained
+    stat = bleed.share_below(0.5)
+    mean, low, high = bleed.pose_bootstrap(a, b, stat, poses, replicates=400)
+    exact = np.mean([stat(a[s][None])[0] - stat(b[s][None])[0] for s in (1, 2, 3)])
+    assert mean == pytest.approx(exact)
+    assert low <= mean <= high
+    # drawing the gaining pose zero times happens in (3/4)^4 = 32% of replicates
+    assert low == pytest.approx(0.0, abs=1e-12)
+
+
+def test_tables_of_other_instances_are_refused(bleed):
+    a = _runs(8, 0.005, 0.005, 1)
+    b = _runs(8, 0.005, 0.02, 1)
+    b.tables["test"] = b.tables["test"].iloc[1:]
+    with pytest.raises(ValueError, match="differ in instances"):
+        bleed.measure("p", {0.0: {1: b}, 1.0: {1: a}}, replicates=10)
+
+
+def test_markdown_names_runs_and_intervals(bleed):
+    runs = {0.0: {1: _runs(8, 0.005, 0.02, 1)}, 0.5: {1: _runs(8, 0.005, 0.005, 1)}}
+    table = bleed.measure("p", runs, replicates=20)
+    text = bleed.markdown(table, {"p": runs}, ["bleed_experiments.py", "--preset", "p"])
+    assert "## p: share 0.5 against 0 (seeds 1)" in text
+    assert "seed 1 `run1-0.0`" in text
+    assert (
+        "| real development frames | network | translation < 1 cm | 50.0 -> 100.0 | +50.0" in text
+    )
