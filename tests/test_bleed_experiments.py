@@ -4,6 +4,7 @@ it, with intervals over seeds and instances (synthetic) or object poses (real)."
 from __future__ import annotations
 
 import importlib.util
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,11 +29,14 @@ def _table(frames: list[str], trans_m: np.ndarray, rot_deg: np.ndarray) -> pd.Da
     cols = {
         "frame_id": frames,
         "instance": np.zeros(n, int),
+        "cls_id": np.arange(n) % 2 + 1,
         "class": [f"c{i % 2}" for i in range(n)],
     }
     for prefix in ("net_", "icp_"):
+        cols[prefix + "ad"] = trans_m
         cols[prefix + "ads"] = trans_m
         cols[prefix + "trans_err"] = trans_m
+        cols[prefix + "rot_err_deg"] = rot_deg
         cols[prefix + "rot_sym_err_deg"] = rot_deg
     return pd.DataFrame(cols)
 
@@ -112,3 +116,38 @@ def test_markdown_names_runs_and_intervals(bleed):
     assert (
         "| real development frames | network | translation < 1 cm | 50.0 -> 100.0 | +50.0" in text
     )
+
+
+def _sweep(folder: Path, checkpoint: str, trans_m: dict[float, float]) -> Path:
+    """A `cloudpose stress` results folder: the network of ``checkpoint`` under dilation, every
+    instance's translation off by ``trans_m[level]``."""
+    from cloudpose.stress import result_path
+
+    folder.mkdir(parents=True)
+    meta = {
+        "sources": {"real": "x"},
+        "methods": {"net-seed1": {"checkpoint": checkpoint, "limit": None}},
+        "perturbations": {"dilate": sorted(trans_m)},
+    }
+    (folder / "sweep.json").write_text(json.dumps(meta))
+    for level, t in trans_m.items():
+        table = _table([f"0000/{i:06d}" for i in range(4)], np.full(4, t), np.zeros(4))
+        table["seconds"] = 0.01
+        path = result_path(folder, "real", "dilate", level, "net-seed1")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        table.to_csv(path, index=False)
+    return folder
+
+
+def test_stress_sweeps_are_matched_to_runs_by_their_folder(bleed, tmp_path):
+    folders = {"seed1-aaaa": ("p", 0.0, 1), "seed1-bbbb": ("p", 1.0, 1)}
+    plain = _sweep(tmp_path / "plain", "runs/shared-0/p/seed1-aaaa/model.pt", {0: 0.004, 2: 0.02})
+    bled = _sweep(tmp_path / "bled", "runs/shared-0/p/seed1-bbbb/model.pt", {0: 0.005, 2: 0.008})
+    rows = bleed.stress_rows([plain, bled], folders, "dilate")
+    assert set(zip(rows["share"], rows["seed"], strict=True)) == {(0.0, 1), (1.0, 1)}
+    text = "\n".join(bleed.stress_markdown(rows, "dilate"))
+    assert "## p: under dilate, share 1 against 0 (seeds 1" in text
+    assert "| real | 2 | 20.0 -> 8.0 | 20.0 -> 8.0 | 0.0 -> 100.0 |" in text
+    other = _sweep(tmp_path / "other", "runs/shared-0/p/seed1-cccc/model.pt", {0: 0.004})
+    with pytest.raises(ValueError, match="none of the bleeding runs"):
+        bleed.stress_rows([other], folders, "dilate")

@@ -13,7 +13,10 @@ every figure, without and with ICP, with the two-level bootstrap interval of the
 
 Run it in the project folder that holds the runs (the MLflow store of ``MLFLOW_TRACKING_URI``
 or ``./mlruns``). Writes the Markdown and a CSV beside it (one row per preset, share, set,
-stage and figure).
+stage and figure). Each ``--stress DIR`` is the results folder of a ``cloudpose stress`` sweep
+of one of these runs (``--run runs/shared-0/...``; the run is found by its folder name); the
+Markdown then lists the ``--perturbation`` (default ``dilate``) curve of each share against 0,
+and ``*_stress.csv`` its summaries.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from cloudpose.report.real import object_pose
 from cloudpose.report.runs import TEST_KEY, RunRecord, _record
 from cloudpose.report.stats import Difference, auc_of_rows, bootstrap_difference, share_below
 from cloudpose.store import tracking
+from cloudpose.stress import collect
 
 AXES = frozenset({"data.online_version", "data.online_bleed"})
 """The settings a bleeding experiment may change from its preset."""
@@ -48,8 +52,10 @@ SETS = (("test", "synthetic test set"), ("real", "real development frames"))
 STAGES = (("net_", "network"), ("icp_", "+ ICP"))
 
 
-def bleed_runs(client, preset: str) -> dict[float, dict[int, RunRecord]]:
-    """share -> seed -> the newest finished shared-0 run of ``preset`` at that share."""
+def bleed_runs(client, preset: str, folders: dict[str, tuple] | None = None):
+    """share -> seed -> the newest finished shared-0 run of ``preset`` at that share; each
+    chosen run's folder name (tag ``run_dir``) -> (preset, share, seed) goes into
+    ``folders`` when given."""
     out: dict[float, dict[int, RunRecord]] = {}
     for run in tracking.find_runs(client, variant="shared-0", preset=preset):  # newest first
         tags = run.data.tags
@@ -67,6 +73,8 @@ def bleed_runs(client, preset: str) -> dict[float, dict[int, RunRecord]]:
         by_seed = out.setdefault(float(cfg.data.online_bleed), {})
         if seed not in by_seed:
             by_seed[seed] = _record(run, ("shared-0", seed), preset, tags.get("data", ""), client)
+            if folders is not None and tags.get("run_dir"):
+                folders[Path(tags["run_dir"]).name] = (preset, float(cfg.data.online_bleed), seed)
     return out
 
 
@@ -171,11 +179,85 @@ def measure(preset: str, runs: dict[float, dict[int, RunRecord]], replicates: in
     return pd.DataFrame(rows)
 
 
+STRESS_FIGURES = (  # stress summary column, stage, scale, heading
+    ("trans_median_mm", "net", 1.0, "median translation (mm)"),
+    ("trans_median_mm", "icp", 1.0, "+ ICP"),
+    ("trans_lt_1cm", "net", 100.0, "translation < 1 cm (%)"),
+    ("rot_sym_lt_10deg", "net", 100.0, "rot < 10 deg mod sym (%)"),
+    ("ads_auc", "net", 100.0, "ADS AUC"),
+    ("ads_auc", "icp", 100.0, "+ ICP"),
+)
+
+
+def stress_rows(sweeps: list[Path], folders: dict[str, tuple], perturbation: str) -> pd.DataFrame:
+    """The summaries of ``perturbation`` in each ``cloudpose stress`` results folder, one per
+    (source, level, stage) and network, with the (preset, share, seed) of the run whose
+    checkpoint the sweep evaluated (matched by the run's folder name)."""
+    frames = []
+    for folder in sweeps:
+        sweep = json.loads((folder / "sweep.json").read_text())
+        table = collect(folder)
+        for method, spec in sweep["methods"].items():
+            checkpoint = spec.get("checkpoint")
+            if not checkpoint:
+                continue
+            key = folders.get(Path(checkpoint).parent.name)
+            if key is None:
+                raise ValueError(
+                    f"{folder}/sweep.json: method {method} evaluated {checkpoint}, which is "
+                    "none of the bleeding runs found (check --preset and the MLflow store)"
+                )
+            part = table[(table["method"] == method) & (table["perturbation"] == perturbation)]
+            frames.append(part.assign(preset=key[0], share=key[1], seed=key[2]))
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def stress_markdown(rows: pd.DataFrame, perturbation: str) -> list[str]:
+    """Per preset and share above 0: each level and source, the mean over the seeds swept at
+    both shares, share 0 -> the share."""
+    lines: list[str] = []
+    for preset, at_preset in rows.groupby("preset", sort=False):
+        base = at_preset[at_preset["share"] == 0]
+        for share in sorted(s for s in at_preset["share"].unique() if s > 0):
+            top = at_preset[at_preset["share"] == share]
+            seeds = sorted(set(base["seed"]) & set(top["seed"]))
+            if not seeds:
+                continue
+            lines += [
+                "",
+                f"## {preset}: under {perturbation}, share {share:g} against 0 "
+                f"(seeds {' '.join(map(str, seeds))}; mean over seeds, share 0 -> {share:g})",
+                "",
+                "| source | level | " + " | ".join(h for *_, h in STRESS_FIGURES) + " |",
+                "|---|---:|" + "---:|" * len(STRESS_FIGURES),
+            ]
+            for (source, level), _ in base.groupby(["source", "level"]):
+                cells = []
+                for column, stage, scale, _h in STRESS_FIGURES:
+                    pair = []
+                    for side in (base, top):
+                        sel = side[
+                            (side["source"] == source)
+                            & (side["level"] == level)
+                            & (side["stage"] == stage)
+                            & side["seed"].isin(seeds)
+                        ]
+                        pair.append(scale * sel[column].mean() if len(sel) else math.nan)
+                    cells.append(f"{pair[0]:.1f} -> {pair[1]:.1f}")
+                lines.append(f"| {source} | {level:g} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _pp(x: float) -> str:
     return "–" if math.isnan(x) else f"{x:+.1f}"
 
 
-def markdown(table: pd.DataFrame, runs: dict[str, dict[float, dict[int, RunRecord]]], argv) -> str:
+def markdown(
+    table: pd.DataFrame,
+    runs: dict[str, dict[float, dict[int, RunRecord]]],
+    argv,
+    stress: list[str] = (),
+) -> str:
     lines = [
         "# Mask bleeding in synthesis: each share against the same runs without it",
         "",
@@ -210,7 +292,7 @@ def markdown(table: pd.DataFrame, runs: dict[str, dict[float, dict[int, RunRecor
                 f"| {r.set} | {r.stage} | {r.figure} | {r.per_seed} | "
                 f"{_pp(r.difference)} [{_pp(r.low)}, {_pp(r.high)}] |"
             )
-    return "\n".join(lines) + "\n"
+    return "\n".join([*lines, *stress]) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,15 +301,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preset", action="append", required=True, help="preset (repeatable)")
     p.add_argument("--out", type=Path, required=True, help="Markdown to write (CSV beside it)")
     p.add_argument("--replicates", type=int, default=2000, help="bootstrap replicates")
+    p.add_argument(
+        "--stress",
+        type=Path,
+        action="append",
+        default=[],
+        help="a `cloudpose stress` results folder of one of the runs (repeatable)",
+    )
+    p.add_argument("--perturbation", default="dilate", help="the stress perturbation to list")
     args = p.parse_args(argv)
     client = tracking.setup()
-    runs = {preset: bleed_runs(client, preset) for preset in args.preset}
+    folders: dict[str, tuple] = {}
+    runs = {preset: bleed_runs(client, preset, folders) for preset in args.preset}
     tables = [measure(preset, by_share, args.replicates) for preset, by_share in runs.items()]
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     if table.empty:
         print("no preset has runs both with and without bleeding at a common seed", file=sys.stderr)
         return 1
-    text = markdown(table, runs, ["reports/diagnostics/bleed_experiments.py", *argv])
+    stress = stress_rows(args.stress, folders, args.perturbation)
+    stress_lines = stress_markdown(stress, args.perturbation) if not stress.empty else []
+    if not stress.empty:
+        atomic_text(
+            args.out.with_name(args.out.stem + "_stress.csv"),
+            stress.to_csv(index=False, float_format="%.5f"),
+        )
+    text = markdown(table, runs, ["reports/diagnostics/bleed_experiments.py", *argv], stress_lines)
     atomic_text(args.out, text)
     atomic_text(args.out.with_suffix(".csv"), table.to_csv(index=False, float_format="%.2f"))
     print(text)
