@@ -16,7 +16,7 @@ or ``./mlruns``). Writes the Markdown and a CSV beside it (one row per preset, s
 stage and figure). Each ``--stress DIR`` is the results folder of a ``cloudpose stress`` sweep
 of one of these runs (``--run runs/shared-0/...``; the run is found by its folder name); the
 Markdown then lists the ``--perturbation`` (default ``dilate``) curve of each share against 0,
-and ``*_stress.csv`` its summaries.
+``*_stress.csv`` holds its summaries and ``*_stress.png`` plots them.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.config import Config
-from cloudpose.files import atomic_text
+from cloudpose.files import atomic_text, atomic_write
 from cloudpose.report.experiments import config_changes
 from cloudpose.report.real import object_pose
 from cloudpose.report.runs import TEST_KEY, RunRecord, _record
@@ -248,6 +248,53 @@ def stress_markdown(rows: pd.DataFrame, perturbation: str) -> list[str]:
     return lines
 
 
+PLOT_FIGURES = (  # column, stage, scale, axis label
+    ("trans_median_mm", "net", 1.0, "median translation, network (mm)"),
+    ("ads_auc", "icp", 100.0, "ADS AUC, network + ICP"),
+)
+
+
+def stress_plot(
+    rows: pd.DataFrame, perturbation: str, path: Path, real_level: float | None = None
+) -> None:
+    """Per source, the median translation and the ADS AUC after ICP against the level: one
+    line per preset and share, the mean over its swept seeds; ``real_level`` (where the real
+    frames sit on this axis) as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sources = list(dict.fromkeys(rows["source"]))
+    fig, axes = plt.subplots(
+        len(PLOT_FIGURES), len(sources), figsize=(5 * len(sources), 7), squeeze=False
+    )
+    for (preset, share), part in rows.groupby(["preset", "share"], sort=True):
+        seeds = sorted(part["seed"].unique())
+        label = f"{preset}, bleed {share:g} (seeds {' '.join(map(str, seeds))})"
+        for col, source in enumerate(sources):
+            for row, (column, stage, scale, ylabel) in enumerate(PLOT_FIGURES):
+                sel = part[(part["source"] == source) & (part["stage"] == stage)]
+                curve = sel.groupby("level")[column].mean() * scale
+                ax = axes[row][col]
+                ax.plot(curve.index, curve.to_numpy(), marker="o", label=label)
+                ax.set_xlabel(f"{perturbation} level")
+                ax.set_ylabel(ylabel)
+                ax.set_title(source)
+                ax.grid(alpha=0.3)
+    if real_level is not None:
+        for ax in axes.ravel():
+            ax.axvline(real_level, ls="--", color="grey", lw=1, label="real frames' level")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+
+    def write(tmp: Path) -> None:
+        fig.savefig(tmp, dpi=90, format="png")
+
+    atomic_write(path, write, suffix=".png")
+    plt.close(fig)
+
+
 def _pp(x: float) -> str:
     return "–" if math.isnan(x) else f"{x:+.1f}"
 
@@ -309,6 +356,11 @@ def main(argv: list[str] | None = None) -> int:
         help="a `cloudpose stress` results folder of one of the runs (repeatable)",
     )
     p.add_argument("--perturbation", default="dilate", help="the stress perturbation to list")
+    p.add_argument(
+        "--real-level",
+        type=float,
+        help="where the real frames sit on the perturbation's axis (reports/PRESET/stress.md)",
+    )
     args = p.parse_args(argv)
     client = tracking.setup()
     folders: dict[str, tuple] = {}
@@ -325,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
             args.out.with_name(args.out.stem + "_stress.csv"),
             stress.to_csv(index=False, float_format="%.5f"),
         )
+        png = args.out.with_name(args.out.stem + "_stress.png")
+        stress_plot(stress, args.perturbation, png, args.real_level)
     text = markdown(table, runs, ["reports/diagnostics/bleed_experiments.py", *argv], stress_lines)
     atomic_text(args.out, text)
     atomic_text(args.out.with_suffix(".csv"), table.to_csv(index=False, float_format="%.2f"))
