@@ -171,8 +171,37 @@ def test_pixel_statistics_follow_the_pixels():
     seg_s, ps = st.perturbed_segment(fd, 0, p["shift"], 4, seed=1, source="real")
     seg_0, p_0 = st.perturbed_segment(fd, 0, p["shift"], 0, seed=1, source="real")
     assert ps["mask_px"] <= p_0["mask_px"] == px0["mask_px"]
+    # smoothing keeps the mask and raises the depth error's correlation
+    _, p_smooth = st.perturbed_segment(fd, 0, p["smooth"], 2, seed=1, source="real")
+    assert p_smooth["mask_px"] == px0["mask_px"]
+    assert p_smooth["depth_corr"] > px0["depth_corr"]
     moved = seg_s.points[: seg_s.count].mean(axis=0) - seg_0.points[: seg_0.count].mean(axis=0)
     assert np.linalg.norm(moved) > 1e-3  # metres
+
+
+def test_smoothing_stays_on_the_mask_and_makes_the_noise_correlated():
+    rng = np.random.default_rng(0)
+    depth = np.full((80, 80), 1.5)  # the background
+    mask = np.zeros((80, 80), dtype=bool)
+    mask[10:70, 10:70] = True
+    # a plane tilted 1 mm a pixel, with 2 mm of independent noise per pixel
+    plane = 0.9 + 0.001 * np.broadcast_to(np.arange(80), (80, 80))
+    depth[mask] = (plane + 0.002 * rng.standard_normal((80, 80)))[mask]
+    depth[40, 40] = 0.0  # a missing reading stays missing
+    out = st.smooth_depth(depth, mask, 1.5)
+    assert np.array_equal(out[~mask], depth[~mask]) and out[40, 40] == 0.0
+    inner = np.zeros_like(mask)
+    inner[20:60, 20:60] = True
+    inner[40, 40] = False
+    noise = lambda d: np.std((d - plane)[inner])  # noqa: E731
+    # a Gaussian of sigma s averages ~4 pi s^2 pixels of independent noise
+    assert noise(out) == pytest.approx(noise(depth) / np.sqrt(4 * np.pi * 1.5**2), rel=0.25)
+    # the tilt is kept away from the edge: the average of a plane is the plane
+    assert np.abs((out - plane)[inner]).mean() < 0.4 * np.abs((depth - plane)[inner]).mean()
+    assert np.array_equal(st.smooth_depth(depth, mask, 0), depth)
+    before, after = st.depth_correlation(depth, mask), st.depth_correlation(out, mask)
+    assert abs(before) < 0.1 < 0.3 < after
+    assert np.isnan(st.depth_correlation(depth, np.zeros_like(mask)))
 
 
 def test_real_level_interpolates_the_synthetic_curve():
