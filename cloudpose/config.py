@@ -339,6 +339,11 @@ class DataConfig:
             [0, online_bleed], the pixel keeping the depth it has (the background's, or the
             other object's); 0 keeps the rendered masks. Real segmentation masks sit ~0.5 px
             out on the dilation axis of ``cloudpose stress`` (``docs/stress.md``).
+        online_smooth: with "online" version 3, each object's depth readings replaced by their
+            Gaussian average over the object's own readings (sigma in pixels; 0 keeps the
+            sensor's independent per-pixel noise). Real depth errors are correlated over ~2
+            pixels (a camera that matches over a window); real frames sit ~0.9 px out on the
+            smoothing axis of ``cloudpose stress`` (``docs/stress.md``).
         segment_streams: how a frame's instances draw their FPS start points
             (:data:`cloudpose.data.segments.SEGMENT_STREAMS`): "instance", each from its own
             stream, so a missed or dropped instance changes no other; "frame", one stream per
@@ -364,6 +369,7 @@ class DataConfig:
     online_scenes: str = "all"
     online_version: int = 1
     online_bleed: float = 0.0
+    online_smooth: float = 0.0
     segment_streams: str = "instance"
 
     def __post_init__(self) -> None:
@@ -400,6 +406,15 @@ class DataConfig:
         if self.online_bleed and (self.train_source != "online" or self.online_version < 3):
             raise ValueError(
                 f"data.online_bleed={self.online_bleed} needs data.train_source='online' and "
+                f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
+            )
+        if not 0.0 <= self.online_smooth <= 5.0:
+            raise ValueError(
+                f"data.online_smooth must be in [0, 5] pixels, got {self.online_smooth}"
+            )
+        if self.online_smooth and (self.train_source != "online" or self.online_version < 3):
+            raise ValueError(
+                f"data.online_smooth={self.online_smooth} needs data.train_source='online' and "
                 f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
             )
 
@@ -535,6 +550,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_scenes": "all",
         "online_version": 1,
         "online_bleed": 0.0,
+        "online_smooth": 0.0,
         "segment_streams": "frame",
     },
     "icp": {

@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 
 from cloudpose.data.segment_set import SegmentSet
 from cloudpose.data.segments import Segment, backproject, farthest_point_sampling
+from cloudpose.data.synth.sensor import smooth_depth
 from cloudpose.files import atomic_write
 
 SOURCES = ("real", "synth")
@@ -133,21 +134,6 @@ def depth_noise(points: np.ndarray, sigma_mm: float, rng: np.random.Generator) -
     z = points[:, 2]
     dz = rng.standard_normal(len(points)) * sigma_mm / 1000.0
     return points * ((z + dz) / z)[:, None]
-
-
-def smooth_depth(depth: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``depth`` with the readings of ``mask`` replaced by their Gaussian average over the
-    mask's own readings (``sigma_px`` pixels; a normalized convolution, so neither the
-    background nor the missing readings leak in): the spatially correlated error of a depth
-    camera that matches over a window, at the same surface."""
-    out = depth.copy()
-    m = mask & (depth > 0)
-    if sigma_px <= 0 or not m.any():
-        return out
-    weight = ndimage.gaussian_filter(m.astype(np.float64), sigma_px)
-    total = ndimage.gaussian_filter(np.where(m, depth, 0.0).astype(np.float64), sigma_px)
-    out[m] = (total[m] / weight[m]).astype(depth.dtype)
-    return out
 
 
 CORR_LAG_PX = 2

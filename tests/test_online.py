@@ -452,3 +452,45 @@ def test_online_bleed_is_checked():
     with pytest.raises(ValueError, match=r"needs data\.train_source='online' and"):
         DataConfig(train_source="online", online_version=2, online_bleed=0.5)
     assert DataConfig(train_source="online", online_version=3, online_bleed=0.5).online_bleed
+
+
+def test_smoothed_readings_stay_on_their_rays_and_lose_independent_noise():
+    """:func:`smooth_readings`: one object's readings averaged over its own pixels; each point
+    keeps its pixel's ray; independent noise shrinks; sigma 0 changes nothing."""
+    from cloudpose.data.synth.sensor import smooth_readings
+
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    v, u = np.mgrid[200:260, 300:360]
+    rng = np.random.default_rng(0)
+    z = 0.9 + 0.002 * rng.standard_normal(v.shape)  # a wall 0.9 m away, 2 mm of noise
+    pts = np.column_stack(
+        [((u - 320) / 1000 * z).ravel(), ((v - 240) / 1000 * z).ravel(), z.ravel()]
+    )
+    out = smooth_readings(pts, K, 1.5)
+    np.testing.assert_allclose(out[:, :2] / out[:, 2:], pts[:, :2] / pts[:, 2:], atol=1e-12)
+    inner = ((v > 210) & (v < 250) & (u > 310) & (u < 350)).ravel()
+    assert np.std(out[inner, 2]) < 0.4 * np.std(pts[inner, 2])
+    np.testing.assert_array_equal(smooth_readings(pts, K, 0.0), pts)
+
+
+def test_online_smooth_keeps_scenes_and_moves_points_along_rays():
+    """``data.online_smooth`` (version 3): the same scenes and point counts, each point on its
+    ray, the depth error smoother; deterministic."""
+    plain = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3))
+    smooth = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_smooth=1.0))
+    a, b = plain.batch(0, 3, 24), smooth.batch(0, 3, 24)
+    np.testing.assert_array_equal(a.cls_id, b.cls_id)
+    np.testing.assert_array_equal(a.count, b.count)
+    assert not np.array_equal(a.points, b.points)
+    again = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_smooth=1.0))
+    np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
+
+
+def test_online_smooth_is_checked():
+    from cloudpose.config import DataConfig
+
+    with pytest.raises(ValueError, match=r"data.online_smooth must be in \[0, 5\]"):
+        DataConfig(train_source="online", online_version=3, online_smooth=6.0)
+    with pytest.raises(ValueError, match=r"needs data\.train_source='online' and"):
+        DataConfig(train_source="online", online_version=2, online_smooth=1.0)
+    assert DataConfig(train_source="online", online_version=3, online_smooth=1.0).online_smooth

@@ -50,14 +50,17 @@ def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
         ChunkStore(tmp_path, replace(KW, class_ids=(1, 2, 3)), 4).key
     )
     assert ChunkStore(tmp_path, replace(KW, class_ids=(1, 2, 3)), 4).key != base
-    # every setting is a field of the key, by its name (online_bleed once it is set)
-    assert set(store_settings(KW, 4)["synth"]) == set(KW.__dataclass_fields__) - {"online_bleed"}
-    bled = replace(KW, online_version=3, online_bleed=0.5)
+    # every setting is a field of the key, by its name (online_bleed and online_smooth once
+    # they are set)
+    later = {"online_bleed", "online_smooth"}
+    assert set(store_settings(KW, 4)["synth"]) == set(KW.__dataclass_fields__) - later
+    bled = replace(KW, online_version=3, online_bleed=0.5, online_smooth=1.0)
     assert set(store_settings(bled, 4)["synth"]) == set(KW.__dataclass_fields__)
-    assert (
-        ChunkStore(tmp_path, bled, 4).key
-        != ChunkStore(tmp_path, replace(bled, online_bleed=0.0), 4).key
-    )
+    for name in later:
+        assert (
+            ChunkStore(tmp_path, bled, 4).key
+            != ChunkStore(tmp_path, replace(bled, **{name: 0.0}), 4).key
+        )
     assert ChunkStore(tmp_path, KW, 8).key != base
     # the synthesis code: another source digest is another folder
     monkeypatch.setattr(store_module, "code_digest", lambda: "0" * 32)

@@ -104,6 +104,7 @@ from cloudpose.data.synth.sensor import (
     edge_distance,
     object_pixel_geometry,
     object_ring,
+    smooth_readings,
 )
 from cloudpose.data.synth.store import ChunkStore, OnlineSettings
 
@@ -726,6 +727,10 @@ class OnlineSynth:
             radius,
             compiled,
         )
+        if self.settings.online_smooth:  # after the sensor: its readings averaged per object
+            for i in range(len(cls_ids)):
+                a, b = int(offsets[i]), int(offsets[i + 1])
+                pts[a:b] = smooth_readings(pts[a:b], Kw, self.settings.online_smooth)
         streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
         keep = []
         soa = None

@@ -636,3 +636,37 @@ def object_pixel_geometry(
     )
     ok = inner & (nb > 0).all(axis=-1) & same
     return jump, _ray_cosine(gx, gy, pixel_rays(Kinv, v, u), ok)
+
+
+def smooth_depth(depth: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``depth`` with the readings of ``mask`` replaced by their Gaussian average over the
+    mask's own readings (``sigma_px`` pixels; a normalized convolution, so neither the
+    background nor the missing readings leak in): the spatially correlated error of a depth
+    camera that matches over a window, at the same surface."""
+    out = depth.copy()
+    m = mask & (depth > 0)
+    if sigma_px <= 0 or not m.any():
+        return out
+    weight = ndimage.gaussian_filter(m.astype(np.float64), sigma_px)
+    total = ndimage.gaussian_filter(np.where(m, depth, 0.0).astype(np.float64), sigma_px)
+    out[m] = (total[m] / weight[m]).astype(depth.dtype)
+    return out
+
+
+def smooth_readings(points: np.ndarray, K: np.ndarray, sigma_px: float) -> np.ndarray:
+    """One object's back-projected readings (N, 3; one per pixel, camera frame, metres) with
+    each depth replaced by its Gaussian average over the object's readings
+    (:func:`smooth_depth` on the pixels the points project to), every point kept on its ray."""
+    if sigma_px <= 0 or len(points) == 0:
+        return points.copy()
+    z = points[:, 2].astype(np.float64)
+    u = np.rint(K[0, 0] * points[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * points[:, 1] / z + K[1, 2]).astype(np.int64)
+    pad = int(np.ceil(4 * sigma_px)) + 1  # the filter's reach: nothing wraps or is cut
+    u0, v0 = u.min() - pad, v.min() - pad
+    shape = (v.max() - v0 + pad + 1, u.max() - u0 + pad + 1)
+    depth = np.zeros(shape)
+    depth[v - v0, u - u0] = z
+    mask = depth > 0
+    smoothed = smooth_depth(depth, mask, sigma_px)[v - v0, u - u0]
+    return (points * (smoothed / z)[:, None]).astype(points.dtype)

@@ -108,6 +108,8 @@ class OnlineSettings:
             with draws of their own: the same distribution, other segments ("Version 3").
         online_bleed: version 3's masks grown into the pixels next to them
             (``data.online_bleed``: the largest share of them an object takes).
+        online_smooth: version 3's depth readings averaged over each object's own
+            (``data.online_smooth``: the Gaussian's sigma, pixels).
     """
 
     synth_version: int = GENERATOR_VERSION
@@ -118,6 +120,7 @@ class OnlineSettings:
     online_scenes: str = "all"
     online_version: int = 1
     online_bleed: float = 0.0
+    online_smooth: float = 0.0
 
     def __post_init__(self) -> None:
         check_synth_version(self.synth_version)
@@ -165,6 +168,7 @@ class OnlineSettings:
             online_scenes=d.online_scenes,
             online_version=d.online_version,
             online_bleed=d.online_bleed,
+            online_smooth=d.online_smooth,
         )
 
 
@@ -234,8 +238,9 @@ def store_settings(settings: OnlineSettings, chunk_size: int) -> dict[str, Any]:
     """The parts of a store's key, as written to its ``settings.json``: the synthesis settings
     field by field, the chunk size and the synthesis code (:func:`code_digest`)."""
     synth = dataclasses.asdict(settings)
-    if not synth["online_bleed"]:  # a field at its default is left out: older keys stay
-        del synth["online_bleed"]
+    for name in ("online_bleed", "online_smooth"):  # a field at its default is left out:
+        if not synth[name]:  # older keys stay
+            del synth[name]
     if synth["class_ids"] is not None:
         synth["class_ids"] = list(synth["class_ids"])
     return {"synth": synth, "chunk_size": int(chunk_size), "code": code_digest()}
