@@ -1,5 +1,5 @@
-"""reports/diagnostics/bleed_experiments.py: each bleeding share against the same seeds without
-it, with intervals over seeds and instances (synthetic) or object poses (real)."""
+"""reports/diagnostics/synthesis_experiments.py: each synthesis setting against the same seeds
+without it, with intervals over seeds and instances (synthetic) or object poses (real)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "reports" / "diagnostics" / "bleed_experiments.py"
+SCRIPT = (
+    Path(__file__).resolve().parents[1] / "reports" / "diagnostics" / "synthesis_experiments.py"
+)
 
 
 @pytest.fixture(scope="module")
-def bleed():
-    spec = importlib.util.spec_from_file_location("bleed_experiments", SCRIPT)
+def synthesis():
+    spec = importlib.util.spec_from_file_location("synthesis_experiments", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -63,13 +65,17 @@ def _runs(n: int, good: float, bad: float, seed: int):
     return _Run(f"run{seed}-{good}-{bad}", {"test": synth, "real": real})
 
 
-def test_measure_pairs_seeds_and_reports_each_figure(bleed):
+def test_measure_pairs_seeds_and_reports_each_figure(synthesis):
     runs = {
-        0.0: {1: _runs(8, 0.005, 0.02, 1), 2: _runs(8, 0.005, 0.02, 2)},
-        1.0: {1: _runs(8, 0.005, 0.005, 1), 2: _runs(8, 0.005, 0.005, 2), 3: _runs(8, 0.1, 0.1, 3)},
+        "none": {1: _runs(8, 0.005, 0.02, 1), 2: _runs(8, 0.005, 0.02, 2)},
+        "bleed 1": {
+            1: _runs(8, 0.005, 0.005, 1),
+            2: _runs(8, 0.005, 0.005, 2),
+            3: _runs(8, 0.1, 0.1, 3),
+        },
     }
-    table = bleed.measure("p", runs, replicates=50)
-    # one share x two sets x two stages x three figures; seed 3 has no run at share 0
+    table = synthesis.measure("p", runs, replicates=50)
+    # one setting x two sets x two stages x three figures; seed 3 has no run without it
     assert len(table) == 12
     assert set(table["seeds"]) == {"1 2"}
     trans = table[(table["figure"] == "translation < 1 cm") & (table["stage"] == "network")]
@@ -80,7 +86,7 @@ def test_measure_pairs_seeds_and_reports_each_figure(bleed):
     np.testing.assert_allclose(rot["difference"], 0.0)
 
 
-def test_real_interval_resamples_object_poses_not_instances(bleed):
+def test_real_interval_resamples_object_poses_not_instances(synthesis):
     """Two videos x two classes = four poses: the pose bootstrap's interval is wider than
     one over 16 independent instances would be, and it contains the mean."""
     rng = np.random.default_rng(0)
@@ -90,8 +96,8 @@ def test_real_interval_resamples_object_poses_not_instances(bleed):
     gain = (poses == "0000/c0").astype(float)
     b = {s: rng.uniform(0, 1, n) for s in (1, 2, 3)}
     a = {s: b[s] - 0.5 * gain for s in (1, 2, 3)}  # smaller errors where gained
-    stat = bleed.share_below(0.5)
-    mean, low, high = bleed.pose_bootstrap(a, b, stat, poses, replicates=400)
+    stat = synthesis.share_below(0.5)
+    mean, low, high = synthesis.pose_bootstrap(a, b, stat, poses, replicates=400)
     exact = np.mean([stat(a[s][None])[0] - stat(b[s][None])[0] for s in (1, 2, 3)])
     assert mean == pytest.approx(exact)
     assert low <= mean <= high
@@ -99,19 +105,19 @@ def test_real_interval_resamples_object_poses_not_instances(bleed):
     assert low == pytest.approx(0.0, abs=1e-12)
 
 
-def test_tables_of_other_instances_are_refused(bleed):
+def test_tables_of_other_instances_are_refused(synthesis):
     a = _runs(8, 0.005, 0.005, 1)
     b = _runs(8, 0.005, 0.02, 1)
     b.tables["test"] = b.tables["test"].iloc[1:]
     with pytest.raises(ValueError, match="differ in instances"):
-        bleed.measure("p", {0.0: {1: b}, 1.0: {1: a}}, replicates=10)
+        synthesis.measure("p", {"none": {1: b}, "bleed 1": {1: a}}, replicates=10)
 
 
-def test_markdown_names_runs_and_intervals(bleed):
-    runs = {0.0: {1: _runs(8, 0.005, 0.02, 1)}, 0.5: {1: _runs(8, 0.005, 0.005, 1)}}
-    table = bleed.measure("p", runs, replicates=20)
-    text = bleed.markdown(table, {"p": runs}, ["bleed_experiments.py", "--preset", "p"])
-    assert "## p: share 0.5 against 0 (seeds 1)" in text
+def test_markdown_names_runs_and_intervals(synthesis):
+    runs = {"none": {1: _runs(8, 0.005, 0.02, 1)}, "smooth 1 px": {1: _runs(8, 0.005, 0.005, 1)}}
+    table = synthesis.measure("p", runs, replicates=20)
+    text = synthesis.markdown(table, {"p": runs}, ["synthesis_experiments.py", "--preset", "p"])
+    assert "## p: smooth 1 px against none (seeds 1)" in text
     assert "seed 1 `run1-0.0`" in text
     assert (
         "| real development frames | network | translation < 1 cm | 50.0 -> 100.0 | +50.0" in text
@@ -139,15 +145,15 @@ def _sweep(folder: Path, checkpoint: str, trans_m: dict[float, float]) -> Path:
     return folder
 
 
-def test_stress_sweeps_are_matched_to_runs_by_their_folder(bleed, tmp_path):
-    folders = {"seed1-aaaa": ("p", 0.0, 1), "seed1-bbbb": ("p", 1.0, 1)}
+def test_stress_sweeps_are_matched_to_runs_by_their_folder(synthesis, tmp_path):
+    folders = {"seed1-aaaa": ("p", "none", 1), "seed1-bbbb": ("p", "bleed 1", 1)}
     plain = _sweep(tmp_path / "plain", "runs/shared-0/p/seed1-aaaa/model.pt", {0: 0.004, 2: 0.02})
     bled = _sweep(tmp_path / "bled", "runs/shared-0/p/seed1-bbbb/model.pt", {0: 0.005, 2: 0.008})
-    rows = bleed.stress_rows([plain, bled], folders, "dilate")
-    assert set(zip(rows["share"], rows["seed"], strict=True)) == {(0.0, 1), (1.0, 1)}
-    text = "\n".join(bleed.stress_markdown(rows, "dilate"))
-    assert "## p: under dilate, share 1 against 0 (seeds 1" in text
+    rows = synthesis.stress_rows([plain, bled], folders, "dilate")
+    assert set(zip(rows["setting"], rows["seed"], strict=True)) == {("none", 1), ("bleed 1", 1)}
+    text = "\n".join(synthesis.stress_markdown(rows, "dilate"))
+    assert "## p: under dilate, bleed 1 against none (seeds 1" in text
     assert "| real | 2 | 20.0 -> 8.0 | 20.0 -> 8.0 | 0.0 -> 100.0 |" in text
     other = _sweep(tmp_path / "other", "runs/shared-0/p/seed1-cccc/model.pt", {0: 0.004})
-    with pytest.raises(ValueError, match="none of the bleeding runs"):
-        bleed.stress_rows([other], folders, "dilate")
+    with pytest.raises(ValueError, match="none of the runs found"):
+        synthesis.stress_rows([other], folders, "dilate")

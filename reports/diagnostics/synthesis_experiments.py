@@ -1,21 +1,24 @@
-"""Mask bleeding in synthesis (``data.online_bleed``): every share against the same runs
-without it, paired by seed, on the synthetic test set and the real development frames.
+"""Synthesis settings that make training segments more like real ones (masks that bleed,
+``data.online_bleed``; depth errors correlated between pixels, ``data.online_smooth``): each
+setting against the same runs without it, paired by seed, on the synthetic test set and the
+real development frames.
 
 The runs are the finished shared-0 runs of each ``--preset`` whose config differs from the
-preset's own at most in ``data.online_version`` and ``data.online_bleed``, with synthesis
-version 3 (the version that can bleed). For each share above 0 and each seed that also has a
-run at share 0 (the same scenes and initial weights; only the masks differ), the difference of
+preset's own at most in :data:`AXES`, with synthesis version 3 (the version that has these
+settings). For each setting and each seed that also has a run without any (``none``: the same
+scenes and initial weights; only the masks or the depth differ), the difference of
 every figure, without and with ICP, with the two-level bootstrap interval of the paper's claims
 (:func:`cloudpose.report.stats.bootstrap_difference`: seeds and instances redrawn together)::
 
-    python reports/diagnostics/bleed_experiments.py --preset cpu-online --preset cpu-online-4x \\
-        --out reports/diagnostics/bleed_experiments.md
+    python reports/diagnostics/synthesis_experiments.py --preset cpu-online --preset cpu-online-4x \\
+        --out reports/diagnostics/synthesis_experiments.md
 
 Run it in the project folder that holds the runs (the MLflow store of ``MLFLOW_TRACKING_URI``
-or ``./mlruns``). Writes the Markdown and a CSV beside it (one row per preset, share, set,
+or ``./mlruns``). Writes the Markdown and a CSV beside it (one row per preset, setting, set,
 stage and figure). Each ``--stress DIR`` is the results folder of a ``cloudpose stress`` sweep
 of one of these runs (``--run runs/shared-0/...``; the run is found by its folder name); the
-Markdown then lists the ``--perturbation`` (default ``dilate``) curve of each share against 0,
+Markdown then lists the ``--perturbation`` (default ``dilate``) curve of each setting against
+``none``,
 ``*_stress.csv`` holds its summaries and ``*_stress.png`` plots them.
 """
 
@@ -40,8 +43,10 @@ from cloudpose.report.stats import Difference, auc_of_rows, bootstrap_difference
 from cloudpose.store import tracking
 from cloudpose.stress import collect
 
-AXES = frozenset({"data.online_version", "data.online_bleed"})
-"""The settings a bleeding experiment may change from its preset."""
+AXES = frozenset({"data.online_version", "data.online_bleed", "data.online_smooth"})
+"""The settings an experiment here may change from its preset."""
+NONE = "none"
+"""The setting of the runs every other is paired with."""
 
 FIGURES = (  # metric, per-instance column (after the stage's prefix), stat of (R, N) rows
     ("ADS AUC", "ads", auc_of_rows),
@@ -52,11 +57,21 @@ SETS = (("test", "synthetic test set"), ("real", "real development frames"))
 STAGES = (("net_", "network"), ("icp_", "+ ICP"))
 
 
-def bleed_runs(client, preset: str, folders: dict[str, tuple] | None = None):
-    """share -> seed -> the newest finished shared-0 run of ``preset`` at that share; each
-    chosen run's folder name (tag ``run_dir``) -> (preset, share, seed) goes into
+def setting(data) -> str:
+    """The synthesis setting of a run's ``data`` config in words (:data:`NONE` for neither)."""
+    parts = []
+    if data.online_bleed:
+        parts.append(f"bleed {data.online_bleed:g}")
+    if data.online_smooth:
+        parts.append(f"smooth {data.online_smooth:g} px")
+    return ", ".join(parts) or NONE
+
+
+def synthesis_runs(client, preset: str, folders: dict[str, tuple] | None = None):
+    """setting -> seed -> the newest finished shared-0 run of ``preset`` with that setting;
+    each chosen run's folder name (tag ``run_dir``) -> (preset, setting, seed) goes into
     ``folders`` when given."""
-    out: dict[float, dict[int, RunRecord]] = {}
+    out: dict[str, dict[int, RunRecord]] = {}
     for run in tracking.find_runs(client, variant="shared-0", preset=preset):  # newest first
         tags = run.data.tags
         if not tags.get("seed") or TEST_KEY not in run.data.metrics:
@@ -70,11 +85,12 @@ def bleed_runs(client, preset: str, folders: dict[str, tuple] | None = None):
         if changes - AXES or cfg.data.train_source != "online" or cfg.data.online_version < 3:
             continue
         seed = int(tags["seed"])
-        by_seed = out.setdefault(float(cfg.data.online_bleed), {})
+        label = setting(cfg.data)
+        by_seed = out.setdefault(label, {})
         if seed not in by_seed:
             by_seed[seed] = _record(run, ("shared-0", seed), preset, tags.get("data", ""), client)
             if folders is not None and tags.get("run_dir"):
-                folders[Path(tags["run_dir"]).name] = (preset, float(cfg.data.online_bleed), seed)
+                folders[Path(tags["run_dir"]).name] = (preset, label, seed)
     return out
 
 
@@ -129,15 +145,15 @@ def pose_bootstrap(
 
 
 def measure(preset: str, runs: dict[float, dict[int, RunRecord]], replicates: int) -> pd.DataFrame:
-    """One row per (share > 0, set, stage, figure): each seed's value at share 0 and at the
-    share, and the paired difference with its interval (percentage points)."""
-    base = runs.get(0.0, {})
+    """One row per (setting, set, stage, figure): each seed's value without a setting and
+    with it, and the paired difference with its interval (percentage points)."""
+    base = runs.get(NONE, {})
     rows = []
-    for share in sorted(s for s in runs if s > 0):
-        seeds = sorted(set(runs[share]) & set(base))
+    for label in sorted(s for s in runs if s != NONE):
+        seeds = sorted(set(runs[label]) & set(base))
         if not seeds:
             continue
-        a_runs = {s: runs[share][s] for s in seeds}
+        a_runs = {s: runs[label][s] for s in seeds}
         b_runs = {s: base[s] for s in seeds}
         for name, set_label in SETS:
             ta, tb = _tables(a_runs, name), _tables(b_runs, name)
@@ -164,7 +180,7 @@ def measure(preset: str, runs: dict[float, dict[int, RunRecord]], replicates: in
                     rows.append(
                         dict(
                             preset=preset,
-                            share=share,
+                            setting=label,
                             seeds=" ".join(map(str, seeds)),
                             set=set_label,
                             stage=stage,
@@ -191,7 +207,7 @@ STRESS_FIGURES = (  # stress summary column, stage, scale, heading
 
 def stress_rows(sweeps: list[Path], folders: dict[str, tuple], perturbation: str) -> pd.DataFrame:
     """The summaries of ``perturbation`` in each ``cloudpose stress`` results folder, one per
-    (source, level, stage) and network, with the (preset, share, seed) of the run whose
+    (source, level, stage) and network, with the (preset, setting, seed) of the run whose
     checkpoint the sweep evaluated (matched by the run's folder name)."""
     frames = []
     for folder in sweeps:
@@ -205,28 +221,28 @@ def stress_rows(sweeps: list[Path], folders: dict[str, tuple], perturbation: str
             if key is None:
                 raise ValueError(
                     f"{folder}/sweep.json: method {method} evaluated {checkpoint}, which is "
-                    "none of the bleeding runs found (check --preset and the MLflow store)"
+                    "none of the runs found (check --preset and the MLflow store)"
                 )
             part = table[(table["method"] == method) & (table["perturbation"] == perturbation)]
-            frames.append(part.assign(preset=key[0], share=key[1], seed=key[2]))
+            frames.append(part.assign(preset=key[0], setting=key[1], seed=key[2]))
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
 def stress_markdown(rows: pd.DataFrame, perturbation: str) -> list[str]:
-    """Per preset and share above 0: each level and source, the mean over the seeds swept at
-    both shares, share 0 -> the share."""
+    """Per preset and setting: each level and source, the mean over the seeds swept both
+    without a setting and with it, none -> the setting."""
     lines: list[str] = []
     for preset, at_preset in rows.groupby("preset", sort=False):
-        base = at_preset[at_preset["share"] == 0]
-        for share in sorted(s for s in at_preset["share"].unique() if s > 0):
-            top = at_preset[at_preset["share"] == share]
+        base = at_preset[at_preset["setting"] == NONE]
+        for label in sorted(s for s in at_preset["setting"].unique() if s != NONE):
+            top = at_preset[at_preset["setting"] == label]
             seeds = sorted(set(base["seed"]) & set(top["seed"]))
             if not seeds:
                 continue
             lines += [
                 "",
-                f"## {preset}: under {perturbation}, share {share:g} against 0 "
-                f"(seeds {' '.join(map(str, seeds))}; mean over seeds, share 0 -> {share:g})",
+                f"## {preset}: under {perturbation}, {label} against none "
+                f"(seeds {' '.join(map(str, seeds))}; mean over seeds, none -> {label})",
                 "",
                 "| source | level | " + " | ".join(h for *_, h in STRESS_FIGURES) + " |",
                 "|---|---:|" + "---:|" * len(STRESS_FIGURES),
@@ -258,7 +274,7 @@ def stress_plot(
     rows: pd.DataFrame, perturbation: str, path: Path, real_level: float | None = None
 ) -> None:
     """Per source, the median translation and the ADS AUC after ICP against the level: one
-    line per preset and share, the mean over its swept seeds; ``real_level`` (where the real
+    line per preset and setting, the mean over its swept seeds; ``real_level`` (where the real
     frames sit on this axis) as a dashed line."""
     import matplotlib
 
@@ -269,15 +285,15 @@ def stress_plot(
     fig, axes = plt.subplots(
         len(PLOT_FIGURES), len(sources), figsize=(5 * len(sources), 7), squeeze=False
     )
-    for (preset, share), part in rows.groupby(["preset", "share"], sort=True):
+    for (preset, label), part in rows.groupby(["preset", "setting"], sort=True):
         seeds = sorted(part["seed"].unique())
-        label = f"{preset}, bleed {share:g} (seeds {' '.join(map(str, seeds))})"
+        name = f"{preset}, {label} (seeds {' '.join(map(str, seeds))})"
         for col, source in enumerate(sources):
             for row, (column, stage, scale, ylabel) in enumerate(PLOT_FIGURES):
                 sel = part[(part["source"] == source) & (part["stage"] == stage)]
                 curve = sel.groupby("level")[column].mean() * scale
                 ax = axes[row][col]
-                ax.plot(curve.index, curve.to_numpy(), marker="o", label=label)
+                ax.plot(curve.index, curve.to_numpy(), marker="o", label=name)
                 ax.set_xlabel(f"{perturbation} level")
                 ax.set_ylabel(ylabel)
                 ax.set_title(source)
@@ -306,30 +322,30 @@ def markdown(
     stress: list[str] = (),
 ) -> str:
     lines = [
-        "# Mask bleeding in synthesis: each share against the same runs without it",
+        "# Synthesis settings: each against the same runs without it",
         "",
         f"_made by `python {' '.join(shlex.quote(a) for a in argv)}` in the project folder "
         "that holds the runs; see the script's docstring for what is compared._",
         "",
-        "Cells: per seed, the figure at share 0 -> at the share (%), then the mean paired "
+        "Cells: per seed, the figure without a setting -> with it (%), then the mean paired "
         "difference in percentage points with its 95% interval: a bootstrap that redraws "
         "the seeds together with the test instances (synthetic) or with the 17 object poses "
         "(real; each pose is one object seen in up to 20 frames). The synthetic test set has "
-        "no bleeding; the real development frames have what the sensor and labels give.",
+        "neither setting; the real development frames have what the sensor and labels give.",
         "",
         "Runs:",
         "",
     ]
-    for preset, by_share in runs.items():
-        for share in sorted(by_share):
+    for preset, by_setting in runs.items():
+        for label in sorted(by_setting):
             names = ", ".join(
-                f"seed {s} `{by_share[share][s].run_id[:8]}`" for s in sorted(by_share[share])
+                f"seed {s} `{by_setting[label][s].run_id[:8]}`" for s in sorted(by_setting[label])
             )
-            lines.append(f"- {preset}, share {share:g}: {names}")
-    for (preset, share), part in table.groupby(["preset", "share"], sort=False):
+            lines.append(f"- {preset}, {label}: {names}")
+    for (preset, label), part in table.groupby(["preset", "setting"], sort=False):
         lines += [
             "",
-            f"## {preset}: share {share:g} against 0 (seeds {part['seeds'].iloc[0]})",
+            f"## {preset}: {label} against none (seeds {part['seeds'].iloc[0]})",
             "",
             "| set | stage | figure | per seed | difference [95%] |",
             "|---|---|---|---|---:|",
@@ -364,11 +380,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     client = tracking.setup()
     folders: dict[str, tuple] = {}
-    runs = {preset: bleed_runs(client, preset, folders) for preset in args.preset}
-    tables = [measure(preset, by_share, args.replicates) for preset, by_share in runs.items()]
+    runs = {preset: synthesis_runs(client, preset, folders) for preset in args.preset}
+    tables = [measure(preset, by_setting, args.replicates) for preset, by_setting in runs.items()]
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     if table.empty:
-        print("no preset has runs both with and without bleeding at a common seed", file=sys.stderr)
+        print(
+            "no preset has runs both with and without a setting at a common seed", file=sys.stderr
+        )
         return 1
     stress = stress_rows(args.stress, folders, args.perturbation)
     stress_lines = stress_markdown(stress, args.perturbation) if not stress.empty else []
@@ -379,7 +397,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         png = args.out.with_name(args.out.stem + "_stress.png")
         stress_plot(stress, args.perturbation, png, args.real_level)
-    text = markdown(table, runs, ["reports/diagnostics/bleed_experiments.py", *argv], stress_lines)
+    text = markdown(
+        table, runs, ["reports/diagnostics/synthesis_experiments.py", *argv], stress_lines
+    )
     atomic_text(args.out, text)
     atomic_text(args.out.with_suffix(".csv"), table.to_csv(index=False, float_format="%.2f"))
     print(text)
