@@ -24,6 +24,19 @@ from pathlib import Path
 import pytest
 
 DATA = Path(__file__).parent / "data"
+DIAGNOSTICS = Path(__file__).resolve().parents[1] / "reports" / "diagnostics"
+
+
+def diagnostic_script(name: str):
+    """The module of ``reports/diagnostics/NAME.py`` (a script, not a package module)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, DIAGNOSTICS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 REPO = Path(__file__).resolve().parents[1]
 
 _CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cloudpose-tests"

@@ -444,16 +444,6 @@ def test_bleeding_masks_add_points_off_the_object():
     np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
 
 
-def test_online_bleed_is_checked():
-    from cloudpose.config import DataConfig
-
-    with pytest.raises(ValueError, match=r"data.online_bleed must be in \[0, 1\]"):
-        DataConfig(train_source="online", online_version=3, online_bleed=1.5)
-    with pytest.raises(ValueError, match=r"needs data\.train_source='online' and"):
-        DataConfig(train_source="online", online_version=2, online_bleed=0.5)
-    assert DataConfig(train_source="online", online_version=3, online_bleed=0.5).online_bleed
-
-
 def test_smoothed_readings_stay_on_their_rays_and_lose_independent_noise():
     """:func:`smooth_readings`: one object's readings averaged over its own pixels; each point
     keeps its pixel's ray; independent noise shrinks; sigma 0 changes nothing."""
@@ -486,11 +476,14 @@ def test_online_smooth_keeps_scenes_and_moves_points_along_rays():
     np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
 
 
-def test_online_smooth_is_checked():
+@pytest.mark.parametrize(
+    "name, bad, limits", [("online_bleed", 1.5, r"\[0, 1\]"), ("online_smooth", 6.0, r"\[0, 5\]")]
+)
+def test_version_3_synthesis_settings_are_checked(name, bad, limits):
     from cloudpose.config import DataConfig
 
-    with pytest.raises(ValueError, match=r"data.online_smooth must be in \[0, 5\]"):
-        DataConfig(train_source="online", online_version=3, online_smooth=6.0)
+    with pytest.raises(ValueError, match=rf"data.{name} must be in {limits}"):
+        DataConfig(train_source="online", online_version=3, **{name: bad})
     with pytest.raises(ValueError, match=r"needs data\.train_source='online' and"):
-        DataConfig(train_source="online", online_version=2, online_smooth=1.0)
-    assert DataConfig(train_source="online", online_version=3, online_smooth=1.0).online_smooth
+        DataConfig(train_source="online", online_version=2, **{name: 0.5})
+    assert getattr(DataConfig(train_source="online", online_version=3, **{name: 0.5}), name)

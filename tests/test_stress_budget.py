@@ -3,7 +3,6 @@ baseline ran on."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -12,16 +11,12 @@ import pandas as pd
 import pytest
 
 from cloudpose.stress import result_path
-
-SCRIPT = Path(__file__).resolve().parents[1] / "reports" / "diagnostics" / "stress_budget.py"
+from tests.conftest import diagnostic_script
 
 
 @pytest.fixture(scope="module")
 def stress_budget():
-    spec = importlib.util.spec_from_file_location("stress_budget", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return diagnostic_script("stress_budget")
 
 
 def _results(n: int, trans_m: float, start: int = 0) -> pd.DataFrame:

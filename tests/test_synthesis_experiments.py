@@ -3,7 +3,6 @@ without it, with intervals over seeds and instances (synthetic) or object poses 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,17 +11,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-SCRIPT = (
-    Path(__file__).resolve().parents[1] / "reports" / "diagnostics" / "synthesis_experiments.py"
-)
+from tests.conftest import diagnostic_script
 
 
 @pytest.fixture(scope="module")
 def synthesis():
-    spec = importlib.util.spec_from_file_location("synthesis_experiments", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return diagnostic_script("synthesis_experiments")
 
 
 def _table(frames: list[str], trans_m: np.ndarray, rot_deg: np.ndarray) -> pd.DataFrame:
@@ -97,7 +91,7 @@ def test_real_interval_resamples_object_poses_not_instances(synthesis):
     b = {s: rng.uniform(0, 1, n) for s in (1, 2, 3)}
     a = {s: b[s] - 0.5 * gain for s in (1, 2, 3)}  # smaller errors where gained
     stat = synthesis.share_below(0.5)
-    mean, low, high = synthesis.pose_bootstrap(a, b, stat, poses, replicates=400)
+    mean, low, high = synthesis.cluster_bootstrap(a, b, stat, poses, replicates=400)
     exact = np.mean([stat(a[s][None])[0] - stat(b[s][None])[0] for s in (1, 2, 3)])
     assert mean == pytest.approx(exact)
     assert low <= mean <= high
@@ -157,3 +151,10 @@ def test_stress_sweeps_are_matched_to_runs_by_their_folder(synthesis, tmp_path):
     other = _sweep(tmp_path / "other", "runs/shared-0/p/seed1-cccc/model.pt", {0: 0.004})
     with pytest.raises(ValueError, match="none of the runs found"):
         synthesis.stress_rows([other], folders, "dilate")
+
+
+def test_one_seed_still_has_an_instance_interval(synthesis):
+    runs = {"none": {1: _runs(8, 0.005, 0.02, 1)}, "bleed 1": {1: _runs(8, 0.005, 0.005, 1)}}
+    table = synthesis.measure("p", runs, replicates=200)
+    trans = table[(table["figure"] == "translation < 1 cm") & (table["set"].str.startswith("syn"))]
+    assert (trans["low"] < trans["difference"]).all() and (trans["high"] >= 50.0).all()

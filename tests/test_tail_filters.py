@@ -3,21 +3,15 @@ drops the rim pixels that read the background behind it."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "reports" / "diagnostics" / "tail_filters.py"
+from tests.conftest import diagnostic_script
 
 
 @pytest.fixture(scope="module")
 def tails():
-    spec = importlib.util.spec_from_file_location("tail_filters", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return diagnostic_script("tail_filters")
 
 
 def test_bled_ring_is_dropped_and_a_sloped_body_kept(tails):
