@@ -2,15 +2,16 @@
 steps, each method measured at every step (``cloudpose stress``; issue 39).
 
 A *perturbation* acts either on the frame's pixels before segmentation (the instance's mask
-dilated, eroded or shifted by k pixels, the depth dropped in blobs or smoothed over the mask) or on the back-projected points of
-the segment before farthest point sampling (depth noise and a bias growing with distance along
-each pixel's ray, a cut plane, the number of points, one side of the visible part missing). The
-segment is then made as :func:`cloudpose.data.segments.extract_segments` makes it (the 0.2 m
-outlier filter, FPS of ``n_fps`` points), and each method estimates the pose from it: the
-network of each checkpoint without and with the run's ICP, FPFH + RANSAC and point-pair
-features (``cloudpose/resources/registry/baselines.toml``), each also followed by the same ICP. The errors are the
-evaluation's (:func:`cloudpose.evaluate.instance_table`): ADS AUC, rotation < 10 deg modulo
-symmetry, translation < 1 cm, median translation.
+dilated, eroded or shifted by k pixels, the depth dropped in blobs or smoothed over the mask)
+or on the back-projected points of the segment before farthest point sampling (depth noise and
+a bias growing with distance along each pixel's ray, a cut plane, the number of points, one
+side of the visible part missing). The segment is then made as
+:func:`cloudpose.data.segments.extract_segments` makes it (the 0.2 m outlier filter, FPS of
+``n_fps`` points), and each method estimates the pose from it: the network of each checkpoint
+without and with the run's ICP, FPFH + RANSAC and point-pair features
+(``cloudpose/resources/registry/baselines.toml``), each also followed by the same ICP. The
+errors are the evaluation's (:func:`cloudpose.evaluate.instance_table`): ADS AUC, rotation
+< 10 deg modulo symmetry, translation < 1 cm, median translation.
 
 Level 0 of every perturbation is the identity: the unperturbed segments, shared by all of them.
 Every random choice (blob centres, plane directions, the FPS start) comes from a stream keyed by

@@ -647,9 +647,16 @@ def smooth_depth(depth: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.nda
     m = mask & (depth > 0)
     if sigma_px <= 0 or not m.any():
         return out
-    weight = ndimage.gaussian_filter(m.astype(np.float64), sigma_px)
-    total = ndimage.gaussian_filter(np.where(m, depth, 0.0).astype(np.float64), sigma_px)
-    out[m] = (total[m] / weight[m]).astype(depth.dtype)
+    pad = int(np.ceil(4 * sigma_px)) + 1  # the filter's reach (scipy truncates at 4 sigma)
+    v, u = np.nonzero(m)
+    box = (
+        slice(max(v.min() - pad, 0), v.max() + pad + 1),
+        slice(max(u.min() - pad, 0), u.max() + pad + 1),
+    )
+    mb, db = m[box], depth[box]
+    weight = ndimage.gaussian_filter(mb.astype(np.float64), sigma_px)
+    total = ndimage.gaussian_filter(np.where(mb, db, 0.0).astype(np.float64), sigma_px)
+    out[box][mb] = (total[mb] / weight[mb]).astype(depth.dtype)
     return out
 
 
