@@ -401,22 +401,15 @@ class DataConfig:
             )
         check_synth_version(self.synth_version)
         check_online_version(self.online_version)
-        if not 0.0 <= self.online_bleed <= 1.0:
-            raise ValueError(f"data.online_bleed must be in [0, 1], got {self.online_bleed}")
-        if self.online_bleed and (self.train_source != "online" or self.online_version < 3):
-            raise ValueError(
-                f"data.online_bleed={self.online_bleed} needs data.train_source='online' and "
-                f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
-            )
-        if not 0.0 <= self.online_smooth <= 5.0:
-            raise ValueError(
-                f"data.online_smooth must be in [0, 5] pixels, got {self.online_smooth}"
-            )
-        if self.online_smooth and (self.train_source != "online" or self.online_version < 3):
-            raise ValueError(
-                f"data.online_smooth={self.online_smooth} needs data.train_source='online' and "
-                f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
-            )
+        for name, high, unit in (("online_bleed", 1, ""), ("online_smooth", 5, " pixels")):
+            value = getattr(self, name)  # the settings of version 3's scene pass only
+            if not 0.0 <= value <= high:
+                raise ValueError(f"data.{name} must be in [0, {high}]{unit}, got {value}")
+            if value and (self.train_source != "online" or self.online_version < 3):
+                raise ValueError(
+                    f"data.{name}={value} needs data.train_source='online' and "
+                    f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
+                )
 
 
 START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}

@@ -388,11 +388,7 @@ def perturbed_segment(
     mask = f.label == c
     depth = f.depth
     mask, depth = perturb_pixels(p, level, mask, depth, prng)
-    K = np.asarray(f.K, dtype=np.float64)
-    pts = backproject(depth, mask, K)
-    if len(pts):
-        pts = pts[np.linalg.norm(pts - pts.mean(axis=0), axis=1) <= outlier_radius]
-    pts = perturb_points(p, level, pts, prng)
+    pts = perturb_points(p, level, segment_points(f, depth, mask, outlier_radius), prng)
     n_mask = int(mask.sum())
     px = {
         "mask_px": float(n_mask),
@@ -400,6 +396,26 @@ def perturbed_segment(
         "boundary": float((mask & ~erode_mask(mask, 1)).sum() / n_mask) if n_mask else np.nan,
         "depth_corr": depth_correlation(depth, mask),
     }
+    return sampled_segment(fd, i, pts, frng, n_fps), px
+
+
+def segment_points(frame, depth: np.ndarray, mask: np.ndarray, outlier_radius: float):
+    """The back-projected points of ``mask`` (with ``depth``, the frame's intrinsics) within
+    ``outlier_radius`` of their mean: a segment's points before FPS, as the project cuts them."""
+    pts = backproject(depth, mask, np.asarray(frame.K, dtype=np.float64))
+    if len(pts):
+        pts = pts[np.linalg.norm(pts - pts.mean(axis=0), axis=1) <= outlier_radius]
+    return pts
+
+
+def sampled_segment(
+    fd: FrameData, i: int, pts: np.ndarray, frng: np.random.Generator, n_fps: int
+) -> Segment:
+    """Instance ``i``'s :class:`Segment` from its points before FPS: FPS of ``n_fps`` of them
+    from the stream ``frng``, the ground-truth pose and the occlusion against the instance
+    rendered alone (NaN without it); invalid when no point is left."""
+    f = fd.frame
+    c = int(f.cls_ids[i])
     R = f.poses[i, :, :3].astype(np.float32)
     t = f.poses[i, :, 3].astype(np.float32)
     occ = np.nan
@@ -407,10 +423,8 @@ def perturbed_segment(
         occ = float(np.clip(1 - (f.label == c).sum() / fd.alone_pixels[i], 0, 1))
     if len(pts):
         sample = pts[farthest_point_sampling(pts, n_fps, frng)].astype(np.float32)
-        seg = Segment(sample, len(pts), c, R, t, occ, f.frame_id, i, True)
-    else:
-        seg = Segment(np.zeros((n_fps, 3), np.float32), 0, c, R, t, occ, f.frame_id, i, False)
-    return seg, px
+        return Segment(sample, len(pts), c, R, t, occ, f.frame_id, i, True)
+    return Segment(np.zeros((n_fps, 3), np.float32), 0, c, R, t, occ, f.frame_id, i, False)
 
 
 STATISTICS = {

@@ -40,13 +40,14 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from cloudpose.data.segment_set import SegmentSet
-from cloudpose.data.segments import Segment, backproject, farthest_point_sampling
 from cloudpose.files import atomic_text
 from cloudpose.stress import (
     Method,
     instance_rngs,
     open_source,
     run_method,
+    sampled_segment,
+    segment_points,
     summary_of,
 )
 
@@ -93,7 +94,7 @@ def statistical(points: np.ndarray) -> np.ndarray:
     return points[np.asarray(kept, dtype=np.int64)]
 
 
-def cut(fd, i: int, how: str, *, models, trees, source: str, seed: int, n_fps: int = 1024):
+def cut(fd, i: int, how: str, *, trees, source: str, seed: int, n_fps: int = 1024):
     """Instance ``i`` of a frame cut as the project cuts it, filtered by ``how`` before FPS
     (the FPS stream of :func:`cloudpose.stress.instance_rngs`: the same for every filter)."""
     f = fd.frame
@@ -102,24 +103,15 @@ def cut(fd, i: int, how: str, *, models, trees, source: str, seed: int, n_fps: i
     mask = f.label == c
     if how == "components":
         mask = depth_components(mask, f.depth)
-    pts = backproject(f.depth, mask, np.asarray(f.K, dtype=np.float64))
-    if len(pts):
-        pts = pts[np.linalg.norm(pts - pts.mean(axis=0), axis=1) <= 0.2]
-    R = f.poses[i, :, :3].astype(np.float64)
-    t = f.poses[i, :, 3].astype(np.float64)
+    pts = segment_points(f, f.depth, mask, 0.2)
     if how == "oracle" and len(pts):
+        R = f.poses[i, :, :3].astype(np.float64)
+        t = f.poses[i, :, 3].astype(np.float64)
         d, _ = trees[c].query((pts - t) @ R)
         pts = pts[d <= ORACLE_MM / 1000]
     elif how == "statistical" and len(pts) > 20:
         pts = statistical(pts)
-    occ = np.nan
-    if fd.alone_pixels is not None and fd.alone_pixels[i] > 0:
-        occ = float(np.clip(1 - (f.label == c).sum() / fd.alone_pixels[i], 0, 1))
-    R32, t32 = R.astype(np.float32), t.astype(np.float32)
-    if len(pts):
-        sample = pts[farthest_point_sampling(pts, n_fps, frng)].astype(np.float32)
-        return Segment(sample, len(pts), c, R32, t32, occ, f.frame_id, i, True)
-    return Segment(np.zeros((n_fps, 3), np.float32), 0, c, R32, t32, occ, f.frame_id, i, False)
+    return sampled_segment(fd, i, pts, frng, n_fps)
 
 
 def off_model_share(segs: SegmentSet, trees, n: int = 256) -> float:
@@ -166,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         for how in filters:
             segs = SegmentSet.from_segments(
                 [
-                    cut(src.frames[fp], i, how, models=models, trees=trees, source=name, seed=1)
+                    cut(src.frames[fp], i, how, trees=trees, source=name, seed=1)
                     for fp, i in src.instances
                 ],
                 1024,
