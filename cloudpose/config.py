@@ -344,6 +344,12 @@ class DataConfig:
             sensor's independent per-pixel noise). Real depth errors are correlated over ~2
             pixels (a camera that matches over a window); real frames sit ~0.9 px out on the
             smoothing axis of ``cloudpose stress`` (``docs/stress.md``).
+        online_noise_corr: with "online" version 3, the sensor's axial noise on each
+            object's pixels off depth edges drawn again from a field correlated over this many
+            pixels (a Gaussian's sigma), at the same per-pixel amount; readings on depth edges
+            (flying pixels) kept; 0 keeps independent per-pixel noise. 2 px gives synthetic
+            depth the ``depth_corr`` statistic of the real frames (~0.4,
+            :func:`cloudpose.data.synth.sensor.correlate_readings`).
         segment_streams: how a frame's instances draw their FPS start points
             (:data:`cloudpose.data.segments.SEGMENT_STREAMS`): "instance", each from its own
             stream, so a missed or dropped instance changes no other; "frame", one stream per
@@ -370,6 +376,7 @@ class DataConfig:
     online_version: int = 1
     online_bleed: float = 0.0
     online_smooth: float = 0.0
+    online_noise_corr: float = 0.0
     segment_streams: str = "instance"
 
     def __post_init__(self) -> None:
@@ -401,7 +408,11 @@ class DataConfig:
             )
         check_synth_version(self.synth_version)
         check_online_version(self.online_version)
-        for name, high, unit in (("online_bleed", 1, ""), ("online_smooth", 5, " pixels")):
+        for name, high, unit in (
+            ("online_bleed", 1, ""),
+            ("online_smooth", 5, " pixels"),
+            ("online_noise_corr", 5, " pixels"),
+        ):
             value = getattr(self, name)  # the settings of version 3's scene pass only
             if not 0.0 <= value <= high:
                 raise ValueError(f"data.{name} must be in [0, {high}]{unit}, got {value}")
@@ -544,6 +555,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_version": 1,
         "online_bleed": 0.0,
         "online_smooth": 0.0,
+        "online_noise_corr": 0.0,
         "segment_streams": "frame",
     },
     "icp": {

@@ -476,8 +476,68 @@ def test_online_smooth_keeps_scenes_and_moves_points_along_rays():
     np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
 
 
+def test_correlated_readings_keep_the_amount_of_noise_and_the_edges():
+    """:func:`correlate_readings` on a wall with a step: off the step, the noise is as large as
+    the sensor's and correlated between neighbours (the ``depth_corr`` statistic near the real
+    frames' ~0.4, where independent noise gives ~0); readings on the step (flying pixels among
+    them) and every ray are kept; sigma 0 changes nothing; the same draws give the same points."""
+    from cloudpose.data.synth.sensor import NoiseModel, _noisy, correlate_readings
+    from cloudpose.stress import depth_correlation
+
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    clean = np.zeros((480, 640))
+    clean[150:330, 230:410] = 1.0
+    clean[150:330, 320:410] = 0.95  # a 5 cm step: a depth edge down the middle
+    v, u = np.nonzero(clean > 0)
+    z0 = clean[v, u]
+    rng = np.random.default_rng(0)
+    zero = np.zeros_like(z0)
+    z = _noisy(z0, zero, rng.standard_normal(len(z0)), np.ones_like(z0), zero, NoiseModel())
+    pts = np.column_stack([(u - 320) / 1000 * z, (v - 240) / 1000 * z, z])
+    out = correlate_readings(pts, clean, K, 2.0, np.random.default_rng(1))
+    np.testing.assert_allclose(out[:, :2] / out[:, 2:], pts[:, :2] / pts[:, 2:], atol=1e-12)
+    edge = (u == 319) | (u == 320)
+    np.testing.assert_array_equal(out[edge], pts[edge])
+    assert not np.array_equal(out[~edge], pts[~edge])
+    assert 0.8 < np.std(out[~edge, 2] - z0[~edge]) / np.std(z[~edge] - z0[~edge]) < 1.25
+
+    def corr(zs: np.ndarray) -> float:
+        depth = np.zeros_like(clean)
+        depth[v, u] = zs
+        left = np.zeros_like(clean, dtype=bool)
+        left[150:330, 230:315] = True
+        return depth_correlation(depth, left)
+
+    assert abs(corr(z)) < 0.1
+    assert 0.25 < corr(out[:, 2]) < 0.6
+    np.testing.assert_array_equal(
+        out, correlate_readings(pts, clean, K, 2.0, np.random.default_rng(1))
+    )
+    np.testing.assert_array_equal(correlate_readings(pts, clean, K, 0.0, rng), pts)
+    with pytest.raises(ValueError, match="outside the 100x100 clean depth"):
+        correlate_readings(pts, clean[:100, :100], K, 2.0, rng)
+
+
+def test_online_noise_corr_keeps_scenes_and_counts():
+    """``data.online_noise_corr`` (version 3): the same scenes and point counts, other
+    points; deterministic."""
+    plain = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3))
+    corr = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_noise_corr=2.0))
+    a, b = plain.batch(0, 3, 24), corr.batch(0, 3, 24)
+    np.testing.assert_array_equal(a.cls_id, b.cls_id)
+    np.testing.assert_array_equal(a.count, b.count)
+    assert not np.array_equal(a.points, b.points)
+    again = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_noise_corr=2.0))
+    np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
+
+
 @pytest.mark.parametrize(
-    "name, bad, limits", [("online_bleed", 1.5, r"\[0, 1\]"), ("online_smooth", 6.0, r"\[0, 5\]")]
+    "name, bad, limits",
+    [
+        ("online_bleed", 1.5, r"\[0, 1\]"),
+        ("online_smooth", 6.0, r"\[0, 5\]"),
+        ("online_noise_corr", 6.0, r"\[0, 5\]"),
+    ],
 )
 def test_version_3_synthesis_settings_are_checked(name, bad, limits):
     from cloudpose.config import DataConfig

@@ -1,5 +1,6 @@
 """Synthesis settings that make training segments more like real ones (masks that bleed,
-``data.online_bleed``; depth errors correlated between pixels, ``data.online_smooth``): each
+``data.online_bleed``; depth errors correlated between pixels, ``data.online_smooth`` and
+``data.online_noise_corr``): each
 setting against the same runs without it, paired by seed, on the synthetic test set and the
 real development frames.
 
@@ -43,7 +44,9 @@ from cloudpose.report.stats import auc_of_rows, share_below
 from cloudpose.store import tracking
 from cloudpose.stress import collect
 
-AXES = frozenset({"data.online_version", "data.online_bleed", "data.online_smooth"})
+AXES = frozenset(
+    {"data.online_version", "data.online_bleed", "data.online_smooth", "data.online_noise_corr"}
+)
 """The settings an experiment here may change from its preset."""
 NONE = "none"
 """The setting of the runs every other is paired with."""
@@ -64,6 +67,8 @@ def setting(data) -> str:
         parts.append(f"bleed {data.online_bleed:g}")
     if data.online_smooth:
         parts.append(f"smooth {data.online_smooth:g} px")
+    if data.online_noise_corr:
+        parts.append(f"correlated noise {data.online_noise_corr:g} px")
     return ", ".join(parts) or NONE
 
 

@@ -101,6 +101,7 @@ from cloudpose.data.synth.sensor import (
     add_sensor_noise_v2_objects,
     background_depth,
     background_depth_at,
+    correlate_readings,
     edge_distance,
     object_pixel_geometry,
     object_ring,
@@ -727,6 +728,12 @@ class OnlineSynth:
             radius,
             compiled,
         )
+        if self.settings.online_noise_corr and self.settings.noise:  # its noise redrawn
+            for i in range(len(cls_ids)):
+                a, b = int(offsets[i]), int(offsets[i + 1])
+                pts[a:b] = correlate_readings(
+                    pts[a:b], clean, Kw, self.settings.online_noise_corr, rng
+                )
         if self.settings.online_smooth:  # after the sensor: its readings averaged per object
             for i in range(len(cls_ids)):
                 a, b = int(offsets[i]), int(offsets[i + 1])

@@ -110,6 +110,8 @@ class OnlineSettings:
             (``data.online_bleed``: the largest share of them an object takes).
         online_smooth: version 3's depth readings averaged over each object's own
             (``data.online_smooth``: the Gaussian's sigma, pixels).
+        online_noise_corr: version 3's axial noise off depth edges correlated over pixels
+            (``data.online_noise_corr``: the Gaussian's sigma, pixels).
     """
 
     synth_version: int = GENERATOR_VERSION
@@ -121,6 +123,7 @@ class OnlineSettings:
     online_version: int = 1
     online_bleed: float = 0.0
     online_smooth: float = 0.0
+    online_noise_corr: float = 0.0
 
     def __post_init__(self) -> None:
         check_synth_version(self.synth_version)
@@ -169,6 +172,7 @@ class OnlineSettings:
             online_version=d.online_version,
             online_bleed=d.online_bleed,
             online_smooth=d.online_smooth,
+            online_noise_corr=d.online_noise_corr,
         )
 
 
@@ -238,8 +242,8 @@ def store_settings(settings: OnlineSettings, chunk_size: int) -> dict[str, Any]:
     """The parts of a store's key, as written to its ``settings.json``: the synthesis settings
     field by field, the chunk size and the synthesis code (:func:`code_digest`)."""
     synth = dataclasses.asdict(settings)
-    for name in ("online_bleed", "online_smooth"):  # a field at its default is left out:
-        if not synth[name]:  # older keys stay
+    for name in ("online_bleed", "online_smooth", "online_noise_corr"):  # at its default, a
+        if not synth[name]:  # field is left out: older keys stay
             del synth[name]
     if synth["class_ids"] is not None:
         synth["class_ids"] = list(synth["class_ids"])
