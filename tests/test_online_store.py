@@ -54,9 +54,7 @@ def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
     # set)
     later = {"online_bleed", "online_smooth", "online_noise_corr"}
     assert set(store_settings(KW, 4)["synth"]) == set(KW.__dataclass_fields__) - later
-    bled = replace(
-        KW, online_version=3, online_bleed=0.5, online_smooth=1.0, online_noise_corr=2.0
-    )
+    bled = replace(KW, online_version=3, online_bleed=0.5, online_smooth=1.0, online_noise_corr=2.0)
     assert set(store_settings(bled, 4)["synth"]) == set(KW.__dataclass_fields__)
     for name in later:
         assert (
