@@ -153,6 +153,29 @@ def test_stress_sweeps_are_matched_to_runs_by_their_folder(synthesis, tmp_path):
         synthesis.stress_rows([other], folders, "dilate")
 
 
+def test_stress_summaries_read_back_from_their_csv(synthesis, tmp_path):
+    """The curves of ``*_stress.csv`` render as the sweeps they came from; a sweep given again
+    replaces its run's rows; a CSV of another kind is refused."""
+    folders = {"seed1-aaaa": ("p", "none", 1), "seed1-bbbb": ("p", "bleed 1", 1)}
+    plain = _sweep(tmp_path / "plain", "runs/shared-0/p/seed1-aaaa/model.pt", {0: 0.004, 2: 0.02})
+    bled = _sweep(tmp_path / "bled", "runs/shared-0/p/seed1-bbbb/model.pt", {0: 0.005, 2: 0.008})
+    rows = synthesis.stress_rows([plain, bled], folders, "dilate")
+    csv = tmp_path / "x_stress.csv"
+    rows.to_csv(csv, index=False, float_format="%.5f")
+    back = synthesis.merge_stress([pd.read_csv(csv)], pd.DataFrame(), "dilate")
+    assert synthesis.stress_markdown(back, "dilate") == synthesis.stress_markdown(rows, "dilate")
+    again = _sweep(tmp_path / "again", "runs/shared-0/p/seed1-bbbb/model.pt", {2: 0.004})
+    merged = synthesis.merge_stress(
+        [pd.read_csv(csv)], synthesis.stress_rows([again], folders, "dilate"), "dilate"
+    )
+    assert len(merged) == len(rows)
+    text = "\n".join(synthesis.stress_markdown(merged, "dilate"))
+    assert "| real | 2 | 20.0 -> 4.0 |" in text
+    assert synthesis.merge_stress([pd.read_csv(csv)], pd.DataFrame(), "erode").empty
+    with pytest.raises(ValueError, match="lacks the columns"):
+        synthesis.merge_stress([pd.DataFrame({"level": [0.0]})], pd.DataFrame(), "dilate")
+
+
 def test_one_seed_still_has_an_instance_interval(synthesis):
     runs = {"none": {1: _runs(8, 0.005, 0.02, 1)}, "bleed 1": {1: _runs(8, 0.005, 0.005, 1)}}
     table = synthesis.measure("p", runs, replicates=200)

@@ -20,7 +20,10 @@ stage and figure). Each ``--stress DIR`` is the results folder of a ``cloudpose 
 of one of these runs (``--run runs/shared-0/...``; the run is found by its folder name); the
 Markdown then lists the ``--perturbation`` (default ``dilate``) curve of each setting against
 ``none``,
-``*_stress.csv`` holds its summaries and ``*_stress.png`` plots them.
+``*_stress.csv`` holds its summaries and ``*_stress.png`` plots them. ``--stress-csv FILE``
+reads such a CSV back (the curves of sweeps whose folders are gone, e.g. the committed
+``reports/diagnostics/synthesis_experiments_stress.csv``): a sweep given by ``--stress`` replaces
+its rows for the same run (preset, setting, seed), source, level and stage.
 """
 
 from __future__ import annotations
@@ -232,6 +235,29 @@ def stress_rows(sweeps: list[Path], folders: dict[str, tuple], perturbation: str
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
+STRESS_KEY = ["preset", "setting", "seed", "method", "source", "perturbation", "level", "stage"]
+"""What makes a row of the stress summaries one curve point of one run."""
+
+
+def merge_stress(kept: list[pd.DataFrame], swept: pd.DataFrame, perturbation: str) -> pd.DataFrame:
+    """Stress summaries read back from earlier ``*_stress.csv`` files (``kept``) with those of
+    the sweeps given now (``swept``), ``perturbation`` only: a row of ``swept`` replaces a kept
+    one with the same :data:`STRESS_KEY`."""
+    frames = []
+    for table in kept:
+        missing = sorted(set(STRESS_KEY) - set(table.columns))
+        if missing:
+            raise ValueError(f"a --stress-csv lacks the columns {missing}: not this script's CSV")
+        frames.append(table[table["perturbation"] == perturbation])
+    frames = [f for f in [*frames, swept] if not f.empty]
+    if not frames:
+        return pd.DataFrame()
+    rows = pd.concat(frames, ignore_index=True)
+    rows["level"] = rows["level"].astype(float).round(6)
+    rows["seed"] = rows["seed"].astype(int)
+    return rows.drop_duplicates(subset=STRESS_KEY, keep="last").reset_index(drop=True)
+
+
 def stress_markdown(rows: pd.DataFrame, perturbation: str) -> list[str]:
     """Per preset and setting: each level and source, the mean over the seeds swept both
     without a setting and with it, none -> the setting."""
@@ -375,6 +401,13 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="a `cloudpose stress` results folder of one of the runs (repeatable)",
     )
+    p.add_argument(
+        "--stress-csv",
+        type=Path,
+        action="append",
+        default=[],
+        help="a *_stress.csv this script wrote, read back beside --stress (repeatable)",
+    )
     p.add_argument("--perturbation", default="dilate", help="the stress perturbation to list")
     p.add_argument(
         "--real-level",
@@ -392,7 +425,10 @@ def main(argv: list[str] | None = None) -> int:
             "no preset has runs both with and without a setting at a common seed", file=sys.stderr
         )
         return 1
-    stress = stress_rows(args.stress, folders, args.perturbation)
+    kept = [pd.read_csv(f) for f in args.stress_csv]  # read before the output is written
+    stress = merge_stress(
+        kept, stress_rows(args.stress, folders, args.perturbation), args.perturbation
+    )
     stress_lines = stress_markdown(stress, args.perturbation) if not stress.empty else []
     if not stress.empty:
         atomic_text(
