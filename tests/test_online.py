@@ -463,19 +463,6 @@ def test_smoothed_readings_stay_on_their_rays_and_lose_independent_noise():
     np.testing.assert_array_equal(smooth_readings(pts, K, 0.0), pts)
 
 
-def test_online_smooth_keeps_scenes_and_moves_points_along_rays():
-    """``data.online_smooth`` (version 3): the same scenes and point counts, each point on its
-    ray, the depth error smoother; deterministic."""
-    plain = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3))
-    smooth = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_smooth=1.0))
-    a, b = plain.batch(0, 3, 24), smooth.batch(0, 3, 24)
-    np.testing.assert_array_equal(a.cls_id, b.cls_id)
-    np.testing.assert_array_equal(a.count, b.count)
-    assert not np.array_equal(a.points, b.points)
-    again = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_smooth=1.0))
-    np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
-
-
 def test_correlated_readings_keep_the_amount_of_noise_and_the_edges():
     """:func:`correlate_readings` on a wall with a step: off the step, the noise is as large as
     the sensor's and correlated between neighbours (the ``depth_corr`` statistic near the real
@@ -518,16 +505,17 @@ def test_correlated_readings_keep_the_amount_of_noise_and_the_edges():
         correlate_readings(pts, clean[:100, :100], K, 2.0, rng)
 
 
-def test_online_noise_corr_keeps_scenes_and_counts():
-    """``data.online_noise_corr`` (version 3): the same scenes and point counts, other
-    points; deterministic."""
+@pytest.mark.parametrize("name, value", [("online_smooth", 1.0), ("online_noise_corr", 2.0)])
+def test_version_3_depth_settings_keep_scenes_and_counts(name, value):
+    """``data.online_smooth`` and ``data.online_noise_corr`` (version 3): the same scenes and
+    point counts, other points; deterministic."""
     plain = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3))
-    corr = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_noise_corr=2.0))
-    a, b = plain.batch(0, 3, 24), corr.batch(0, 3, 24)
+    changed = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, **{name: value}))
+    a, b = plain.batch(0, 3, 24), changed.batch(0, 3, 24)
     np.testing.assert_array_equal(a.cls_id, b.cls_id)
     np.testing.assert_array_equal(a.count, b.count)
     assert not np.array_equal(a.points, b.points)
-    again = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, online_noise_corr=2.0))
+    again = OnlineSynth(OnlineSettings(2, n_points=64, online_version=3, **{name: value}))
     np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
 
 
