@@ -15,7 +15,17 @@ conditions:
   noise also falls on the real background, which only matters at edges: flying pixels);
 - ``real-depth+twin-mask``: the real depth cut by the rendered label (only the mask synthetic);
 - ``twin-depth+real-mask``: the ``twin-v1`` depth cut by the real label (only the depth
-  synthetic; where the real mask reaches past the rendering the real depth remains).
+  synthetic; where the real mask reaches past the rendering the real depth remains);
+- ``twin-v2-corr``: ``twin-v2`` with the axial noise of each object's pixels off depth edges
+  drawn again from a field correlated over ``--corr-sigma`` pixels at the same per-pixel amount
+  (:func:`~cloudpose.data.synth.sensor.correlate_readings`, what ``data.online_noise_corr``
+  trains on): the texture of real depth errors, the rest of the synthetic sensor;
+- ``twin-clean+real-holes``: ``twin-clean`` with no depth wherever the real frame has none
+  (the rendered label): the real frame's missing depth, nothing else of its readings.
+
+The network table's ``depth corr`` is the median over instances of
+:func:`cloudpose.stress.depth_correlation` of each condition's depth in the instance's mask
+(real frames ~0.4, independent per-pixel noise ~0).
 
 Segments, network, ICP and errors are the package's own (:func:`extract_segments`,
 :func:`estimate_poses`, :func:`refine_poses`, :func:`instance_table`); each segment's FPS start
@@ -53,11 +63,12 @@ from cloudpose.data.dataset import only_classes
 from cloudpose.data.layout import open_dataset
 from cloudpose.data.segments import extract_segments
 from cloudpose.data.synth.render import Renderer
-from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2
+from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, correlate_readings
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
 from cloudpose.metrics.summaries import voc_ap_auc
 from cloudpose.store.tracking import shown_path
+from cloudpose.stress import depth_correlation
 
 CONDITIONS = (
     "real",
@@ -66,6 +77,8 @@ CONDITIONS = (
     "twin-v2",
     "real-depth+twin-mask",
     "twin-depth+real-mask",
+    "twin-v2-corr",
+    "twin-clean+real-holes",
 )
 
 
@@ -81,20 +94,39 @@ def _checkpoint(run: str) -> Path:
     return path
 
 
-def _conditions(frame, renderer: Renderer, rng: np.random.Generator) -> dict[str, tuple]:
+def _conditions(
+    frame, renderer: Renderer, rng: np.random.Generator, corr_sigma: float
+) -> dict[str, tuple]:
     """(depth (H, W) metres, label (H, W) uint8) of every condition of one real frame."""
     r = renderer.render(frame.K, frame.depth.shape, frame.cls_ids, frame.poses)
     obj = r.label > 0
     clean = np.where(obj, r.depth.astype(np.float64), frame.depth.astype(np.float64))
     v1 = add_sensor_noise(clean, rng)
+    v2 = add_sensor_noise_v2(clean, r.label, frame.K, rng)
     return {
         "real": (frame.depth, frame.label),
         "twin-clean": (clean, r.label),
         "twin-v1": (v1, r.label),
-        "twin-v2": (add_sensor_noise_v2(clean, r.label, frame.K, rng), r.label),
+        "twin-v2": (v2, r.label),
         "real-depth+twin-mask": (frame.depth, r.label),
         "twin-depth+real-mask": (v1, frame.label),
+        "twin-v2-corr": (_correlated(v2, clean, r.label, frame.K, corr_sigma, rng), r.label),
+        "twin-clean+real-holes": (np.where(frame.depth > 0, clean, 0.0), r.label),
     }
+
+
+def _correlated(depth, clean, label, K, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``depth`` with each labelled object's readings passed through
+    :func:`correlate_readings` (its noise off depth edges redrawn, correlated over ``sigma``
+    pixels), object by object in label order."""
+    out = np.asarray(depth, dtype=np.float64).copy()
+    K = np.asarray(K, dtype=np.float64)
+    for c in np.unique(label[label > 0]):
+        v, u = np.nonzero((label == c) & (out > 0))
+        z = out[v, u]
+        pts = np.column_stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z])
+        out[v, u] = correlate_readings(pts, clean, K, sigma, rng)[:, 2]
+    return out
 
 
 def _scene_checks(frame, label_twin, depth_twin) -> list[dict]:
@@ -170,6 +202,9 @@ def main() -> None:
     ap.add_argument(
         "--surface-version", type=int, help="twin surfaces (default: the run's generator version)"
     )
+    ap.add_argument(
+        "--corr-sigma", type=float, default=2.0, help="twin-v2-corr's correlation, pixels"
+    )
     ap.add_argument("--icp", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--tables", type=Path, help="also write each condition's instances.csv here")
     args = ap.parse_args()
@@ -183,7 +218,7 @@ def main() -> None:
     renderer = Renderer({c: p.copy() for c, p in models.items()}, surface_version=surface)
 
     segments: dict[str, list] = {c: [] for c in CONDITIONS}
-    checks = []
+    checks, texture = [], []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a miss warns once per condition; the header lists it
         for fid in frames:
@@ -191,9 +226,17 @@ def main() -> None:
             if frame.poses is None:
                 raise SystemExit(f"{args.data}: frame {fid} has no ground-truth poses")
             rng = np.random.default_rng([args.seed, zlib.crc32(fid.encode())])
-            conds = _conditions(frame, renderer, rng)
+            conds = _conditions(frame, renderer, rng, args.corr_sigma)
             checks += _scene_checks(frame, conds["twin-clean"][1], conds["twin-clean"][0])
             for name, (depth, label) in conds.items():
+                for c in frame.cls_ids:
+                    texture.append(
+                        {
+                            "condition": name,
+                            "video": fid.split("/")[0],
+                            "depth corr": depth_correlation(depth, label == c),
+                        }
+                    )
                 twin = dataclasses.replace(frame, depth=depth.astype(np.float32), label=label)
                 segments[name] += extract_segments(
                     twin,
@@ -237,12 +280,22 @@ def main() -> None:
             raise AssertionError(f"{name}: ground truth as the estimate gives nonzero ADS")
 
     videos = sorted(tables["real"]["video"].unique())
+    texture = pd.DataFrame(texture)
     rows = []
     for group in ["pooled", *videos]:
         for name in CONDITIONS:
             t = tables[name]
             sub = t if group == "pooled" else t[t["video"] == group]
-            rows.append({"video": group, "condition": name, **_summary(sub, args.icp)})
+            tex = texture[texture["condition"] == name]
+            tex = tex if group == "pooled" else tex[tex["video"] == group]
+            rows.append(
+                {
+                    "video": group,
+                    "condition": name,
+                    **_summary(sub, args.icp),
+                    "depth corr": float(np.nanmedian(tex["depth corr"])),
+                }
+            )
     table = pd.DataFrame(rows)
 
     scene = []
@@ -285,7 +338,8 @@ def main() -> None:
         f"_made by `{cmd}`; checkpoint {ckpt} ({cfg.variant}/{cfg.preset}/seed{cfg.seed}, "
         f"generator version {cfg.data.synth_version}); data {shown_path(Path(args.data).resolve())} "
         f"({args.frames}: {len(frames)} frames); twins rendered with surface version {surface}, "
-        f"noise seed {args.seed}; {cfg.train.n_points} points per segment into the network; "
+        f"noise seed {args.seed}, twin-v2-corr correlated over {args.corr_sigma:g} px; "
+        f"{cfg.train.n_points} points per segment into the network; "
         f"instances without a usable point (misses): {missed_text or 'none'}._\n"
     )
     print("## Scenes: how far the objects are, and how well the twins match their frames\n")
@@ -301,7 +355,7 @@ def main() -> None:
         "Rotation errors modulo each class's symmetry; translation and points per segment "
         "without ICP; misses count as failures (infinite error).\n"
     )
-    print(_markdown(table))
+    print(_markdown(table, {"depth corr": 2}))
 
 
 if __name__ == "__main__":
