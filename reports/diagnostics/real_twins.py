@@ -91,6 +91,8 @@ CONDITIONS = (
     "real-rim+twin-inside",
     "twin-rim+real-inside",
 )
+TAIL_M = 0.01
+"""A segment point farther than this from the posed model is in the tail, metres."""
 RIM_PX = 3
 """Width of the rim of ``real-rim+twin-inside`` and ``twin-rim+real-inside``, pixels."""
 
@@ -199,17 +201,23 @@ def _translation_sources(
     for i in np.flatnonzero(real.valid & twin.valid):
         c, R, t = int(real.cls_id[i]), real.R[i].astype(float), real.t[i].astype(float)
         k = int(min(real.count[i], real.points.shape[1]))
-        rows.append(
-            {
-                "video": str(real.frame_id[i]).split("/")[0],
-                "err_real": nets["real"].t[i] - t,
-                "err_twin": nets["twin-v2"].t[i] - t,
-                "mean_shift": real.points[i, :n_points].astype(float).mean(axis=0)
-                - twin.points[i, :n_points].astype(float).mean(axis=0),
-                "offset": _offset_from_model(real.points[i, :k].astype(float), R, t, trees[c]),
-                "ray": t / np.linalg.norm(t),
-            }
-        )
+        row = {
+            "video": str(real.frame_id[i]).split("/")[0],
+            "err_real": nets["real"].t[i] - t,
+            "err_twin": nets["twin-v2"].t[i] - t,
+            "offset": _offset_from_model(real.points[i, :k].astype(float), R, t, trees[c]),
+            "ray": t / np.linalg.norm(t),
+        }
+        for name, s in (("real", real), ("twin", twin)):
+            p = s.points[i, :n_points].astype(float)
+            off = trees[c].query((p - t) @ R)[0] > TAIL_M
+            row[f"mean_{name}"] = p.mean(axis=0)
+            row[f"inlier_mean_{name}"] = p[~off].mean(axis=0) if (~off).any() else p.mean(axis=0)
+            row[f"tail_{name}"] = float(off.mean())
+            row[f"tail_depth_{name}"] = float(np.mean(p[off, 2] - t[2])) if off.any() else np.nan
+        row["mean_shift"] = row["mean_real"] - row["mean_twin"]
+        row["inlier_shift"] = row["inlier_mean_real"] - row["inlier_mean_twin"]
+        rows.append(row)
     return pd.DataFrame(rows)
 
 
@@ -237,10 +245,23 @@ def _sources_markdown(src: pd.DataFrame) -> str:
         + " | ".join(f"{1000 * np.median(np.abs(offset[:, a])):.1f}" for a in range(3))
         + f" | {1000 * np.median(np.linalg.norm(offset, axis=1)):.1f} |",
     ]
+    inlier = np.stack(src["inlier_shift"])
+    lines.append(
+        "| median abs shift of the mean of the points on the model (within 1 cm) (mm) | "
+        + " | ".join(f"{1000 * np.median(np.abs(inlier[:, a])):.1f}" for a in range(3))
+        + f" | {1000 * np.median(np.linalg.norm(inlier, axis=1)):.1f} |"
+    )
     return (
         "\n".join(lines)
         + f"\n\nThe offset along the ray: median {1000 * np.median(along):.1f} mm; across it: "
-        f"{1000 * np.median(across):.1f} mm ({len(src)} instances)."
+        f"{1000 * np.median(across):.1f} mm ({len(src)} instances). "
+        f"The segment mean along z moves by {1000 * shift[:, 2].mean():+.1f} mm on average "
+        f"(the mean of the points on the model: {1000 * inlier[:, 2].mean():+.1f} mm). "
+        f"The tail (points more than 1 cm off the posed model) is {100 * src['tail_real'].mean():.1f}% "
+        f"of a real segment's network input and {100 * src['tail_twin'].mean():.1f}% of a twin's; "
+        f"its points lie on average {1000 * np.nanmean(src['tail_depth_real']):.0f} mm "
+        f"(real) and {1000 * np.nanmean(src['tail_depth_twin']):.0f} mm (twin) behind the "
+        "object's centre."
     )
 
 
