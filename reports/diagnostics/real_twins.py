@@ -241,6 +241,12 @@ def _sources_markdown(src: pd.DataFrame) -> str:
         "| correlation of the extra error with the mean shift | "
         + " | ".join(f"{np.corrcoef(extra[:, a], shift[:, a])[0, 1]:.2f}" for a in range(3))
         + " | |",
+        "| pass-through: slope of the extra error on the mean shift | "
+        + " | ".join(f"{np.polyfit(shift[:, a], extra[:, a], 1)[0]:.2f}" for a in range(3))
+        + " | |",
+        "| mean extra error, signed (mm) | "
+        + " | ".join(f"{1000 * extra[:, a].mean():+.1f}" for a in range(3))
+        + " | |",
         "| median abs offset of the real readings from the posed model (mm) | "
         + " | ".join(f"{1000 * np.median(np.abs(offset[:, a])):.1f}" for a in range(3))
         + f" | {1000 * np.median(np.linalg.norm(offset, axis=1)):.1f} |",
