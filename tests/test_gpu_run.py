@@ -118,13 +118,9 @@ def test_a_run_cut_short_elsewhere_finishes_here_as_one_run(tmp_path, smoke_data
     assert "test/ads_auc" in run.data.metrics and "real/ads_auc" in run.data.metrics
 
     cfg = resolve("shared-0", "smoke", 1, parse_overrides(ONLINE))
-    adopted = _model(
-        proj
-        / "runs"
-        / "shared-0"
-        / "smoke"
-        / next(p.name for p in (proj / "runs" / "shared-0" / "smoke").iterdir())
-    )
+    # the run's folder, not its lock file beside it (a directory lists them in any order)
+    (folder,) = [p for p in (proj / "runs" / "shared-0" / "smoke").iterdir() if p.is_dir()]
+    adopted = _model(folder)
     other = make_project(tmp_path / "other", smoke_data, monkeypatch)
     at_once = _model(train_run(cfg, project_dir=other, progress=False).run_dir)
     for k, v in at_once.items():
