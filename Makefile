@@ -40,7 +40,7 @@ showcase: ## the shipped network (shared-0, cpu-online) beside FPFH + RANSAC on 
 test: ## the tests without the slow-marked ones (~4 min on 2 cores): the everyday loop
 	$(PY) -m pytest -q -n 2 -m "not slow" --durations=10
 
-test-all: ## every test, the slow-marked ones included (what .ci/run runs; ~20 min on 2 cores)
+test-all: ## every test, the slow-marked ones included (what .ci/run runs; 15-26 min on 2 cores, by CPU)
 	$(PY) -m pytest -q -n 2 --durations=15
 
 test-slow: ## only the slow-marked tests (multi-class recipe, Ray with a killed node, resumes, torchrun, ...)
