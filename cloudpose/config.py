@@ -62,6 +62,15 @@ not bit for bit, so a stream of its own; 3, the same scenes and sensor model wit
 own (fewer, float32) and every object of a scene drawn, read and cut in a few compiled passes
 (``online_v3_supply_ratio``): the same distribution, other segments."""
 
+VERSION_3_SETTINGS = {
+    "online_bleed": (1.0, ""),
+    "online_smooth": (5.0, " pixels"),
+    "online_noise_corr": (5.0, " pixels"),
+}
+"""The ``DataConfig`` fields only on-line synthesis version 3 has -> (largest value, unit of
+the error message). Each is 0 by default, and a field at 0 is left out of a chunk store's key
+(:func:`cloudpose.data.synth.store.store_settings`), so keys made before it existed stay."""
+
 
 def check_online_version(version: int) -> int:
     """``version`` if it is one of :data:`ONLINE_VERSIONS`, else ValueError."""
@@ -408,14 +417,10 @@ class DataConfig:
             )
         check_synth_version(self.synth_version)
         check_online_version(self.online_version)
-        for name, high, unit in (
-            ("online_bleed", 1, ""),
-            ("online_smooth", 5, " pixels"),
-            ("online_noise_corr", 5, " pixels"),
-        ):
-            value = getattr(self, name)  # the settings of version 3's scene pass only
+        for name, (high, unit) in VERSION_3_SETTINGS.items():
+            value = getattr(self, name)
             if not 0.0 <= value <= high:
-                raise ValueError(f"data.{name} must be in [0, {high}]{unit}, got {value}")
+                raise ValueError(f"data.{name} must be in [0, {high:g}]{unit}, got {value}")
             if value and (self.train_source != "online" or self.online_version < 3):
                 raise ValueError(
                     f"data.{name}={value} needs data.train_source='online' and "

@@ -70,7 +70,7 @@ from cloudpose.conventions import resource_path
 from cloudpose.data.cache import FPS_SEED, SegmentSet
 from cloudpose.data.dataset import only_classes
 from cloudpose.data.layout import open_dataset
-from cloudpose.data.segments import extract_segments
+from cloudpose.data.segments import backproject, extract_segments
 from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, correlate_readings
 from cloudpose.evaluate import instance_table
@@ -143,10 +143,8 @@ def _correlated(depth, clean, label, K, sigma: float, rng: np.random.Generator) 
     out = np.asarray(depth, dtype=np.float64).copy()
     K = np.asarray(K, dtype=np.float64)
     for c in np.unique(label[label > 0]):
-        v, u = np.nonzero((label == c) & (out > 0))
-        z = out[v, u]
-        pts = np.column_stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z])
-        out[v, u] = correlate_readings(pts, clean, K, sigma, rng)[:, 2]
+        mask = (label == c) & (out > 0)  # backproject's pixels, in its row-major order
+        out[mask] = correlate_readings(backproject(out, mask, K), clean, K, sigma, rng)[:, 2]
     return out
 
 
@@ -229,34 +227,34 @@ def _sources_markdown(src: pd.DataFrame) -> str:
     ray = np.stack(src["ray"])
     along = np.abs((offset * ray).sum(axis=1))
     across = np.linalg.norm(offset - (offset * ray).sum(axis=1)[:, None] * ray, axis=1)
-    lines = [
-        "| quantity | x | y | z | norm |",
-        "|---|---:|---:|---:|---:|",
-        "| median abs extra error, real - twin-v2 (mm) | "
-        + " | ".join(f"{1000 * np.median(np.abs(extra[:, a])):.1f}" for a in range(3))
-        + f" | {1000 * np.median(np.linalg.norm(extra, axis=1)):.1f} |",
-        "| median abs segment mean shift, real - twin-v2 (mm) | "
-        + " | ".join(f"{1000 * np.median(np.abs(shift[:, a])):.1f}" for a in range(3))
-        + f" | {1000 * np.median(np.linalg.norm(shift, axis=1)):.1f} |",
-        "| correlation of the extra error with the mean shift | "
-        + " | ".join(f"{np.corrcoef(extra[:, a], shift[:, a])[0, 1]:.2f}" for a in range(3))
-        + " | |",
-        "| pass-through: slope of the extra error on the mean shift | "
-        + " | ".join(f"{np.polyfit(shift[:, a], extra[:, a], 1)[0]:.2f}" for a in range(3))
-        + " | |",
-        "| mean extra error, signed (mm) | "
-        + " | ".join(f"{1000 * extra[:, a].mean():+.1f}" for a in range(3))
-        + " | |",
-        "| median abs offset of the real readings from the posed model (mm) | "
-        + " | ".join(f"{1000 * np.median(np.abs(offset[:, a])):.1f}" for a in range(3))
-        + f" | {1000 * np.median(np.linalg.norm(offset, axis=1)):.1f} |",
-    ]
     inlier = np.stack(src["inlier_shift"])
-    lines.append(
-        "| median abs shift of the mean of the points on the model (within 1 cm) (mm) | "
-        + " | ".join(f"{1000 * np.median(np.abs(inlier[:, a])):.1f}" for a in range(3))
-        + f" | {1000 * np.median(np.linalg.norm(inlier, axis=1)):.1f} |"
-    )
+
+    def mm(values: np.ndarray) -> list[str]:  # median abs per axis, then of the norm
+        per_axis = [f"{1000 * np.median(np.abs(values[:, a])):.1f}" for a in range(3)]
+        return [*per_axis, f"{1000 * np.median(np.linalg.norm(values, axis=1)):.1f}"]
+
+    def per_axis(cell) -> list[str]:  # one cell per axis, none for the norm
+        return [cell(a) for a in range(3)] + [""]
+
+    rows = [
+        ("median abs extra error, real - twin-v2 (mm)", mm(extra)),
+        ("median abs segment mean shift, real - twin-v2 (mm)", mm(shift)),
+        (
+            "correlation of the extra error with the mean shift",
+            per_axis(lambda a: f"{np.corrcoef(extra[:, a], shift[:, a])[0, 1]:.2f}"),
+        ),
+        (
+            "pass-through: slope of the extra error on the mean shift",
+            per_axis(lambda a: f"{np.polyfit(shift[:, a], extra[:, a], 1)[0]:.2f}"),
+        ),
+        ("mean extra error, signed (mm)", per_axis(lambda a: f"{1000 * extra[:, a].mean():+.1f}")),
+        ("median abs offset of the real readings from the posed model (mm)", mm(offset)),
+        ("median abs shift of the mean of the points on the model (within 1 cm) (mm)", mm(inlier)),
+    ]
+    lines = ["| quantity | x | y | z | norm |", "|---|---:|---:|---:|---:|"]
+    lines += [
+        f"| {label} |" + "".join(f" {c} |" if c else " |" for c in cells) for label, cells in rows
+    ]
     return (
         "\n".join(lines)
         + f"\n\nThe offset along the ray: median {1000 * np.median(along):.1f} mm; across it: "

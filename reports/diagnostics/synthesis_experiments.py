@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.config import Config
+from cloudpose.config import VERSION_3_SETTINGS, Config
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.report.experiments import config_changes
 from cloudpose.report.real import object_pose
@@ -47,9 +47,7 @@ from cloudpose.report.stats import auc_of_rows, share_below
 from cloudpose.store import tracking
 from cloudpose.stress import collect
 
-AXES = frozenset(
-    {"data.online_version", "data.online_bleed", "data.online_smooth", "data.online_noise_corr"}
-)
+AXES = frozenset({"data.online_version", *(f"data.{name}" for name in VERSION_3_SETTINGS)})
 """The settings an experiment here may change from its preset."""
 NONE = "none"
 """The setting of the runs every other is paired with."""

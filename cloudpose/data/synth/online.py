@@ -728,16 +728,14 @@ class OnlineSynth:
             radius,
             compiled,
         )
-        if self.settings.online_noise_corr and self.settings.noise:  # its noise redrawn
-            for i in range(len(cls_ids)):
+        corr = self.settings.online_noise_corr if self.settings.noise else 0.0
+        if corr or self.settings.online_smooth:  # after the sensor, object by object: its
+            for i in range(len(cls_ids)):  # noise redrawn correlated, its readings averaged
                 a, b = int(offsets[i]), int(offsets[i + 1])
-                pts[a:b] = correlate_readings(
-                    pts[a:b], clean, Kw, self.settings.online_noise_corr, rng
-                )
-        if self.settings.online_smooth:  # after the sensor: its readings averaged per object
-            for i in range(len(cls_ids)):
-                a, b = int(offsets[i]), int(offsets[i + 1])
-                pts[a:b] = smooth_readings(pts[a:b], Kw, self.settings.online_smooth)
+                if corr:
+                    pts[a:b] = correlate_readings(pts[a:b], clean, Kw, corr, rng)
+                if self.settings.online_smooth:
+                    pts[a:b] = smooth_readings(pts[a:b], Kw, self.settings.online_smooth)
         streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
         keep = []
         soa = None

@@ -660,7 +660,7 @@ def smooth_depth(depth: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.nda
     m = mask & (depth > 0)
     if sigma_px <= 0 or not m.any():
         return out
-    pad = int(np.ceil(4 * sigma_px)) + 1  # the filter's reach (scipy truncates at 4 sigma)
+    pad = _filter_reach(sigma_px)
     v, u = np.nonzero(m)
     box = (
         slice(max(v.min() - pad, 0), v.max() + pad + 1),
@@ -679,17 +679,35 @@ def smooth_readings(points: np.ndarray, K: np.ndarray, sigma_px: float) -> np.nd
     (:func:`smooth_depth` on the pixels the points project to), every point kept on its ray."""
     if sigma_px <= 0 or len(points) == 0:
         return points.copy()
-    z = points[:, 2].astype(np.float64)
-    u = np.rint(K[0, 0] * points[:, 0] / z + K[0, 2]).astype(np.int64)
-    v = np.rint(K[1, 1] * points[:, 1] / z + K[1, 2]).astype(np.int64)
-    pad = int(np.ceil(4 * sigma_px)) + 1  # the filter's reach: nothing wraps or is cut
-    u0, v0 = u.min() - pad, v.min() - pad
-    shape = (v.max() - v0 + pad + 1, u.max() - u0 + pad + 1)
+    z, v, u, (v0, u0), shape = _reading_box(points, K, sigma_px)
     depth = np.zeros(shape)
     depth[v - v0, u - u0] = z
     mask = depth > 0
     smoothed = smooth_depth(depth, mask, sigma_px)[v - v0, u - u0]
     return (points * (smoothed / z)[:, None]).astype(points.dtype)
+
+
+def _filter_reach(sigma_px: float) -> int:
+    """Pixels a Gaussian filter of ``sigma_px`` reaches (scipy truncates at 4 sigma), plus one."""
+    return int(np.ceil(4 * sigma_px)) + 1
+
+
+def _reading_box(points: np.ndarray, K: np.ndarray, sigma_px: float):
+    """Where one object's readings (N, 3; one per pixel) were read, for a filter of
+    ``sigma_px`` over them: their depth, the pixel ``rint(K p / z)`` of each, and a box around
+    those pixels widened by the filter's reach (nothing wraps or is cut).
+
+    Returns:
+        ((N,) float64 z, (N,) int64 rows v, (N,) int64 columns u, (v0, u0) the box's corner
+        in the image, (h, w) the box's shape).
+    """
+    z = points[:, 2].astype(np.float64)
+    u = np.rint(K[0, 0] * points[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * points[:, 1] / z + K[1, 2]).astype(np.int64)
+    reach = _filter_reach(sigma_px)
+    u0, v0 = u.min() - reach, v.min() - reach
+    shape = (int(v.max() - v0 + reach + 1), int(u.max() - u0 + reach + 1))
+    return z, v, u, (v0, u0), shape
 
 
 def correlate_readings(
@@ -726,9 +744,7 @@ def correlate_readings(
     """
     if sigma_px <= 0 or len(points) == 0:
         return points.copy()
-    z = points[:, 2].astype(np.float64)
-    u = np.rint(K[0, 0] * points[:, 0] / z + K[0, 2]).astype(np.int64)
-    v = np.rint(K[1, 1] * points[:, 1] / z + K[1, 2]).astype(np.int64)
+    z, v, u, (v0, u0), box = _reading_box(points, K, sigma_px)
     H, W = clean.shape
     if u.min() < 0 or v.min() < 0 or u.max() >= W or v.max() >= H:
         raise ValueError(
@@ -739,11 +755,7 @@ def correlate_readings(
     vp, up = v + 1, u + 1
     nbs = np.stack([pad_z[vp - 1, up], pad_z[vp + 1, up], pad_z[vp, up - 1], pad_z[vp, up + 1]], -1)
     z0 = pad_z[vp, up]
-    reach = int(np.ceil(4 * sigma_px)) + 1  # the filter's reach: the field does not wrap
-    u0, v0 = u.min() - reach, v.min() - reach
-    field = correlated_normal(
-        rng, (int(v.max() - v0 + reach + 1), int(u.max() - u0 + reach + 1)), sigma_px
-    )[v - v0, u - u0]
+    field = correlated_normal(rng, box, sigma_px)[v - v0, u - u0]  # the box: no wrap
     zero = np.zeros_like(z0)
     redrawn = _noisy(z0, zero, field, np.ones_like(z0), zero, model)
     keep = (np.abs(_depth_jump(z0, nbs)) > model.edge_jump) | (z0 <= 0) | (redrawn <= 0)

@@ -51,6 +51,7 @@ from cloudpose.config import (
     GENERATOR_VERSION,
     ONLINE_SCENE_MIN_CLASSES,
     ONLINE_SCENES,
+    VERSION_3_SETTINGS,
     check_online_version,
     check_synth_version,
 )
@@ -242,8 +243,8 @@ def store_settings(settings: OnlineSettings, chunk_size: int) -> dict[str, Any]:
     """The parts of a store's key, as written to its ``settings.json``: the synthesis settings
     field by field, the chunk size and the synthesis code (:func:`code_digest`)."""
     synth = dataclasses.asdict(settings)
-    for name in ("online_bleed", "online_smooth", "online_noise_corr"):  # at its default, a
-        if not synth[name]:  # field is left out: older keys stay
+    for name in VERSION_3_SETTINGS:  # at its default, a field is left out: older keys stay
+        if not synth[name]:
             del synth[name]
     if synth["class_ids"] is not None:
         synth["class_ids"] = list(synth["class_ids"])
