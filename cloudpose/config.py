@@ -72,6 +72,11 @@ the error message). Each is 0 by default, and a field at 0 is left out of a chun
 (:func:`cloudpose.data.synth.store.store_settings`), so keys made before it existed stay."""
 
 
+BLEED_BRANCHES = ("both", "translation")
+"""Which branch trains on bleeding masks (``DataConfig.online_bleed_branch``): both, or the
+translation branch only (the rotation branch on the rendered masks of the same segments)."""
+
+
 def check_online_version(version: int) -> int:
     """``version`` if it is one of :data:`ONLINE_VERSIONS`, else ValueError."""
     if version not in ONLINE_VERSIONS:
@@ -348,6 +353,11 @@ class DataConfig:
             [0, online_bleed], the pixel keeping the depth it has (the background's, or the
             other object's); 0 keeps the rendered masks. Real segmentation masks sit ~0.5 px
             out on the dilation axis of ``cloudpose stress`` (``docs/stress.md``).
+        online_bleed_branch: with ``online_bleed``, which branch trains on the bleeding masks
+            (:data:`BLEED_BRANCHES`): "both", every segment cut from them; "translation",
+            each segment cut twice, from the rendered masks for the rotation branch and from
+            the bleeding ones for the translation branch (the two forms of one object in one
+            scene; needs a variant whose branches share no layer, ``model.shared_layers=0``).
         online_smooth: with "online" version 3, each object's depth readings replaced by their
             Gaussian average over the object's own readings (sigma in pixels; 0 keeps the
             sensor's independent per-pixel noise). Real depth errors are correlated over ~2
@@ -384,6 +394,7 @@ class DataConfig:
     online_scenes: str = "all"
     online_version: int = 1
     online_bleed: float = 0.0
+    online_bleed_branch: str = "both"
     online_smooth: float = 0.0
     online_noise_corr: float = 0.0
     segment_streams: str = "instance"
@@ -426,6 +437,16 @@ class DataConfig:
                     f"data.{name}={value} needs data.train_source='online' and "
                     f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
                 )
+        if self.online_bleed_branch not in BLEED_BRANCHES:
+            raise ValueError(
+                f"data.online_bleed_branch={self.online_bleed_branch!r}: expected one of "
+                f"{BLEED_BRANCHES}"
+            )
+        if self.online_bleed_branch != "both" and not self.online_bleed:
+            raise ValueError(
+                f"data.online_bleed_branch={self.online_bleed_branch!r} needs bleeding masks "
+                "(data.online_bleed > 0)"
+            )
 
 
 START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}
@@ -488,6 +509,12 @@ class Config:
     icp: ICPConfig = field(default_factory=ICPConfig)
 
     def __post_init__(self) -> None:
+        if self.data.online_bleed_branch == "translation" and self.model.shared_layers != 0:
+            raise ValueError(
+                "data.online_bleed_branch='translation' trains each branch on its own form of "
+                "a segment: it needs branches that share no layer (model.shared_layers=0), got "
+                f"model.shared_layers={self.model.shared_layers!r} (variant {self.variant!r})"
+            )
         if self.train.n_points > self.data.n_fps:
             raise ValueError(
                 f"train.n_points={self.train.n_points} exceeds data.n_fps={self.data.n_fps} "
@@ -559,6 +586,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "online_scenes": "all",
         "online_version": 1,
         "online_bleed": 0.0,
+        "online_bleed_branch": "both",
         "online_smooth": 0.0,
         "online_noise_corr": 0.0,
         "segment_streams": "frame",

@@ -3,6 +3,7 @@ that it teaches rotation where the frame recipe at the same steps does not."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -308,9 +309,22 @@ def test_frames_configs_keep_their_fingerprint():
     assert Config.from_dict(d).fingerprint() == cfg.fingerprint()
 
 
+TWO_FORMS = {
+    "data": {
+        **ONLINE["data"],
+        "online_version": 3,
+        "online_bleed": 1.0,
+        "online_bleed_branch": "translation",
+    },
+    "train": ONLINE["train"],
+}
+"""On line with the translation branch alone on bleeding masks: two forms of each segment."""
+
+
 @pytest.mark.slow
-def test_online_run_resumes_bit_exact(tmp_path, smoke_data, monkeypatch):
-    cfg = resolve("shared-0", "smoke", seed=2, overrides=ONLINE)
+@pytest.mark.parametrize("overrides", [ONLINE, TWO_FORMS], ids=["one-form", "two-forms"])
+def test_online_run_resumes_bit_exact(tmp_path, smoke_data, monkeypatch, overrides):
+    cfg = resolve("shared-0", "smoke", seed=2, overrides=overrides)
 
     def project(name: str) -> Path:
         return make_project(tmp_path / name, smoke_data, monkeypatch)
@@ -435,6 +449,29 @@ def test_bleeding_masks_add_points_off_the_object():
     np.testing.assert_array_equal(again.batch(0, 3, 24).points, b.points)
 
 
+def test_a_translation_bleeding_segment_comes_in_both_forms():
+    """``data.online_bleed_branch = "translation"``: each segment is cut from the rendered
+    masks (its first ``n_points`` rows) and from the bleeding ones (the next): the same scenes
+    and objects, the bleeding form with more points off the posed model; deterministic."""
+    n = 64
+    plain = OnlineSynth(OnlineSettings(2, n_points=n, online_version=3))
+    pair = OnlineSynth(
+        OnlineSettings(
+            2, n_points=n, online_version=3, online_bleed=1.0, online_bleed_branch="translation"
+        )
+    )
+    a, b = plain.batch(0, 3, 24), pair.batch(0, 3, 24)
+    assert b.points.shape == (24, 2 * n, 3)
+    np.testing.assert_array_equal(a.cls_id, b.cls_id)
+    np.testing.assert_array_equal(a.R, b.R)
+    np.testing.assert_array_equal(a.t, b.t)
+    rendered = replace(b, points=np.ascontiguousarray(b.points[:, :n]))
+    bleeding = replace(b, points=np.ascontiguousarray(b.points[:, n:]))
+    assert _off_model(plain, bleeding) > _off_model(plain, rendered)
+    again = OnlineSynth(pair.settings).batch(0, 3, 24)
+    np.testing.assert_array_equal(again.points, b.points)
+
+
 def test_smoothed_readings_stay_on_their_rays_and_lose_independent_noise():
     """:func:`smooth_readings`: one object's readings averaged over its own pixels; each point
     keeps its pixel's ray; independent noise shrinks; sigma 0 changes nothing."""
@@ -539,3 +576,17 @@ def test_version_3_synthesis_settings_are_checked(name, bad, limits):
     with pytest.raises(ValueError, match=r"needs data\.train_source='online' and"):
         DataConfig(train_source="online", online_version=2, **{name: 0.5})
     assert getattr(DataConfig(train_source="online", online_version=3, **{name: 0.5}), name)
+
+
+def test_the_bleeding_branch_is_checked():
+    from cloudpose.config import DataConfig
+
+    online = {"train_source": "online", "online_version": 3}
+    with pytest.raises(ValueError, match=r"online_bleed_branch='rotation': expected one of"):
+        DataConfig(**online, online_bleed=1.0, online_bleed_branch="rotation")
+    with pytest.raises(ValueError, match=r"needs bleeding masks \(data\.online_bleed > 0\)"):
+        DataConfig(**online, online_bleed_branch="translation")
+    data = {**online, "online_bleed": 1.0, "online_bleed_branch": "translation"}
+    assert resolve("shared-0", "smoke", overrides={"data": data}).data.online_bleed_branch
+    with pytest.raises(ValueError, match=r"share no layer \(model\.shared_layers=0\)"):
+        resolve("shared-1", "smoke", overrides={"data": data})

@@ -52,10 +52,20 @@ def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
     assert ChunkStore(tmp_path, replace(KW, class_ids=(1, 2, 3)), 4).key != base
     # every setting is a field of the key, by its name (the version-3 settings once they are
     # set)
-    later = {"online_bleed", "online_smooth", "online_noise_corr"}
+    later = {"online_bleed", "online_bleed_branch", "online_smooth", "online_noise_corr"}
     assert set(store_settings(KW, 4)["synth"]) == set(KW.__dataclass_fields__) - later
-    bled = replace(KW, online_version=3, online_bleed=0.5, online_smooth=1.0, online_noise_corr=2.0)
+    bled = replace(
+        KW,
+        online_version=3,
+        online_bleed=0.5,
+        online_bleed_branch="translation",
+        online_smooth=1.0,
+        online_noise_corr=2.0,
+    )
     assert set(store_settings(bled, 4)["synth"]) == set(KW.__dataclass_fields__)
+    assert ChunkStore(tmp_path, bled, 4).key != (
+        ChunkStore(tmp_path, replace(bled, online_bleed_branch="both"), 4).key
+    )
     for name in later:
         assert (
             ChunkStore(tmp_path, bled, 4).key

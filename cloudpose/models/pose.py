@@ -117,7 +117,12 @@ class PoseBranches(Protocol):
         ...
 
 
-def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
+def pose_forward(
+    net: PoseBranches,
+    points: torch.Tensor,
+    cls_id: torch.Tensor,
+    trans_points: torch.Tensor | None = None,
+) -> PoseOutput:
     """The forward pass of a pose network: the one used in training (:class:`PoseNet`) and
     at inference (:class:`~cloudpose.models.folded.FoldedPoseNet`).
 
@@ -132,6 +137,10 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
         net: the network.
         points: (B, n, 3) segment points in the camera frame, metres.
         cls_id: (B,) integer class ids, 1-based (1..num_classes).
+        trans_points: (B, m, 3) another form of the same segments for the translation branch
+            (layout "pair" only: training with ``data.online_bleed_branch = "translation"``):
+            mu and the translation come from them, the rotation from ``points`` (centred, if
+            centred, on their own centre). None: both branches see ``points``.
 
     Returns:
         PoseOutput with R (B, 3, 3), t (B, 3), rot_raw (B, 3|4|6), t_residual (B, 3),
@@ -139,9 +148,24 @@ def pose_forward(net: PoseBranches, points: torch.Tensor, cls_id: torch.Tensor) 
     """
     cfg = net.cfg
     check_pose_inputs(points, cls_id, cfg.num_classes)
+    layout = branch_layout(cfg)
+    if trans_points is not None:
+        check_pose_inputs(trans_points, cls_id, cfg.num_classes)
+        if layout != "pair":
+            raise ValueError(
+                "a translation input of its own needs branches that share no layer "
+                f"(model.shared_layers=0), got model.shared_layers={cfg.shared_layers!r}"
+            )
+        mu = segment_centre(trans_points, cfg.centre)
+        rot_xyz = points
+        if cfg.rotation_input == "centred":
+            centre = "mean" if cfg.rotation_centre == "mean" else cfg.centre
+            rot_xyz = points - segment_centre(points, centre)[:, None, :]
+        rot_raw, t_residual = net.run_pair(rot_xyz, trans_points - mu[:, None, :], cls_id)
+        R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)
+        return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
     mu = segment_centre(points, cfg.centre)  # (B, 3)
     centred = points - mu[:, None, :]  # (B, n, 3)
-    layout = branch_layout(cfg)
     if layout == "all":
         out = net.run_all(centred, cls_id)  # (B, 3 + rot)
         t_residual, rot_raw = out[:, :3], out[:, 3:]
@@ -264,18 +288,22 @@ class PoseNet(nn.Module):
         assert net is not None
         return [*self.trunk, *net.stages, net.head]
 
-    def forward(self, points: torch.Tensor, cls_id: torch.Tensor) -> PoseOutput:
+    def forward(
+        self, points: torch.Tensor, cls_id: torch.Tensor, trans_points: torch.Tensor | None = None
+    ) -> PoseOutput:
         """Regress the pose of each segment (:func:`pose_forward`).
 
         Args:
             points: (B, n, 3) segment points in the camera frame, metres.
             cls_id: (B,) integer class ids, 1-based (1..num_classes).
+            trans_points: (B, m, 3) the translation branch's own form of the segments
+                (layout "pair" only), or None.
 
         Returns:
             PoseOutput with R (B, 3, 3), t (B, 3), rot_raw (B, 3|4|6), t_residual (B, 3),
             mu (B, 3).
         """
-        return pose_forward(self, points, cls_id)
+        return pose_forward(self, points, cls_id, trans_points)
 
     def _encode(self, xyz: torch.Tensor, cls_id: torch.Tensor) -> torch.Tensor:
         """(B, n, 3 + k) network input: xyz (B, n, 3) times ``1 / xyz_scale``, then the

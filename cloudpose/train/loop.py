@@ -138,8 +138,10 @@ def online_probe(
     settings: OnlineSettings, seed: int, n: int, store: str | Path | None = None
 ) -> Batchable:
     """``n`` segments drawn as the run's first step draws them (its first chunk is trained on):
-    the ``fit/`` probe of an on-line run (read from, or kept in, the chunk store ``store``)."""
-    return Batchable(*OnlineChunks(settings, seed, n, 1, store)[0])
+    the ``fit/`` probe of an on-line run (read from, or kept in, the chunk store ``store``);
+    of segments in two forms (``data.online_bleed_branch``), the first: the rotation branch's."""
+    points, cls_id, R, t = OnlineChunks(settings, seed, n, 1, store)[0]
+    return Batchable(points[:, : settings.n_points], cls_id, R, t)  # the first form
 
 
 def epoch_order(fit: Batchable, sampler: str, n: int, generator: torch.Generator) -> torch.Tensor:
@@ -724,9 +726,12 @@ class Trainer:
             )
         points, R, t = augment(batch.points, batch.R, batch.t, cfg, position.epoch, position.batch)
         batch = batch._replace(points=points, R=R, t=t)
+        if cfg.data.online_bleed_branch == "translation":  # rendered form, then bleeding one
+            n = cfg.train.n_points  # (one roll for both: augmented together)
+            batch = batch._replace(points=points[:, :n], trans_points=points[:, n:])
         if self.world.distributed:  # this process's share of the global batch
             shard = self.world.shard(self.batch_size)
-            batch = Batch(*(x[shard] for x in batch))
+            batch = Batch(*(None if x is None else x[shard] for x in batch))
         try:
             return train_step(
                 self.net,

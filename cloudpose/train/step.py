@@ -25,12 +25,16 @@ class Batch(NamedTuple):
         cls_id: (B,) int64 1-based class ids.
         R: (B, 3, 3) rotations model->camera.
         t: (B, 3) translations, metres.
+        trans_points: (B, m, 3) the translation branch's own form of the segments
+            (``data.online_bleed_branch = "translation"``: cut from bleeding masks), or None:
+            both branches see ``points``.
     """
 
     points: torch.Tensor
     cls_id: torch.Tensor
     R: torch.Tensor
     t: torch.Tensor
+    trans_points: torch.Tensor | None = None
 
 
 class StepLoss(NamedTuple):
@@ -71,7 +75,10 @@ def train_step(
     """
     device_type = batch.points.device.type
     with torch.autocast(device_type, dtype=torch.bfloat16, enabled=bf16):
-        out = net(batch.points, batch.cls_id)
+        if batch.trans_points is None:
+            out = net(batch.points, batch.cls_id)
+        else:
+            out = net(batch.points, batch.cls_id, batch.trans_points)
     terms = pose_loss(
         out.R.float(),
         out.t.float(),

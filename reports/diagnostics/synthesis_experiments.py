@@ -47,7 +47,13 @@ from cloudpose.report.stats import auc_of_rows, share_below
 from cloudpose.store import tracking
 from cloudpose.stress import collect
 
-AXES = frozenset({"data.online_version", *(f"data.{name}" for name in VERSION_3_SETTINGS)})
+AXES = frozenset(
+    {
+        "data.online_version",
+        "data.online_bleed_branch",
+        *(f"data.{name}" for name in VERSION_3_SETTINGS),
+    }
+)
 """The settings an experiment here may change from its preset."""
 NONE = "none"
 """The setting of the runs every other is paired with."""
@@ -65,7 +71,8 @@ def setting(data) -> str:
     """The synthesis setting of a run's ``data`` config in words (:data:`NONE` for neither)."""
     parts = []
     if data.online_bleed:
-        parts.append(f"bleed {data.online_bleed:g}")
+        branch = "" if data.online_bleed_branch == "both" else f" ({data.online_bleed_branch})"
+        parts.append(f"bleed {data.online_bleed:g}{branch}")
     if data.online_smooth:
         parts.append(f"smooth {data.online_smooth:g} px")
     if data.online_noise_corr:

@@ -102,3 +102,41 @@ def test_a_non_finite_loss_is_an_error():
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     with pytest.raises(FloatingPointError, match="loss became nan"):
         train_step(net, opt, bad, LossConfig())
+
+
+@pytest.mark.parametrize("rotation_input", ["raw", "centred"])
+def test_a_translation_input_of_its_own_trains_each_branch_as_alone(rotation_input):
+    """With ``trans_points`` (``data.online_bleed_branch = "translation"``), a step trains the
+    rotation branch exactly as a step on ``points`` alone does, and the translation branch
+    exactly as a step on ``trans_points`` alone: branches that share no layer, each loss on
+    its own branch, Adam per parameter. So a network trained on two forms of its segments is
+    the rotation branch of one run beside the translation branch of another."""
+    from dataclasses import replace
+
+    cfg = replace(TINY, rotation_input=rotation_input)
+    batch = _segments()
+    g = torch.Generator().manual_seed(5)
+    other = batch.points + 0.004 * torch.randn(batch.points.shape, generator=g)  # another form
+    runs = []
+    for points, trans_points in ((batch.points, other), (batch.points, None), (other, None)):
+        torch.manual_seed(0)
+        net = build_model(cfg).train()
+        opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+        for _ in range(3):
+            train_step(
+                net, opt, batch._replace(points=points, trans_points=trans_points), LossConfig()
+            )
+        runs.append(net.state_dict())
+    both, rot_alone, trans_alone = runs
+    for name, value in both.items():
+        alone = rot_alone if name.startswith("rotation_net.") else trans_alone
+        assert name.split(".")[0] in ("rotation_net", "translation_net"), name
+        torch.testing.assert_close(value, alone[name], rtol=1e-5, atol=1e-6, msg=name)
+    net = build_model(cfg).eval()
+    with torch.no_grad():  # at inference, each branch's output is its input's
+        out = net(batch.points, batch.cls_id, other)
+        torch.testing.assert_close(out.R, net(batch.points, batch.cls_id).R)
+        torch.testing.assert_close(out.t, net(other, batch.cls_id).t)
+    shared = build_model(replace(cfg, shared_layers=1))
+    with pytest.raises(ValueError, match="share no layer"):
+        shared(batch.points, batch.cls_id, other)

@@ -713,56 +713,86 @@ class OnlineSynth:
         Kw[1, 2] -= v0
         compiled = enabled()
         clean = self._with_ring_v3(depth, index, Kw, scene) if self.settings.noise else depth
-        masks, counts = index, visible
-        if self.settings.online_bleed:  # the ring's depth is the background's: grow into it
-            masks = bleed_masks(index, len(cls_ids), self.settings.online_bleed, rng)
-            counts = np.bincount(masks[masks >= 0], minlength=len(cls_ids)).astype(np.int64)
-        n_fps, radius = self.settings.n_points, float(self.settings.outlier_radius)
+        settings = self.settings
+        forms = [(index, visible)]  # each form's masks and pixels per instance
+        if settings.online_bleed:  # the ring's depth is the background's: grow into it
+            bled = bleed_masks(index, len(cls_ids), settings.online_bleed, rng)
+            counts = np.bincount(bled[bled >= 0], minlength=len(cls_ids)).astype(np.int64)
+            if settings.forms == 1:
+                forms = [(bled, counts)]
+            else:  # the rendered masks for the rotation branch, the bleeding for translation
+                forms.append((bled, counts))
+        cut = [
+            self._form_points(clean, masks, counts, Kw, cls_ids, rng, compiled)
+            for masks, counts in forms
+        ]
+        n_fps = settings.n_points
+        streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
+        keep = []
+        soa: list = [None] * len(cut)
+        for i, c in enumerate(cls_ids.tolist()):
+            if limit is not None and len(keep) >= limit:
+                break
+            spans = [(int(offsets[i]), int(offsets[i + 1])) for _, offsets in cut]
+            if any(b == a for a, b in spans) or visible[i] < MIN_VISIBLE_PIXELS:
+                continue
+            if self._kept is not None and c not in self._kept:
+                continue
+            samples = []
+            for f, ((pts, _), (a, b)) in enumerate(zip(cut, spans, strict=True)):
+                if compiled:
+                    from cloudpose.kernels.scene_pass import fps_soa
+
+                    if soa[f] is None:  # every point's coordinates, x, y and z rows, float32
+                        soa[f] = np.ascontiguousarray(pts.T, dtype=np.float32)
+                    xyz = soa[f]
+                    first = int(streams[i].integers(b - a))  # farthest_point_sampling's draw
+                    k = min(n_fps, b - a)
+                    order = fps_soa(xyz[0, a:b], xyz[1, a:b], xyz[2, a:b], k, first)
+                    samples.append(xyz[:, a:b][:, np.resize(order, n_fps) if k < n_fps else order].T)
+                else:
+                    p32 = pts[a:b].astype(np.float32)
+                    samples.append(p32[farthest_point_sampling(p32, n_fps, streams[i])])
+            sample = samples[0] if len(samples) == 1 else np.concatenate(samples)
+            R = poses[i, :, :3].astype(np.float32)
+            t = poses[i, :, 3].astype(np.float32)
+            a, b = spans[0]
+            keep.append(Segment(sample, b - a, c, R, t, np.nan, "online", i, True))
+        return keep
+
+    def _form_points(
+        self,
+        clean: np.ndarray,
+        masks: np.ndarray,
+        counts: np.ndarray,
+        Kw: np.ndarray,
+        cls_ids: np.ndarray,
+        rng: np.random.Generator,
+        compiled: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every instance's points of one form of a scene's masks (:func:`scene_points`, then
+        the correlated noise and the smoothing of version 3's settings, object by object):
+        ``(points, offsets)``."""
+        settings = self.settings
         pts, offsets = scene_points(
             clean,
             masks,
             counts,
             Kw,
             cls_ids,
-            rng if self.settings.noise else None,
-            radius,
+            rng if settings.noise else None,
+            float(settings.outlier_radius),
             compiled,
         )
-        corr = self.settings.online_noise_corr if self.settings.noise else 0.0
-        if corr or self.settings.online_smooth:  # after the sensor, object by object: its
+        corr = settings.online_noise_corr if settings.noise else 0.0
+        if corr or settings.online_smooth:  # after the sensor, object by object: its
             for i in range(len(cls_ids)):  # noise redrawn correlated, its readings averaged
                 a, b = int(offsets[i]), int(offsets[i + 1])
                 if corr:
                     pts[a:b] = correlate_readings(pts[a:b], clean, Kw, corr, rng)
-                if self.settings.online_smooth:
-                    pts[a:b] = smooth_readings(pts[a:b], Kw, self.settings.online_smooth)
-        streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
-        keep = []
-        soa = None
-        for i, c in enumerate(cls_ids.tolist()):
-            if limit is not None and len(keep) >= limit:
-                break
-            a, b = int(offsets[i]), int(offsets[i + 1])
-            if b == a or visible[i] < MIN_VISIBLE_PIXELS:
-                continue
-            if self._kept is not None and c not in self._kept:
-                continue
-            if compiled:
-                from cloudpose.kernels.scene_pass import fps_soa
-
-                if soa is None:  # every point's coordinates, x, y and z rows, float32
-                    soa = np.ascontiguousarray(pts.T, dtype=np.float32)
-                first = int(streams[i].integers(b - a))  # farthest_point_sampling's start draw
-                k = min(n_fps, b - a)
-                order = fps_soa(soa[0, a:b], soa[1, a:b], soa[2, a:b], k, first)
-                sample = soa[:, a:b][:, np.resize(order, n_fps) if k < n_fps else order].T
-            else:
-                p32 = pts[a:b].astype(np.float32)
-                sample = p32[farthest_point_sampling(p32, n_fps, streams[i])]
-            R = poses[i, :, :3].astype(np.float32)
-            t = poses[i, :, 3].astype(np.float32)
-            keep.append(Segment(sample, b - a, c, R, t, np.nan, "online", i, True))
-        return keep
+                if settings.online_smooth:
+                    pts[a:b] = smooth_readings(pts[a:b], Kw, settings.online_smooth)
+        return pts, offsets
 
     # ------------------------------------------------------------------ batches
 

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from cloudpose.config import (
+    BLEED_BRANCHES,
     GENERATOR_VERSION,
     ONLINE_SCENE_MIN_CLASSES,
     ONLINE_SCENES,
@@ -109,6 +110,10 @@ class OnlineSettings:
             with draws of their own: the same distribution, other segments ("Version 3").
         online_bleed: version 3's masks grown into the pixels next to them
             (``data.online_bleed``: the largest share of them an object takes).
+        online_bleed_branch: which branch's segments bleed (``data.online_bleed_branch``):
+            "both", or "translation": each segment is cut from the rendered masks and from the
+            bleeding ones, its ``n_points`` rows of the first form then those of the second
+            (:attr:`forms`).
         online_smooth: version 3's depth readings averaged over each object's own
             (``data.online_smooth``: the Gaussian's sigma, pixels).
         online_noise_corr: version 3's axial noise off depth edges correlated over pixels
@@ -123,14 +128,26 @@ class OnlineSettings:
     online_scenes: str = "all"
     online_version: int = 1
     online_bleed: float = 0.0
+    online_bleed_branch: str = "both"
     online_smooth: float = 0.0
     online_noise_corr: float = 0.0
+
+    @property
+    def forms(self) -> int:
+        """Forms of each segment side by side along its points: 2 with the translation branch
+        alone on bleeding masks (rendered, then bleeding), else 1."""
+        return 2 if self.online_bleed_branch == "translation" else 1
 
     def __post_init__(self) -> None:
         check_synth_version(self.synth_version)
         check_online_version(self.online_version)
         if self.n_points < 1:
             raise ValueError(f"on-line n_points must be >= 1, got {self.n_points}")
+        if self.online_bleed_branch not in BLEED_BRANCHES:
+            raise ValueError(
+                f"on-line bleed branch {self.online_bleed_branch!r}: expected one of "
+                f"{BLEED_BRANCHES}"
+            )
         if self.online_scenes not in ONLINE_SCENES:
             raise ValueError(
                 f"on-line scenes {self.online_scenes!r}: expected one of {ONLINE_SCENES}"
@@ -172,6 +189,7 @@ class OnlineSettings:
             online_scenes=d.online_scenes,
             online_version=d.online_version,
             online_bleed=d.online_bleed,
+            online_bleed_branch=d.online_bleed_branch,
             online_smooth=d.online_smooth,
             online_noise_corr=d.online_noise_corr,
         )
@@ -246,6 +264,8 @@ def store_settings(settings: OnlineSettings, chunk_size: int) -> dict[str, Any]:
     for name in VERSION_3_SETTINGS:  # at its default, a field is left out: older keys stay
         if not synth[name]:
             del synth[name]
+    if synth["online_bleed_branch"] == "both":
+        del synth["online_bleed_branch"]
     if synth["class_ids"] is not None:
         synth["class_ids"] = list(synth["class_ids"])
     return {"synth": synth, "chunk_size": int(chunk_size), "code": code_digest()}
@@ -293,6 +313,8 @@ class ChunkStore:
         """A stored chunk is what this store makes: ``chunk_size`` segments of ``n_points``
         finite float32 points, int64 classes, float32 rotations and translations."""
         n, k = self.settings["chunk_size"], self.settings["synth"]["n_points"]
+        if self.settings["synth"].get("online_bleed_branch") == "translation":
+            k *= 2  # the rendered form's points, then the bleeding form's
         expected = {
             "points": ((n, k, 3), np.float32),
             "cls_id": ((n,), np.int64),
