@@ -437,6 +437,12 @@ class DataConfig:
                     f"data.{name}={value} needs data.train_source='online' and "
                     f"data.online_version=3 (got {self.train_source!r}, {self.online_version})"
                 )
+            if value and self.noise and self.synth_version < 2:
+                raise ValueError(
+                    f"data.{name}={value} needs the sensor of data.synth_version >= 2 (version "
+                    "1's sensor is applied to a whole window, by version 2's path of on-line "
+                    "synthesis; got data.synth_version=1 with data.noise=true)"
+                )
         if self.online_bleed_branch not in BLEED_BRANCHES:
             raise ValueError(
                 f"data.online_bleed_branch={self.online_bleed_branch!r}: expected one of "

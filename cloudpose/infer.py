@@ -41,6 +41,7 @@ def forward_in_batches(
     cls_id: torch.Tensor,
     device,
     batch_size: int = 512,
+    trans_points: torch.Tensor | None = None,
 ) -> Iterator[tuple[slice, object]]:
     """The network in eval mode over ``points`` in batches: yields (rows, output) per batch.
 
@@ -49,6 +50,7 @@ def forward_in_batches(
         cls_id: (M,) int64 class ids.
         device: where the network runs.
         batch_size: segments per forward.
+        trans_points: (M, n, 3) the translation branch's own form of the segments, or None.
 
     The model is left in the mode it was in.
     """
@@ -57,7 +59,8 @@ def forward_in_batches(
     try:
         for i in range(0, len(points), batch_size):
             sl = slice(i, i + batch_size)
-            yield sl, model(points[sl].to(device), cls_id[sl].to(device))
+            extra = () if trans_points is None else (trans_points[sl].to(device),)
+            yield sl, model(points[sl].to(device), cls_id[sl].to(device), *extra)
     finally:
         model.train(was_training)
 

@@ -11,12 +11,15 @@ import torch
 
 @dataclass
 class Batchable:
-    """Training tensors of valid segments: the network's n-point prefix and the targets."""
+    """Training tensors of valid segments: the network's n-point prefix and the targets (and,
+    for on-line segments in two forms, ``data.online_bleed_branch``, the translation branch's
+    own points)."""
 
     points: torch.Tensor  # (M, n, 3) float32, metres
     cls_id: torch.Tensor  # (M,) int64, 1-based
     R: torch.Tensor  # (M, 3, 3)
     t: torch.Tensor  # (M, 3)
+    trans_points: torch.Tensor | None = None  # (M, n, 3): the translation branch's own form
 
     @classmethod
     def from_segments(cls, segs, n_points: int) -> Batchable:
@@ -37,4 +40,7 @@ class Batchable:
 
     def subset(self, index: torch.Tensor) -> Batchable:
         """The segments at ``index`` (an index tensor or bool mask)."""
-        return Batchable(self.points[index], self.cls_id[index], self.R[index], self.t[index])
+        trans = None if self.trans_points is None else self.trans_points[index]
+        return Batchable(
+            self.points[index], self.cls_id[index], self.R[index], self.t[index], trans
+        )

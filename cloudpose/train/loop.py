@@ -139,9 +139,12 @@ def online_probe(
 ) -> Batchable:
     """``n`` segments drawn as the run's first step draws them (its first chunk is trained on):
     the ``fit/`` probe of an on-line run (read from, or kept in, the chunk store ``store``);
-    of segments in two forms (``data.online_bleed_branch``), the first: the rotation branch's."""
+    segments in two forms (``data.online_bleed_branch``) keep both, each for its branch."""
     points, cls_id, R, t = OnlineChunks(settings, seed, n, 1, store)[0]
-    return Batchable(points[:, : settings.n_points], cls_id, R, t)  # the first form
+    if settings.forms == 1:
+        return Batchable(points, cls_id, R, t)
+    k = settings.n_points  # the rendered form, then the bleeding one
+    return Batchable(points[:, :k], cls_id, R, t, trans_points=points[:, k:])
 
 
 def epoch_order(fit: Batchable, sampler: str, n: int, generator: torch.Generator) -> torch.Tensor:
@@ -728,6 +731,12 @@ class Trainer:
         batch = batch._replace(points=points, R=R, t=t)
         if cfg.data.online_bleed_branch == "translation":  # rendered form, then bleeding one
             n = cfg.train.n_points  # (one roll for both: augmented together)
+            if points.shape[1] != 2 * n:
+                raise ValueError(
+                    f"data.online_bleed_branch='translation' trains on segments of two forms "
+                    f"({2 * n} points each: 2 x train.n_points); this batch has "
+                    f"{points.shape[1]} (the on-line stream of data.online_version=3 makes them)"
+                )
             batch = batch._replace(points=points[:, :n], trans_points=points[:, n:])
         if self.world.distributed:  # this process's share of the global batch
             shard = self.world.shard(self.batch_size)

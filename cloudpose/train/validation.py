@@ -46,7 +46,10 @@ def validate(
     if len(data) == 0:
         return {}
     Rs, ts, totals = [], [], []
-    for sl, out in forward_in_batches(model, data.points, data.cls_id, device, batch_size):
+    batches = forward_in_batches(
+        model, data.points, data.cls_id, device, batch_size, data.trans_points
+    )
+    for sl, out in batches:
         cls_id = data.cls_id[sl].to(device)
         terms = pose_loss(
             out.R,
@@ -112,7 +115,8 @@ def recalibrate_bn(
 
     Each running mean and variance becomes the plain average of its batch statistics over
     ``batches`` batches of ``batch_size`` segments (drawn by ``seed``), the distribution the
-    layer sees in training. No parameter changes. Used before every evaluation in eval mode:
+    layer sees in training (each branch on its own form of segments that have two,
+    ``data.trans_points``). No parameter changes. Used before every evaluation in eval mode:
     an exponential average with momentum 0.01 started at variance 1 is still far from the
     real statistics after a few thousand steps.
     """
@@ -126,7 +130,8 @@ def recalibrate_bn(
     g = torch.Generator().manual_seed(seed)
     for _ in range(batches):
         idx = torch.randint(len(data), (batch_size,), generator=g)
-        model(data.points[idx].to(device), data.cls_id[idx].to(device))
+        extra = () if data.trans_points is None else (data.trans_points[idx].to(device),)
+        model(data.points[idx].to(device), data.cls_id[idx].to(device), *extra)
     for bn, m in zip(bns, momenta, strict=True):
         bn.momentum = m
     model.train(was_training)

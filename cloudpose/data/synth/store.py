@@ -148,6 +148,14 @@ class OnlineSettings:
                 f"on-line bleed branch {self.online_bleed_branch!r}: expected one of "
                 f"{BLEED_BRANCHES}"
             )
+        v3 = self.online_version >= 3 and (self.synth_version >= 2 or not self.noise)
+        if self.forms == 2 and not (self.online_bleed and v3):
+            raise ValueError(
+                "on-line segments in two forms (bleed branch 'translation') need bleeding "
+                "masks of version 3's path (online_bleed > 0, online_version 3, synth_version "
+                f">= 2 or no noise); got online_bleed={self.online_bleed}, online_version="
+                f"{self.online_version}, synth_version={self.synth_version}, noise={self.noise}"
+            )
         if self.online_scenes not in ONLINE_SCENES:
             raise ValueError(
                 f"on-line scenes {self.online_scenes!r}: expected one of {ONLINE_SCENES}"
