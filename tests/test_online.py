@@ -590,3 +590,8 @@ def test_the_bleeding_branch_is_checked():
     assert resolve("shared-0", "smoke", overrides={"data": data}).data.online_bleed_branch
     with pytest.raises(ValueError, match=r"share no layer \(model\.shared_layers=0\)"):
         resolve("shared-1", "smoke", overrides={"data": data})
+    with pytest.raises(ValueError, match=r"needs the sensor of data\.synth_version >= 2"):
+        DataConfig(**data, synth_version=1)  # version 1's sensor takes version 2's path
+    assert DataConfig(**data, synth_version=1, noise=False).online_bleed
+    with pytest.raises(ValueError, match=r"two forms .* need bleeding masks of version 3"):
+        OnlineSettings(2, online_version=3, online_bleed_branch="translation")

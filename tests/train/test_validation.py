@@ -76,3 +76,38 @@ def test_recalibrated_bn_makes_eval_mode_match_train_mode(kernel):
     assert all(
         bn.momentum == 0.01 for bn in model.modules() if isinstance(bn, torch.nn.BatchNorm1d)
     )
+
+
+def test_segments_in_two_forms_recalibrate_each_branch_on_its_own():
+    """With the translation branch's own form (``Batchable.trans_points``), recalibration
+    re-estimates the rotation branch's statistics on ``points`` and the translation branch's on
+    ``trans_points``, each as recalibrating on that form alone does; validation runs both."""
+    import math
+
+    from cloudpose.config import Config, ModelConfig
+    from cloudpose.data.batches import Batchable
+    from cloudpose.models import build_model
+    from cloudpose.train.validation import recalibrate_bn, validate
+
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(point_mlp=(16, 32), head=(32,), num_classes=3))
+    (pts, cls_id), (other, _) = _tiny_batches(2)
+    R, t = torch.eye(3).expand(64, 3, 3).clone(), torch.tensor([0.0, 0.0, 0.9]).expand(64, 3)
+    far = other + torch.tensor([0.0, 0.0, 0.05])  # a translation form unlike the rotation one
+
+    def stats(data: Batchable, branch: str) -> list[torch.Tensor]:
+        recalibrate_bn(model, data, 4, 16, seed=3, device="cpu")
+        net = getattr(model, f"{branch}_net")
+        return [b.running_mean.clone() for b in net.modules() if hasattr(b, "running_mean")]
+
+    both = Batchable(pts, cls_id, R, t, trans_points=far)
+    for branch, alone in (("rotation", pts), ("translation", far)):
+        got, want = stats(both, branch), stats(Batchable(alone, cls_id, R, t), branch)
+        assert got and all(torch.allclose(a, b) for a, b in zip(got, want, strict=True)), branch
+    assert both.subset(torch.arange(5)).trans_points.shape == (5, 32, 3)
+    models = {c: torch.randn(50, 3).numpy() * 0.03 for c in (1, 2, 3)}
+    cfg = Config()
+    with_form = validate(model, both, models, cfg, "cpu", class_names=None)
+    without = validate(model, Batchable(pts, cls_id, R, t), models, cfg, "cpu")
+    assert math.isfinite(with_form["val/loss"])
+    assert with_form["val/trans_err_median_mm"] != without["val/trans_err_median_mm"]

@@ -131,7 +131,9 @@ class SegmentBatch:
     """Network inputs and targets of on-line segments (B of them).
 
     Attributes:
-        points: (B, n, 3) float32 camera-frame points, metres, FPS order.
+        points: (B, n, 3) float32 camera-frame points, metres, FPS order; (B, 2n, 3) for
+            segments in two forms (``data.online_bleed_branch = "translation"``): the rendered
+            masks' n points, then the bleeding masks'.
         cls_id: (B,) int64 1-based class ids.
         R: (B, 3, 3) float32 rotations model->camera.
         t: (B, 3) float32 translations, metres.

@@ -319,7 +319,8 @@ class ChunkStore:
 
     def _check(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
         """A stored chunk is what this store makes: ``chunk_size`` segments of ``n_points``
-        finite float32 points, int64 classes, float32 rotations and translations."""
+        finite float32 points (twice that in two forms), int64 classes, float32 rotations and
+        translations."""
         n, k = self.settings["chunk_size"], self.settings["synth"]["n_points"]
         if self.settings["synth"].get("online_bleed_branch") == "translation":
             k *= 2  # the rendered form's points, then the bleeding form's
