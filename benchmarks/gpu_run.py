@@ -113,9 +113,11 @@ def profile(preset: str, val_file: Path, seconds: float, variant: str = "shared-
     model, opt = loop._network(cfg, device)
     trainer = loop.Trainer(cfg, model, opt, device, SINGLE, sets, loop.RunRecord(Path("."), {}))
     bs = cfg.train.batch_size
-    batch = Batch(
-        *(x[:bs].to(device) for x in (sets.fit.points, sets.fit.cls_id, sets.fit.R, sets.fit.t))
-    )
+    fit = sets.fit
+    points = fit.points  # a step's batch holds a segment's forms side by side, as the stream's
+    if fit.trans_points is not None:
+        points = torch.cat([fit.points, fit.trans_points], dim=1)
+    batch = Batch(*(x[:bs].to(device) for x in (points, fit.cls_id, fit.R, fit.t)))
 
     def sync() -> None:
         if device.type == "cuda":
