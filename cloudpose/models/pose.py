@@ -156,25 +156,20 @@ def pose_forward(
                 "a translation input of its own needs branches that share no layer "
                 f"(model.shared_layers=0), got model.shared_layers={cfg.shared_layers!r}"
             )
-        mu = segment_centre(trans_points, cfg.centre)
-        rot_xyz = points
-        if cfg.rotation_input == "centred":
-            centre = "mean" if cfg.rotation_centre == "mean" else cfg.centre
-            rot_xyz = points - segment_centre(points, centre)[:, None, :]
-        rot_raw, t_residual = net.run_pair(rot_xyz, trans_points - mu[:, None, :], cls_id)
-        R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)
-        return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)
-    mu = segment_centre(points, cfg.centre)  # (B, 3)
-    centred = points - mu[:, None, :]  # (B, n, 3)
+    trans_in = points if trans_points is None else trans_points
+    mu = segment_centre(trans_in, cfg.centre)  # (B, 3)
+    centred = trans_in - mu[:, None, :]  # (B, n, 3)
     if layout == "all":
         out = net.run_all(centred, cls_id)  # (B, 3 + rot)
         t_residual, rot_raw = out[:, :3], out[:, 3:]
     elif layout == "trunk":
         rot_raw, t_residual = net.run_trunk(centred, cls_id)
     else:
-        rot_xyz = centred if cfg.rotation_input == "centred" else points
-        if cfg.rotation_centre == "mean" and cfg.centre != "mean":  # ModelConfig: centred input
-            rot_xyz = points - points.mean(dim=1, keepdim=True)
+        rot_xyz = points
+        if cfg.rotation_input == "centred":  # on mu, or on the mean (ModelConfig)
+            centre = "mean" if cfg.rotation_centre == "mean" else cfg.centre
+            same = trans_points is None and centre == cfg.centre
+            rot_xyz = centred if same else points - segment_centre(points, centre)[:, None, :]
         rot_raw, t_residual = net.run_pair(rot_xyz, centred, cls_id)
     R = raw_rotation_to_rotmat(rot_raw, cfg.rotation)  # (B, 3, 3)
     return PoseOutput(R, t_residual + mu, rot_raw, t_residual, mu)

@@ -75,10 +75,7 @@ def train_step(
     """
     device_type = batch.points.device.type
     with torch.autocast(device_type, dtype=torch.bfloat16, enabled=bf16):
-        if batch.trans_points is None:
-            out = net(batch.points, batch.cls_id)
-        else:
-            out = net(batch.points, batch.cls_id, batch.trans_points)
+        out = net(batch.points, batch.cls_id, batch.trans_points)
     terms = pose_loss(
         out.R.float(),
         out.t.float(),
