@@ -103,6 +103,7 @@ def profile(preset: str, val_file: Path, seconds: float, variant: str = "shared-
     """What bounds an on-line run here: the run's training step alone (one batch, on the
     device, synchronised), the synthesis of ``data.online_workers`` processes alone, and the
     two together as training sees them (the on-line stream's batches), each for ``seconds``."""
+    from cloudpose.data.batches import join_forms
     from cloudpose.registry import resolve
     from cloudpose.train import loop
     from cloudpose.train.distributed import SINGLE
@@ -116,7 +117,7 @@ def profile(preset: str, val_file: Path, seconds: float, variant: str = "shared-
     fit = sets.fit
     points = fit.points  # a step's batch holds a segment's forms side by side, as the stream's
     if fit.trans_points is not None:
-        points = torch.cat([fit.points, fit.trans_points], dim=1)
+        points = join_forms(fit.points, fit.trans_points)
     batch = Batch(*(x[:bs].to(device) for x in (points, fit.cls_id, fit.R, fit.t)))
 
     def sync() -> None:

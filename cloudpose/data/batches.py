@@ -44,3 +44,23 @@ class Batchable:
         return Batchable(
             self.points[index], self.cls_id[index], self.R[index], self.t[index], trans
         )
+
+
+def split_forms(points: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Segments in two forms side by side, ``(B, 2n, 3)`` (``data.online_bleed_branch =
+    "translation"``), as the rotation branch's form (rows ``:n``, cut from the rendered masks)
+    and the translation branch's (rows ``n:``, from the bleeding masks). :func:`join_forms`
+    undoes it."""
+    if points.shape[1] != 2 * n:
+        raise ValueError(
+            f"data.online_bleed_branch='translation' trains on segments of two forms "
+            f"({2 * n} points each: 2 x train.n_points); this batch has {points.shape[1]} "
+            f"(the on-line stream of data.online_version=3 makes them)"
+        )
+    return points[:, :n], points[:, n:]
+
+
+def join_forms(points: torch.Tensor, trans_points: torch.Tensor) -> torch.Tensor:
+    """The two forms side by side, as the on-line stream's batches hold them
+    (:func:`split_forms`'s inverse)."""
+    return torch.cat([points, trans_points], dim=1)

@@ -57,7 +57,7 @@ from tqdm.auto import tqdm
 
 from cloudpose import runtime
 from cloudpose.config import Config
-from cloudpose.data.batches import Batchable
+from cloudpose.data.batches import Batchable, split_forms
 from cloudpose.data.dataset import Prepared
 from cloudpose.data.keys import DataKey
 from cloudpose.data.synth.online import REUSE_SPACING, OnlineChunks, OnlineStream
@@ -143,8 +143,8 @@ def online_probe(
     points, cls_id, R, t = OnlineChunks(settings, seed, n, 1, store)[0]
     if settings.forms == 1:
         return Batchable(points, cls_id, R, t)
-    k = settings.n_points  # the rendered form, then the bleeding one
-    return Batchable(points[:, :k], cls_id, R, t, trans_points=points[:, k:])
+    points, trans_points = split_forms(points, settings.n_points)
+    return Batchable(points, cls_id, R, t, trans_points=trans_points)
 
 
 def epoch_order(fit: Batchable, sampler: str, n: int, generator: torch.Generator) -> torch.Tensor:
@@ -729,15 +729,9 @@ class Trainer:
             )
         points, R, t = augment(batch.points, batch.R, batch.t, cfg, position.epoch, position.batch)
         batch = batch._replace(points=points, R=R, t=t)
-        if cfg.data.online_bleed_branch == "translation":  # rendered form, then bleeding one
-            n = cfg.train.n_points  # (one roll for both: augmented together)
-            if points.shape[1] != 2 * n:
-                raise ValueError(
-                    f"data.online_bleed_branch='translation' trains on segments of two forms "
-                    f"({2 * n} points each: 2 x train.n_points); this batch has "
-                    f"{points.shape[1]} (the on-line stream of data.online_version=3 makes them)"
-                )
-            batch = batch._replace(points=points[:, :n], trans_points=points[:, n:])
+        if cfg.data.online_bleed_branch == "translation":  # augmented together: one roll
+            points, trans_points = split_forms(points, cfg.train.n_points)
+            batch = batch._replace(points=points, trans_points=trans_points)
         if self.world.distributed:  # this process's share of the global batch
             shard = self.world.shard(self.batch_size)
             batch = Batch(*(None if x is None else x[shard] for x in batch))

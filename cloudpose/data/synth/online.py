@@ -599,9 +599,7 @@ class OnlineSynth:
         with at least :data:`MIN_VISIBLE_PIXELS` pixels, of the kept classes, in scene order;
         version 3 cuts the first ``limit`` only (None: all; the segments it returns are the
         first of all of them: what a batch keeps of its last scene)."""
-        if self.settings.online_version >= 3 and (
-            self.settings.synth_version >= 2 or not self.settings.noise
-        ):
+        if self.settings.cuts_from_scene:
             return self._scene_segments_v3(scene, rng, limit)
         rendered = self.render_window(scene, rng)
         if rendered is None:

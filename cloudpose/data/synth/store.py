@@ -138,6 +138,13 @@ class OnlineSettings:
         alone on bleeding masks (rendered, then bleeding), else 1."""
         return 2 if self.online_bleed_branch == "translation" else 1
 
+    @property
+    def cuts_from_scene(self) -> bool:
+        """Whether segments are cut from the whole rendered scene (version 3's path: masks,
+        ring, bleeding, smoothing and correlated noise), not from a window around each object
+        (version 1's noisy sensor takes the window path, which has none of them)."""
+        return self.online_version >= 3 and (self.synth_version >= 2 or not self.noise)
+
     def __post_init__(self) -> None:
         check_synth_version(self.synth_version)
         check_online_version(self.online_version)
@@ -148,8 +155,7 @@ class OnlineSettings:
                 f"on-line bleed branch {self.online_bleed_branch!r}: expected one of "
                 f"{BLEED_BRANCHES}"
             )
-        v3 = self.online_version >= 3 and (self.synth_version >= 2 or not self.noise)
-        if self.forms == 2 and not (self.online_bleed and v3):
+        if self.forms == 2 and not (self.online_bleed and self.cuts_from_scene):
             raise ValueError(
                 "on-line segments in two forms (bleed branch 'translation') need bleeding "
                 "masks of version 3's path (online_bleed > 0, online_version 3, synth_version "
