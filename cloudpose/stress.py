@@ -31,11 +31,12 @@ its time before anything runs.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -1077,3 +1078,81 @@ def real_level(p: Perturbation, stats: pd.DataFrame) -> tuple[float, str]:
         if min(sa, sb) <= r <= max(sa, sb) and sa != sb:
             return float(a + (r - sa) * (b - a) / (sb - sa)), words
     return np.nan, words + f" (beyond level {lv[-1]:g})"
+
+
+# --------------------------------------------------------------------------- packed results
+
+RESULT_PARTS = ("sweep.json", "results", "icp_select")
+"""What a sweep's report is rendered from (:func:`pack_results` keeps these; the synthetic
+frames' cache under ``synth/`` is rebuilt from the preset)."""
+
+
+def pack_results(run_dir: Path, archive: Path) -> int:
+    """The sweep's result files (:data:`RESULT_PARTS`) in ``run_dir`` into the ``.tar.xz``
+    ``archive``, written atomically and byte-identical for identical files (sorted members, no
+    times or owners); ``--results`` reads it back (:func:`results_folder`). Returns the number
+    of files; ``FileNotFoundError`` without a ``sweep.json``."""
+    import tarfile
+
+    run_dir, archive = Path(run_dir), Path(archive)
+    if not (run_dir / "sweep.json").is_file():
+        raise FileNotFoundError(f"{run_dir}: no sweep.json (not the results of `cloudpose stress`)")
+    files = sorted(
+        f
+        for part in RESULT_PARTS
+        for f in ([run_dir / part] if part.endswith(".json") else (run_dir / part).rglob("*"))
+        if f.is_file()
+    )
+
+    def plain(info: tarfile.TarInfo) -> tarfile.TarInfo:
+        info.mtime, info.uid, info.gid, info.uname, info.gname = 0, 0, 0, "", ""
+        return info
+
+    def write(tmp: Path) -> None:
+        with tarfile.open(tmp, "w:xz", preset=9) as tar:
+            for f in files:
+                tar.add(f, arcname=f.relative_to(run_dir).as_posix(), filter=plain)
+
+    atomic_write(archive, write, suffix=".tar.xz")
+    return len(files)
+
+
+@contextlib.contextmanager
+def results_folder(path: Path) -> Iterator[Path]:
+    """A sweep's results as a folder: ``path`` itself, or an archive of :func:`pack_results`
+    unpacked into a temporary folder removed afterwards. ``ValueError`` naming the archive and
+    the member when one lies outside :data:`RESULT_PARTS` or outside the folder (nothing is
+    unpacked then), or when the archive cannot be read."""
+    import lzma
+    import tarfile
+    import tempfile
+
+    path = Path(path)
+    if path.is_dir():
+        yield path
+        return
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no stress results (a folder or a packed .tar.xz)")
+    with tempfile.TemporaryDirectory(prefix="cloudpose-stress-") as tmp:
+        try:
+            with tarfile.open(path, "r:*") as tar:
+                members = tar.getmembers()
+                for m in members:
+                    if m.name.split("/")[0] not in RESULT_PARTS:
+                        raise ValueError(
+                            f"{path}: member {m.name!r} is not a stress result (expected "
+                            f"{', '.join(RESULT_PARTS)}); nothing unpacked"
+                        )
+                    try:
+                        tarfile.data_filter(m, tmp)
+                    except tarfile.FilterError as exc:
+                        raise ValueError(
+                            f"{path}: member {m.name!r} refused ({exc}); nothing unpacked"
+                        ) from None
+                tar.extractall(tmp, members=members, filter="data")
+        except (tarfile.TarError, EOFError, lzma.LZMAError) as exc:
+            raise ValueError(
+                f"{path}: not a readable archive of stress results ({type(exc).__name__}: "
+                f"{exc}); pack it again (cloudpose stress --report-only --pack)"
+            ) from exc
+        yield Path(tmp)

@@ -227,6 +227,83 @@ def test_conditions_hold_the_identity_once():
     assert len(conds) == n_levels - len(st.PERTURBATIONS) + 1
 
 
+def _sweep_results(root):
+    """A sweep's result files for one real object pose whose segments hold far more points off
+    the model than the synthetic ones, and the synthetic frames' cache beside them."""
+    meta = {"preset": "smoke", "seed": 1, "sources": {"real": "", "synth": ""}, "methods": {}}
+    (root / "sweep.json").parent.mkdir(parents=True)
+    (root / "sweep.json").write_text(__import__("json").dumps(meta))
+    stats = {k: [0.0, 0.0] for k in st.STATISTICS}
+    ident = {"frame_id": ["0000/000001", "0000/000002"], "instance": [0, 0]}
+    synth = pd.DataFrame({**ident, **stats, "off_model": [0.01, 0.02]})
+    real = pd.DataFrame({**ident, **stats, "off_model": [0.30, 0.40]})
+    errors = pd.DataFrame(
+        {
+            **ident,
+            "cls_id": [8, 8],
+            "icp_rot_sym_err_deg": [40.0, 50.0],
+            "icp_trans_err": [0.02] * 2,
+        }
+    )
+    for source, table in (("real", real), ("synth", synth)):
+        path = st.result_path(root, source, "dilate", 0.0, "stats")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        table.to_csv(path, index=False)
+    errors.to_csv(st.result_path(root, "real", "dilate", 0.0, "net-seed1"), index=False)
+    errors.to_csv(st.result_path(root, "real", "dilate", 0.0, "fpfh"), index=False)
+    (root / "icp_select" / "real" / "starts1").mkdir(parents=True)
+    errors.to_csv(root / "icp_select" / "real" / "starts1" / "net-seed1.csv", index=False)
+    (root / "synth" / "data").mkdir(parents=True)
+    (root / "synth" / "data" / "frame.npz").write_bytes(b"cache")
+
+
+def test_a_pose_names_every_perturbation_its_statistic_places(tmp_path):
+    """off_model places both mask dilation and a shifted mask: the miss names both."""
+    from cloudpose.report.stress import per_pose_markdown
+
+    _sweep_results(tmp_path / "run")
+    row = [r for r in per_pose_markdown(tmp_path / "run").splitlines() if r.startswith("| 0000/8")]
+    assert len(row) == 1 and "| miss | off_model (100) | dilate or shift |" in row[0], row
+
+
+def test_packed_results_read_back_as_the_folder(tmp_path):
+    """The archive holds the result files and not the frames' cache, packs byte-identically
+    twice, and unpacks to the same files."""
+    run = tmp_path / "run"
+    _sweep_results(run)
+    a, b = tmp_path / "a.tar.xz", tmp_path / "b.tar.xz"
+    assert st.pack_results(run, a) == 6  # sweep.json, 4 results, 1 icp_select
+    st.pack_results(run, b)
+    assert a.read_bytes() == b.read_bytes()
+    with st.results_folder(a) as folder:
+        got = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+        assert not any(g.startswith("synth/") for g in got) and len(got) == 6
+        for g in got:
+            assert (folder / g).read_bytes() == (run / g).read_bytes()
+    assert not folder.exists()  # the temporary folder goes
+    with st.results_folder(run) as same:
+        assert same == run
+
+
+def test_an_archive_that_is_not_stress_results_is_refused(tmp_path):
+    import tarfile
+
+    other = tmp_path / "other.tar.xz"
+    (tmp_path / "notes.txt").write_text("x")
+    with tarfile.open(other, "w:xz") as tar:
+        tar.add(tmp_path / "notes.txt", arcname="notes.txt")
+    with pytest.raises(ValueError, match=r"'notes\.txt' is not a stress result"):
+        with st.results_folder(other):
+            pass
+    broken = tmp_path / "broken.tar.xz"
+    broken.write_bytes(b"\xfd7zXZ\x00 truncated")
+    with pytest.raises(ValueError, match=r"broken\.tar\.xz: not a readable archive"):
+        with st.results_folder(broken):
+            pass
+    with pytest.raises(FileNotFoundError, match=r"no sweep\.json"):
+        st.pack_results(tmp_path, tmp_path / "x.tar.xz")
+
+
 @pytest.mark.slow
 def test_stress_command_end_to_end(smoke_project, tmp_path):
     """The command on two real instances and two synthetic ones, one perturbation: every
@@ -256,3 +333,13 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     assert (tmp_path / "rep" / "stress.png").stat().st_size > 0
     summary = pd.read_csv(tmp_path / "rep" / "stress.csv")
     assert set(summary.method) >= {"net-seed1", "fpfh", "network"}
+    packed = tmp_path / "stress-results.tar.xz"
+    res = cli(*args, "--report-only", "--no-report", "--pack", str(packed))
+    assert res.exit_code == 0 and "packed" in res.output, res.output
+    res = cli("stress", "--preset", "smoke", "--report-only", "--results", str(packed),
+              "--out", str(tmp_path / "again"))  # fmt: skip
+    assert res.exit_code == 0, res.output
+    again = (tmp_path / "again" / "stress.csv").read_text()
+    assert again == (tmp_path / "rep" / "stress.csv").read_text()
+    res = cli("stress", "--preset", "smoke", "--run", "x", "--results", str(packed))
+    assert res.exit_code != 0 and "--report-only" in res.output

@@ -73,7 +73,17 @@ def stress(
     ] = False,
     results: Annotated[
         Path | None,
-        typer.Option(help="Folder of the sweep's results (default runs/stress/PRESET)."),
+        typer.Option(
+            help="Folder of the sweep's results (default runs/stress/PRESET); with "
+            "--report-only also an archive of them (--pack)."
+        ),
+    ] = None,
+    pack: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write the results the report is rendered from into this .tar.xz "
+            "(megabytes, not the frames' cache: what a committed report keeps beside it)."
+        ),
     ] = None,
     report: Annotated[
         bool, typer.Option("--report/--no-report", help="Render the report after the sweep.")
@@ -98,6 +108,11 @@ def stress(
     check_name("--preset", preset)
     project = Path.cwd()
     results = results or project / "runs" / "stress" / preset
+    if not report_only and results.is_file():
+        raise typer.BadParameter(
+            f"--results {results}: a sweep writes into a folder; an archive is read with "
+            "--report-only"
+        )
     if not report_only:
         if quick:
             instances = instances or QUICK["instances"]
@@ -120,12 +135,17 @@ def stress(
             progress=progress,
             dry_run=dry_run,
         )
-    if dry_run or not (report or report_only):
+    if dry_run:
         return
-    files = render_stress_report(
-        results, out or default_out_dir(project, preset), command=recorded_command(ctx)
-    )
-    typer.echo(" ".join(str(f) for f in files))
+    with st.results_folder(results) as folder:
+        if pack is not None:
+            n = st.pack_results(folder, pack)
+            typer.echo(f"packed {n} result files into {pack} ({pack.stat().st_size / 1e6:.2f} MB)")
+        if report or report_only:
+            files = render_stress_report(
+                folder, out or default_out_dir(project, preset), command=recorded_command(ctx)
+            )
+            typer.echo(" ".join(str(f) for f in files))
 
 
 def _all_methods(

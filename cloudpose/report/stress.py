@@ -346,7 +346,9 @@ def per_pose_markdown(run_dir: Path) -> str:
     net = pd.concat([pd.read_csv(p) for p in nets])
     net = net.groupby(["frame_id", "instance"], as_index=False).mean(numeric_only=True)
     fp = pd.read_csv(fpfh)
-    by_stat = {p.stat: name for name, p in PERTURBATIONS.items()}
+    by_stat: dict[str, list[str]] = {}  # a statistic can place several perturbations
+    for name, p in PERTURBATIONS.items():
+        by_stat.setdefault(p.stat, []).append(name)
     stats = [k for k in by_stat if k in rs and k != "occlusion"]
     df = rs.merge(net, on=["frame_id", "instance"])
     df["pose"] = df.frame_id.str.split("/").str[0] + "/" + df["cls_id"].astype(int).astype(str)
@@ -386,7 +388,7 @@ def per_pose_markdown(run_dir: Path) -> str:
         out.append(
             f"| {pose} | {len(g)} | {rot:.1f} / {tr:.1f} | {fcell} | {miss} | "
             + (f"{k} ({pct[k]:.0f})" if k else "")
-            + f" | {by_stat.get(k, '')} |"
+            + f" | {' or '.join(by_stat.get(k, []))} |"
         )
     return "\n".join(out)
 
