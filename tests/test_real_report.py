@@ -148,6 +148,7 @@ def test_real_report_per_video_and_pooled(tmp_path):
         "real_frames.md",
         "real_frames.csv",
         "real_frames_vs_fpfh.csv",
+        "real_frames_seeds.csv",
     ]
     assert all(f.parent == tmp_path / "reports" / PRESET for f in files)
     rows = pd.read_csv(files[1], dtype={"video": str})
@@ -200,6 +201,9 @@ def test_real_report_per_video_and_pooled(tmp_path):
     vs = pd.read_csv(files[2])
     assert len(vs) == 6 and set(vs["poses"]) == {2} and set(vs["instances"]) == {10}
     assert "The network against FPFH + RANSAC, paired" in md
+    spread = pd.read_csv(files[3])  # the network's two seeds: no test set logged here
+    assert len(spread) == 6 and set(spread["seeds"]) == {2} and spread["test_sd"].isna().all()
+    assert "How many seeds a difference on these frames needs" in md
 
 
 def _poses(successes: dict[str, list[bool]]) -> pd.DataFrame:
@@ -292,3 +296,55 @@ def test_misses_cap_their_video_and_are_named():
     clean = [Evaluation("shared-0", 1, "real", _instances(np.random.default_rng(3)), 2.0, 5.0, "r")]
     assert "Misses," not in markdown(RealReport(build(clean), misses=misses(clean)), PRESET, "c")
     assert misses([]).empty
+
+
+def test_seeds_for_is_the_fewest_whose_interval_fits():
+    """The count returned meets t(2n - 2) * sd * sqrt(2 / n) <= half-width and one fewer does
+    not; no spread needs the least (2), an unknown one or a huge one gives None."""
+    from scipy.stats import t
+
+    from cloudpose.report.real import MAX_SEEDS, seeds_for
+
+    def width(n, sd):
+        return t.ppf(0.975, 2 * n - 2) * sd * math.sqrt(2 / n)
+
+    for sd, h in ((0.069, 0.05), (0.006, 0.01), (0.02, 0.05), (0.092, 0.05)):
+        n = seeds_for(sd, h)
+        assert n is not None and width(n, sd) <= h and (n == 2 or width(n - 1, sd) > h)
+    assert seeds_for(0.069, 0.05) > seeds_for(0.027, 0.05)  # more spread, more seeds
+    assert seeds_for(0.0, 0.05) == 2
+    assert seeds_for(float("nan"), 0.05) is None
+    assert seeds_for(0.2, 0.01) is None and seeds_for(0.2, 0.01, cap=MAX_SEEDS * 100) > MAX_SEEDS
+
+
+def test_seed_spread_reads_each_seed_on_the_real_frames_and_its_test_set():
+    from cloudpose.report.real import Evaluation, RealReport, markdown, seed_spread, table_metrics
+
+    rng = np.random.default_rng(11)
+    tables = [_instances(rng) for _ in range(3)]
+    test_rot = [0.50, 0.52, 0.55]
+    evs = [
+        Evaluation(
+            "shared-0",
+            s + 1,
+            "real",
+            t,
+            2.0,
+            5.0,
+            f"r{s}",
+            {"test_icp/rot_sym_lt_10deg": test_rot[s]},
+        )
+        for s, t in enumerate(tables)
+    ]
+    evs.append(Evaluation("fpfh", 1, "real", _instances(rng), 90.0, 5.0, "b"))  # not the network
+    spread = seed_spread(evs).set_index(["metric", "icp"])
+    real = [table_metrics(t)[("icp", "pooled", "rot_sym_lt_10deg")] for t in tables]
+    row = spread.loc[("rot_sym_lt_10deg", "icp")]
+    assert row["seeds"] == 3 and row["half_width"] == 0.05
+    assert row["real_sd"] == pytest.approx(np.std(real, ddof=1))
+    assert row["test_sd"] == pytest.approx(np.std(test_rot, ddof=1))
+    assert math.isnan(spread.loc[("ads_auc", "net"), "test_sd"])  # the test set not logged
+    assert seed_spread(evs[:1] + evs[3:]).empty  # one seed has no spread
+    md = markdown(RealReport(pd.DataFrame(), spread=seed_spread(evs)), PRESET, "c")
+    assert "## How many seeds a difference on these frames needs" in md
+    assert "| rotation < 10° mod sym + ICP | ±5 |" in md

@@ -31,7 +31,14 @@ import pandas as pd
 from cloudpose.data.keys import canonical_key
 from cloudpose.store import tracking
 from cloudpose.store.instances import run_instance_table
-from cloudpose.store.metric_names import REAL_DEV, method_prefixes, summary_metrics, video_metrics
+from cloudpose.store.metric_names import (
+    ICP_SUFFIX,
+    OWN_TEST,
+    REAL_DEV,
+    method_prefixes,
+    summary_metrics,
+    video_metrics,
+)
 
 NETWORK = "shared-0"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
@@ -43,6 +50,12 @@ METRICS = {
 REFERENCE = "fpfh"
 """The baseline the network is compared with, paired by instance (:func:`versus_baseline`)."""
 BOOTSTRAP_REPLICATES = 4000
+CLAIM_HALF_WIDTH = {"ads_auc": 0.01, "rot_sym_lt_10deg": 0.05, "trans_lt_1cm": 0.05}
+"""Half-width of the 95% interval on a difference between two settings that
+:func:`seed_spread` sizes the seeds for, per metric: 1 point of ADS AUC (the size of the
+differences the claims weigh), 5 points of the two accuracies."""
+MAX_SEEDS = 100
+"""Beyond this many seeds a setting :func:`seeds_for` gives up (shown as more)."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +69,9 @@ class Evaluation:
     net_ms: float
     icp_ms: float
     run_id: str
+    test: dict[str, float] = field(default_factory=dict)
+    """The same run's pooled figures on its own synthetic test set (``test/KEY``,
+    ``test_icp/KEY`` of :data:`METRICS`; the network's runs only)."""
 
 
 @dataclass
@@ -71,6 +87,8 @@ class RealReport:
     """Baseline -> the other presets whose runs it took (:func:`find_evaluations`)."""
     misses: pd.DataFrame = field(default_factory=pd.DataFrame)
     """Per video: instances and misses (:func:`misses`)."""
+    spread: pd.DataFrame = field(default_factory=pd.DataFrame)
+    """The network's spread over seeds, real frames against the test set (:func:`seed_spread`)."""
 
 
 def misses(evaluations: list[Evaluation]) -> pd.DataFrame:
@@ -128,6 +146,12 @@ def _load(client, run, method: str, name: str) -> Evaluation | None:
     except (FileNotFoundError, MlflowException):  # no such evaluation
         return None
     m = run.data.metrics
+    test = {
+        f"{prefix}/{key}": float(m[f"{prefix}/{key}"])
+        for prefix in (OWN_TEST, OWN_TEST + ICP_SUFFIX)
+        for key in METRICS
+        if method == NETWORK and f"{prefix}/{key}" in m
+    }
     return Evaluation(
         method,
         int(run.data.tags.get("seed", 0)),
@@ -136,6 +160,7 @@ def _load(client, run, method: str, name: str) -> Evaluation | None:
         float(m.get(f"{name}/net_ms_per_object", math.nan)),
         float(m.get(f"{name}/icp_ms_per_object", math.nan)),
         run.info.run_id,
+        test,
     )
 
 
@@ -358,6 +383,59 @@ def comparison(evaluations: list[Evaluation], reference: str = REFERENCE) -> pd.
     return pd.DataFrame(rows)
 
 
+def seeds_for(
+    sd: float, half_width: float, level: float = 0.95, cap: int = MAX_SEEDS
+) -> int | None:
+    """Seeds each of two settings needs for the ``level`` interval on the difference of their
+    means over seeds to be at most ``± half_width``, when one seed's figure spreads by ``sd``
+    (two independent samples of seeds): the smallest ``n >= 2`` with
+    ``t(2n - 2) * sd * sqrt(2 / n) <= half_width``, Student's t quantile. None beyond ``cap``
+    or for an unknown ``sd``."""
+    from scipy.stats import t
+
+    if not np.isfinite(sd):
+        return None
+    q = 0.5 + level / 2
+    for n in range(2, cap + 1):
+        if t.ppf(q, 2 * n - 2) * sd * math.sqrt(2 / n) <= half_width:
+            return n
+    return None
+
+
+def seed_spread(evaluations: list[Evaluation]) -> pd.DataFrame:
+    """How far one seed's pooled figure moves from seed to seed, on the real frames and on the
+    same runs' synthetic test set, and the seeds a difference of ``± half_width``
+    (:data:`CLAIM_HALF_WIDTH`) needs on each (:func:`seeds_for`): one row per metric and ICP
+    setting (``metric``, ``icp``, ``seeds``, ``half_width``, ``real_sd``, ``test_sd``,
+    ``real_seeds``, ``test_seeds``; None: more than :data:`MAX_SEEDS`). Empty with fewer than
+    two of the network's seeds."""
+    nets = [ev for ev in evaluations if ev.method == NETWORK and ev.name == REAL_DEV]
+    if len(nets) < 2:
+        return pd.DataFrame()
+    per_run = [table_metrics(ev.table) for ev in nets]
+    rows = []
+    for key in METRICS:
+        for icp in ("net", "icp"):
+            prefix = OWN_TEST + (ICP_SUFFIX if icp == "icp" else "")
+            real = np.array([m[(icp, "pooled", key)] for m in per_run])
+            test = np.array([ev.test.get(f"{prefix}/{key}", math.nan) for ev in nets])
+            test_sd = float(test.std(ddof=1)) if np.isfinite(test).all() else math.nan
+            real_sd, h = float(real.std(ddof=1)), CLAIM_HALF_WIDTH[key]
+            rows.append(
+                {
+                    "metric": key,
+                    "icp": icp,
+                    "seeds": len(nets),
+                    "half_width": h,
+                    "real_sd": real_sd,
+                    "test_sd": test_sd,
+                    "real_seeds": seeds_for(real_sd, h),
+                    "test_seeds": seeds_for(test_sd, h),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
 def _verdict(low: float, high: float) -> str:
     if low > 0:
         return "network ahead"
@@ -461,11 +539,45 @@ def markdown(report: RealReport, preset: str, command: str, store: str = "the st
                 ]
             lines += [f"| {title} | " + " | ".join(cells) + " |"]
         lines += [""]
+    lines += _spread_markdown(report.spread)
     if report.missing:
         lines += ["## Missing", ""]
         lines += [f"- {m}" for m in report.missing]
         lines += [""]
     return "\n".join(lines)
+
+
+def _spread_markdown(spread: pd.DataFrame) -> list[str]:
+    """The seed-spread section (:func:`seed_spread`); nothing without it."""
+    if spread.empty:
+        return []
+    n = int(spread["seeds"].iloc[0])
+    lines = [
+        "## How many seeds a difference on these frames needs",
+        "",
+        f"Sample std over the network's {n} seeds of its pooled figure on these frames and on "
+        "the same runs' synthetic test set, and the seeds each of two settings needs for a "
+        "95% interval of ± the half-width on their difference (two independent samples of "
+        "seeds, Student's t; the std estimated from these seeds, itself uncertain). Seeds only "
+        "narrow the draw of training: the object poses of these frames are a sample of their "
+        "own, and no number of seeds narrows that part (the paired interval above holds both).",
+        "",
+        "| metric | half-width | std over seeds, real | std, test set | seeds, real | "
+        "seeds, test set |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+
+    def seeds(v) -> str:
+        return f"> {MAX_SEEDS}" if v is None or pd.isna(v) else str(int(v))
+
+    for r in spread.itertuples():
+        label = METRICS[r.metric] + (" + ICP" if r.icp == "icp" else "")
+        test = "" if math.isnan(r.test_sd) else f"{100 * r.test_sd:.1f}"
+        lines += [
+            f"| {label} | ±{100 * r.half_width:g} | {100 * r.real_sd:.1f} | {test} | "
+            f"{seeds(r.real_seeds)} | " + (seeds(r.test_seeds) if test else "") + " |"
+        ]
+    return [*lines, ""]
 
 
 def render_real_report(
@@ -480,7 +592,13 @@ def render_real_report(
     client = tracking.setup(project_dir)
     evaluations, missing, found, borrowed = find_evaluations(client, preset, seeds)
     report = RealReport(
-        build(evaluations), missing, found, comparison(evaluations), borrowed, misses(evaluations)
+        build(evaluations),
+        missing,
+        found,
+        comparison(evaluations),
+        borrowed,
+        misses(evaluations),
+        seed_spread(evaluations),
     )
     out_dir = Path(out_dir or project_dir / "reports" / preset)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -493,4 +611,7 @@ def render_real_report(
     if not report.versus.empty:
         files.append(out_dir / f"real_frames_vs_{REFERENCE}.csv")
         report.versus.to_csv(files[-1], index=False, float_format="%.6g")
+    if not report.spread.empty:
+        files.append(out_dir / "real_frames_seeds.csv")
+        report.spread.to_csv(files[-1], index=False, float_format="%.6g")
     return report, files
