@@ -32,7 +32,13 @@ from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
+from cloudpose.infer import (
+    Estimates,
+    estimate_poses,
+    load_checkpoint,
+    refine_poses,
+    select_refinements,
+)
 from cloudpose.metrics import pose_errors
 from cloudpose.refine import ICPSettings, segment_views
 from cloudpose.store import runs, tracking
@@ -297,6 +303,70 @@ def _score(
     return table, metrics
 
 
+def _check_member(cfg, other, run: str) -> None:
+    """``ValueError`` unless the network of ``run`` (config ``other``) can join an ensemble with
+    the evaluated run's (``cfg``): the same data section (the segments and classes it was
+    trained and is tested on) and the same rotation modulo symmetry (its errors' table)."""
+    mine, theirs = dataclasses.asdict(cfg.data), dataclasses.asdict(other.data)
+    fields = [f"data.{k}" for k in mine if mine[k] != theirs.get(k)]
+    if cfg.loss.symmetry_table != other.loss.symmetry_table:
+        fields.append("loss.symmetry_table")
+    if fields:
+        raise ValueError(
+            f"--ensemble {run}: its network differs from the evaluated run's in "
+            f"{', '.join(fields)}; an ensemble joins networks of the same preset (other seeds "
+            "or variants)"
+        )
+
+
+def _score_ensemble(
+    networks: list,
+    test: _TestData,
+    name: str,
+    icp_settings: ICPSettings,
+    device,
+    progress: bool,
+    symmetry_table: int,
+) -> tuple[pd.DataFrame, dict[str, float]]:
+    """The per-instance table and metrics of an ensemble on ``test``: each network's estimate
+    refined by ICP (``icp_settings``), per instance the refinement with the best score of
+    ``icp_settings.select`` kept (:func:`cloudpose.infer.select_refinements`); ``net_*``
+    columns hold the kept network's own estimate, ``ensemble_member`` its index among
+    ``networks`` ((model, config) pairs, the evaluated run's first)."""
+    segs, dataset = test.segs, test.dataset
+    models_by_class = dataset.models()
+    t0 = time.monotonic()
+    nets = [estimate_poses(m, segs, c.train.n_points, device=device) for m, c in networks]
+    t_net = time.monotonic() - t0
+    t0 = time.monotonic()
+    views = segment_views(dataset, segs)
+    refined = [
+        refine_poses(segs, e, models_by_class, icp_settings, progress, views=views) for e in nets
+    ]
+    pick = select_refinements(
+        segs, [r for r, _ in refined], [s for _, s in refined], models_by_class,
+        icp_settings.select, views,
+    )  # fmt: skip
+    t_icp = time.monotonic() - t0
+    rows = np.arange(len(segs))
+
+    def kept(estimates: list[Estimates]) -> Estimates:
+        return Estimates(
+            np.stack([e.R for e in estimates])[pick, rows],
+            np.stack([e.t for e in estimates])[pick, rows],
+        )
+
+    est = {"net": kept(nets), "icp": kept([r for r, _ in refined])}
+    table = instance_table(segs, est, models_by_class, dataset.classes, symmetry_table)
+    table["icp_fitness"] = np.stack([s.fitness for _, s in refined])[pick, rows]
+    table["ensemble_member"] = np.where(segs.valid, pick, -1)
+    metrics = summary_metrics(table, name)
+    n_valid = max(int(np.sum(segs.valid)), 1)
+    metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
+    metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
+    return table, metrics
+
+
 def evaluate(
     run: str,
     *,
@@ -311,6 +381,7 @@ def evaluate(
     device: str = "auto",
     own_data: Prepared | None = None,
     segmentation: str | None = None,
+    ensemble: list[str] | None = None,
 ) -> EvalOutcome:
     """Evaluate a trained run on its own test set or on a YCB-Video-layout folder ``data``.
 
@@ -335,6 +406,11 @@ def evaluate(
             ``degraded-medium``, :mod:`cloudpose.data.masks`, or PoseCNN's results
             ``posecnn:DIR``, :mod:`cloudpose.data.posecnn`); the evaluation is then named
             ``{test or the data's name}-{label}`` (:func:`mask_source_label`).
+        ensemble: further runs (as ``run``) whose networks join ``run``'s: each network's
+            estimate is refined by ICP and per instance the refinement with the best score
+            of ``icp.select`` is kept (:func:`~cloudpose.infer.select_refinements`; ``depth``
+            reads the frames' depth). Logged in ``run`` as ``{name}-ensemble{N}`` (N
+            networks), the members' run ids in the tag ``eval/{name}/ensemble``.
 
     Raises:
         ValueError: no instance to evaluate; a ``name`` that :func:`check_evaluation_name`
@@ -346,6 +422,15 @@ def evaluate(
     log = log and not is_pretrained(run)  # the shipped network has no MLflow run to log to
     client = tracking.setup(project_dir)
     run_id, model, cfg, ckpt_label = _load_network(client, run, device)
+    members = []
+    for other in ensemble or ():
+        if not icp:
+            raise ValueError("--ensemble keeps one of the networks' ICP refinements; drop --no-icp")
+        member = _load_network(client, other, device)
+        _check_member(cfg, member[2], other)
+        if member[0] is not None and member[0] in {run_id, *(m[0] for m in members)}:
+            raise ValueError(f"--ensemble {other}: run {member[0]} is in the ensemble already")
+        members.append(member)
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
     test = _test_data(cfg, data, frames, name, masks, own_data, project_dir, progress)
@@ -354,6 +439,8 @@ def evaluate(
     icp_settings = dataclasses.replace(own_icp, **(icp_overrides or {}))
     if icp and icp_settings != own_icp:
         name = tracking.metric_key(f"{name}-{icp_label(icp_settings, own_icp)}")
+    if members:
+        name = tracking.metric_key(f"{name}-ensemble{len(members) + 1}")
     if len(test.segs) == 0:
         raise ValueError(
             f"no instance to evaluate in {test.label} (no annotated object in its frames"
@@ -367,7 +454,15 @@ def evaluate(
             f"{logged}, this data {test.data_key}); choose another --name"
         )
     device = next(model.buffers()).device
-    table, metrics = _score(model, cfg, test, name, icp_settings if icp else None, device, progress)
+    if members:
+        networks = [(model, cfg), *((m[1], m[2]) for m in members)]
+        table, metrics = _score_ensemble(
+            networks, test, name, icp_settings, device, progress, cfg.loss.symmetry_table
+        )
+    else:
+        table, metrics = _score(
+            model, cfg, test, name, icp_settings if icp else None, device, progress
+        )
     if log:
         try:
             log_evaluation(client, run_id, name, table, metrics)
@@ -375,6 +470,9 @@ def evaluate(
             client.set_tag(run_id, f"eval/{name}/split", test.split)
             if masks:
                 client.set_tag(run_id, f"eval/{name}/segmentation", masks)
+            if members:
+                ids = [run_id, *(m[0] or other for m, other in zip(members, ensemble, strict=True))]
+                client.set_tag(run_id, f"eval/{name}/ensemble", ",".join(ids))
         except Exception as exc:
             full = _disk_full(exc, client, run_id)
             if full is None:
@@ -382,6 +480,8 @@ def evaluate(
             raise full from exc
     who = f"run {run_id}" if run_id is not None else f"the shipped network {run!r}"
     source = f"{who}, checkpoint {ckpt_label}, {len(test.segs)} instances of {test.label}"
+    if members:
+        source += f"; ensemble with {', '.join(m[0] or str(m[3]) for m in members)}"
     return EvalOutcome(table, metrics, run_id, name, source, test.split)
 
 

@@ -185,3 +185,46 @@ def test_metric_names_import_without_torch_and_name_each_method():
     assert names.own_test_name("degraded-medium") == "test-degraded-medium"
     name = names.data_evaluation_name(DATA / "ycb_real", "all", "0123456789abcdef0123")
     assert name == "ycb_real-all-0123456789"
+
+
+@pytest.mark.slow
+def test_an_ensemble_keeps_one_members_refinement_per_object(tmp_path, smoke_data):
+    """Two seeds of the smoke preset: each object's result after ICP is one member's own
+    one-start refinement, the one with the best score (fitness: never below the other's);
+    logged under its own name with the members' run ids; a network of another preset and a
+    run given twice are refused."""
+    from cloudpose.evaluate import evaluate_real
+    from cloudpose.registry import resolve
+    from cloudpose.store import tracking
+    from cloudpose.suite.pipeline import train_run
+    from tests.conftest import make_project
+
+    mp = pytest.MonkeyPatch()
+    try:
+        proj = make_project(tmp_path / "proj", smoke_data, mp)
+        a, b = (train_run(resolve("shared-0", "smoke", seed=s), project_dir=proj, progress=False)
+                for s in (1, 2))  # fmt: skip
+    finally:
+        mp.undo()
+    kw = dict(project_dir=proj, progress=False)
+    one = [evaluate_real(r.run_id, log=False, **kw).table for r in (a, b)]
+    ens = evaluate_real(a.run_id, ensemble=[b.run_id], **kw)
+    assert ens.name == "real-ensemble2" and f"{ens.name}_icp/ads_auc" in ens.metrics
+    t = ens.table
+    member = t["ensemble_member"].to_numpy()
+    assert set(member[~t.miss]) == {0, 1} and (member[t.miss] == -1).all()  # both chosen
+    for k in (0, 1):
+        rows = member == k
+        np.testing.assert_allclose(t.loc[rows, "icp_ads"], one[k].loc[rows, "icp_ads"], atol=1e-12)
+        np.testing.assert_allclose(t.loc[rows, "net_ads"], one[k].loc[rows, "net_ads"], atol=1e-12)
+    valid = ~t.miss.to_numpy()
+    fits = np.stack([one[0]["icp_fitness"], one[1]["icp_fitness"]])[:, valid]
+    assert (t["icp_fitness"].to_numpy()[valid] >= fits.max(axis=0) - 1e-12).all()
+    tags = tracking.setup(proj).get_run(a.run_id).data.tags
+    assert tags[f"eval/{ens.name}/ensemble"] == f"{a.run_id},{b.run_id}"
+    with pytest.raises(ValueError, match="in the ensemble already"):
+        evaluate_real(a.run_id, ensemble=[a.run_id], log=False, **kw)
+    with pytest.raises(ValueError, match=r"differs from the evaluated run's in data\."):
+        evaluate_real(a.run_id, ensemble=["pretrained"], log=False, **kw)
+    with pytest.raises(ValueError, match="drop --no-icp"):
+        evaluate_real(a.run_id, ensemble=[b.run_id], icp=False, log=False, **kw)

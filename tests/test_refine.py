@@ -498,3 +498,66 @@ def test_depth_selection_recovers_the_turned_estimate_and_needs_the_depth():
     stored = own.to_dict()
     del stored["icp"]["select"]
     assert Config.from_dict(stored).fingerprint() == own.fingerprint()
+
+
+class _Rows:
+    """The fields of a segment set that :func:`cloudpose.infer.select_refinements` reads."""
+
+    def __init__(self, points, valid):
+        self.points = points.astype(np.float32)
+        self.count = np.full(len(points), points.shape[1])
+        self.cls_id = np.ones(len(points), dtype=np.int16)
+        self.valid = np.asarray(valid, dtype=bool)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def _box_scene():
+    """A 10 cm box (model frame), its front face seen at 0.95 m on a depth image that reads
+    0.95 m everywhere, and two poses that both explain the face: the box behind it (right) and
+    the box 10 cm nearer, its back face on the observed one and its body in the free space the
+    sensor saw through."""
+    from cloudpose.refine import DepthView
+
+    g = np.linspace(-0.05, 0.05, 11)
+    model = np.array(
+        [(x, y, z) for x in g for y in g for z in g if max(abs(x), abs(y), abs(z)) == 0.05]
+    )
+    face = np.array([(x, y, 0.95) for x in g for y in g])
+    K = np.array([[500.0, 0, 64], [0, 500.0, 64], [0, 0, 1]])
+    view = DepthView(np.full((128, 128), 0.95), K)
+    right, nearer = np.array([0, 0, 1.0]), np.array([0, 0, 0.9])
+    return model, face, view, right, nearer
+
+
+def test_select_refinements_keeps_the_best_score_per_row():
+    """Fitness: the higher per row, the first on a tie, 0 for a miss; depth: of two poses that
+    explain the segment alike, the one whose model does not stick out into seen free space."""
+    from cloudpose.infer import Estimates, select_refinements
+    from cloudpose.refine import ICPStats
+
+    model, face, view, right, nearer = _box_scene()
+    rows = _Rows(np.stack([face, face, face]), [True, True, False])
+    eye = np.tile(np.eye(3), (3, 1, 1))
+    a = Estimates(eye, np.stack([nearer, right, right]))
+    b = Estimates(eye, np.stack([right, nearer, right]))
+
+    def stats(fit):
+        f = np.asarray(fit, dtype=float)
+        return ICPStats(f, np.zeros(3), np.zeros(3, dtype=bool))
+
+    models = {1: model}
+    pick = select_refinements(
+        rows, [a, b], [stats([0.5, 0.9, 1]), stats([0.8, 0.9, 1])], models, "fitness"
+    )
+    assert pick.tolist() == [1, 0, 0]  # higher fitness; a tie keeps the first; a miss: 0
+    same = [stats([1.0, 1.0, np.nan])] * 2
+    pick = select_refinements(rows, [a, b], same, models, "depth", [view] * 3)
+    assert pick.tolist() == [1, 0, 0]  # the pose behind the observed face, in either slot
+    with pytest.raises(ValueError, match="depth views"):
+        select_refinements(rows, [a, b], same, models, "depth")
+    with pytest.raises(ValueError, match="expected one of"):
+        select_refinements(rows, [a, b], same, models, "closest")
+    with pytest.raises(ValueError, match="one of each per network"):
+        select_refinements(rows, [a, b], same[:1], models, "fitness")

@@ -105,6 +105,15 @@ def evaluate(
             "--real", help="Test on the packaged real development frames (61, per video): real/..."
         ),
     ] = False,
+    ensemble: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Another run whose network joins --run's (repeatable; the same preset, e.g. "
+            "other seeds): each estimate refined by ICP, per object the refinement with the "
+            "best --icp-select score kept (depth: agreement with the frame's depth). Logged "
+            "in --run as {name}-ensembleN."
+        ),
+    ] = None,
     show_instances: Annotated[bool, typer.Option(help="Print every instance's errors.")] = False,
     name: Annotated[
         str | None,
@@ -154,7 +163,9 @@ def evaluate(
     overrides = {k: v for k, v in pairs if v is not None}
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
-    kwargs = dict(icp=icp, icp_overrides=overrides, progress=progress, device=device)
+    kwargs = dict(
+        icp=icp, icp_overrides=overrides, progress=progress, device=device, ensemble=ensemble
+    )
     if real:
         out = evaluate_real(run, segmentation=segmentation, **kwargs)
     else:

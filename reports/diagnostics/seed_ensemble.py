@@ -1,0 +1,274 @@
+"""Do networks of different seeds miss different object poses, and can the depth tell which
+one is right? An ensemble over seeds: every network's estimate of an instance refined by the
+run's ICP, the refinement kept that agrees best with the observed depth (``depth``:
+:func:`cloudpose.refine.depth_score`, the score of ``icp.select = depth``) or with the segment
+alone (``fitness``), against each network on its own and against the best of them per
+instance (``oracle``, which reads the ground truth: the ceiling a selection could reach).
+
+Every estimate is read from a logged evaluation (``net_R`` / ``net_t`` of
+``eval/{split}/instances.csv``), so no network runs here; the one-start refinement is redone
+on the same segments and checked against the logged one (``multi_start_icp.same_refinement``).
+Subsets of ``k`` seeds: every combination of the runs given (up to ``--combinations`` of them,
+evenly spaced), mean ± sample SD over the combinations. Runs are read by MLflow run name from
+the store of the current folder, e.g. in the project that holds the default's sweep::
+
+    python reports/diagnostics/seed_ensemble.py --split real \\
+        --run shared-0/cpu-online/seed1 ... --run shared-0/cpu-online/seed8 \\
+        --baseline baseline-fpfh/cpu-online/seed1+real-6b1ea2e9 \\
+        > reports/diagnostics/seed_ensemble_real.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cloudpose.evaluate import instance_table
+from cloudpose.infer import Estimates, refine_poses
+from cloudpose.refine import ModelIndex, depth_agreement, depth_score, segment_views
+from cloudpose.report.real import METRICS, table_metrics, versus_baseline
+from cloudpose.store import tracking
+
+sys.path.insert(0, str(Path(__file__).parent))
+from multi_start_icp import KEY, Segments, logged, poses, same_refinement
+
+SELECTIONS = ("fitness", "depth", "oracle")
+
+
+def hypotheses(client, name: str, split: str, segments: Segments) -> dict:
+    """One run's estimates refined by one-start ICP on the segments its evaluation used, each
+    refinement's fitness and depth score, and the instance table of the refined poses."""
+    table, tags = logged(client, name, split)
+    dataset, pool, sym = segments.of(tags["preset"], int(tags.get("seed", 1)))
+    keys = pd.Index(
+        pd.Series(pool.frame_id).astype(str) + "#" + pd.Series(pool.instance).astype(str)
+    )
+    where = keys.get_indexer(table["frame_id"].astype(str) + "#" + table["instance"].astype(str))
+    if (where < 0).any():
+        raise SystemExit(f"{name}: {int((where < 0).sum())} logged instances not in the segments")
+    segs = pool.subset(where)
+    segs.valid = ~table["miss"].to_numpy(dtype=bool)
+    models = dataset.models()
+    refined, stats = refine_poses(segs, poses(table, "net"), models)
+    out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
+    same_refinement(name, out, table)
+    views = segment_views(dataset, segs)
+    index = {c: ModelIndex.of(m) for c, m in models.items()}
+    score = np.full(len(segs), -np.inf)
+    for i in np.flatnonzero(segs.valid):
+        k = int(min(segs.count[i], segs.points.shape[1]))
+        agree = depth_agreement(
+            segs.points[i, :k].astype(np.float64),
+            index[int(segs.cls_id[i])],
+            refined.R[i],
+            refined.t[i],
+            views[i],
+        )
+        score[i] = depth_score(float(stats.fitness[i]), agree)
+    fitness = np.where(np.isfinite(stats.fitness), stats.fitness, -np.inf)
+    return {
+        "name": name,
+        "table": out,
+        "segs": segs,
+        "models": models,
+        "classes": dataset.classes,
+        "sym": sym,
+        "poses": refined,
+        "score": {"fitness": fitness, "depth": score},
+    }
+
+
+def ensemble(runs: list[dict], select: str) -> pd.DataFrame:
+    """The instance table of the refinement each instance keeps among ``runs``: the highest
+    score of ``select``, or the smallest rotation error modulo symmetry (``oracle``), the
+    first run's on a tie."""
+    if select == "oracle":
+        err = np.stack([r["table"]["icp_rot_sym_err_deg"].to_numpy(float) for r in runs])
+        pick = np.argmin(np.where(np.isfinite(err), err, np.inf), axis=0)
+    else:
+        pick = np.argmax(np.stack([r["score"][select] for r in runs]), axis=0)
+    rows = np.arange(len(pick))
+    R = np.stack([r["poses"].R for r in runs])[pick, rows]
+    t = np.stack([r["poses"].t for r in runs])[pick, rows]
+    first = runs[0]
+    return instance_table(
+        first["segs"], {"icp": Estimates(R, t)}, first["models"], first["classes"], first["sym"]
+    )
+
+
+def pooled(table: pd.DataFrame) -> dict[str, float]:
+    """Pooled metrics after ICP (percent) and the median translation error (mm)."""
+    m = {key: 100 * v for (col, video, key), v in table_metrics(table).items()
+         if col == "icp" and video == "pooled"}  # fmt: skip
+    m["trans_median_mm"] = 1000 * float(np.nanmedian(table["icp_trans_err"].to_numpy(float)))
+    return m
+
+
+def combinations(n: int, k: int, limit: int) -> list[tuple[int, ...]]:
+    """Up to ``limit`` of the k-subsets of ``range(n)``, evenly spaced in lexicographic order."""
+    every = list(itertools.combinations(range(n), k))
+    if len(every) <= limit:
+        return every
+    return [every[i] for i in np.linspace(0, len(every) - 1, limit).round().astype(int)]
+
+
+def fmt(values: list[float]) -> str:
+    v = np.asarray(values, dtype=float)
+    return f"{v.mean():.1f}" if len(v) == 1 else f"{v.mean():.1f} ± {v.std(ddof=1):.1f}"
+
+
+COLUMNS = {**{k: f"{v} (%)" for k, v in METRICS.items()}, "trans_median_mm": "median trans. (mm)"}
+
+
+def size_table(runs: list[dict], sizes: list[int], limit: int, keep=None) -> list[str]:
+    """Rows: each selection at each ensemble size (1: the networks alone)."""
+    lines = [
+        "| seeds | selection | combinations | " + " | ".join(COLUMNS.values()) + " |",
+        "|---:|---|---:|" + "---:|" * len(COLUMNS),
+    ]
+    for k in sizes:
+        combos = combinations(len(runs), k, limit)
+        for select in ("icp",) if k == 1 else SELECTIONS:
+            vals: dict[str, list[float]] = {c: [] for c in COLUMNS}
+            for combo in combos:
+                chosen = [runs[i] for i in combo]
+                table = chosen[0]["table"] if k == 1 else ensemble(chosen, select)
+                if keep is not None:
+                    table = table.set_index(KEY).loc[keep].reset_index()
+                for c, v in pooled(table).items():
+                    vals[c].append(v)
+            name = "one network + ICP" if k == 1 else select
+            lines.append(
+                f"| {k} | {name} | {len(combos)} | "
+                + " | ".join(fmt(vals[c]) for c in COLUMNS)
+                + " |"
+            )
+    return [*lines, ""]
+
+
+def per_pose(runs: list[dict]) -> list[str]:
+    """Per object pose (video/class) of the real frames: the share of its instances within 10
+    degrees modulo symmetry after ICP for each run and for the ensemble of all by depth."""
+    from cloudpose.report.real import object_pose
+
+    ens = ensemble(runs, "depth")
+    pose = object_pose(runs[0]["table"])
+    cols = {r["name"].rsplit("/", 1)[-1]: r["table"] for r in runs}
+    cols[f"ensemble ({len(runs)}, depth)"] = ens
+    share = (
+        pd.DataFrame({k: (t["icp_rot_sym_err_deg"].to_numpy(float) < 10) for k, t in cols.items()})
+        .groupby(pose)
+        .mean()
+    )
+    seeds = share.iloc[:, :-1]
+    split = int(((seeds.max(axis=1) >= 0.5) & (seeds.min(axis=1) == 0)).sum())
+    lines = [
+        "## Per object pose",
+        "",
+        "Share of each pose's instances within 10° mod sym after ICP (%), per run and for the "
+        f"ensemble of all by depth. Poses that one run gets for half or more of their instances "
+        f"and another for none: {split} of {len(share)}.",
+        "",
+        "| pose | instances | " + " | ".join(share.columns) + " |",
+        "|---|---:|" + "---:|" * len(share.columns),
+    ]
+    counts = pd.Series(pose).value_counts()
+    for p, row in share.iterrows():
+        lines.append(f"| {p} | {counts[p]} | " + " | ".join(f"{100 * v:.0f}" for v in row) + " |")
+    return [*lines, ""]
+
+
+def baseline_table(client, name: str, split: str) -> pd.DataFrame:
+    """A baseline's logged instance table (its ICP columns are its refinement)."""
+    return logged(client, name, split)[0]
+
+
+def paired(runs: list[dict], base: pd.DataFrame) -> list[str]:
+    """The networks alone (mean over them) and the ensemble of every run by each selection
+    minus the baseline + ICP on the same instances, 95% interval over object poses."""
+    groups = {"one network (mean)": [r["table"] for r in runs]}
+    for select in ("fitness", "depth"):
+        groups[f"ensemble of {len(runs)}, {select}"] = [ensemble(runs, select)]
+    lines = [
+        "| metric | " + " | ".join(f"{g} | 95% interval" for g in groups) + " |",
+        "|---|" + "---:|---:|" * len(groups),
+    ]
+    for metric, label in METRICS.items():
+        cells = []
+        for nets in groups.values():
+            d = versus_baseline(nets, base, metric, "icp")
+            cells += [f"{100 * d['diff']:+.1f}", f"[{100 * d['low']:+.1f}, {100 * d['high']:+.1f}]"]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", action="append", required=True, help="network run name (repeat)")
+    ap.add_argument("--baseline", action="append", default=[], help="baseline run name (repeat)")
+    ap.add_argument("--split", choices=("test", "real"), default="real")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 2, 4, 8])
+    ap.add_argument("--combinations", type=int, default=28, help="most subsets per size")
+    args = ap.parse_args(argv)
+    sizes = [k for k in args.sizes if 1 <= k <= len(args.run)]
+    client = tracking.setup(Path.cwd())
+    segments = Segments(args.split, Path.cwd())
+    runs = [hypotheses(client, n, args.split, segments) for n in args.run]
+    where = "the real development frames" if args.split == "real" else "the preset's test set"
+    cmd = " ".join(
+        shlex.quote(a)
+        for a in ["python", "reports/diagnostics/seed_ensemble.py", *(argv or sys.argv[1:])]
+    )
+    lines = [
+        f"# An ensemble over seeds on {where}",
+        "",
+        f"_made by `{cmd}` in the project folder that holds the runs; the estimates are the "
+        "logged ones, only ICP and the scores are computed here._",
+        "",
+        "Each network's estimate refined by its run's ICP (one start, the paper's schedule); "
+        "per instance the refinement kept with the highest ICP fitness (`fitness`), the "
+        "highest depth score, (fitness + coverage) / 2 − free-space violations "
+        "(`depth`, cloudpose.refine.depth_score), or the smallest rotation error (`oracle`: "
+        "reads the ground truth, the ceiling of any selection among these hypotheses). "
+        f"Runs: {', '.join(args.run)}. Cells: mean ± sample SD over the subsets of that many "
+        f"seeds (every subset, or {args.combinations} evenly spaced).",
+        "",
+        f"## All {len(runs[0]['table'])} instances",
+        "",
+    ]
+    lines += size_table(runs, sizes, args.combinations)
+    if args.split == "real":
+        lines += per_pose(runs)
+    for b in args.baseline:
+        base = baseline_table(client, b, args.split)
+        keep = base.set_index(KEY).index
+        base_row = pooled(base)
+        lines += [
+            f"## Against {b}, on its {len(keep)} instances",
+            "",
+            "The baseline + ICP: "
+            + ", ".join(f"{COLUMNS[c]} {base_row[c]:.1f}" for c in COLUMNS)
+            + ".",
+            "",
+        ]
+        if len(keep) < len(runs[0]["table"]):
+            lines += size_table(runs, sizes, args.combinations, keep)
+        if args.split == "real":
+            lines += [
+                "Paired, network + ICP − the baseline + ICP on the same instances (percentage "
+                "points), 95% interval from a bootstrap over object poses (and the networks' "
+                "runs):",
+                "",
+            ]
+            lines += paired(runs, base)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
