@@ -597,11 +597,15 @@ def condition_segments(
 
 @dataclass(frozen=True)
 class Method:
-    """A pose method of the sweep: ``net-{label}`` (a checkpoint), ``fpfh`` or ``ppf``; each
-    result holds its estimate (``net_*`` columns) and the same after ICP (``icp_*``)."""
+    """A pose method of the sweep: ``net-{label}`` (a checkpoint), ``ensemble`` (several, the
+    refinement of best ICP fitness kept per object), ``fpfh`` or ``ppf``; each result holds
+    its estimate (``net_*`` columns) and the same after ICP (``icp_*``)."""
 
     name: str
     checkpoint: Path | None = None
+    members: tuple[Path, ...] = ()
+    """The checkpoints of an ensemble (:func:`cloudpose.infer.select_refinements` by fitness:
+    under a perturbation of the points the frame's depth is not what the segment shows)."""
     limit: int | None = None
     """Evenly spaced instances of the sweep's own it runs on (None: all)."""
     ends_only: bool = False
@@ -618,23 +622,58 @@ SECONDS_PER_INSTANCE = {"segment": 0.05, "net": 0.03, "fpfh": 0.6, "ppf": 3.5}
 
 
 def _kind(method: Method) -> str:
-    return "net" if method.checkpoint is not None else method.name
+    return "net" if method.checkpoint is not None or method.members else method.name
+
+
+def _networks(paths, cache: dict) -> list:
+    """(model, config) of each checkpoint, loaded once per sweep call."""
+    from cloudpose.infer import load_checkpoint
+
+    out = []
+    for p in paths:
+        key = ("net", str(p))
+        if key not in cache:
+            cache[key] = load_checkpoint(p, "cpu")
+        out.append(cache[key])
+    return out
 
 
 def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict) -> pd.DataFrame:
     """The instance table (:func:`cloudpose.evaluate.instance_table`, ``net_*`` and ``icp_*``
     columns) of ``method`` on ``segs``; a segment a baseline cannot register is a miss."""
     from cloudpose.evaluate import instance_table
-    from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
+    from cloudpose.infer import Estimates, estimate_poses, refine_poses
     from cloudpose.refine import ICPSettings
 
     models = cache.setdefault("models", dataset.models())
     rows = evenly_spaced(len(segs), method.limit)
     segs = segs.subset(rows)
+    if method.members:
+        from cloudpose.infer import select_refinements
+
+        nets = _networks(method.members, cache)
+        icp_settings = ICPSettings.from_config(nets[0][1].icp)
+        table_cfg = nets[0][1]
+        ests = [estimate_poses(m, segs, c.train.n_points) for m, c in nets]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            refined = [refine_poses(segs, e, models, icp_settings) for e in ests]
+        pick = select_refinements(
+            segs, [r for r, _ in refined], [st for _, st in refined], models, "fitness"
+        )
+        rows = np.arange(len(segs))
+
+        def kept(estimates) -> Estimates:
+            R = np.stack([e.R for e in estimates])[pick, rows]
+            return Estimates(R, np.stack([e.t for e in estimates])[pick, rows])
+
+        table = instance_table(
+            segs, {"net": kept(ests), "icp": kept([r for r, _ in refined])}, models,
+            dataset.classes, symmetry_table=table_cfg.loss.symmetry_table,
+        )  # fmt: skip
+        return table.drop(columns=["net_R", "net_t", "icp_R", "icp_t"])
     if method.checkpoint is not None:
-        if method.name not in cache:
-            cache[method.name] = load_checkpoint(method.checkpoint, "cpu")
-        model, cfg = cache[method.name]
+        model, cfg = _networks([method.checkpoint], cache)[0]
         net = estimate_poses(model, segs, cfg.train.n_points)
         icp_settings = ICPSettings.from_config(cfg.icp)
         table_cfg = cfg
@@ -791,6 +830,7 @@ def run_sweep(
         "seed": seed,
         "sources": {s: src.described for s, src in opened.items()},
         "methods": {m.name: {"checkpoint": str(m.checkpoint or ""), "limit": m.limit,
+                             **({"members": [str(p) for p in m.members]} if m.members else {}),
                              **({"ends_only": True} if m.ends_only else {})}
                     for m in methods},
         "perturbations": {p.name: list(p.levels) for p in perts},

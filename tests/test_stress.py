@@ -343,3 +343,26 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     assert again == (tmp_path / "rep" / "stress.csv").read_text()
     res = cli("stress", "--preset", "smoke", "--run", "x", "--results", str(packed))
     assert res.exit_code != 0 and "--report-only" in res.output
+
+
+@pytest.mark.slow
+def test_an_ensemble_of_one_network_twice_is_that_network(smoke_project, tmp_path):
+    """Two members that agree everywhere tie everywhere: the ensemble keeps the first, so its
+    results are the network's own; an ensemble of one network is refused."""
+    _, out = smoke_project
+    ckpt = str(out.run_dir / "model.pt")
+    results = tmp_path / "res"
+    args = [
+        "stress", "--preset", "smoke", "--checkpoint", ckpt, "--instances", "3",
+        "--fpfh-instances", "0", "--ppf-instances", "0", "--synth-frames", "1", "--only", "cut",
+        "--source", "real", "--results", str(results), "--no-report", "--no-progress",
+    ]  # fmt: skip
+    res = cli(*args, "--checkpoint", ckpt, "--ensemble")
+    assert res.exit_code == 0, res.output
+    for level in ("0.1", "0.7"):
+        folder = results / "results" / "real" / "cut" / level
+        ens, net = pd.read_csv(folder / "ensemble.csv"), pd.read_csv(folder / "net-seed1.csv")
+        for col in ("net_ads", "icp_ads", "icp_rot_sym_err_deg"):
+            np.testing.assert_array_equal(ens[col], net[col])
+    res = cli(*args, "--ensemble")
+    assert res.exit_code != 0 and "at least 2 needed" in res.output

@@ -67,6 +67,15 @@ def stress(
             "depth, icp.select) on this many unperturbed instances per source (0: not).",
         ),
     ] = 0,
+    ensemble: Annotated[
+        bool,
+        typer.Option(
+            "--ensemble",
+            help="Also the networks given as one (cloudpose evaluate --ensemble): per object "
+            "the refinement of best ICP fitness kept (the depth does not follow a perturbation "
+            "of the points).",
+        ),
+    ] = False,
     seed: Annotated[int, typer.Option(help="Seed of every random choice of the sweep.")] = 1,
     quick: Annotated[
         bool, typer.Option("--quick", help="A small subsample (a look, not a measurement).")
@@ -120,8 +129,9 @@ def stress(
             ppf_instances = ppf_instances or QUICK["ppf_instances"]
             synth_frames = QUICK["synth_frames"]
         methods = _all_methods(
-            checkpoint or [], run or [], project, fpfh_instances, ppf_instances, ppf_levels
-        )
+            checkpoint or [], run or [], project, fpfh_instances, ppf_instances, ppf_levels,
+            ensemble,
+        )  # fmt: skip
         _sweep(
             results,
             resolve("shared-0", preset, seed),
@@ -155,13 +165,21 @@ def _all_methods(
     fpfh_instances: int | None,
     ppf_instances: int | None,
     ppf_levels: str,
+    ensemble: bool = False,
 ) -> list:
-    """The networks named and the baselines not left out (a limit of 0), as
-    :class:`cloudpose.stress.Method`; BadParameter when there is none or ``ppf_levels`` is not
-    ``all`` or ``ends``."""
+    """The networks named (and, with ``ensemble``, all of them as one) and the baselines not
+    left out (a limit of 0), as :class:`cloudpose.stress.Method`; BadParameter when there is
+    none, ``ppf_levels`` is not ``all`` or ``ends``, or an ensemble has fewer than two
+    networks."""
     from cloudpose import stress as st
 
     methods = _network_methods(checkpoints, runs, project)
+    if ensemble:
+        if len(methods) < 2:
+            raise typer.BadParameter(
+                f"--ensemble joins the networks given: {len(methods)} given, at least 2 needed"
+            )
+        methods.append(st.Method("ensemble", members=tuple(m.checkpoint for m in methods)))
     if ppf_levels not in ("all", "ends"):
         raise typer.BadParameter(f"--ppf-levels {ppf_levels!r}: expected all or ends")
     methods += [

@@ -31,6 +31,7 @@ NETWORK = "network"
 CURVES = (
     (NETWORK, "net", "network", "C0", "--"),
     (NETWORK, "icp", "network + ICP", "C0", "-"),
+    ("ensemble", "icp", "ensemble + ICP", "C3", "-"),
     ("fpfh", "net", "FPFH + RANSAC", "C1", "--"),
     ("fpfh", "icp", "FPFH + RANSAC + ICP", "C1", "-"),
     ("ppf", "net", "point-pair features", "C2", "--"),
@@ -184,8 +185,14 @@ def markdown(
         f"Made by `{command}` from the sweep's results (cloudpose/stress.py, seed "
         f"{meta['seed']}). Sources: "
         + "; ".join(f"**{s}**: {d}" for s, d in meta["sources"].items())
-        + f". Methods: {methods}; `{NETWORK}` is their checkpoints' mean. Every method is "
-        "followed by the same ICP (the network by its run's own).",
+        + f". Methods: {methods}; `{NETWORK}` is their checkpoints' mean"
+        + (
+            "; `ensemble` is the checkpoints as one (each estimate refined by ICP, per object "
+            "the refinement of best ICP fitness kept; cloudpose evaluate --ensemble)"
+            if "ensemble" in meta["methods"]
+            else ""
+        )
+        + ". Every method is followed by the same ICP (the network by its run's own).",
         "",
         "Each perturbation acts on the frame's mask and depth before segmentation (dilate, "
         "erode, holes) or on the back-projected points before FPS (the others); level "
