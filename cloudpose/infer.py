@@ -38,6 +38,7 @@ __all__ = [
     "forward_in_batches",
     "load_checkpoint",
     "refine_poses",
+    "refinement_scores",
     "select_refinements",
 ]
 
@@ -140,6 +141,43 @@ def refine_poses(
     return Estimates(R, t), ICPStats(fitness, rmse, kept)
 
 
+def refinement_scores(
+    segs,
+    refined: Estimates,
+    stats: ICPStats,
+    models_by_class: dict[int, np.ndarray],
+    select: str,
+    views=None,
+) -> np.ndarray:
+    """(M,) score of each row's refinement (:func:`refine_poses`) under ``select``: ICP's
+    fitness (``"fitness"``) or the depth score (``"depth"``,
+    :func:`cloudpose.refine.depth_score`: coverage of the segment and free-space violations
+    against ``views``, the rows' depth); -inf for a row not refined (a miss)."""
+    if select not in SELECTIONS:
+        raise ValueError(f"select: expected one of {', '.join(SELECTIONS)}, got {select!r}")
+    if select == "depth" and views is None:
+        raise ValueError('select "depth" needs the rows\' depth views (segment_views)')
+    score = np.full(len(segs), -np.inf)
+    index = {c: ModelIndex.of(m) for c, m in models_by_class.items()}
+    for i in np.flatnonzero(segs.valid):
+        fit = float(stats.fitness[i])
+        if not np.isfinite(fit):
+            continue
+        if select == "fitness":
+            score[i] = fit
+            continue
+        n = int(min(segs.count[i], segs.points.shape[1]))
+        agree = depth_agreement(
+            segs.points[i, :n].astype(np.float64),
+            index[int(segs.cls_id[i])],
+            refined.R[i],
+            refined.t[i],
+            views[i],
+        )
+        score[i] = depth_score(fit, agree)
+    return score
+
+
 def select_refinements(
     segs,
     refined: list[Estimates],
@@ -149,41 +187,21 @@ def select_refinements(
     views=None,
 ) -> np.ndarray:
     """Per row of ``segs``, which of several refinements of it to keep (an ensemble: each
-    network's estimate refined by ICP, :func:`refine_poses`): the highest ICP fitness
-    (``select = "fitness"``) or depth score (``"depth"``, :func:`cloudpose.refine.depth_score`:
-    coverage of the segment and free-space violations against ``views``, the rows' depth).
+    network's estimate refined by ICP, :func:`refine_poses`): the highest
+    :func:`refinement_scores` under ``select``.
 
     Returns:
         (M,) int indices into ``refined``; the first on a tie and for a miss.
     """
-    if select not in SELECTIONS:
-        raise ValueError(f"select: expected one of {', '.join(SELECTIONS)}, got {select!r}")
     if len(refined) != len(stats) or not refined:
         raise ValueError(
             f"refined and stats: one of each per network, got {len(refined)} and {len(stats)}"
         )
-    if select == "depth" and views is None:
-        raise ValueError('select "depth" needs the rows\' depth views (segment_views)')
-    score = np.full((len(refined), len(segs)), -np.inf)
-    index = {c: ModelIndex.of(m) for c, m in models_by_class.items()}
-    for k, (est, st) in enumerate(zip(refined, stats, strict=True)):
-        for i in np.flatnonzero(segs.valid):
-            fit = float(st.fitness[i])
-            if not np.isfinite(fit):
-                continue
-            if select == "fitness":
-                score[k, i] = fit
-                continue
-            n = int(min(segs.count[i], segs.points.shape[1]))
-            agree = depth_agreement(
-                segs.points[i, :n].astype(np.float64),
-                index[int(segs.cls_id[i])],
-                est.R[i],
-                est.t[i],
-                views[i],
-            )
-            score[k, i] = depth_score(fit, agree)
-    return np.argmax(score, axis=0)
+    scores = [
+        refinement_scores(segs, r, st, models_by_class, select, views)
+        for r, st in zip(refined, stats, strict=True)
+    ]
+    return np.argmax(np.stack(scores), axis=0)
 
 
 def load_checkpoint(

@@ -93,10 +93,9 @@ def same_refinement(name: str, recomputed: pd.DataFrame, table: pd.DataFrame) ->
         )
 
 
-def refined(client, name: str, split: str, starts: int, segments: Segments) -> dict:
-    """The run's logged table (``one``: its own one-start ICP) and the same estimates refined
-    from ``starts`` starts (``many``), with the share of objects another start won and the
-    refinement's milliseconds per object."""
+def logged_segments(client, name: str, split: str, segments: Segments):
+    """``(table, segs, dataset, symmetry table)``: the logged instance table of the run named
+    ``name`` and the segments its evaluation used, row for row (a logged miss stays one)."""
     table, tags = logged(client, name, split)
     dataset, pool, sym = segments.of(tags["preset"], int(tags.get("seed", 1)))
     keys = pd.Index(
@@ -107,6 +106,14 @@ def refined(client, name: str, split: str, starts: int, segments: Segments) -> d
         raise SystemExit(f"{name}: {int((where < 0).sum())} logged instances not in the segments")
     segs = pool.subset(where)
     segs.valid = ~table["miss"].to_numpy(dtype=bool)
+    return table, segs, dataset, sym
+
+
+def refined(client, name: str, split: str, starts: int, segments: Segments) -> dict:
+    """The run's logged table (``one``: its own one-start ICP) and the same estimates refined
+    from ``starts`` starts (``many``), with the share of objects another start won and the
+    refinement's milliseconds per object."""
+    table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
     est = poses(table, "net")
     one, _ = refine_poses(segs, est, models)

@@ -30,48 +30,31 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.evaluate import instance_table
-from cloudpose.infer import Estimates, refine_poses
-from cloudpose.refine import ModelIndex, depth_agreement, depth_score, segment_views
+from cloudpose.infer import Estimates, refine_poses, refinement_scores
+from cloudpose.refine import segment_views
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
 
 sys.path.insert(0, str(Path(__file__).parent))
-from multi_start_icp import KEY, Segments, logged, poses, same_refinement
+from multi_start_icp import KEY, Segments, logged, logged_segments, poses, same_refinement
 
 SELECTIONS = ("fitness", "depth", "oracle")
 
 
 def hypotheses(client, name: str, split: str, segments: Segments) -> dict:
     """One run's estimates refined by one-start ICP on the segments its evaluation used, each
-    refinement's fitness and depth score, and the instance table of the refined poses."""
-    table, tags = logged(client, name, split)
-    dataset, pool, sym = segments.of(tags["preset"], int(tags.get("seed", 1)))
-    keys = pd.Index(
-        pd.Series(pool.frame_id).astype(str) + "#" + pd.Series(pool.instance).astype(str)
-    )
-    where = keys.get_indexer(table["frame_id"].astype(str) + "#" + table["instance"].astype(str))
-    if (where < 0).any():
-        raise SystemExit(f"{name}: {int((where < 0).sum())} logged instances not in the segments")
-    segs = pool.subset(where)
-    segs.valid = ~table["miss"].to_numpy(dtype=bool)
+    refinement's fitness and depth score (:func:`cloudpose.infer.refinement_scores`), and the
+    instance table of the refined poses."""
+    table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
     refined, stats = refine_poses(segs, poses(table, "net"), models)
     out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
     same_refinement(name, out, table)
     views = segment_views(dataset, segs)
-    index = {c: ModelIndex.of(m) for c, m in models.items()}
-    score = np.full(len(segs), -np.inf)
-    for i in np.flatnonzero(segs.valid):
-        k = int(min(segs.count[i], segs.points.shape[1]))
-        agree = depth_agreement(
-            segs.points[i, :k].astype(np.float64),
-            index[int(segs.cls_id[i])],
-            refined.R[i],
-            refined.t[i],
-            views[i],
-        )
-        score[i] = depth_score(float(stats.fitness[i]), agree)
-    fitness = np.where(np.isfinite(stats.fitness), stats.fitness, -np.inf)
+    score = {
+        select: refinement_scores(segs, refined, stats, models, select, views)
+        for select in ("fitness", "depth")
+    }
     return {
         "name": name,
         "table": out,
@@ -80,7 +63,7 @@ def hypotheses(client, name: str, split: str, segments: Segments) -> dict:
         "classes": dataset.classes,
         "sym": sym,
         "poses": refined,
-        "score": {"fitness": fitness, "depth": score},
+        "score": score,
     }
 
 
