@@ -339,7 +339,7 @@ def _score_ensemble(
     nets = [estimate_poses(m, segs, c.train.n_points, device=device) for m, c in networks]
     t_net = time.monotonic() - t0
     t0 = time.monotonic()
-    views = segment_views(dataset, segs)
+    views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
     refined = [
         refine_poses(segs, e, models_by_class, icp_settings, progress, views=views) for e in nets
     ]
