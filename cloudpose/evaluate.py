@@ -32,13 +32,7 @@ from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.infer import (
-    Estimates,
-    estimate_poses,
-    load_checkpoint,
-    refine_poses,
-    select_refinements,
-)
+from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_ensemble
 from cloudpose.metrics import pose_errors
 from cloudpose.refine import ICPSettings, segment_views
 from cloudpose.store import runs, tracking
@@ -266,35 +260,40 @@ def _test_data(
 
 
 def _score(
-    model,
-    cfg,
+    networks: list,
     test: _TestData,
     name: str,
     icp_settings: ICPSettings | None,
     device,
     progress: bool,
+    symmetry_table: int,
 ) -> tuple[pd.DataFrame, dict[str, float]]:
     """The per-instance table and metrics of the network on ``test``, and after ICP with
-    ``icp_settings`` (None: no ICP), with milliseconds per object."""
+    ``icp_settings`` (None: no ICP), with milliseconds per object. Several ``networks``
+    ((model, config) pairs, the evaluated run's first) are an ensemble
+    (:func:`cloudpose.infer.refine_ensemble`): ``net_*`` columns hold the kept network's own
+    estimate, ``ensemble_member`` its index."""
     segs, dataset = test.segs, test.dataset
     models_by_class = dataset.models()
     t0 = time.monotonic()
-    est = {"net": estimate_poses(model, segs, cfg.train.n_points, device=device)}
+    nets = [estimate_poses(m, segs, c.train.n_points, device=device) for m, c in networks]
+    est = {"net": nets[0]}
     t_net = time.monotonic() - t0
     if icp_settings is not None:
         t0 = time.monotonic()
         views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
-        est["icp"], stats = refine_poses(
-            segs, est["net"], models_by_class, icp_settings, progress, views=views
+        est["icp"], stats, pick = refine_ensemble(
+            segs, nets, models_by_class, icp_settings, views, progress
         )
+        est["net"] = Estimates.kept(nets, pick)
         t_icp = time.monotonic() - t0
-    table = instance_table(
-        segs, est, models_by_class, dataset.classes, symmetry_table=cfg.loss.symmetry_table
-    )
+    table = instance_table(segs, est, models_by_class, dataset.classes, symmetry_table)
     if icp_settings is not None:
         table["icp_fitness"] = stats.fitness
         table["icp_inlier_rmse"] = stats.inlier_rmse
         table["icp_fallback"] = stats.fallback
+        if len(networks) > 1:
+            table["ensemble_member"] = np.where(segs.valid, pick, -1)
     metrics = summary_metrics(table, name)
     n_valid = max(int(np.sum(segs.valid)), 1)
     metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
@@ -317,54 +316,6 @@ def _check_member(cfg, other, run: str) -> None:
             f"{', '.join(fields)}; an ensemble joins networks of the same preset (other seeds "
             "or variants)"
         )
-
-
-def _score_ensemble(
-    networks: list,
-    test: _TestData,
-    name: str,
-    icp_settings: ICPSettings,
-    device,
-    progress: bool,
-    symmetry_table: int,
-) -> tuple[pd.DataFrame, dict[str, float]]:
-    """The per-instance table and metrics of an ensemble on ``test``: each network's estimate
-    refined by ICP (``icp_settings``), per instance the refinement with the best score of
-    ``icp_settings.select`` kept (:func:`cloudpose.infer.select_refinements`); ``net_*``
-    columns hold the kept network's own estimate, ``ensemble_member`` its index among
-    ``networks`` ((model, config) pairs, the evaluated run's first)."""
-    segs, dataset = test.segs, test.dataset
-    models_by_class = dataset.models()
-    t0 = time.monotonic()
-    nets = [estimate_poses(m, segs, c.train.n_points, device=device) for m, c in networks]
-    t_net = time.monotonic() - t0
-    t0 = time.monotonic()
-    views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
-    refined = [
-        refine_poses(segs, e, models_by_class, icp_settings, progress, views=views) for e in nets
-    ]
-    pick = select_refinements(
-        segs, [r for r, _ in refined], [s for _, s in refined], models_by_class,
-        icp_settings.select, views,
-    )  # fmt: skip
-    t_icp = time.monotonic() - t0
-    rows = np.arange(len(segs))
-
-    def kept(estimates: list[Estimates]) -> Estimates:
-        return Estimates(
-            np.stack([e.R for e in estimates])[pick, rows],
-            np.stack([e.t for e in estimates])[pick, rows],
-        )
-
-    est = {"net": kept(nets), "icp": kept([r for r, _ in refined])}
-    table = instance_table(segs, est, models_by_class, dataset.classes, symmetry_table)
-    table["icp_fitness"] = np.stack([s.fitness for _, s in refined])[pick, rows]
-    table["ensemble_member"] = np.where(segs.valid, pick, -1)
-    metrics = summary_metrics(table, name)
-    n_valid = max(int(np.sum(segs.valid)), 1)
-    metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
-    metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
-    return table, metrics
 
 
 def evaluate(
@@ -454,15 +405,11 @@ def evaluate(
             f"{logged}, this data {test.data_key}); choose another --name"
         )
     device = next(model.buffers()).device
-    if members:
-        networks = [(model, cfg), *((m[1], m[2]) for m in members)]
-        table, metrics = _score_ensemble(
-            networks, test, name, icp_settings, device, progress, cfg.loss.symmetry_table
-        )
-    else:
-        table, metrics = _score(
-            model, cfg, test, name, icp_settings if icp else None, device, progress
-        )
+    networks = [(model, cfg), *((m[1], m[2]) for m in members)]
+    table, metrics = _score(
+        networks, test, name, icp_settings if icp else None, device, progress,
+        cfg.loss.symmetry_table,
+    )  # fmt: skip
     if log:
         try:
             log_evaluation(client, run_id, name, table, metrics)

@@ -37,6 +37,7 @@ __all__ = [
     "estimate_poses",
     "forward_in_batches",
     "load_checkpoint",
+    "refine_ensemble",
     "refine_poses",
     "refinement_scores",
     "select_refinements",
@@ -80,6 +81,16 @@ class Estimates:
 
     R: np.ndarray  # (M, 3, 3)
     t: np.ndarray  # (M, 3) metres
+
+    @classmethod
+    def kept(cls, candidates: list[Estimates], pick: np.ndarray) -> Estimates:
+        """Per row, the pose of ``candidates[pick[row]]`` (several estimates of the same rows,
+        :func:`select_refinements`)."""
+        rows = np.arange(len(pick))
+        return cls(
+            np.stack([c.R for c in candidates])[pick, rows],
+            np.stack([c.t for c in candidates])[pick, rows],
+        )
 
 
 def estimate_poses(model, segs, n_points: int, device="cpu", batch_size: int = 512) -> Estimates:
@@ -202,6 +213,34 @@ def select_refinements(
         for r, st in zip(refined, stats, strict=True)
     ]
     return np.argmax(np.stack(scores), axis=0)
+
+
+def refine_ensemble(
+    segs,
+    estimates: list[Estimates],
+    models_by_class: dict[int, np.ndarray],
+    settings: ICPSettings,
+    views=None,
+    progress: bool = False,
+) -> tuple[Estimates, ICPStats, np.ndarray]:
+    """Several networks' estimates of the same rows as one: each refined by ICP
+    (:func:`refine_poses` with ``settings``), per row the refinement with the best score of
+    ``settings.select`` kept (:func:`select_refinements`; one network: its own, unscored).
+
+    Returns:
+        The kept refinements, their ICP figures, and (M,) the index of the network each row
+        kept (0 for a miss).
+    """
+    refined = [
+        refine_poses(segs, e, models_by_class, settings, progress, views=views) for e in estimates
+    ]
+    if len(refined) == 1:
+        return *refined[0], np.zeros(len(segs), dtype=np.int64)
+    poses, stats = [r for r, _ in refined], [st for _, st in refined]
+    pick = select_refinements(segs, poses, stats, models_by_class, settings.select, views)
+    rows = np.arange(len(pick))
+    kept_stats = ICPStats(*(np.stack(field)[pick, rows] for field in zip(*stats, strict=True)))
+    return Estimates.kept(poses, pick), kept_stats, pick
 
 
 def load_checkpoint(

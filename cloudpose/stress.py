@@ -642,41 +642,19 @@ def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict
     """The instance table (:func:`cloudpose.evaluate.instance_table`, ``net_*`` and ``icp_*``
     columns) of ``method`` on ``segs``; a segment a baseline cannot register is a miss."""
     from cloudpose.evaluate import instance_table
-    from cloudpose.infer import Estimates, estimate_poses, refine_poses
+    from cloudpose.infer import Estimates, estimate_poses, refine_ensemble
     from cloudpose.refine import ICPSettings
 
     models = cache.setdefault("models", dataset.models())
     rows = evenly_spaced(len(segs), method.limit)
     segs = segs.subset(rows)
-    if method.members:
-        from cloudpose.infer import select_refinements
-
-        nets = _networks(method.members, cache)
-        icp_settings = ICPSettings.from_config(nets[0][1].icp)
+    if method.checkpoint is not None or method.members:  # an ensemble keeps the best fit
+        nets = _networks(method.members or [method.checkpoint], cache)
         table_cfg = nets[0][1]
+        icp_settings = ICPSettings.from_config(table_cfg.icp)
+        if method.members:
+            icp_settings = dataclasses.replace(icp_settings, select="fitness")
         ests = [estimate_poses(m, segs, c.train.n_points) for m, c in nets]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            refined = [refine_poses(segs, e, models, icp_settings) for e in ests]
-        pick = select_refinements(
-            segs, [r for r, _ in refined], [st for _, st in refined], models, "fitness"
-        )
-        rows = np.arange(len(segs))
-
-        def kept(estimates) -> Estimates:
-            R = np.stack([e.R for e in estimates])[pick, rows]
-            return Estimates(R, np.stack([e.t for e in estimates])[pick, rows])
-
-        table = instance_table(
-            segs, {"net": kept(ests), "icp": kept([r for r, _ in refined])}, models,
-            dataset.classes, symmetry_table=table_cfg.loss.symmetry_table,
-        )  # fmt: skip
-        return table.drop(columns=["net_R", "net_t", "icp_R", "icp_t"])
-    if method.checkpoint is not None:
-        model, cfg = _networks([method.checkpoint], cache)[0]
-        net = estimate_poses(model, segs, cfg.train.n_points)
-        icp_settings = ICPSettings.from_config(cfg.icp)
-        table_cfg = cfg
     else:
         from cloudpose.baselines import load_settings, make
         from cloudpose.baselines.base import NotRegistered
@@ -699,12 +677,13 @@ def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict
                 continue
             R[j], t[j], ok[j] = pose.R, pose.t, True
         segs.valid = np.asarray(segs.valid, dtype=bool) & ok
-        net = Estimates(R, t)
+        ests = [Estimates(R, t)]
         icp_settings = ICPSettings()
         table_cfg = cache.setdefault("cfg", resolve("shared-0", DEFAULT_PRESET, 1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        icp, _ = refine_poses(segs, net, models, icp_settings)
+        icp, _, pick = refine_ensemble(segs, ests, models, icp_settings)
+    net = Estimates.kept(ests, pick)
     table = instance_table(
         segs, {"net": net, "icp": icp}, models, dataset.classes,
         symmetry_table=table_cfg.loss.symmetry_table,

@@ -82,12 +82,10 @@ def ensemble(runs: list[dict], select: str) -> pd.DataFrame:
         pick = np.argmin(np.where(np.isfinite(err), err, np.inf), axis=0)
     else:
         pick = np.argmax(np.stack([r["score"][select] for r in runs]), axis=0)
-    rows = np.arange(len(pick))
-    R = np.stack([r["poses"].R for r in runs])[pick, rows]
-    t = np.stack([r["poses"].t for r in runs])[pick, rows]
     first = runs[0]
+    kept = Estimates.kept([r["poses"] for r in runs], pick)
     return instance_table(
-        first["segs"], {"icp": Estimates(R, t)}, first["models"], first["classes"], first["sym"]
+        first["segs"], {"icp": kept}, first["models"], first["classes"], first["sym"]
     )
 
 
