@@ -991,12 +991,18 @@ def summary_of(table: pd.DataFrame, stage: str) -> dict[str, float]:
     }
 
 
+def _learned(method: dict) -> bool:
+    """Whether a method of ``sweep.json`` is a network (a checkpoint) or an ensemble of them
+    (members), not a registration."""
+    return bool(method["checkpoint"] or method.get("members"))
+
+
 def collect(out_dir: Path) -> pd.DataFrame:
     """One row per (source, perturbation, level, method, stage) found under ``out_dir``:
     :data:`SUMMARY_COLUMNS` and the instance count; the identity (computed once) is repeated
     under every perturbation. Stage ``net`` is the method's own estimate, ``icp`` after ICP.
-    Method ``NET@BASELINE``: network NET on the instances the baseline ran on (its
-    subsample), for paired comparisons."""
+    Method ``NET@BASELINE``: network (or ensemble) NET on the instances the baseline ran on
+    (its subsample), for paired comparisons."""
     meta = json.loads((out_dir / "sweep.json").read_text())
     rows = []
     for src in meta["sources"]:
@@ -1007,9 +1013,10 @@ def collect(out_dir: Path) -> pd.DataFrame:
                     path = level_result_path(out_dir, src, pname, lv, m)
                     if path.is_file():
                         tables[m] = pd.read_csv(path)
-                for m, v in meta["methods"].items():  # each network on each baseline's rows
+                learned = {m for m, v in meta["methods"].items() if _learned(v)}
+                for m in learned:  # each network (or ensemble) on each baseline's rows
                     for b in meta["methods"]:
-                        if v["checkpoint"] and not meta["methods"][b]["checkpoint"]:
+                        if b not in learned:
                             if m in tables and b in tables:
                                 keys = tables[b][["frame_id", "instance"]]
                                 tables[f"{m}@{b}"] = tables[m].merge(keys)

@@ -266,6 +266,52 @@ def test_a_pose_names_every_perturbation_its_statistic_places(tmp_path):
     assert len(row) == 1 and "| miss | off_model (100) | dilate or shift |" in row[0], row
 
 
+def _method_table(ads: list[float]) -> pd.DataFrame:
+    """A method's result table on instances 0..n-1 of one frame: ADS (m) before and after ICP
+    as given, every other error the same."""
+    n = len(ads)
+    cols = {"frame_id": ["0000/000001"] * n, "instance": list(range(n)), "cls_id": [8] * n}
+    for stage in ("net", "icp"):
+        cols |= {f"{stage}_ad": ads, f"{stage}_ads": ads, f"{stage}_rot_err_deg": [5.0] * n,
+                 f"{stage}_rot_sym_err_deg": [5.0] * n, f"{stage}_trans_err": [0.005] * n}
+    return pd.DataFrame({**cols, "seconds": [1.0] * n})  # fmt: skip
+
+
+def test_the_ensemble_is_paired_with_fpfh_at_the_real_level(tmp_path):
+    """An ensemble is a learned method: it is measured on FPFH's instances as each network is,
+    and the fragility section sets it against FPFH at the real frames' level and counts the
+    pairs at or above it."""
+    import json
+
+    from cloudpose.report.stress import _fragility_section, fragility, with_network_mean
+
+    methods = {"net-seed1": {"checkpoint": "a.pt", "limit": None},
+               "fpfh": {"checkpoint": "", "limit": 2},
+               "ensemble": {"checkpoint": "", "limit": None, "members": ["a.pt", "b.pt"]}}  # fmt: skip
+    meta = {"preset": "smoke", "seed": 1, "sources": {"real": ""}, "methods": methods,
+            "perturbations": {"dilate": [0.0, 1.0]}}  # fmt: skip
+    tmp_path.joinpath("sweep.json").write_text(json.dumps(meta))
+    # on FPFH's instances 0 and 1, ADS AUC: network 80, FPFH 90, ensemble 95
+    ads = {"net-seed1": [0.04, 0.06, 0.001], "fpfh": [0.02, 0.05], "ensemble": [0.01, 0.03, 0.001]}
+    for level in (0.0, 1.0):
+        for m, a in ads.items():
+            path = st.result_path(tmp_path, "real", "dilate", level, m)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            _method_table(a).to_csv(path, index=False)
+    summary = with_network_mean(st.collect(tmp_path))
+    assert {"ensemble@fpfh", "net-seed1@fpfh", "network@fpfh"} <= set(summary.method)
+    assert "fpfh@ensemble" not in set(summary.method)
+    frag = fragility(summary, {"dilate": 0.5})
+    row = frag.iloc[0]
+    assert row["ensemble@fpfh_at_real"] > row["fpfh_at_real"] > row["network@fpfh_at_real"]
+    lines, _ = _fragility_section(frag)
+    text = "\n".join(lines)
+    assert "| ensemble - FPFH at real |" in text
+    assert "network + ICP on 0; the ensemble + ICP on 1." in text
+    gap = row["ensemble@fpfh_at_real"] - row["fpfh_at_real"]
+    assert f"| {gap:+.1f} |" in [r for r in lines if r.startswith("| real | dilate")][0]
+
+
 def test_packed_results_read_back_as_the_folder(tmp_path):
     """The archive holds the result files and not the frames' cache, packs byte-identically
     twice, and unpacks to the same files."""

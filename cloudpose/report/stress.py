@@ -45,6 +45,10 @@ FRAGILE_PP = 3.0
 instances (FPFH's subsample; point-pair features run on too few instances here to decide)."""
 
 
+AT_OR_ABOVE_PP = 0.05
+"""ADS AUC points below FPFH + RANSAC + ICP that still count as at its level in the tally of
+the fragility section: the cells are printed to one decimal, and a tie printed as +0.0 is one."""
+
 FRAGILE_MM = 2.0
 """Translation-fragile: at the real frames' level on synthetic segments, the network's median
 translation error grows by this many millimetres more than FPFH + RANSAC + ICP's."""
@@ -104,7 +108,8 @@ def fragility(summary: pd.DataFrame, levels: dict[str, float]) -> pd.DataFrame:
             ident = identity_level(p)
             far = max(p.levels, key=lambda lv: abs(lv - ident))
             row = {"source": source, "perturbation": name, "real_level": levels.get(name)}
-            for method in (NETWORK, f"{NETWORK}@fpfh", "fpfh", f"{NETWORK}@ppf", "ppf"):
+            for method in (NETWORK, f"{NETWORK}@fpfh", "fpfh", f"{NETWORK}@ppf", "ppf",
+                           "ensemble@fpfh"):  # fmt: skip
                 base = _value(summary, source, name, ident, method, "icp", "ads_auc")
                 at_real = _interp(summary, source, name, levels.get(name, np.nan), method, "icp",
                                   "ads_auc")  # fmt: skip
@@ -245,6 +250,7 @@ def _levels_section(levels: dict, how: dict) -> list[str]:
 def _fragility_section(frag: pd.DataFrame) -> tuple[list[str], list[str]]:
     """The fragility tables (ADS AUC lost; translation at the real frames' level) and the
     perturbations the network's translation is fragile to."""
+    ensemble = "ensemble@fpfh_at_real" in frag and bool(frag["ensemble@fpfh_at_real"].notna().any())
     out = ["", "## Fragility", ""]
     out += [
         "ADS AUC (after ICP) lost from the unperturbed segments to the real frames' level and to "
@@ -252,11 +258,14 @@ def _fragility_section(frag: pd.DataFrame) -> tuple[list[str], list[str]]:
         "network on the instances FPFH + RANSAC ran on, and on those point-pair features ran "
         f"on. **fragile** = on FPFH's instances the network loses more than {FRAGILE_PP:g} "
         "points more than FPFH + RANSAC at the largest level. Last column: network + ICP minus "
-        "FPFH + RANSAC + ICP at the real frames' level, same instances.",
+        "FPFH + RANSAC + ICP at the real frames' level, same instances"
+        + (", and the same for the ensemble + ICP." if ensemble else "."),
         "",
         "| source | perturbation | real level | network (all) | network (FPFH's) | FPFH "
-        "| network (PPF's) | PPF | network - FPFH at real | fragile |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| network (PPF's) | PPF | network - FPFH at real | "
+        + ("ensemble - FPFH at real | " if ensemble else "")
+        + "fragile |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if ensemble else "") + "---|",
     ]
 
     def pair(r, m):
@@ -265,11 +274,26 @@ def _fragility_section(frag: pd.DataFrame) -> tuple[list[str], list[str]]:
     for _, r in frag.iterrows():
         lv = r.real_level
         gap = r[f"{NETWORK}@fpfh_at_real"] - r["fpfh_at_real"]
+        ens = f"{r['ensemble@fpfh_at_real'] - r['fpfh_at_real']:+.1f} | " if ensemble else ""
         out.append(
             f"| {r.source} | {r.perturbation} | {lv:.3g} | {pair(r, NETWORK)} | "
             f"{pair(r, NETWORK + '@fpfh')} | {pair(r, 'fpfh')} | {pair(r, NETWORK + '@ppf')} | "
-            f"{pair(r, 'ppf')} | {gap:+.1f} | {'**fragile**' if r.fragile else ''} |"
+            f"{pair(r, 'ppf')} | {gap:+.1f} | {ens}{'**fragile**' if r.fragile else ''} |"
         )
+    placed = frag[np.isfinite(frag.real_level.astype(float))]
+    tally = [("network + ICP", placed[f"{NETWORK}@fpfh_at_real"])]
+    if ensemble:
+        tally.append(("the ensemble + ICP", placed["ensemble@fpfh_at_real"]))
+    at_or_above = "; ".join(
+        f"{label} on {int((at >= placed['fpfh_at_real'] - AT_OR_ABOVE_PP).sum())}"
+        for label, at in tally
+    )
+    out += [
+        "",
+        f"At the real frames' level, on FPFH's instances, at or above FPFH + RANSAC + ICP "
+        f"(within {AT_OR_ABOVE_PP:g} point) on ADS AUC, of the {len(placed)} placed "
+        f"(source, perturbation) pairs: {at_or_above}.",
+    ]
     out += [
         "",
         "Synthetic segments brought to the real frames' level: median translation error (mm) "
