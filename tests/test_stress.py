@@ -309,7 +309,7 @@ def test_the_ensemble_is_paired_with_fpfh_at_the_real_level(tmp_path):
     assert "| ensemble - FPFH at real |" in text
     assert "network + ICP on 0; the ensemble + ICP on 1." in text
     gap = row["ensemble@fpfh_at_real"] - row["fpfh_at_real"]
-    assert f"| {gap:+.1f} |" in [r for r in lines if r.startswith("| real | dilate")][0]
+    assert f"| {gap:+.1f} |" in next(r for r in lines if r.startswith("| real | dilate"))
 
 
 def test_packed_results_read_back_as_the_folder(tmp_path):
