@@ -272,8 +272,13 @@ def _method_table(ads: list[float]) -> pd.DataFrame:
     n = len(ads)
     cols = {"frame_id": ["0000/000001"] * n, "instance": list(range(n)), "cls_id": [8] * n}
     for stage in ("net", "icp"):
-        cols |= {f"{stage}_ad": ads, f"{stage}_ads": ads, f"{stage}_rot_err_deg": [5.0] * n,
-                 f"{stage}_rot_sym_err_deg": [5.0] * n, f"{stage}_trans_err": [0.005] * n}
+        cols |= {
+            f"{stage}_ad": ads,
+            f"{stage}_ads": ads,
+            f"{stage}_rot_err_deg": [5.0] * n,
+            f"{stage}_rot_sym_err_deg": [5.0] * n,
+            f"{stage}_trans_err": [0.005] * n,
+        }
     return pd.DataFrame({**cols, "seconds": [1.0] * n})  # fmt: skip
 
 
