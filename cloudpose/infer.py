@@ -132,9 +132,8 @@ def refine_poses(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
-            k = int(min(segs.count[i], segs.points.shape[1]))
             sol = icp_refine(
-                segs.points[i, :k].astype(np.float64),
+                segs.observed(i).astype(np.float64),
                 index[int(segs.cls_id[i])],
                 est.R[i],
                 est.t[i],
@@ -177,9 +176,8 @@ def refinement_scores(
         if select == "fitness":
             score[i] = fit
             continue
-        n = int(min(segs.count[i], segs.points.shape[1]))
         agree = depth_agreement(
-            segs.points[i, :n].astype(np.float64),
+            segs.observed(i).astype(np.float64),
             index[int(segs.cls_id[i])],
             refined.R[i],
             refined.t[i],

@@ -120,7 +120,7 @@ def predict(
     models_by_class = dataset.models()
     valid = np.flatnonzero(segs.valid)
     check_depth_scale(
-        [segs.points[i, : min(int(segs.count[i]), segs.points.shape[1])] for i in valid],
+        [segs.observed(i) for i in valid],
         [int(segs.cls_id[i]) for i in valid],
         models_by_class,
         str(depth),

@@ -455,8 +455,7 @@ def segment_stats(
         row.update(px.iloc[j].to_dict())
         row["occlusion"] = float(segs.occlusion[j])
         if segs.valid[j]:
-            k = int(min(segs.count[j], segs.points.shape[1]))
-            p = segs.points[j, :k].astype(np.float64)
+            p = segs.observed(j).astype(np.float64)
             R, t = segs.R[j].astype(np.float64), segs.t[j].astype(np.float64)
             c = int(segs.cls_id[j])
             q = (p - t) @ R  # model frame
@@ -670,9 +669,8 @@ def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict
         t = np.zeros((len(segs), 3))
         ok = np.zeros(len(segs), dtype=bool)
         for j in np.flatnonzero(segs.valid):
-            k = int(min(segs.count[j], segs.points.shape[1]))
             try:
-                pose = est.estimate(segs.points[j, :k], int(segs.cls_id[j]))
+                pose = est.estimate(segs.observed(j), int(segs.cls_id[j]))
             except NotRegistered:
                 continue
             R[j], t[j], ok[j] = pose.R, pose.t, True

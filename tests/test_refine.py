@@ -500,17 +500,22 @@ def test_depth_selection_recovers_the_turned_estimate_and_needs_the_depth():
     assert Config.from_dict(stored).fingerprint() == own.fingerprint()
 
 
-class _Rows:
-    """The fields of a segment set that :func:`cloudpose.infer.select_refinements` reads."""
+def _rows(points, valid):
+    """A segment set of the given points (all observed), class 1, without ground truth."""
+    from cloudpose.data.segment_set import SegmentSet
 
-    def __init__(self, points, valid):
-        self.points = points.astype(np.float32)
-        self.count = np.full(len(points), points.shape[1])
-        self.cls_id = np.ones(len(points), dtype=np.int16)
-        self.valid = np.asarray(valid, dtype=bool)
-
-    def __len__(self) -> int:
-        return len(self.points)
+    m = len(points)
+    return SegmentSet(
+        points=points.astype(np.float32),
+        count=np.full(m, points.shape[1], dtype=np.int32),
+        cls_id=np.ones(m, dtype=np.int16),
+        R=np.full((m, 3, 3), np.nan, np.float32),
+        t=np.full((m, 3), np.nan, np.float32),
+        occlusion=np.full(m, np.nan, np.float32),
+        frame_id=np.array([f"0000/{i:06d}" for i in range(m)]),
+        instance=np.zeros(m, dtype=np.int16),
+        valid=np.asarray(valid, dtype=bool),
+    )
 
 
 def _box_scene():
@@ -538,7 +543,7 @@ def test_select_refinements_keeps_the_best_score_per_row():
     from cloudpose.refine import ICPStats
 
     model, face, view, right, nearer = _box_scene()
-    rows = _Rows(np.stack([face, face, face]), [True, True, False])
+    rows = _rows(np.stack([face, face, face]), [True, True, False])
     eye = np.tile(np.eye(3), (3, 1, 1))
     a = Estimates(eye, np.stack([nearer, right, right]))
     b = Estimates(eye, np.stack([right, nearer, right]))

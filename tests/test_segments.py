@@ -187,6 +187,14 @@ def test_outlier_filter_and_fill():
     # a larger radius keeps the streak
     (s5b, _) = sg.extract_segments(f, np.array([1000, 9]), outlier_radius=1.5)
     assert s5b.count == 900
+    # a set's observed points: the first `count` of the FPS order, at most all of it
+    from cloudpose.data.segment_set import SegmentSet
+
+    segs = SegmentSet.from_segments([s5, s7])
+    assert np.array_equal(segs.observed(0), s5.points[:890])
+    assert np.array_equal(segs.observed(1), s7.points[:9])
+    segs.count[0] = 5000  # more points than FPS kept
+    assert np.array_equal(segs.observed(0), s5.points)
 
 
 def test_instance_without_points_is_kept_as_a_miss():
@@ -364,7 +372,7 @@ def test_synthetic_training_segments_match_their_labels(smoke_data):
     models, syms = ds.models(), symmetries_for(ds.classes)
     checked = 0
     for i in np.flatnonzero(s.valid):
-        P = s.points[i][: min(int(s.count[i]), len(s.points[i]))].astype(np.float64)
+        P = s.observed(i).astype(np.float64)
         c, R, t = int(s.cls_id[i]), s.R[i].astype(np.float64), s.t[i].astype(np.float64)
 
         def fit(X, P=P):

@@ -254,10 +254,9 @@ def _estimate_all(
         unit="obj",
     )
     for i in bar:
-        k = int(min(segs.count[i], segs.points.shape[1]))
         t0 = time.perf_counter()
         try:
-            pose = estimator.estimate(segs.points[i, :k], int(segs.cls_id[i]))
+            pose = estimator.estimate(segs.observed(i), int(segs.cls_id[i]))
             state.R[i], state.t[i] = pose.R, pose.t
             state.ok[i] = True
         except NotRegistered:

@@ -68,6 +68,11 @@ class SegmentSet:
     def __len__(self) -> int:
         return len(self.count)
 
+    def observed(self, i: int) -> np.ndarray:
+        """Segment ``i``'s distinct points: the first ``count`` of its FPS order, camera frame
+        (a segment of fewer points than ``n_fps`` repeats its FPS order after them)."""
+        return self.points[i, : min(int(self.count[i]), self.points.shape[1])]
+
     def subset(self, index: np.ndarray | slice) -> SegmentSet:
         """The segments selected by a bool mask (M,), an index array or a slice."""
         parts = {name: getattr(self, name)[index] for name in self._ARRAYS}
@@ -204,12 +209,11 @@ def unit_stats(segs: SegmentSet, models_by_class: dict[int, np.ndarray]) -> dict
     scene = np.array([str(f).split("/", 1)[0] for f in segs.frame_id], dtype=str)
     names = np.unique(scene)
     stats = np.full((len(names), 2), np.nan)
-    n_fps = segs.points.shape[1]
     for k, name in enumerate(names):
         idx = np.flatnonzero((scene == name) & np.asarray(segs.valid, dtype=bool))
         if len(idx) > UNIT_SAMPLE:
             idx = idx[np.linspace(0, len(idx) - 1, UNIT_SAMPLE).round().astype(np.int64)]
-        points = [segs.points[i, : min(int(segs.count[i]), n_fps)] for i in idx]
+        points = [segs.observed(i) for i in idx]
         found = depth_scale_stats(points, [int(segs.cls_id[i]) for i in idx], models_by_class)
         if found is not None:
             stats[k] = found

@@ -198,12 +198,11 @@ def _translation_sources(
     rows = []
     for i in np.flatnonzero(real.valid & twin.valid):
         c, R, t = int(real.cls_id[i]), real.R[i].astype(float), real.t[i].astype(float)
-        k = int(min(real.count[i], real.points.shape[1]))
         row = {
             "video": str(real.frame_id[i]).split("/")[0],
             "err_real": nets["real"].t[i] - t,
             "err_twin": nets["twin-v2"].t[i] - t,
-            "offset": _offset_from_model(real.points[i, :k].astype(float), R, t, trees[c]),
+            "offset": _offset_from_model(real.observed(i).astype(float), R, t, trees[c]),
             "ray": t / np.linalg.norm(t),
         }
         for name, s in (("real", real), ("twin", twin)):
@@ -277,8 +276,7 @@ def _residual_mm(segs: SegmentSet, models: dict[int, np.ndarray]) -> np.ndarray:
     for i in np.flatnonzero(segs.valid):
         c = int(segs.cls_id[i])
         trees.setdefault(c, cKDTree(models[c]))
-        k = int(min(segs.count[i], segs.points.shape[1]))
-        p = (segs.points[i, :k] - segs.t[i]) @ segs.R[i]  # camera -> model frame
+        p = (segs.observed(i) - segs.t[i]) @ segs.R[i]  # camera -> model frame
         out[i] = 1000 * float(np.median(trees[c].query(p)[0]))
     return out
 
