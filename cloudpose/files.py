@@ -20,6 +20,7 @@ import json
 import lzma
 import os
 import pickle
+import tarfile
 import zipfile
 import zlib
 from collections.abc import Callable, Iterable
@@ -135,6 +136,37 @@ def read_npz(
         # numpy takes bytes that are neither a zip nor an array for a pickle, and says so
         said = "not an .npz archive" if "allow_pickle" in str(e) else why(e)
         raise CorruptFileError(path, f"{what} is unreadable ({said})") from e
+
+
+def checked_members(
+    archive: str | Path, tar: tarfile.TarFile, into: str | Path, allowed: Callable[[str], bool],
+    expected: str,
+) -> list[tarfile.TarInfo]:  # fmt: skip
+    """The members of ``tar`` (an open ``archive``) that may be unpacked into ``into``, checked
+    before anything is written: each name (without a leading ``./``; the folder entry itself
+    is skipped) passes ``allowed``, and :func:`tarfile.data_filter` accepts it (no path or
+    link outside the folder, no device).
+
+    Raises:
+        ValueError: naming the archive and the first member that fails, with ``expected`` (what
+            such an archive holds, in words) or the filter's reason; nothing is unpacked.
+    """
+    members = []
+    for m in tar.getmembers():
+        name = m.name.removeprefix("./")
+        if name in ("", "."):
+            continue
+        if not allowed(name):
+            raise ValueError(f"{archive}: member {m.name!r} is not {expected}; nothing unpacked")
+        try:
+            tarfile.data_filter(m, str(into))
+        except tarfile.FilterError as exc:
+            raise ValueError(
+                f"{archive}: member {m.name!r} refused ({exc}): such an archive holds only files "
+                "inside its own folder, no path or link outside it; nothing unpacked"
+            ) from None
+        members.append(m)
+    return members
 
 
 def read_json(path: str | Path, what: str, fix: str) -> Any:

@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 from cloudpose.data.segment_set import SegmentSet
 from cloudpose.data.segments import Segment, backproject, farthest_point_sampling
 from cloudpose.data.synth.sensor import smooth_depth
-from cloudpose.files import atomic_write
+from cloudpose.files import atomic_write, checked_members
 
 SOURCES = ("real", "synth")
 """Where the frames come from: the 61 packaged real development frames
@@ -1160,19 +1160,13 @@ def results_folder(path: Path) -> Iterator[Path]:
     with tempfile.TemporaryDirectory(prefix="cloudpose-stress-") as tmp:
         try:
             with tarfile.open(path, "r:*") as tar:
-                members = tar.getmembers()
-                for m in members:
-                    if m.name.split("/")[0] not in RESULT_PARTS:
-                        raise ValueError(
-                            f"{path}: member {m.name!r} is not a stress result (expected "
-                            f"{', '.join(RESULT_PARTS)}); nothing unpacked"
-                        )
-                    try:
-                        tarfile.data_filter(m, tmp)
-                    except tarfile.FilterError as exc:
-                        raise ValueError(
-                            f"{path}: member {m.name!r} refused ({exc}); nothing unpacked"
-                        ) from None
+                members = checked_members(
+                    path,
+                    tar,
+                    tmp,
+                    lambda name: name.split("/")[0] in RESULT_PARTS,
+                    f"a stress result (one of {', '.join(RESULT_PARTS)})",
+                )
                 tar.extractall(tmp, members=members, filter="data")
         except (tarfile.TarError, EOFError, lzma.LZMAError) as exc:
             raise ValueError(

@@ -346,6 +346,13 @@ def test_an_archive_that_is_not_stress_results_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"'notes\.txt' is not a stress result"):
         with st.results_folder(other):
             pass
+    outside = tmp_path / "outside.tar.xz"
+    with tarfile.open(outside, "w:xz") as tar:
+        tar.add(tmp_path / "notes.txt", arcname="results/../../evil.txt")
+    with pytest.raises(ValueError, match=r"'results/\.\./\.\./evil\.txt' refused"):
+        with st.results_folder(outside):
+            pass
+    assert not (tmp_path.parent / "evil.txt").exists()
     broken = tmp_path / "broken.tar.xz"
     broken.write_bytes(b"\xfd7zXZ\x00 truncated")
     with pytest.raises(ValueError, match=r"broken\.tar\.xz: not a readable archive"):

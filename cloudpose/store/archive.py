@@ -48,7 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from cloudpose.failures import disk_full, sigterm_as_interrupt
-from cloudpose.files import atomic_write
+from cloudpose.files import atomic_write, checked_members
 from cloudpose.store import tracking
 from cloudpose.store.compact import CHECKPOINT_SUFFIX
 from cloudpose.store.tracking import ARTIFACT_DIR, EXPERIMENT_PREFIX, STORE_DB
@@ -546,26 +546,14 @@ def _checked_members(archive: Path, tar: tarfile.TarFile, staging: str) -> list[
     """The archive's members, each checked: ``mlflow.db`` or under ``mlartifacts/``, and
     nothing that :func:`tarfile.data_filter` refuses (a path or link outside the folder, a
     device); ``ValueError`` naming the first bad one, before anything is written."""
-    members, has_db = [], False
-    for m in tar.getmembers():
-        name = m.name.removeprefix("./")
-        if name in ("", "."):
-            continue
-        if name != STORE_DB and name.split("/")[0] != ARTIFACT_DIR:
-            raise ValueError(
-                f"{archive}: member {m.name!r} is neither {STORE_DB} nor under {ARTIFACT_DIR}/ "
-                "(not a packed cloudpose store)"
-            )
-        try:
-            tarfile.data_filter(m, staging)
-        except tarfile.FilterError as exc:
-            raise ValueError(
-                f"{archive}: member {m.name!r} refused ({exc}): a packed store holds only files "
-                "inside its own folder, no path or link outside it; nothing unpacked"
-            ) from None
-        has_db |= name == STORE_DB
-        members.append(m)
-    if not has_db:
+    members = checked_members(
+        archive,
+        tar,
+        staging,
+        lambda name: name == STORE_DB or name.split("/")[0] == ARTIFACT_DIR,
+        f"{STORE_DB} or under {ARTIFACT_DIR}/ (a packed cloudpose store holds nothing else)",
+    )
+    if not any(m.name.removeprefix("./") == STORE_DB for m in members):
         raise ValueError(f"{archive}: no {STORE_DB} in the archive (not a packed cloudpose store)")
     return members
 
