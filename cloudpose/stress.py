@@ -889,10 +889,11 @@ def run_icp_selection(
     (source, setting, network) in ``OUT/icp_select/{source}/{setting}/{method}.csv``, skipped
     where it exists."""
     from cloudpose.evaluate import instance_table
-    from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
+    from cloudpose.infer import estimate_poses, refine_poses
     from cloudpose.refine import DepthView, ICPSettings
 
     nets = [m for m in methods if m.checkpoint is not None]
+    cache: dict = {}
     ident = PERTURBATIONS["dilate"]
     for s in sources:
         todo = [
@@ -912,12 +913,12 @@ def run_icp_selection(
             for fpos, _ in src.instances
         ]
         models = src.dataset.models()
-        loaded: dict[str, tuple] = {}
+        estimates: dict[str, tuple] = {}
         for name, over, m in todo:
-            if m.name not in loaded:
-                model, mcfg = load_checkpoint(m.checkpoint, "cpu")
-                loaded[m.name] = (model, mcfg, estimate_poses(model, segs, mcfg.train.n_points))
-            model, mcfg, net = loaded[m.name]
+            if m.name not in estimates:
+                ((model, mcfg),) = _networks([m.checkpoint], cache)
+                estimates[m.name] = (mcfg, estimate_poses(model, segs, mcfg.train.n_points))
+            mcfg, net = estimates[m.name]
             settings = dataclasses.replace(ICPSettings.from_config(mcfg.icp), **over)
             t0 = time.perf_counter()
             with warnings.catch_warnings():
