@@ -222,6 +222,7 @@ def open_training_run(
     """
     info = read_info(folder)
     if info.get("run_id") is not None:
+        _check_in_store(client, folder, info["run_id"])
         client.update_run(info["run_id"], status="RUNNING")
         return info
     exp = tracking.experiment_id(client, group, project_dir)
@@ -233,6 +234,25 @@ def open_training_run(
     info = {"run_id": run_id, "group": group, "config": cfg.to_dict()}
     write_info(folder, info)
     return info
+
+
+def _check_in_store(client, folder: Path, run_id: str) -> None:
+    """Raise :class:`~cloudpose.store.tracking.StoreError` when the MLflow run a run folder's
+    ``run.json`` names is not in the store ``client`` opens: the folder was started against
+    another store (another ``MLFLOW_TRACKING_URI``), whose run its checkpoints continue."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        client.get_run(run_id)
+    except MlflowException as exc:
+        if exc.error_code != "RESOURCE_DOES_NOT_EXIST":
+            raise
+        raise tracking.StoreError(
+            f"{folder / INFO}: its MLflow run {run_id} is not in the store at "
+            f"{client.tracking_uri} (the folder was started against another store); continue it "
+            "with MLFLOW_TRACKING_URI set to that store, or remove the folder to train the run "
+            "anew in this one"
+        ) from None
 
 
 def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:

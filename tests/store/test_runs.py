@@ -165,3 +165,22 @@ def test_a_run_record_holds_its_params_and_config(tmp_path, monkeypatch):
     )
     local = tracking.local_artifact(run.info.artifact_uri, "config.json")
     assert Config.from_dict(json.loads(Path(local).read_text())) == cfg
+
+
+def test_a_run_folder_of_another_store_is_named_not_resumed(tmp_path, monkeypatch):
+    """A run folder whose run.json names an MLflow run the current store lacks (it was started
+    against another store) stops with the folder, the run and both ways on; a folder of this
+    store resumes its own run."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    client = tracking.setup(tmp_path)
+    cfg = resolve("shared-0", "smoke", 1)
+    folder = tmp_path / "runs" / "r"
+    kw = {"group": "shared", "params": {}, "project_dir": tmp_path}
+    info = runs.open_training_run(client, cfg, "k" * 16, folder, **kw)
+    assert runs.open_training_run(client, cfg, "k" * 16, folder, **kw)["run_id"] == info["run_id"]
+    runs.write_info(folder, {**info, "run_id": "0" * 32})
+    with pytest.raises(tracking.StoreError) as err:
+        runs.open_training_run(client, cfg, "k" * 16, folder, **kw)
+    message = str(err.value)
+    assert str(folder / "run.json") in message and "0" * 32 in message
+    assert "MLFLOW_TRACKING_URI" in message and "remove the folder" in message
