@@ -86,11 +86,14 @@ class Estimates:
     def kept(cls, candidates: list[Estimates], pick: np.ndarray) -> Estimates:
         """Per row, the pose of ``candidates[pick[row]]`` (several estimates of the same rows,
         :func:`select_refinements`)."""
-        rows = np.arange(len(pick))
         return cls(
-            np.stack([c.R for c in candidates])[pick, rows],
-            np.stack([c.t for c in candidates])[pick, rows],
+            _per_row([c.R for c in candidates], pick), _per_row([c.t for c in candidates], pick)
         )
+
+
+def _per_row(candidates: list[np.ndarray], pick: np.ndarray) -> np.ndarray:
+    """Row ``i`` of ``candidates[pick[i]]``, for arrays of the same rows."""
+    return np.stack(candidates)[pick, np.arange(len(pick))]
 
 
 def estimate_poses(model, segs, n_points: int, device="cpu", batch_size: int = 512) -> Estimates:
@@ -236,8 +239,7 @@ def refine_ensemble(
         return *refined[0], np.zeros(len(segs), dtype=np.int64)
     poses, stats = [r for r, _ in refined], [st for _, st in refined]
     pick = select_refinements(segs, poses, stats, models_by_class, settings.select, views)
-    rows = np.arange(len(pick))
-    kept_stats = ICPStats(*(np.stack(field)[pick, rows] for field in zip(*stats, strict=True)))
+    kept_stats = ICPStats(*(_per_row(list(field), pick) for field in zip(*stats, strict=True)))
     return Estimates.kept(poses, pick), kept_stats, pick
 
 
