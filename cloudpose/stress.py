@@ -1003,6 +1003,7 @@ def collect(out_dir: Path) -> pd.DataFrame:
     Method ``NET@BASELINE``: network (or ensemble) NET on the instances the baseline ran on
     (its subsample), for paired comparisons."""
     meta = json.loads((out_dir / "sweep.json").read_text())
+    learned = [m for m, v in meta["methods"].items() if _learned(v)]  # sweep order: stable rows
     rows = []
     for src in meta["sources"]:
         for pname, levels in meta["perturbations"].items():
@@ -1012,7 +1013,6 @@ def collect(out_dir: Path) -> pd.DataFrame:
                     path = level_result_path(out_dir, src, pname, lv, m)
                     if path.is_file():
                         tables[m] = pd.read_csv(path)
-                learned = {m for m, v in meta["methods"].items() if _learned(v)}
                 for m in learned:  # each network (or ensemble) on each baseline's rows
                     for b in meta["methods"]:
                         if b not in learned:

@@ -303,7 +303,12 @@ def test_the_ensemble_is_paired_with_fpfh_at_the_real_level(tmp_path):
             path = st.result_path(tmp_path, "real", "dilate", level, m)
             path.parent.mkdir(parents=True, exist_ok=True)
             _method_table(a).to_csv(path, index=False)
-    summary = with_network_mean(st.collect(tmp_path))
+    collected = st.collect(tmp_path)
+    # rows in the sweep's order of methods, whatever the process's string hashing
+    assert list(collected.method.unique()) == [
+        "net-seed1", "fpfh", "ensemble", "net-seed1@fpfh", "ensemble@fpfh"
+    ]  # fmt: skip
+    summary = with_network_mean(collected)
     assert {"ensemble@fpfh", "net-seed1@fpfh", "network@fpfh"} <= set(summary.method)
     assert "fpfh@ensemble" not in set(summary.method)
     frag = fragility(summary, {"dilate": 0.5})
