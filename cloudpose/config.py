@@ -456,6 +456,10 @@ class DataConfig:
 
 
 START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}
+PAPER_RADIUS = 0.01
+"""The paper's first ICP correspondence distance, metres (docs/design.md "Refinement")."""
+MAX_RADIUS = 0.5
+"""The widest first ICP correspondence distance a setting may give, metres."""
 """Number of ICP starts -> the rotation group (scipy's name) whose elements turn the estimate
 (:func:`cloudpose.refine.start_rotations`)."""
 
@@ -478,6 +482,10 @@ class ICPConfig:
         select: how starts are scored: "fitness" (ICP's fitness) or "depth" (fitness,
             coverage and free-space violations against the frame's depth,
             :func:`cloudpose.refine.depth_score`).
+        radius: the first correspondence distance, metres (0.01, the paper). A wider one
+            adds iterations at the same 10% shrink until the paper's last radius is reached
+            (:func:`cloudpose.refine.schedule_for`; reports/diagnostics/icp_radius_*.md
+            measure it).
     """
 
     fallback: bool = False
@@ -485,8 +493,13 @@ class ICPConfig:
     starts: int = 1
     start_margin: float = 0.02
     select: str = "fitness"
+    radius: float = PAPER_RADIUS
 
     def __post_init__(self) -> None:
+        if not PAPER_RADIUS <= self.radius <= MAX_RADIUS:
+            raise ValueError(
+                f"icp.radius must be in [{PAPER_RADIUS}, {MAX_RADIUS}] metres, got {self.radius!r}"
+            )
         if self.select not in ("fitness", "depth"):
             raise ValueError(f"icp.select must be 'fitness' or 'depth', got {self.select!r}")
         if not 0 <= self.fallback_min_fitness <= 1:
@@ -603,6 +616,7 @@ IMPLIED_FIELDS: dict[str, dict[str, Any]] = {
         "starts": 1,
         "start_margin": 0.02,
         "select": "fitness",
+        "radius": 0.01,
     },
     "train": {"threads": 2, "augment_depth_noise_mm": 0.0, "seed_streams": "arithmetic"},
     "loss": {"symmetry_table": 1},
@@ -615,7 +629,8 @@ instances drew from one stream per frame (an on-line run stored before ``data.on
 existed drew scenes of every class); every run stored before ``loss.symmetry_table``
 existed used symmetry table 1; every run stored before
 the ``icp`` section existed was refined without the guard, and every run stored before
-``icp.starts`` existed from the estimate only; every run stored before
+``icp.starts`` existed from the estimate only, and every run stored before ``icp.radius``
+existed with the paper's first radius; every run stored before
 ``train.threads`` existed trained on this project's 2-core machines with 2 threads, and
 without depth-noise augmentation; every run stored before ``train.seed_streams`` existed drew
 its random streams by the seed arithmetic; every run stored before ``model.centre`` existed

@@ -34,7 +34,7 @@ from cloudpose.failures import DiskFullError, disk_full
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_ensemble
 from cloudpose.metrics import pose_errors
-from cloudpose.refine import ICPSettings, segment_views
+from cloudpose.refine import ICPSettings, schedule_for, segment_views
 from cloudpose.store import runs, tracking
 from cloudpose.store.headline import headline
 from cloudpose.store.metric_names import (
@@ -171,8 +171,9 @@ def check_evaluation_name(name: str, data: str | Path | None) -> str:
 
 def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
     """How ``settings`` differ from a run's own ICP, as an evaluation name's suffix:
-    ``fallback`` / ``nofallback`` where the guard differs, ``starts24`` where the starts do
-    (joined by ``-``); ``other`` for any other difference."""
+    ``fallback`` / ``nofallback`` where the guard differs, ``starts24`` where the starts do,
+    ``selectdepth`` where the score does, ``radius50mm`` where the schedule does (joined by
+    ``-``); ``other`` for any other difference."""
     parts = []
     if (settings.fallback, settings.min_fitness) != (own.fallback, own.min_fitness):
         parts.append("fallback" if settings.fallback else "nofallback")
@@ -180,6 +181,15 @@ def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
         parts.append(f"starts{settings.starts}")
     if settings.select != own.select:
         parts.append(f"select{settings.select}")
+    schedule = ("max_distance", "iterations", "shrink")
+    if any(getattr(settings, k) != getattr(own, k) for k in schedule):
+        try:
+            widened = ICPSettings(**schedule_for(settings.max_distance))
+        except ValueError:  # a first radius below the paper's: no schedule of icp.radius
+            return "other"
+        if any(getattr(settings, k) != getattr(widened, k) for k in schedule):
+            return "other"
+        parts.append(f"radius{1000 * settings.max_distance:g}mm")
     return "-".join(parts) or "other"
 
 

@@ -66,7 +66,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cloudpose import kernels
-from cloudpose.config import START_GROUPS
+from cloudpose.config import MAX_RADIUS, PAPER_RADIUS, START_GROUPS
 from cloudpose.geometry.rigid import umeyama_from_moments
 from cloudpose.kernels.model_index import ModelIndex
 
@@ -188,7 +188,7 @@ class ICPSettings:
     """
 
     iterations: int = 10
-    max_distance: float = 0.01
+    max_distance: float = PAPER_RADIUS
     shrink: float = 0.9
     fallback: bool = False
     min_fitness: float = 0.1
@@ -230,6 +230,7 @@ class ICPSettings:
             starts=icp.starts,
             start_margin=icp.start_margin,
             select=getattr(icp, "select", "fitness"),
+            **schedule_for(getattr(icp, "radius", PAPER_RADIUS)),
         )
 
     def radii(self) -> list[float]:
@@ -240,6 +241,22 @@ class ICPSettings:
             out.append(r)
             r *= self.shrink
         return out
+
+
+def schedule_for(radius: float) -> dict[str, float | int]:
+    """``max_distance`` and ``iterations`` of the schedule whose first correspondence distance
+    is ``radius`` (metres, at least the paper's 0.01): the paper's 10 iterations at a 10% shrink,
+    and as many more as it takes the shrink to bring ``radius`` down to the paper's first
+    radius, so every schedule ends within 5% of the paper's last radius (3.9 mm). A wider
+    first radius reaches estimates that are farther off, in translation above all
+    (reports/diagnostics/icp_radius_*.md); the last iterations are as tight as the paper's."""
+    base = ICPSettings()
+    if not PAPER_RADIUS <= radius <= MAX_RADIUS:
+        raise ValueError(
+            f"ICP radius {radius} m: expected from the paper's {PAPER_RADIUS} to {MAX_RADIUS} m"
+        )
+    extra = round(float(np.log(radius / base.max_distance) / -np.log(base.shrink)))
+    return {"max_distance": float(radius), "iterations": base.iterations + extra}
 
 
 class ICPSolution(NamedTuple):

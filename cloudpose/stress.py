@@ -45,6 +45,7 @@ import pandas as pd
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from cloudpose.config import PAPER_RADIUS
 from cloudpose.data.segment_set import SegmentSet
 from cloudpose.data.segments import Segment, backproject, farthest_point_sampling
 from cloudpose.data.synth.sensor import smooth_depth
@@ -637,12 +638,20 @@ def _networks(paths, cache: dict) -> list:
     return out
 
 
-def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict) -> pd.DataFrame:
+def run_method(
+    method: Method,
+    segs: SegmentSet,
+    dataset,
+    seed: int,
+    cache: dict,
+    icp_radius: float = PAPER_RADIUS,
+) -> pd.DataFrame:
     """The instance table (:func:`cloudpose.evaluate.instance_table`, ``net_*`` and ``icp_*``
-    columns) of ``method`` on ``segs``; a segment a baseline cannot register is a miss."""
+    columns) of ``method`` on ``segs``; a segment a baseline cannot register is a miss. ICP
+    starts at ``icp_radius`` (:func:`cloudpose.refine.schedule_for`) for every method."""
     from cloudpose.evaluate import instance_table
     from cloudpose.infer import Estimates, estimate_poses, refine_ensemble
-    from cloudpose.refine import ICPSettings
+    from cloudpose.refine import ICPSettings, schedule_for
 
     models = cache.setdefault("models", dataset.models())
     rows = evenly_spaced(len(segs), method.limit)
@@ -678,6 +687,7 @@ def run_method(method: Method, segs: SegmentSet, dataset, seed: int, cache: dict
         ests = [Estimates(R, t)]
         icp_settings = ICPSettings()
         table_cfg = cache.setdefault("cfg", resolve("shared-0", DEFAULT_PRESET, 1))
+    icp_settings = dataclasses.replace(icp_settings, **schedule_for(icp_radius))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         icp, _, pick = refine_ensemble(segs, ests, models, icp_settings)
@@ -788,9 +798,12 @@ def run_sweep(
     progress: bool = True,
     echo: Callable[[str], None] = print,
     dry_run: bool = False,
+    icp_radius: float = PAPER_RADIUS,
 ) -> Plan:
     """Compute every missing (source, perturbation, level, method) result into ``out_dir``
-    (module doc); prints the plan first. ``only`` names perturbations (default all)."""
+    (module doc); prints the plan first. ``only`` names perturbations (default all).
+    ``icp_radius``: ICP's first radius for every method (:func:`cloudpose.refine.schedule_for`),
+    kept in ``sweep.json``; results of another radius are another folder's."""
     unknown = sorted(set(only) - set(PERTURBATIONS))
     if unknown:
         raise ValueError(f"--only {unknown}: expected some of {', '.join(PERTURBATIONS)}")
@@ -811,10 +824,12 @@ def run_sweep(
                              **({"ends_only": True} if m.ends_only else {})}
                     for m in methods},
         "perturbations": {p.name: list(p.levels) for p in perts},
+        "icp_radius": icp_radius,
     }  # fmt: skip
     meta_path = out_dir / "sweep.json"
     if meta_path.is_file():  # another call's sources, methods and perturbations stay listed
         old = json.loads(meta_path.read_text())
+        check_icp_radius(out_dir, old, icp_radius)
         for key, was in (("sources", old.get("sources", {})), ("methods", old.get("methods", {}))):
             changed = [k for k, v in meta[key].items() if k in was and _same(was[k]) != _same(v)]
             if changed or old.get("seed", seed) != seed:
@@ -852,7 +867,7 @@ def run_sweep(
                 _write_csv(stats_path, st)
             for m in missing:
                 t1 = time.perf_counter()
-                table = run_method(m, segs, src.dataset, seed, cache)
+                table = run_method(m, segs, src.dataset, seed, cache, icp_radius)
                 table["seconds"] = time.perf_counter() - t1
                 _write_csv(result_path(out_dir, s, p.name, lv, m.name), table)
             echo(f"  {s} {p.name}={level_name(lv)}: {', '.join(m.name for m in missing)} "
@@ -883,14 +898,19 @@ def run_icp_selection(
     seed: int = 1,
     progress: bool = True,
     echo: Callable[[str], None] = print,
+    icp_radius: float = PAPER_RADIUS,
 ) -> None:
     """The unperturbed segments of ``instances`` evenly spaced instances per source, each network
-    of ``methods`` followed by ICP under each of :data:`ICP_SELECTIONS`; one instance table per
-    (source, setting, network) in ``OUT/icp_select/{source}/{setting}/{method}.csv``, skipped
-    where it exists."""
+    of ``methods`` followed by ICP under each of :data:`ICP_SELECTIONS` (from the first radius
+    ``icp_radius``); one instance table per (source, setting, network) in
+    ``OUT/icp_select/{source}/{setting}/{method}.csv``, skipped where it exists."""
     from cloudpose.evaluate import instance_table
     from cloudpose.infer import estimate_poses, refine_poses
-    from cloudpose.refine import DepthView, ICPSettings
+    from cloudpose.refine import DepthView, ICPSettings, schedule_for
+
+    meta_path = out_dir / "sweep.json"
+    if meta_path.is_file():
+        check_icp_radius(out_dir, json.loads(meta_path.read_text()), icp_radius)
 
     nets = [m for m in methods if m.checkpoint is not None]
     cache: dict = {}
@@ -919,7 +939,9 @@ def run_icp_selection(
                 ((model, mcfg),) = _networks([m.checkpoint], cache)
                 estimates[m.name] = (mcfg, estimate_poses(model, segs, mcfg.train.n_points))
             mcfg, net = estimates[m.name]
-            settings = dataclasses.replace(ICPSettings.from_config(mcfg.icp), **over)
+            settings = dataclasses.replace(
+                ICPSettings.from_config(mcfg.icp), **over, **schedule_for(icp_radius)
+            )
             t0 = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -951,6 +973,17 @@ def collect_icp_selection(out_dir: Path) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(rows)
+
+
+def check_icp_radius(out_dir: Path, meta: dict, icp_radius: float) -> None:
+    """``ValueError`` unless the results in ``out_dir`` (its ``sweep.json``, ``meta``; one
+    written before the radius was recorded is the paper's) were refined from ``icp_radius``."""
+    was = meta.get("icp_radius", PAPER_RADIUS)
+    if was != icp_radius:
+        raise ValueError(
+            f"{out_dir} holds results refined by ICP from a first radius of {was} m, not "
+            f"{icp_radius}; choose another --results folder"
+        )
 
 
 def _same(entry):

@@ -164,6 +164,25 @@ def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
         run_baseline("fpfh", "smoke", split="train", project_dir=proj)
 
 
+def test_another_icp_radius_is_a_run_of_its_own_that_reports_leave_out(smoke_project):
+    from cloudpose.baselines.base import is_current
+    from cloudpose.baselines.run import run_baseline
+    from cloudpose.store import tracking
+
+    proj, _ = smoke_project
+    kw = dict(project_dir=proj, limit=4, split="val", progress=False)
+    paper = run_baseline("fpfh", "smoke", 1, **kw)
+    wide = run_baseline("fpfh", "smoke", 1, icp_radius=0.05, **kw)
+    assert not wide.reused and wide.run_id != paper.run_id
+    client = tracking.setup(proj)
+    run = client.get_run(wide.run_id)
+    assert run.data.params["baseline.icp_radius"] == "0.05"
+    assert not is_current(run) and is_current(client.get_run(paper.run_id))
+    # the method's estimates are the same; only ICP's schedule differs
+    np.testing.assert_allclose(wide.table["net_ads"], paper.table["net_ads"], atol=1e-9)
+    assert run_baseline("fpfh", "smoke", 1, icp_radius=0.05, **kw).reused
+
+
 def test_a_baseline_on_the_real_development_frames_reports_each_video(smoke_project):
     from cloudpose.baselines.run import run_baseline
 

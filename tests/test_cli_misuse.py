@@ -281,6 +281,15 @@ def test_icp_starts_outside_the_rotation_groups_are_refused():
     assert list(Path.cwd().iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    "command", [["evaluate", "--run", "any"], ["baseline", "--method", "fpfh"]]
+)
+def test_an_icp_radius_outside_the_schedules_range_is_refused(command):
+    res = cli(*command, "--icp-radius", "0.002")
+    one_line_error(res, "ICP radius 0.002 m: expected from the paper's 0.01 to 0.5 m")
+    assert list(Path.cwd().iterdir()) == []
+
+
 def test_an_existing_bop_csv_is_not_overwritten(tmp_path):
     mine = tmp_path / "mine.csv"
     mine.write_text("my results\n")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -122,7 +123,7 @@ def test_other_icp_settings_log_beside_the_runs_own(project):
 
 def test_icp_label_names_how_settings_differ():
     from cloudpose.evaluate import icp_label
-    from cloudpose.refine import ICPSettings
+    from cloudpose.refine import ICPSettings, schedule_for
 
     own = ICPSettings()
     assert icp_label(ICPSettings(fallback=True), own) == "fallback"
@@ -130,6 +131,14 @@ def test_icp_label_names_how_settings_differ():
     assert icp_label(ICPSettings(starts=24), own) == "starts24"
     assert icp_label(ICPSettings(fallback=True, starts=60), own) == "fallback-starts60"
     assert icp_label(ICPSettings(iterations=3), own) == "other"
+    wide = ICPSettings(**schedule_for(0.05))
+    assert icp_label(wide, own) == "radius50mm"
+    assert icp_label(dataclasses.replace(wide, starts=24, select="depth"), own) == (
+        "starts24-selectdepth-radius50mm"
+    )
+    assert icp_label(own, wide) == "radius10mm"
+    assert icp_label(ICPSettings(max_distance=0.05), own) == "other"  # not schedule_for's
+    assert icp_label(ICPSettings(max_distance=0.002), own) == "other"
 
 
 @pytest.mark.slow

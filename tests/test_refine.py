@@ -19,6 +19,7 @@ from cloudpose.refine import (
     icp_refine,
     icp_refine_batch,
     icp_refine_open3d,
+    schedule_for,
     start_rotations,
 )
 
@@ -413,6 +414,49 @@ def test_icp_starts_keep_stored_runs_identity():
     assert ICPSettings.from_config(many.icp).starts == 24
     with pytest.raises(ValueError, match=r"icp\.starts must be one of \[1, 12, 24, 60\]"):
         ICPConfig(starts=6)
+
+
+def test_a_wider_first_radius_ends_at_the_papers_last_radius():
+    paper = ICPSettings()
+    assert ICPSettings(**schedule_for(0.01)) == paper
+    for radius in (0.02, 0.03, 0.05, 0.08, 0.12, 0.5):
+        radii = ICPSettings(**schedule_for(radius)).radii()
+        assert radii[0] == radius
+        assert radii[-1] == pytest.approx(paper.radii()[-1], rel=0.05)
+    for radius in (0.005, 0.6, float("nan")):
+        with pytest.raises(ValueError, match="expected from the paper's 0.01 to 0.5 m"):
+            schedule_for(radius)
+
+
+@pytest.mark.parametrize("name", ["003_cracker_box", "006_mustard_bottle", "025_mug"])
+def test_a_wider_first_radius_brings_home_an_estimate_25_mm_off(name):
+    """25 mm and 10 degrees off: from the paper's 1 cm radius ICP stays more than 1 cm away;
+    from 5 cm (schedule_for) it ends on the true pose."""
+    model = load_model(name)
+    obs, R0, t0, R, t = visible_case(np.random.default_rng(1), model, deg=10.0, mm=25.0)
+    paper = icp_refine(obs, model, R0, t0)
+    assert np.linalg.norm(paper.t - t) > 0.01
+    wide = icp_refine(obs, model, R0, t0, ICPSettings(**schedule_for(0.05)))
+    assert np.linalg.norm(wide.t - t) < 0.002
+    assert rotation_error_deg(wide.R[None], R[None])[0] < 1.0
+    batch = icp_refine_batch([obs], [model], R0[None], t0[None], ICPSettings(**schedule_for(0.05)))
+    assert_same(batch[0], wide, tol=0)
+
+
+def test_icp_radius_keeps_stored_runs_identity():
+    from cloudpose.config import Config, ICPConfig
+    from cloudpose.registry import resolve
+
+    cfg = resolve("shared-0", "cpu-online", 1)
+    stored = cfg.to_dict()
+    del stored["icp"]["radius"]
+    assert Config.from_dict(stored).fingerprint() == cfg.fingerprint()
+    assert ICPSettings.from_config(cfg.icp) == ICPSettings()
+    wide = resolve("shared-0", "cpu-online", 1, {"icp": {"radius": 0.05}})
+    assert wide.fingerprint() != cfg.fingerprint()
+    assert ICPSettings.from_config(wide.icp) == ICPSettings(max_distance=0.05, iterations=25)
+    with pytest.raises(ValueError, match=r"icp\.radius must be in \[0.01, 0.5\] metres"):
+        ICPConfig(radius=0.002)
 
 
 def test_refine_poses_applies_the_guard_and_reports_each_object():

@@ -3,6 +3,7 @@ and the command runs end to end on a tiny subset."""
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
@@ -406,6 +407,37 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     assert again == (tmp_path / "rep" / "stress.csv").read_text()
     res = cli("stress", "--preset", "smoke", "--run", "x", "--results", str(packed))
     assert res.exit_code != 0 and "--report-only" in res.output
+    assert "the paper's schedule from a 1 cm radius" in md
+    res = cli(*args, "--icp-radius", "0.05")  # these results are the paper's schedule's
+    words = " ".join(res.output.split())
+    assert res.exit_code != 0 and "from a first radius of 0.01 m, not 0.05" in words, words
+
+
+@pytest.mark.slow
+def test_a_sweep_from_a_wider_icp_radius_refines_every_method_from_it(smoke_project, tmp_path):
+    """``--icp-radius``: sweep.json keeps it, each method's ICP starts there (a refinement
+    differs from the paper's schedule's on the same estimates), and the report says so."""
+    args = [
+        "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1", "--instances", "3",
+        "--fpfh-instances", "3", "--ppf-instances", "0", "--synth-frames", "1",
+        "--only", "cut", "--source", "real", "--icp-selection", "0", "--no-progress",
+    ]  # fmt: skip
+    tables = {}
+    for radius in ("0.01", "0.08"):
+        res = cli(*args, "--icp-radius", radius, "--results", str(tmp_path / radius),
+                  "--out", str(tmp_path / f"rep{radius}"))  # fmt: skip
+        assert res.exit_code == 0, res.output
+        assert json.loads((tmp_path / radius / "sweep.json").read_text())["icp_radius"] == float(
+            radius
+        )
+        tables[radius] = pd.read_csv(tmp_path / radius / "results/real/cut/0.1/fpfh.csv")
+    # FPFH's estimates (the smoke network's are too far off for any radius) are the same;
+    # their refinements are not
+    paper, wide = tables["0.01"], tables["0.08"]
+    np.testing.assert_array_equal(paper["net_ads"], wide["net_ads"])
+    assert not np.array_equal(paper["icp_ads"], wide["icp_ads"])
+    md = (tmp_path / "rep0.08" / "stress.md").read_text()
+    assert "from a first radius of 8 cm (30 iterations" in md
 
 
 @pytest.mark.slow

@@ -99,6 +99,15 @@ def evaluate(
             "settings than the run's are logged as {name}-selectdepth.",
         ),
     ] = None,
+    icp_radius: Annotated[
+        float | None,
+        typer.Option(
+            help="ICP's first correspondence distance, metres (0.01: the paper's schedule); a "
+            "wider one adds iterations at the same shrink down to the paper's last radius "
+            "(cloudpose.refine.schedule_for). Other settings than the run's are logged as "
+            "{name}-radius{MM}mm.",
+        ),
+    ] = None,
     real: Annotated[
         bool,
         typer.Option(
@@ -161,6 +170,10 @@ def evaluate(
         raise ValueError(f"--icp-select {icp_select!r}: expected one of {', '.join(SELECTIONS)}")
     pairs = (("fallback", icp_fallback), ("starts", icp_starts), ("select", icp_select))
     overrides = {k: v for k, v in pairs if v is not None}
+    if icp_radius is not None:
+        from cloudpose.refine import schedule_for
+
+        overrides |= schedule_for(icp_radius)
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
     kwargs = dict(
@@ -380,6 +393,13 @@ def baseline(
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
     ] = None,
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
+    icp_radius: Annotated[
+        float,
+        typer.Option(
+            help="ICP's first correspondence distance, metres (0.01: the paper's schedule; "
+            "cloudpose.refine.schedule_for). Another radius is a run of its own."
+        ),
+    ] = 0.01,
     rerun: Annotated[
         bool, typer.Option(help="Compute and log a new run even if this one is logged.")
     ] = False,
@@ -410,6 +430,7 @@ def baseline(
         icp=icp,
         progress=progress,
         rerun=rerun,
+        icp_radius=icp_radius,
     )
     on = f"{out.split} in {data}, {preset} settings" if data is not None else preset
     if out.reused:

@@ -77,6 +77,14 @@ def stress(
         ),
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of every random choice of the sweep.")] = 1,
+    icp_radius: Annotated[
+        float,
+        typer.Option(
+            help="ICP's first correspondence distance for every method, metres (0.01: the "
+            "paper's schedule; cloudpose.refine.schedule_for). Another radius needs its own "
+            "--results folder."
+        ),
+    ] = 0.01,
     quick: Annotated[
         bool, typer.Option("--quick", help="A small subsample (a look, not a measurement).")
     ] = False,
@@ -115,6 +123,9 @@ def stress(
     from cloudpose.store.tracking import check_name
 
     check_name("--preset", preset)
+    from cloudpose.refine import schedule_for
+
+    schedule_for(icp_radius)  # a radius out of range, before any work
     project = Path.cwd()
     results = results or project / "runs" / "stress" / preset
     if not report_only and results.is_file():
@@ -144,6 +155,7 @@ def stress(
             icp_selection=icp_selection,
             progress=progress,
             dry_run=dry_run,
+            icp_radius=icp_radius,
         )
     if dry_run:
         return

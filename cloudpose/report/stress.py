@@ -16,6 +16,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from cloudpose.config import PAPER_RADIUS
+from cloudpose.refine import schedule_for
 from cloudpose.stress import (
     PERTURBATIONS,
     STATISTICS,
@@ -175,6 +177,17 @@ def plot_metric(summary, levels, col, path: Path, ylabel: str, footer: str, scal
     return path
 
 
+def _schedule(radius: float) -> str:
+    """The ICP schedule of a sweep in words (after "the same ICP")."""
+    if radius == PAPER_RADIUS:
+        return ", the paper's schedule from a 1 cm radius"
+    n = schedule_for(radius)["iterations"]
+    return (
+        f", from a first radius of {100 * radius:g} cm ({n} iterations down to the paper's last "
+        "radius; cloudpose.refine.schedule_for, `--icp-radius`)"
+    )
+
+
 def markdown(
     meta: dict, summary: pd.DataFrame, stats: pd.DataFrame, levels: dict, how: dict,
     frag: pd.DataFrame, command: str, extra: str = "",
@@ -197,7 +210,9 @@ def markdown(
             if "ensemble" in meta["methods"]
             else ""
         )
-        + ". Every method is followed by the same ICP (the network by its run's own).",
+        + ". Every method is followed by the same ICP (the network by its run's own)"
+        + _schedule(meta.get("icp_radius", PAPER_RADIUS))
+        + ".",
         "",
         "Each perturbation acts on the frame's mask and depth before segmentation (dilate, "
         "erode, holes) or on the back-projected points before FPS (the others); level "

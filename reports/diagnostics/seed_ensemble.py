@@ -31,7 +31,7 @@ import pandas as pd
 
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, refine_poses, refinement_scores
-from cloudpose.refine import ICPSettings, segment_views
+from cloudpose.refine import ICPSettings, schedule_for, segment_views
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
 
@@ -41,11 +41,20 @@ from multi_start_icp import KEY, Segments, logged, logged_segments, poses, same_
 SELECTIONS = ("fitness", "depth", "oracle")
 
 
-def hypotheses(client, name: str, split: str, segments: Segments, starts: int = 1) -> dict:
+def hypotheses(
+    client,
+    name: str,
+    split: str,
+    segments: Segments,
+    starts: int = 1,
+    radius: float = 0.01,
+    scores: bool = True,
+) -> dict:
     """One run's estimates refined by ICP on the segments its evaluation used (one start, or
-    ``starts`` turned starts kept by the depth, ``icp.starts`` / ``icp.select = depth``), each
-    refinement's fitness and depth score (:func:`cloudpose.infer.refinement_scores`), and the
-    instance table of the refined poses."""
+    ``starts`` turned starts kept by the depth, ``icp.starts`` / ``icp.select = depth``; from
+    the first radius ``radius``, :func:`cloudpose.refine.schedule_for`), each refinement's
+    fitness and depth score (:func:`cloudpose.infer.refinement_scores`; not with ``scores``
+    off, for a table alone), and the instance table of the refined poses."""
     table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
     est = poses(table, "net")
@@ -53,13 +62,13 @@ def hypotheses(client, name: str, split: str, segments: Segments, starts: int = 
     out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
     same_refinement(name, out, table)
     views = segment_views(dataset, segs)
-    if starts > 1:
-        many = ICPSettings(starts=starts, select="depth")
+    if starts > 1 or radius != 0.01:
+        many = ICPSettings(starts=starts, select="depth", **schedule_for(radius))
         refined, stats = refine_poses(segs, est, models, many, views=views)
         out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
     score = {
         select: refinement_scores(segs, refined, stats, models, select, views)
-        for select in ("fitness", "depth")
+        for select in (("fitness", "depth") if scores else ())
     }
     return {
         "name": name,
@@ -171,13 +180,15 @@ def per_pose(runs: list[dict]) -> list[str]:
     return [*lines, ""]
 
 
-def baseline_table(client, name: str, split: str, segments: Segments, starts: int = 1):
+def baseline_table(
+    client, name: str, split: str, segments: Segments, starts: int = 1, radius: float = 0.01
+):
     """A baseline's instance table: the logged one (its ICP columns are its one-start
     refinement), or its logged estimates refined from ``starts`` turned starts kept by the
-    depth, as each network's are (``hypotheses``)."""
-    if starts == 1:
+    depth and from the first radius ``radius``, as each network's are (``hypotheses``)."""
+    if starts == 1 and radius == 0.01:
         return logged(client, name, split)[0]
-    return hypotheses(client, name, split, segments, starts)["table"]
+    return hypotheses(client, name, split, segments, starts, radius, scores=False)["table"]
 
 
 def paired(runs: list[dict], base: pd.DataFrame) -> list[str]:
@@ -215,11 +226,23 @@ def main(argv: list[str] | None = None) -> None:
         default=1,
         help="ICP starts per baseline estimate, kept by the depth (1: the logged refinement)",
     )
+    ap.add_argument(
+        "--icp-radius",
+        type=float,
+        default=0.01,
+        help="ICP's first radius for every method, metres (0.01: the paper's schedule)",
+    )
     args = ap.parse_args(argv)
     sizes = [k for k in args.sizes if 1 <= k <= len(args.run)]
     client = tracking.setup(Path.cwd())
     segments = Segments(args.split, Path.cwd())
-    runs = [hypotheses(client, n, args.split, segments, args.starts) for n in args.run]
+    radius = args.icp_radius
+    runs = [hypotheses(client, n, args.split, segments, args.starts, radius) for n in args.run]
+    schedule = (
+        "the paper's schedule"
+        if radius == 0.01
+        else f"the schedule from a first radius of {100 * radius:g} cm (`--icp-radius`)"
+    )
     where = "the real development frames" if args.split == "real" else "the preset's test set"
     cmd = " ".join(
         shlex.quote(a)
@@ -232,11 +255,11 @@ def main(argv: list[str] | None = None) -> None:
         "logged ones, only ICP and the scores are computed here._",
         "",
         (
-            "Each network's estimate refined by its run's ICP (one start, the paper's schedule); "
+            f"Each network's estimate refined by its run's ICP (one start, {schedule}); "
             if args.starts == 1
             else f"Each network's estimate refined by ICP from {args.starts} starts, the "
             "refinement that agrees best with the depth kept (`icp.starts`, `icp.select = "
-            "depth`; the paper's schedule from each); "
+            f"depth`; {schedule} from each); "
         )
         + "per instance the refinement kept with the highest ICP fitness (`fitness`), the "
         "highest depth score, (fitness + coverage) / 2 − free-space violations "
@@ -252,14 +275,14 @@ def main(argv: list[str] | None = None) -> None:
     if args.split == "real":
         lines += per_pose(runs)
     for b in args.baseline:
-        base = baseline_table(client, b, args.split, segments, args.baseline_starts)
+        base = baseline_table(client, b, args.split, segments, args.baseline_starts, radius)
         keep = base.set_index(KEY).index
         base_row = pooled(base)
         refined_from = (
             "ICP"
             if args.baseline_starts == 1
             else f"ICP from {args.baseline_starts} starts, kept by the depth"
-        )
+        ) + ("" if radius == 0.01 else f" ({100 * radius:g} cm first radius)")
         lines += [
             f"## Against {b}, on its {len(keep)} instances",
             "",
