@@ -398,8 +398,11 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     summary = pd.read_csv(tmp_path / "rep" / "stress.csv")
     assert set(summary.method) >= {"net-seed1", "fpfh", "network"}
     packed = tmp_path / "stress-results.tar.xz"
+    rendered = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "rep").iterdir()}
     res = cli(*args, "--report-only", "--no-report", "--pack", str(packed))
     assert res.exit_code == 0 and "packed" in res.output, res.output
+    # --no-report: the archive only, the report left as it was
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "rep").iterdir()} == rendered
     res = cli("stress", "--preset", "smoke", "--report-only", "--results", str(packed),
               "--out", str(tmp_path / "again"))  # fmt: skip
     assert res.exit_code == 0, res.output

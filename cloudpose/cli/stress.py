@@ -163,7 +163,7 @@ def stress(
         if pack is not None:
             n = st.pack_results(folder, pack)
             typer.echo(f"packed {n} result files into {pack} ({pack.stat().st_size / 1e6:.2f} MB)")
-        if report or report_only:
+        if report:  # --report-only --no-report: only --pack
             files = render_stress_report(
                 folder, out or default_out_dir(project, preset), command=recorded_command(ctx)
             )
