@@ -5,8 +5,10 @@ paper's last radius) against it, for the network and the classical baselines ali
 
 Every estimate is read from a logged evaluation (``net_R`` / ``net_t`` of
 ``eval/{split}/instances.csv``), so no network and no registration runs here: only ICP, from
-the estimate alone (one start), on the same segments the evaluation used. The paper's radius
-is checked against the logged refinement (``multi_start_icp.same_refinement``). Runs are read
+the estimate alone (one start), on the same segments the evaluation used; as a control, ICP
+from no estimate (the identity rotation at the segment's mean) shows what the refinement finds
+alone. The paper's radius is checked against the logged refinement
+(``multi_start_icp.same_refinement``). Runs are read
 by MLflow run name from the store of the current folder, e.g. in the project that holds the
 default's sweep::
 
@@ -36,9 +38,17 @@ from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
 
 sys.path.insert(0, str(Path(__file__).parent))
-from multi_start_icp import KEY, Segments, fmt, logged_segments, poses, same_refinement
+from multi_start_icp import (
+    KEY,
+    Segments,
+    fmt,
+    logged_segments,
+    no_estimate,
+    poses,
+    same_refinement,
+)
 
-RADII = (0.01, 0.02, 0.03, 0.05, 0.08, 0.12)
+RADII = (0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
 CHOOSE_WITHIN = 0.1  # points of the networks' mean ADS AUC: the smallest radius this near the best
 
 
@@ -46,13 +56,16 @@ def radius_label(radius: float) -> str:
     return f"{100 * radius:g} cm" + (" (paper)" if radius == RADII[0] else "")
 
 
-def refined(client, name: str, split: str, radii, segments: Segments) -> dict:
+def refined(
+    client, name: str, split: str, radii, segments: Segments, control: bool = False
+) -> dict:
     """The run's estimates refined from one start with each first radius: ``{radius: instance
     table}`` (``net_*``: the estimate, ``icp_*``: the refinement) and ICP's milliseconds per
-    object at each radius."""
+    object at each radius. ``control``: no estimate instead (identity rotation at the segment
+    mean, :func:`multi_start_icp.no_estimate`) on the same segments."""
     table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
-    est = poses(table, "net")
+    est = no_estimate(segs) if control else poses(table, "net")
     tables, ms = {}, {}
     n = max(int(segs.valid.sum()), 1)
     for radius in radii:
@@ -60,7 +73,7 @@ def refined(client, name: str, split: str, radii, segments: Segments) -> dict:
         ref, _ = refine_poses(segs, est, models, ICPSettings(**schedule_for(radius)))
         ms[radius] = 1000 * (time.perf_counter() - t0) / n
         out = instance_table(segs, {"net": est, "icp": ref}, models, dataset.classes, sym)
-        if radius == 0.01:
+        if radius == 0.01 and not control:
             same_refinement(name, out, table)
         tables[radius] = out
     return {"name": name, "tables": tables, "ms": ms}
@@ -183,7 +196,12 @@ def main(argv: list[str] | None = None) -> None:
         rule,
         "",
     ]
-    lines += section("All instances of the networks", [("network", net)], radii)
+    control = refined(client, args.run[0], args.split, radii, segments, control=True)
+    lines += section(
+        "All instances of the networks",
+        [("network", net), ("no estimate (identity at the segment mean)", [control])],
+        radii,
+    )
     for b in bases:
         keep = b["tables"][RADII[0]].set_index(KEY).index
         lines += section(

@@ -36,7 +36,15 @@ from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
 
 sys.path.insert(0, str(Path(__file__).parent))
-from multi_start_icp import KEY, Segments, logged, logged_segments, poses, same_refinement
+from multi_start_icp import (
+    KEY,
+    Segments,
+    logged,
+    logged_segments,
+    no_estimate,
+    poses,
+    same_refinement,
+)
 
 SELECTIONS = ("fitness", "depth", "oracle")
 
@@ -49,20 +57,24 @@ def hypotheses(
     starts: int = 1,
     radius: float = 0.01,
     scores: bool = True,
+    control: bool = False,
 ) -> dict:
     """One run's estimates refined by ICP on the segments its evaluation used (one start, or
     ``starts`` turned starts kept by the depth, ``icp.starts`` / ``icp.select = depth``; from
     the first radius ``radius``, :func:`cloudpose.refine.schedule_for`), each refinement's
     fitness and depth score (:func:`cloudpose.infer.refinement_scores`; not with ``scores``
-    off, for a table alone), and the instance table of the refined poses."""
+    off, for a table alone), and the instance table of the refined poses. ``control``: the
+    run's segments with no estimate instead of its own (:func:`multi_start_icp.no_estimate`),
+    refined the same way."""
     table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
-    est = poses(table, "net")
-    refined, stats = refine_poses(segs, est, models)
-    out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
-    same_refinement(name, out, table)
+    est = no_estimate(segs) if control else poses(table, "net")
+    if not control:
+        refined, stats = refine_poses(segs, est, models)
+        out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
+        same_refinement(name, out, table)
     views = segment_views(dataset, segs)
-    if starts > 1 or radius != 0.01:
+    if control or starts > 1 or radius != 0.01:
         many = ICPSettings(starts=starts, select="depth", **schedule_for(radius))
         refined, stats = refine_poses(segs, est, models, many, views=views)
         out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
@@ -232,6 +244,11 @@ def main(argv: list[str] | None = None) -> None:
         default=0.01,
         help="ICP's first radius for every method, metres (0.01: the paper's schedule)",
     )
+    ap.add_argument(
+        "--control",
+        action="store_true",
+        help="also refine no estimate (identity at the segment mean) the same way",
+    )
     args = ap.parse_args(argv)
     sizes = [k for k in args.sizes if 1 <= k <= len(args.run)]
     client = tracking.setup(Path.cwd())
@@ -298,6 +315,27 @@ def main(argv: list[str] | None = None) -> None:
                 f"Paired, network + ICP − the baseline + {refined_from} on the same instances "
                 "(percentage points), 95% interval from a bootstrap over object poses (and the networks' "
                 "runs):",
+                "",
+            ]
+            lines += paired(runs, base)
+    if args.control:
+        base = hypotheses(
+            client, args.run[0], args.split, segments, args.starts, radius, False, control=True
+        )["table"]
+        lines += [
+            "## Against no estimate at all, refined the same way",
+            "",
+            f"The control: ICP from {args.starts} start(s) turned about the identity rotation at "
+            "the mean of each segment's points, kept by the depth, as each network's estimate "
+            "is (what the refinement finds with nothing to start from): "
+            + ", ".join(f"{COLUMNS[c]} {pooled(base)[c]:.1f}" for c in COLUMNS)
+            + ".",
+            "",
+        ]
+        if args.split == "real":
+            lines += [
+                "Paired, network + ICP − the control on the same instances (percentage points), "
+                "95% interval from a bootstrap over object poses (and the networks' runs):",
                 "",
             ]
             lines += paired(runs, base)
