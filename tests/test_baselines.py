@@ -181,6 +181,11 @@ def test_another_icp_radius_is_a_run_of_its_own_that_reports_leave_out(smoke_pro
     # the method's estimates are the same; only ICP's schedule differs
     np.testing.assert_allclose(wide.table["net_ads"], paper.table["net_ads"], atol=1e-9)
     assert run_baseline("fpfh", "smoke", 1, icp_radius=0.05, **kw).reused
+    many = run_baseline("fpfh", "smoke", 1, icp_starts=12, icp_select="depth", **kw)
+    assert not many.reused and many.run_id not in (paper.run_id, wide.run_id)
+    params = client.get_run(many.run_id).data.params
+    assert params["baseline.icp_starts"] == "12" and params["baseline.icp_select"] == "depth"
+    assert "baseline.icp_radius" not in params  # the paper's radius is no setting of its own
 
 
 def test_a_baseline_on_the_real_development_frames_reports_each_video(smoke_project):

@@ -275,8 +275,11 @@ def test_evaluation_names_that_collide_are_refused(name, needles):
     one_line_error(res, *needles)
 
 
-def test_icp_starts_outside_the_rotation_groups_are_refused():
-    res = cli("evaluate", "--run", "any", "--icp-starts", "6")
+@pytest.mark.parametrize(
+    "command", [["evaluate", "--run", "any"], ["baseline", "--method", "fpfh"]]
+)
+def test_icp_starts_outside_the_rotation_groups_are_refused(command):
+    res = cli(*command, "--icp-starts", "6")
     one_line_error(res, "--icp-starts 6: expected one of 1, 12, 24, 60")
     assert list(Path.cwd().iterdir()) == []
 
@@ -380,6 +383,9 @@ def test_a_report_preset_that_is_a_path_is_refused():
     assert list(Path.cwd().iterdir()) == []
 
 
-def test_an_unknown_icp_selection_is_one_line_listing_the_known():
-    res = cli("evaluate", "--run", "pretrained", "--icp-select", "closest")
+@pytest.mark.parametrize(
+    "command", [["evaluate", "--run", "pretrained"], ["baseline", "--method", "fpfh"]]
+)
+def test_an_unknown_icp_selection_is_one_line_listing_the_known(command):
+    res = cli(*command, "--icp-select", "closest")
     one_line_error(res, "--icp-select 'closest'", "fitness, depth")

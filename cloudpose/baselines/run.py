@@ -46,7 +46,7 @@ from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.evaluate import instance_table, log_evaluation
 from cloudpose.files import atomic_write
 from cloudpose.infer import Estimates, refine_poses
-from cloudpose.refine import ICPSettings, schedule_for
+from cloudpose.refine import ICPSettings, schedule_for, segment_views
 from cloudpose.registry import DEFAULT_PRESET, resolve
 from cloudpose.store import instances, runs, tracking
 from cloudpose.store.metric_names import data_evaluation_name, summary_metrics, video_metrics
@@ -321,14 +321,18 @@ def run_baseline(
     log: bool = True,
     rerun: bool = False,
     icp_radius: float = PAPER_RADIUS,
+    icp_starts: int = 1,
+    icp_select: str = "fitness",
 ) -> BaselineOutcome:
     """Evaluate baseline ``method`` on ``preset``'s test set (or an evenly spaced ``limit`` of
     its instances) with and without ICP; log to MLflow when ``log``.
 
-    ``icp_radius``: ICP's first correspondence distance (:func:`cloudpose.refine.schedule_for`;
-    the paper's 0.01 m by default). Another radius is a setting of the run (``icp_radius``
-    beside the method's, in its fingerprint), so it is a run of its own, which the reports,
-    made with the paper's schedule, leave out.
+    ``icp_radius``, ``icp_starts``, ``icp_select``: ICP's first correspondence distance
+    (:func:`cloudpose.refine.schedule_for`; the paper's 0.01 m by default), its starts and
+    how they are scored, as ``cloudpose evaluate --icp-radius / --icp-starts / --icp-select``
+    refine a network's estimate. Other values than the paper's (0.01, 1, fitness) are
+    settings of the run (``icp_*`` beside the method's, in its fingerprint), so it is a run
+    of its own, which the reports, made with the paper's ICP, leave out.
 
     ``split="val"`` evaluates on the validation frames held out of the training set (the same
     frames every network validates on), with metrics under ``val/``: where settings are
@@ -348,9 +352,14 @@ def run_baseline(
 
     project_dir = (project_dir or Path.cwd()).resolve()
     settings = load_settings(method).with_overrides(overrides)
-    schedule = schedule_for(icp_radius)  # checks the radius before any work
-    if icp_radius != PAPER_RADIUS:
-        settings = replace(settings, values={**settings.values, "icp_radius": icp_radius})
+    icp_settings = ICPSettings(  # checks the settings before any work
+        starts=icp_starts, select=icp_select, **schedule_for(icp_radius)
+    )
+    paper = {"icp_radius": PAPER_RADIUS, "icp_starts": 1, "icp_select": "fitness"}
+    mine = {"icp_radius": icp_radius, "icp_starts": icp_starts, "icp_select": icp_select}
+    other = {k: v for k, v in mine.items() if v != paper[k]}
+    if other:
+        settings = replace(settings, values={**settings.values, **other})
     cfg = resolve("shared-0", preset, seed)
     pool = _pool(cfg, split, data, frames, project_dir, progress)
     split = pool.split
@@ -382,8 +391,9 @@ def run_baseline(
     icp_s = None
     if icp:
         t0 = time.perf_counter()
+        views = segment_views(pool.dataset, segs) if icp_settings.select == "depth" else None
         est["icp"], _ = refine_poses(
-            segs, est["net"], models, ICPSettings(**schedule), progress=progress
+            segs, est["net"], models, icp_settings, progress=progress, views=views
         )
         icp_s = time.perf_counter() - t0
     table = instance_table(

@@ -66,6 +66,20 @@ def train(
             typer.echo(f"  {k:<28} {v:.4f}")
 
 
+def _check_icp_options(starts: int | None, select: str | None) -> None:
+    """``ValueError`` naming the option unless ``--icp-starts`` is a start group's size and
+    ``--icp-select`` a known score (None: not given)."""
+    from cloudpose.config import START_GROUPS
+    from cloudpose.refine import SELECTIONS
+
+    if starts is not None and starts not in START_GROUPS:
+        raise ValueError(
+            f"--icp-starts {starts}: expected one of {', '.join(map(str, START_GROUPS))}"
+        )
+    if select is not None and select not in SELECTIONS:
+        raise ValueError(f"--icp-select {select!r}: expected one of {', '.join(SELECTIONS)}")
+
+
 @app.command()
 def evaluate(
     run: Annotated[str, typer.Option(help="Run folder, MLflow run id, or variant/preset/seedS.")],
@@ -157,17 +171,9 @@ def evaluate(
 
     if bop_csv is not None:
         check_results_destination(bop_csv, force)
-    from cloudpose.config import START_GROUPS
     from cloudpose.evaluate import evaluate_real
 
-    if icp_starts is not None and icp_starts not in START_GROUPS:
-        raise ValueError(
-            f"--icp-starts {icp_starts}: expected one of {', '.join(map(str, START_GROUPS))}"
-        )
-    from cloudpose.refine import SELECTIONS
-
-    if icp_select is not None and icp_select not in SELECTIONS:
-        raise ValueError(f"--icp-select {icp_select!r}: expected one of {', '.join(SELECTIONS)}")
+    _check_icp_options(icp_starts, icp_select)
     pairs = (("fallback", icp_fallback), ("starts", icp_starts), ("select", icp_select))
     overrides = {k: v for k, v in pairs if v is not None}
     if icp_radius is not None:
@@ -400,6 +406,20 @@ def baseline(
             "cloudpose.refine.schedule_for). Another radius is a run of its own."
         ),
     ] = 0.01,
+    icp_starts: Annotated[
+        int,
+        typer.Option(
+            help="ICP from the estimate turned by each element of a rotation group (12, 24, "
+            "60), as evaluate --icp-starts; 1: the paper. Another is a run of its own."
+        ),
+    ] = 1,
+    icp_select: Annotated[
+        str,
+        typer.Option(
+            help="How ICP's starts are scored: fitness or depth, as evaluate --icp-select. "
+            "Another than fitness is a run of its own."
+        ),
+    ] = "fitness",
     rerun: Annotated[
         bool, typer.Option(help="Compute and log a new run even if this one is logged.")
     ] = False,
@@ -412,6 +432,8 @@ def baseline(
     shown, not computed again (``--rerun`` computes a new one)."""
     from cloudpose.baselines.run import run_baseline
     from cloudpose.registry import parse_overrides
+
+    _check_icp_options(icp_starts, icp_select)
 
     overrides = {
         k: v
@@ -431,6 +453,8 @@ def baseline(
         progress=progress,
         rerun=rerun,
         icp_radius=icp_radius,
+        icp_starts=icp_starts,
+        icp_select=icp_select,
     )
     on = f"{out.split} in {data}, {preset} settings" if data is not None else preset
     if out.reused:
