@@ -23,7 +23,6 @@ states (never on the real development frames, which only check it).
 
 from __future__ import annotations
 
-import argparse
 import shlex
 import sys
 import time
@@ -41,11 +40,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 from multi_start_icp import (
     KEY,
     Segments,
+    arguments,
     fmt,
     logged_segments,
     no_estimate,
     poses,
     same_refinement,
+    verdict,
 )
 
 RADII = (0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
@@ -142,21 +143,15 @@ def paired(net: list[dict], base: dict, radii) -> list[str]:
                     [r["tables"][mine] for r in net], base["tables"][theirs], metric, "icp"
                 )
                 lo, hi = 100 * d["low"], 100 * d["high"]
-                verdict = (
-                    "network ahead" if lo > 0 else "baseline ahead" if hi < 0 else "not resolved"
-                )
                 lines.append(
                     f"| {label} | {radius_label(mine)} | {radius_label(theirs)} "
-                    f"| {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] | {verdict} |"
+                    f"| {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] | {verdict(lo, hi)} |"
                 )
     return [*lines, ""]
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", action="append", required=True, help="network run name (repeat)")
-    ap.add_argument("--baseline", action="append", default=[], help="baseline run name (repeat)")
-    ap.add_argument("--split", choices=("test", "real"), default="test")
+    ap = arguments(__doc__.split("\n\n")[0], "test")
     ap.add_argument("--radii", type=float, nargs="+", default=list(RADII), help="metres")
     args = ap.parse_args(argv)
     radii = sorted(set(args.radii) | {RADII[0]})

@@ -230,6 +230,21 @@ def by_class(results: list[dict], starts: int) -> list[str]:
     return [*lines, ""]
 
 
+def verdict(low: float, high: float) -> str:
+    """A paired difference's 95% interval in words."""
+    return "network ahead" if low > 0 else "baseline ahead" if high < 0 else "not resolved"
+
+
+def arguments(description: str, split: str) -> argparse.ArgumentParser:
+    """The options every diagnostic of logged runs takes: the networks, the baselines, the
+    split (default ``split``)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--run", action="append", required=True, help="network run name (repeat)")
+    ap.add_argument("--baseline", action="append", default=[], help="baseline run name (repeat)")
+    ap.add_argument("--split", choices=("test", "real"), default=split)
+    return ap
+
+
 def paired(net: list[dict], base: dict, starts: int) -> list[str]:
     """Network minus baseline on the real frames, bootstrap over object poses."""
     lines = [
@@ -240,18 +255,15 @@ def paired(net: list[dict], base: dict, starts: int) -> list[str]:
         for ref, key in (("1 start", "one"), (f"{starts} starts", "many")):
             d = versus_baseline([r[key] for r in net], base[key], metric, "icp")
             lo, hi = 100 * d["low"], 100 * d["high"]
-            verdict = "network ahead" if lo > 0 else "baseline ahead" if hi < 0 else "not resolved"
             lines.append(
-                f"| {label} | {ref} | {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] | {verdict} |"
+                f"| {label} | {ref} | {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] "
+                f"| {verdict(lo, hi)} |"
             )
     return [*lines, ""]
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", action="append", required=True, help="network run name (repeat)")
-    ap.add_argument("--baseline", action="append", default=[], help="baseline run name (repeat)")
-    ap.add_argument("--split", choices=("test", "real"), default="test")
+    ap = arguments(__doc__.split("\n\n")[0], "test")
     ap.add_argument("--starts", type=int, default=24)
     args = ap.parse_args(argv)
     client = tracking.setup(Path.cwd())

@@ -20,7 +20,6 @@ the store of the current folder, e.g. in the project that holds the default's sw
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import shlex
 import sys
@@ -39,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from multi_start_icp import (
     KEY,
     Segments,
+    arguments,
     logged,
     logged_segments,
     no_estimate,
@@ -223,10 +223,7 @@ def paired(runs: list[dict], base: pd.DataFrame) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", action="append", required=True, help="network run name (repeat)")
-    ap.add_argument("--baseline", action="append", default=[], help="baseline run name (repeat)")
-    ap.add_argument("--split", choices=("test", "real"), default="real")
+    ap = arguments(__doc__.split("\n\n")[0], "real")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 2, 4, 8])
     ap.add_argument("--combinations", type=int, default=28, help="most subsets per size")
     ap.add_argument(
