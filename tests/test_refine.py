@@ -424,7 +424,7 @@ def test_a_wider_first_radius_ends_at_the_papers_last_radius():
         assert radii[0] == radius
         assert radii[-1] == pytest.approx(paper.radii()[-1], rel=0.05)
     for radius in (0.005, 0.6, float("nan")):
-        with pytest.raises(ValueError, match="expected from the paper's 0.01 to 0.5 m"):
+        with pytest.raises(ValueError, match=r"expected from the paper's 0\.01 to 0\.5 m"):
             schedule_for(radius)
 
 
