@@ -41,12 +41,12 @@ from multi_start_icp import (
     KEY,
     Segments,
     arguments,
+    difference_cells,
     fmt,
     logged_segments,
     no_estimate,
     poses,
     same_refinement,
-    verdict,
 )
 
 RADII = (0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
@@ -142,10 +142,9 @@ def paired(net: list[dict], base: dict, radii) -> list[str]:
                 d = versus_baseline(
                     [r["tables"][mine] for r in net], base["tables"][theirs], metric, "icp"
                 )
-                lo, hi = 100 * d["low"], 100 * d["high"]
                 lines.append(
                     f"| {label} | {radius_label(mine)} | {radius_label(theirs)} "
-                    f"| {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] | {verdict(lo, hi)} |"
+                    f"| {difference_cells(d)} |"
                 )
     return [*lines, ""]
 

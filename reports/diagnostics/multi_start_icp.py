@@ -235,6 +235,13 @@ def verdict(low: float, high: float) -> str:
     return "network ahead" if low > 0 else "baseline ahead" if high < 0 else "not resolved"
 
 
+def difference_cells(d: dict) -> str:
+    """A paired difference (:func:`cloudpose.report.real.versus_baseline`, fractions) as three
+    table cells: points, 95% interval, verdict."""
+    lo, hi = 100 * d["low"], 100 * d["high"]
+    return f"{100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] | {verdict(lo, hi)}"
+
+
 def arguments(description: str, split: str) -> argparse.ArgumentParser:
     """The options every diagnostic of logged runs takes: the networks, the baselines, the
     split (default ``split``)."""
@@ -254,11 +261,7 @@ def paired(net: list[dict], base: dict, starts: int) -> list[str]:
     for metric, label in METRICS.items():
         for ref, key in (("1 start", "one"), (f"{starts} starts", "many")):
             d = versus_baseline([r[key] for r in net], base[key], metric, "icp")
-            lo, hi = 100 * d["low"], 100 * d["high"]
-            lines.append(
-                f"| {label} | {ref} | {100 * d['diff']:+.1f} | [{lo:+.1f}, {hi:+.1f}] "
-                f"| {verdict(lo, hi)} |"
-            )
+            lines.append(f"| {label} | {ref} | {difference_cells(d)} |")
     return [*lines, ""]
 
 
