@@ -456,12 +456,12 @@ class DataConfig:
 
 
 START_GROUPS = {1: None, 12: "T", 24: "O", 60: "I"}
+"""Number of ICP starts -> the rotation group (scipy's name) whose elements turn the estimate
+(:func:`cloudpose.refine.start_rotations`)."""
 PAPER_RADIUS = 0.01
 """The paper's first ICP correspondence distance, metres (docs/design.md "Refinement")."""
 MAX_RADIUS = 0.5
 """The widest first ICP correspondence distance a setting may give, metres."""
-"""Number of ICP starts -> the rotation group (scipy's name) whose elements turn the estimate
-(:func:`cloudpose.refine.start_rotations`)."""
 
 
 @dataclass(frozen=True)
