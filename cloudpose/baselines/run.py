@@ -38,7 +38,7 @@ from tqdm.auto import tqdm
 
 from cloudpose.baselines import load_settings, make
 from cloudpose.baselines.base import BaselineSettings, NotRegistered, settings_fingerprint
-from cloudpose.config import PAPER_RADIUS
+from cloudpose.config import PAPER_RADIUS, ICPConfig
 from cloudpose.data.cache import SegmentSet, segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.keys import DataKey
@@ -46,7 +46,7 @@ from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.evaluate import instance_table, log_evaluation
 from cloudpose.files import atomic_write
 from cloudpose.infer import Estimates, refine_poses
-from cloudpose.refine import ICPSettings, schedule_for, segment_views
+from cloudpose.refine import ICPSettings, segment_views
 from cloudpose.registry import DEFAULT_PRESET, resolve
 from cloudpose.store import instances, runs, tracking
 from cloudpose.store.metric_names import data_evaluation_name, summary_metrics, video_metrics
@@ -352,12 +352,14 @@ def run_baseline(
 
     project_dir = (project_dir or Path.cwd()).resolve()
     settings = load_settings(method).with_overrides(overrides)
-    icp_settings = ICPSettings(  # checks the settings before any work
-        starts=icp_starts, select=icp_select, **schedule_for(icp_radius)
-    )
-    paper = {"icp_radius": PAPER_RADIUS, "icp_starts": 1, "icp_select": "fitness"}
-    mine = {"icp_radius": icp_radius, "icp_starts": icp_starts, "icp_select": icp_select}
-    other = {k: v for k, v in mine.items() if v != paper[k]}
+    icp_cfg = ICPConfig(radius=icp_radius, starts=icp_starts, select=icp_select)  # checked
+    icp_settings = ICPSettings.from_config(icp_cfg)
+    paper = ICPConfig()
+    other = {
+        f"icp_{k}": getattr(icp_cfg, k)
+        for k in ("radius", "starts", "select")
+        if getattr(icp_cfg, k) != getattr(paper, k)
+    }
     if other:
         settings = replace(settings, values={**settings.values, **other})
     cfg = resolve("shared-0", preset, seed)

@@ -217,6 +217,25 @@ SetOpt = Annotated[
 ]
 
 
+def check_icp_options(
+    starts: int | None = None, select: str | None = None, radius: float | None = None
+) -> None:
+    """``ValueError`` naming the option unless ``--icp-starts`` is a start group's size,
+    ``--icp-select`` a known score and ``--icp-radius`` a first radius a schedule can start
+    from (:func:`cloudpose.refine.schedule_for`; None: not given), before any work."""
+    from cloudpose.config import START_GROUPS
+    from cloudpose.refine import SELECTIONS, schedule_for
+
+    if starts is not None and starts not in START_GROUPS:
+        raise ValueError(
+            f"--icp-starts {starts}: expected one of {', '.join(map(str, START_GROUPS))}"
+        )
+    if select is not None and select not in SELECTIONS:
+        raise ValueError(f"--icp-select {select!r}: expected one of {', '.join(SELECTIONS)}")
+    if radius is not None:
+        schedule_for(radius)
+
+
 def group_names() -> str:
     """The registered ablation groups, for help texts: ``shared, rotation, loss or symmetry``."""
     from cloudpose.registry import groups

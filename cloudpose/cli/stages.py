@@ -18,6 +18,7 @@ from cloudpose.cli.app import (
     SetOpt,
     VariantOpt,
     app,
+    check_icp_options,
     config_of,
     recorded_command,
 )
@@ -64,20 +65,6 @@ def train(
         typer.echo(f"run {display_name(cfg)} (MLflow run {out.run_id}, folder {out.run_dir})")
         for k, v in sorted(out.metrics.items()):
             typer.echo(f"  {k:<28} {v:.4f}")
-
-
-def _check_icp_options(starts: int | None, select: str | None) -> None:
-    """``ValueError`` naming the option unless ``--icp-starts`` is a start group's size and
-    ``--icp-select`` a known score (None: not given)."""
-    from cloudpose.config import START_GROUPS
-    from cloudpose.refine import SELECTIONS
-
-    if starts is not None and starts not in START_GROUPS:
-        raise ValueError(
-            f"--icp-starts {starts}: expected one of {', '.join(map(str, START_GROUPS))}"
-        )
-    if select is not None and select not in SELECTIONS:
-        raise ValueError(f"--icp-select {select!r}: expected one of {', '.join(SELECTIONS)}")
 
 
 @app.command()
@@ -173,7 +160,7 @@ def evaluate(
         check_results_destination(bop_csv, force)
     from cloudpose.evaluate import evaluate_real
 
-    _check_icp_options(icp_starts, icp_select)
+    check_icp_options(icp_starts, icp_select, icp_radius)
     pairs = (("fallback", icp_fallback), ("starts", icp_starts), ("select", icp_select))
     overrides = {k: v for k, v in pairs if v is not None}
     if icp_radius is not None:
@@ -433,7 +420,7 @@ def baseline(
     from cloudpose.baselines.run import run_baseline
     from cloudpose.registry import parse_overrides
 
-    _check_icp_options(icp_starts, icp_select)
+    check_icp_options(icp_starts, icp_select, icp_radius)
 
     overrides = {
         k: v

@@ -8,7 +8,15 @@ from typing import Annotated
 
 import typer
 
-from cloudpose.cli.app import DryRunOpt, OutOpt, PresetOpt, ProgressOpt, app, recorded_command
+from cloudpose.cli.app import (
+    DryRunOpt,
+    OutOpt,
+    PresetOpt,
+    ProgressOpt,
+    app,
+    check_icp_options,
+    recorded_command,
+)
 from cloudpose.registry import DEFAULT_PRESET
 
 QUICK = {"instances": 24, "fpfh_instances": 12, "ppf_instances": 4, "synth_frames": 8}
@@ -123,9 +131,7 @@ def stress(
     from cloudpose.store.tracking import check_name
 
     check_name("--preset", preset)
-    from cloudpose.refine import schedule_for
-
-    schedule_for(icp_radius)  # a radius out of range, before any work
+    check_icp_options(radius=icp_radius)
     project = Path.cwd()
     results = results or project / "runs" / "stress" / preset
     if not report_only and results.is_file():

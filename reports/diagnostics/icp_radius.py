@@ -17,8 +17,8 @@ default's sweep::
         --baseline baseline-fpfh/cpu-online/seed1 --baseline baseline-ppf/cpu-online/seed1 \\
         > reports/diagnostics/icp_radius_test.md
 
-The radius a user should take is chosen on the synthetic test set by the rule ``--choose``
-states (never on the real development frames, which only check it).
+The radius a user should take is chosen on the synthetic test set by the rule of
+:func:`choose` (never on the real development frames, which only check it).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cloudpose.config import PAPER_RADIUS
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import refine_poses
 from cloudpose.refine import ICPSettings, schedule_for
@@ -49,12 +50,12 @@ from multi_start_icp import (
     same_refinement,
 )
 
-RADII = (0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
+RADII = (PAPER_RADIUS, 0.02, 0.03, 0.05, 0.08, 0.12, 0.18, 0.25)
 CHOOSE_WITHIN = 0.1  # points of the networks' mean ADS AUC: the smallest radius this near the best
 
 
 def radius_label(radius: float) -> str:
-    return f"{100 * radius:g} cm" + (" (paper)" if radius == RADII[0] else "")
+    return f"{100 * radius:g} cm" + (" (paper)" if radius == PAPER_RADIUS else "")
 
 
 def refined(
@@ -74,7 +75,7 @@ def refined(
         ref, _ = refine_poses(segs, est, models, ICPSettings(**schedule_for(radius)))
         ms[radius] = 1000 * (time.perf_counter() - t0) / n
         out = instance_table(segs, {"net": est, "icp": ref}, models, dataset.classes, sym)
-        if radius == 0.01 and not control:
+        if radius == PAPER_RADIUS and not control:
             same_refinement(name, out, table)
         tables[radius] = out
     return {"name": name, "tables": tables, "ms": ms}
@@ -85,7 +86,7 @@ def _values(results: list[dict], radius, keep) -> dict[str, list[float]]:
     (``None``: the estimate without ICP), on the instances ``keep`` (None: all)."""
     out: dict[str, list[float]] = {}
     for r in results:
-        table = r["tables"][radius or RADII[0]]
+        table = r["tables"][radius or PAPER_RADIUS]
         if keep is not None:
             table = table.set_index(KEY).loc[keep].reset_index()
         col = "net" if radius is None else "icp"
@@ -137,7 +138,9 @@ def paired(net: list[dict], base: dict, radii) -> list[str]:
     ]
     for metric, label in METRICS.items():
         for radius in radii:
-            pairs = [(radius, radius)] + ([(radius, RADII[0])] if radius != RADII[0] else [])
+            pairs = [(radius, radius)] + (
+                [(radius, PAPER_RADIUS)] if radius != PAPER_RADIUS else []
+            )
             for mine, theirs in pairs:
                 d = versus_baseline(
                     [r["tables"][mine] for r in net], base["tables"][theirs], metric, "icp"
@@ -153,7 +156,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = arguments(__doc__.split("\n\n")[0], "test")
     ap.add_argument("--radii", type=float, nargs="+", default=list(RADII), help="metres")
     args = ap.parse_args(argv)
-    radii = sorted(set(args.radii) | {RADII[0]})
+    radii = sorted(set(args.radii) | {PAPER_RADIUS})
     client = tracking.setup(Path.cwd())
     segments = Segments(args.split, Path.cwd())
     net = [refined(client, n, args.split, radii, segments) for n in args.run]
@@ -197,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
         radii,
     )
     for b in bases:
-        keep = b["tables"][RADII[0]].set_index(KEY).index
+        keep = b["tables"][PAPER_RADIUS].set_index(KEY).index
         lines += section(
             f"On the instances of {b['name']} ({len(keep)})",
             [("network", net), (b["name"], [b])],

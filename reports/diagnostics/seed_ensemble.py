@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose.config import PAPER_RADIUS
 from cloudpose.evaluate import instance_table
 from cloudpose.infer import Estimates, refine_poses, refinement_scores
 from cloudpose.refine import ICPSettings, schedule_for, segment_views
@@ -55,7 +56,7 @@ def hypotheses(
     split: str,
     segments: Segments,
     starts: int = 1,
-    radius: float = 0.01,
+    radius: float = PAPER_RADIUS,
     scores: bool = True,
     control: bool = False,
 ) -> dict:
@@ -74,7 +75,7 @@ def hypotheses(
         out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
         same_refinement(name, out, table)
     views = segment_views(dataset, segs)
-    if control or starts > 1 or radius != 0.01:
+    if control or starts > 1 or radius != PAPER_RADIUS:
         many = ICPSettings(starts=starts, select="depth", **schedule_for(radius))
         refined, stats = refine_poses(segs, est, models, many, views=views)
         out = instance_table(segs, {"icp": refined}, models, dataset.classes, sym)
@@ -193,12 +194,12 @@ def per_pose(runs: list[dict]) -> list[str]:
 
 
 def baseline_table(
-    client, name: str, split: str, segments: Segments, starts: int = 1, radius: float = 0.01
+    client, name: str, split: str, segments: Segments, starts: int = 1, radius: float = PAPER_RADIUS
 ):
     """A baseline's instance table: the logged one (its ICP columns are its one-start
     refinement), or its logged estimates refined from ``starts`` turned starts kept by the
     depth and from the first radius ``radius``, as each network's are (``hypotheses``)."""
-    if starts == 1 and radius == 0.01:
+    if starts == 1 and radius == PAPER_RADIUS:
         return logged(client, name, split)[0]
     return hypotheses(client, name, split, segments, starts, radius, scores=False)["table"]
 
@@ -238,7 +239,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--icp-radius",
         type=float,
-        default=0.01,
+        default=PAPER_RADIUS,
         help="ICP's first radius for every method, metres (0.01: the paper's schedule)",
     )
     ap.add_argument(
@@ -254,7 +255,7 @@ def main(argv: list[str] | None = None) -> None:
     runs = [hypotheses(client, n, args.split, segments, args.starts, radius) for n in args.run]
     schedule = (
         "the paper's schedule"
-        if radius == 0.01
+        if radius == PAPER_RADIUS
         else f"the schedule from a first radius of {100 * radius:g} cm (`--icp-radius`)"
     )
     where = "the real development frames" if args.split == "real" else "the preset's test set"
@@ -296,7 +297,7 @@ def main(argv: list[str] | None = None) -> None:
             "ICP"
             if args.baseline_starts == 1
             else f"ICP from {args.baseline_starts} starts, kept by the depth"
-        ) + ("" if radius == 0.01 else f" ({100 * radius:g} cm first radius)")
+        ) + ("" if radius == PAPER_RADIUS else f" ({100 * radius:g} cm first radius)")
         lines += [
             f"## Against {b}, on its {len(keep)} instances",
             "",
