@@ -193,7 +193,7 @@ def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
     return "-".join(parts) or "other"
 
 
-def _load_network(client, run: str, device: str):
+def load_network(client, run: str, device: str):
     """``(run id, network, config, checkpoint in words)`` of ``run``; a checkpoint downloaded
     from the run's artifacts is read and removed with its folder."""
     with local_checkpoint(client, run) as (run_id, ckpt):
@@ -312,7 +312,7 @@ def _score(
     return table, metrics
 
 
-def _check_member(cfg, other, run: str) -> None:
+def check_member(cfg, other, run: str) -> None:
     """``ValueError`` unless the network of ``run`` (config ``other``) can join an ensemble with
     the evaluated run's (``cfg``): the same data section (the segments and classes it was
     trained and is tested on) and the same rotation modulo symmetry (its errors' table)."""
@@ -382,13 +382,13 @@ def evaluate(
     project_dir = (project_dir or Path.cwd()).resolve()
     log = log and not is_pretrained(run)  # the shipped network has no MLflow run to log to
     client = tracking.setup(project_dir)
-    run_id, model, cfg, ckpt_label = _load_network(client, run, device)
+    run_id, model, cfg, ckpt_label = load_network(client, run, device)
     members = []
     for other in ensemble or ():
         if not icp:
             raise ValueError("--ensemble keeps one of the networks' ICP refinements; drop --no-icp")
-        member = _load_network(client, other, device)
-        _check_member(cfg, member[2], other)
+        member = load_network(client, other, device)
+        check_member(cfg, member[2], other)
         if member[0] is not None and member[0] in {run_id, *(m[0] for m in members)}:
             raise ValueError(f"--ensemble {other}: run {member[0]} is in the ensemble already")
         members.append(member)

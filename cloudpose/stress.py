@@ -198,11 +198,9 @@ def lateral_shift(points: np.ndarray, shift_mm: float, rng: np.random.Generator)
     order = np.argsort(-(points @ u), kind="stable")  # farthest along u first
     N = len(points)
     total = points.sum(axis=0)
-    removed = np.cumsum(points[order], axis=0)  # (N, 3) sum of the first k+1 removed
-    k = np.arange(1, N + 1)
-    rest = N - k
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cent = (total - removed) / rest[:, None]
+    removed = np.cumsum(points[order[:-1]], axis=0)  # (N-1, 3) sum of the first k+1 removed
+    rest = N - np.arange(1, N)  # at least one point left
+    cent = (total - removed) / rest[:, None]
     move = cent - total / N
     shift = np.linalg.norm(move - np.outer(move @ ray, ray), axis=1)  # across the ray
     max_removed = N - max(int(np.ceil(MIN_KEEP * N)), 1)

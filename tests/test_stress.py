@@ -110,6 +110,18 @@ def test_lateral_shift_moves_the_centroid_across_the_ray(shift_mm):
     np.testing.assert_array_equal(st.lateral_shift(p, 0.0, np.random.default_rng(4)), p)
 
 
+def test_lateral_shift_beyond_reach_keeps_the_least_share_without_a_warning():
+    """A shift no removal reaches stops at MIN_KEEP of the points, and no step divides by the
+    empty rest (numpy warned "invalid value encountered in matmul" there)."""
+    import warnings
+
+    p = _cloud(500)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        kept = st.lateral_shift(p, 1e6, np.random.default_rng(4))
+    assert len(kept) == int(np.ceil(st.MIN_KEEP * len(p)))
+
+
 def test_resampling_scales_the_count_on_the_same_surface():
     p = _cloud(400)
     rng = np.random.default_rng(5)

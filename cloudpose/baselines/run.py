@@ -145,7 +145,7 @@ class BaselineCall:
         )
 
 
-class _Progress:
+class EstimateProgress:
     """Per-instance estimates of one baseline run, saved atomically now and then.
 
     ``done[i]`` says instance ``i`` was attempted; ``ok[i]`` that it was registered (then
@@ -234,8 +234,8 @@ def _pool(
     return _Pool(dataset, segments, segments.data_key, name, describe_split(dataset, frames))
 
 
-def _estimate_all(
-    estimator, models: dict, segs: SegmentSet, state: _Progress, method: str, progress: bool
+def estimate_all(
+    estimator, models: dict, segs: SegmentSet, state: EstimateProgress, method: str, progress: bool
 ) -> float:
     """Run ``estimator`` on every valid segment that ``state`` has not done yet, saving now and
     then; the seconds spent preparing the estimator's per-model state (kept off each segment's
@@ -382,9 +382,9 @@ def run_baseline(
         if done is not None:
             return done
     estimator = make(method, models, settings, seed=seed)
-    state = _Progress(call.progress_path(), len(segs))
+    state = EstimateProgress(call.progress_path(), len(segs))
     estimator.calls = state.calls
-    prepare_s = _estimate_all(estimator, models, segs, state, method, progress)
+    prepare_s = estimate_all(estimator, models, segs, state, method, progress)
     ok = np.asarray(segs.valid, dtype=bool) & state.ok
     n_valid = int(np.sum(segs.valid))
     failures = n_valid - int(ok.sum())

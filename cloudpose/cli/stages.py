@@ -456,3 +456,74 @@ def baseline(
     _print_summary(out.metrics)
     ms = out.metrics[f"{out.name}/net_ms_per_object"]
     typer.echo(f"{ms:.0f} ms per object ({method} alone)")
+
+
+@app.command()
+def compare(
+    ctx: typer.Context,
+    data: Annotated[
+        str | None,
+        typer.Option(
+            help="Dataset root, YCB-Video or BOP ycbv layout (default: the 61 packaged real "
+            "development frames)."
+        ),
+    ] = None,
+    frames: Annotated[
+        str | None,
+        typer.Option(
+            help="Its frame list: keyframe (BOP: the BOP19 test targets), all, or an image set "
+            "(default: all of the packaged frames, keyframe of --data)."
+        ),
+    ] = None,
+    run: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="The network: a run (name variant/preset/seedS, id or folder) or pretrained "
+            "(the default); repeated, an ensemble (per object the refinement --icp-select "
+            "scores best kept)."
+        ),
+    ] = None,
+    method: Annotated[
+        list[str] | None,
+        typer.Option(help="Classical methods beside it, fpfh and/or ppf (default: both)."),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="The classical methods' random seed.")] = 1,
+    icp_starts: Annotated[
+        int, typer.Option(help="Starts of the refinement beside the paper's (1, 12, 24, 60).")
+    ] = 24,
+    icp_select: Annotated[
+        str, typer.Option(help="How its starts are scored: fitness or depth.")
+    ] = "depth",
+    icp_radius: Annotated[
+        float, typer.Option(help="Its first correspondence distance, metres (0.01: the paper's).")
+    ] = 0.18,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="The comparison's folder (default runs/compare/DATA-IDENTITY)."),
+    ] = None,
+    device: DeviceOpt = "auto",
+    progress: ProgressOpt = True,
+) -> None:
+    """The network and FPFH + RANSAC and point-pair features on the same segments of one set of
+    frames, every estimate refined by the same ICPs (the paper's and a wider one), side by side:
+    pooled, per video and per object pose, the network's difference to each paired over object
+    poses (compare.md, compare.png). Resumable; logs nothing."""
+    from cloudpose.compare import run_compare
+
+    check_icp_options(icp_starts, icp_select, icp_radius)
+    done = run_compare(
+        out,
+        data=data,
+        frames=frames,
+        runs=run,
+        methods=method,
+        seed=seed,
+        starts=icp_starts,
+        select=icp_select,
+        radius=icp_radius,
+        device=device,
+        progress=progress,
+        command=recorded_command(ctx),
+    )
+    typer.echo(done.described)
+    typer.echo(f"report: {done.report}" + (f"; figure: {done.figure}" if done.figure else ""))

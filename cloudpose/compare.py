@@ -1,0 +1,357 @@
+"""Like for like on one set of frames (``cloudpose compare``): the network and the classical
+registrations on the same segments, every estimate refined by the same ICP.
+
+A user with real frames (their own YCB-Video test videos, a BOP ycbv folder; by default the 61
+packaged development frames) asks one question: on these frames, how does the network compare
+with FPFH + RANSAC and point-pair features? Answering it by hand takes an evaluation, two
+baseline runs and their refinements, and a table put together from their logs, where a
+mismatch (another frame list, another refinement for one method) goes unseen. Here every method
+estimates the pose of the same segments once, and each estimate is refined by each of the same
+ICP schedules (:func:`refinements`: the paper's, and the recipe of ``--icp-starts``,
+``--icp-select``, ``--icp-radius``); the report puts the results side by side, pooled, per
+video and per object pose, with the network's difference to each method paired over the object
+poses (an object stands still in a video while the camera moves, so its instances are one pose
+seen many times; :func:`cloudpose.report.real.versus_baseline`).
+
+Nothing is logged to MLflow; the output folder holds everything: ``compare.json`` (what was
+compared: data key, networks, methods, seed), ``estimates/METHOD.npz`` (each method's poses,
+saved as they are computed, so an interrupted call resumes), ``tables/METHOD-REFINEMENT.csv``
+(the instance tables of :func:`cloudpose.evaluate.instance_table`, with the translation error
+split along and across the viewing ray), and the report ``compare.md`` with its figure
+``compare.png``. A folder holding another comparison is refused, never mixed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cloudpose.files import atomic_text, atomic_write, read_json
+
+NETWORK = "network"
+BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
+RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
+"""The refinement compared beside the paper's by default: 24 starts kept by their agreement with
+the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
+METRICS = {
+    "ads_auc": "ADS AUC",
+    "rot_sym_lt_10deg": "rot < 10° mod sym",
+    "trans_lt_1cm": "trans < 1 cm",
+}
+"""What the paired differences are taken on (:func:`cloudpose.report.real.versus_baseline`)."""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """One ICP every method's estimate goes through.
+
+    Attributes:
+        name: its file name part: ``icp`` (the paper's) or ``icp-starts24-selectdepth-radius180mm``.
+        label: in words, for the report.
+        settings: the ICP (:class:`cloudpose.refine.ICPSettings`).
+    """
+
+    name: str
+    label: str
+    settings: object
+
+
+def refinements(starts: int, select: str, radius: float) -> list[Refinement]:
+    """The paper's ICP (one start, ICP's fitness, 1 cm first radius), and the one of ``starts``,
+    ``select``, ``radius`` unless it is the paper's (:func:`cloudpose.refine.schedule_for`)."""
+    from cloudpose.evaluate import icp_label
+    from cloudpose.refine import ICPSettings, schedule_for
+
+    paper = ICPSettings()
+    out = [Refinement("icp", "+ ICP (paper)", paper)]
+    other = ICPSettings(starts=starts, select=select, **schedule_for(radius))
+    if other != paper:
+        words = [f"{starts} start{'s' if starts > 1 else ''}", f"by {select}"]
+        words.append(f"{100 * radius:g} cm")
+        label = f"+ ICP ({', '.join(words)})"
+        out.append(Refinement(f"icp-{icp_label(other, paper)}", label, other))
+    return out
+
+
+@dataclass
+class Contender:
+    """A method of the comparison and its poses of every segment.
+
+    Attributes:
+        name: :data:`NETWORK` or a baseline (``fpfh``, ``ppf``).
+        label: in words.
+        estimates: one :class:`cloudpose.infer.Estimates` per network of an ensemble (one for
+            a baseline); a segment a baseline could not register is a miss (``ok`` False).
+        ok: per segment, whether the method gave a pose.
+        ms_per_object: the method's milliseconds per object.
+    """
+
+    name: str
+    label: str
+    estimates: list
+    ok: np.ndarray
+    ms_per_object: float
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A finished comparison: its instance tables per (method, refinement), what it compared,
+    and the report written."""
+
+    tables: dict[tuple[str, str], pd.DataFrame]
+    contenders: list[Contender]
+    refinements: list[Refinement]
+    described: str
+    report: Path
+    figure: Path | None
+
+
+def ray_split(t_est: np.ndarray, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The translation error ``t_est - t_gt`` (N, 3) split into its length along the viewing ray
+    through the true centre (the camera at the origin) and across it, metres (N,) each: depth
+    scale against a centre that moves sideways."""
+    err = np.asarray(t_est, float) - np.asarray(t_gt, float)
+    ray = np.asarray(t_gt, float) / np.linalg.norm(t_gt, axis=1, keepdims=True)
+    along = np.sum(err * ray, axis=1)
+    across = np.linalg.norm(err - along[:, None] * ray, axis=1)
+    return np.abs(along), across
+
+
+def _manifest(path: Path, wanted: dict) -> None:
+    """Write ``wanted`` as the folder's ``compare.json``, or refuse a folder that holds a
+    comparison of other data, networks, methods or seed (naming the field)."""
+    if path.is_file():
+        have = read_json(path, "a comparison's record", f"remove {path.parent} and rerun")
+        for key, value in wanted.items():
+            if have.get(key) != value:
+                raise ValueError(
+                    f"{path.parent} holds a comparison of another {key} ({have.get(key)!r}, "
+                    f"this call {value!r}); give another --out or remove that folder"
+                )
+        return
+    atomic_text(path, json.dumps(wanted, indent=2) + "\n")
+
+
+def _network(segs, loaded: list, path: Path) -> Contender:
+    """The network (``loaded``: :func:`cloudpose.evaluate.load_network` of each run; more than
+    one an ensemble) on ``segs``; its estimates cached at ``path``."""
+    from cloudpose.infer import Estimates, estimate_poses
+
+    label = NETWORK + (f" ({len(loaded)} networks)" if len(loaded) > 1 else "")
+    ok = np.ones(len(segs), dtype=bool)
+    if path.is_file():
+        with np.load(path) as f:
+            if f["R"].shape[:2] == (len(loaded), len(segs)):
+                ests = [Estimates(R, t) for R, t in zip(f["R"], f["t"], strict=True)]
+                return Contender(NETWORK, label, ests, ok, float(f["ms"]))
+    t0 = time.perf_counter()
+    ests = [estimate_poses(m, segs, c.train.n_points, device=next(m.buffers()).device)
+            for _, m, c, _ in loaded]  # fmt: skip
+    ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
+    arrays = {"R": np.stack([e.R for e in ests]), "t": np.stack([e.t for e in ests]), "ms": ms}
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
+    return Contender(NETWORK, label, ests, ok, ms)
+
+
+def _baseline(method: str, segs, models: dict, seed: int, path: Path, progress: bool) -> Contender:
+    """Baseline ``method`` (``baselines.toml``'s settings) on ``segs``, resumable from ``path``."""
+    from cloudpose.baselines import load_settings, make
+    from cloudpose.baselines.run import EstimateProgress, estimate_all
+    from cloudpose.infer import Estimates
+
+    state = EstimateProgress(path, len(segs))
+    valid = np.asarray(segs.valid, dtype=bool)
+    if not state.done[valid].all():
+        estimator = make(method, models, load_settings(method), seed=seed)
+        estimator.calls = state.calls
+        estimate_all(estimator, models, segs, state, method, progress)
+    ms = 1000 * state.seconds / max(int(valid.sum()), 1)
+    return Contender(method, BASELINES[method], [Estimates(state.R, state.t)], state.ok, ms)
+
+
+def _refine(contender: Contender, segs, dataset, refinement: Refinement, symmetry_table: int):
+    """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``:
+    ``net_*`` its estimate (an ensemble: the network whose refinement was kept), ``icp_*`` the
+    refined pose, ``*_trans_along`` / ``*_trans_across`` (:func:`ray_split`)."""
+    import warnings
+
+    from cloudpose.evaluate import instance_table
+    from cloudpose.infer import Estimates, refine_ensemble
+    from cloudpose.refine import segment_views
+
+    segs = segs.subset(np.arange(len(segs)))
+    segs.valid = np.asarray(segs.valid, dtype=bool) & contender.ok
+    models = dataset.models()
+    settings = refinement.settings
+    t0 = time.perf_counter()
+    views = segment_views(dataset, segs) if settings.select == "depth" else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Open3D on a degenerate segment; its pose is still scored
+        icp, _, pick = refine_ensemble(segs, contender.estimates, models, settings, views)
+    ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
+    est = {"net": Estimates.kept(contender.estimates, pick), "icp": icp}
+    table = instance_table(segs, est, models, dataset.classes, symmetry_table)
+    t_gt = np.asarray(segs.t, float)
+    for stage, e in est.items():
+        along, across = ray_split(np.nan_to_num(e.t), t_gt)
+        miss = ~np.asarray(segs.valid, dtype=bool)
+        table[f"{stage}_trans_along"] = np.where(miss, np.inf, along)
+        table[f"{stage}_trans_across"] = np.where(miss, np.inf, across)
+    return table, ms
+
+
+def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
+    """Refine one segment with each refinement first, so that no method's milliseconds per
+    object hold the one-off setup (Open3D's, the model clouds') of the first refinement."""
+    from cloudpose.infer import Estimates, refine_poses
+
+    first = np.flatnonzero(segs.valid)[:1]
+    if len(first) == 0:
+        return
+    one = segs.subset(first)
+    start = Estimates(np.eye(3)[None], np.asarray(one.t, float))
+    for ref in refs:
+        refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
+
+
+def run_compare(
+    out_dir: Path | None = None,
+    *,
+    data: str | Path | None = None,
+    frames: str | None = None,
+    runs: list[str] | None = None,
+    methods: list[str] | None = None,
+    seed: int = 1,
+    starts: int = RECIPE["starts"],
+    select: str = RECIPE["select"],
+    radius: float = RECIPE["radius"],
+    project_dir: Path | None = None,
+    device: str = "auto",
+    progress: bool = True,
+    command: str = "cloudpose compare",
+) -> Comparison:
+    """Compare the network with ``methods`` on ``frames`` of ``data`` and write the report.
+
+    Args:
+        out_dir: the comparison's folder (default ``runs/compare/{data's identity}`` in
+            ``project_dir``, :func:`cloudpose.store.metric_names.data_evaluation_name`).
+        data: a dataset root in either layout (:mod:`cloudpose.data.layout`); None: the 61
+            packaged real development frames.
+        frames: its frame list (default ``all`` of the packaged frames, else ``keyframe``).
+        runs: the network: a run (name, id or folder) or ``pretrained``; more than one is an
+            ensemble (:func:`cloudpose.infer.refine_ensemble`). Default: the shipped network.
+        methods: baselines beside it (default FPFH + RANSAC and point-pair features).
+        seed: the baselines' random seed (RANSAC's draws).
+        starts, select, radius: the refinement beside the paper's (:func:`refinements`).
+        project_dir: where the segment caches and the MLflow store of ``runs`` are.
+        device: where the network runs.
+        command: the command line written into the report.
+    """
+    from cloudpose import runtime
+    from cloudpose.data.dataset import folder_segments
+    from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
+    from cloudpose.evaluate import check_member, load_network
+    from cloudpose.store import tracking
+    from cloudpose.store.metric_names import data_evaluation_name
+    from cloudpose.store.pretrained import PRETRAINED
+
+    runs = list(runs or [PRETRAINED])
+    methods = list(BASELINES) if methods is None else list(methods)
+    for m in methods:
+        if m not in BASELINES:
+            raise ValueError(f"--method {m!r}: expected one of {', '.join(BASELINES)}")
+    if len(set(runs)) < len(runs) or len(set(methods)) < len(methods):
+        raise ValueError("--run / --method: each at most once")
+    project_dir = Path(project_dir or Path.cwd()).resolve()
+    refs = refinements(starts, select, radius)
+    root = Path(data) if data is not None else real_dev_root()
+    frames = frames or ("all" if data is None else "keyframe")
+    dataset = open_dataset(root)
+    client = tracking.setup(project_dir)
+    loaded = [load_network(client, r, device) for r in runs]
+    cfg = loaded[0][2]
+    for r, (run_id, _, other, _) in zip(runs[1:], loaded[1:], strict=True):
+        check_member(cfg, other, r)
+        if run_id is not None and run_id in {x[0] for x in loaded[: runs.index(r)]}:
+            raise ValueError(f"--run {r}: run {run_id} is in the ensemble already")
+    runtime.configure_threads(cfg.train.threads)
+    segs = folder_segments(dataset, frames, cfg.data, project_dir, progress)
+    if len(segs) == 0:
+        raise ValueError(f"{root}: no annotated object in its {frames} frames")
+    name = data_evaluation_name(root, frames, segs.data_key)
+    out_dir = Path(out_dir) if out_dir is not None else project_dir / "runs" / "compare" / name
+    described = f"{len(segs)} instances of {describe_split(dataset, frames)} in {root.resolve()}"
+    _manifest(
+        out_dir / "compare.json",
+        {"data": str(segs.data_key), "frames": frames, "runs": runs, "methods": methods,
+         "seed": seed},
+    )  # fmt: skip
+    contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
+    models = dataset.models()
+    for m in methods:
+        contenders.append(
+            _baseline(m, segs, models, seed, out_dir / "estimates" / f"{m}.npz", progress)
+        )
+    _warm_up(segs, models, refs)
+    tables: dict[tuple[str, str], pd.DataFrame] = {}
+    timing_path = out_dir / "tables" / "icp_ms.json"
+    timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {}
+    for c in contenders:
+        for ref in refs:
+            path = out_dir / "tables" / f"{c.name}-{ref.name}.csv"
+            if path.is_file() and f"{c.name}-{ref.name}" in timing:
+                tables[(c.name, ref.name)] = pd.read_csv(path, dtype={"frame_id": str})
+                continue
+            if progress:
+                print(f"{c.label} {ref.label} on {len(segs)} instances ...", flush=True)
+            table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table)
+            atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
+            timing[f"{c.name}-{ref.name}"] = ms
+            atomic_text(timing_path, json.dumps(timing, indent=2) + "\n")
+            tables[(c.name, ref.name)] = table
+    from cloudpose.report.compare import render
+
+    report, figure = render(
+        out_dir, tables, contenders, refs, timing, described=described, command=command,
+        source=", ".join(runs),
+    )  # fmt: skip
+    return Comparison(tables, contenders, refs, described, report, figure)
+
+
+def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
+    """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
+    rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
+    its parts along and across the viewing ray (mm)."""
+    from cloudpose.metrics import summarize
+
+    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
+    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
+    pooled = summarize(sub, by_class=False)["pooled"]
+    out = {k: float(pooled[k]) for k in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")}
+    for key, col in (("trans_median_mm", "trans_err"), ("along_median_mm", "trans_along"),
+                     ("across_median_mm", "trans_across")):  # fmt: skip
+        values = table[f"{stage}_{col}"] if col != "trans_err" else sub[col]
+        out[key] = 1000 * float(np.median(values)) if len(values) else math.nan
+    return out
+
+
+def rows(tables: dict, contenders: list[Contender], refs: list[Refinement]) -> pd.DataFrame:
+    """One row per method and stage (its estimate, then after each refinement): ``method``,
+    ``stage``, ``label`` and :func:`summary`'s figures; the estimate's figures are read from
+    the paper's refinement's table (an ensemble: the network whose refinement it kept)."""
+    out = []
+    for c in contenders:
+        first = tables[(c.name, refs[0].name)]
+        out.append({"method": c.name, "stage": "estimate", "label": c.label,
+                    **summary(first, "net")})  # fmt: skip
+        for ref in refs:
+            out.append({"method": c.name, "stage": ref.name, "label": f"{c.label} {ref.label}",
+                        **summary(tables[(c.name, ref.name)], "icp")})  # fmt: skip
+    return pd.DataFrame(out)

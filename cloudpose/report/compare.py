@@ -1,0 +1,261 @@
+"""The report of ``cloudpose compare`` (:mod:`cloudpose.compare`): ``compare.md``, its summary
+``compare.csv`` and the figure ``compare.png``, from the comparison's instance tables only.
+
+Sections: every method and stage pooled (ADS AUC, AD AUC, rotation < 10 deg modulo symmetry,
+translation < 1 cm, median translation and its parts along and across the viewing ray,
+milliseconds per object); the network minus each method at each stage, paired over object
+poses with a 95% bootstrap interval (:func:`cloudpose.report.real.versus_baseline`); ADS AUC per
+video; rotation < 10 deg per object pose. The figure: ADS AUC and rotation < 10 deg per object
+pose, each method after each refinement.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cloudpose.files import atomic_text, atomic_write
+
+STAGE_ESTIMATE = "estimate"
+
+
+def _pct(x: float) -> str:
+    return "n/a" if not np.isfinite(x) else f"{100 * x:.1f}"
+
+
+def _mm(x: float) -> str:
+    return "n/a" if not np.isfinite(x) else f"{x:.1f}"
+
+
+def _signed(x: float) -> str:
+    return f"{100 * x:+.1f}"
+
+
+def _stages(refs) -> list[tuple[str, str, str]]:
+    """``(stage, table's refinement, column prefix)`` of every stage: the estimate (read from
+    the paper's refinement's table), then each refinement."""
+    return [(STAGE_ESTIMATE, refs[0].name, "net")] + [(r.name, r.name, "icp") for r in refs]
+
+
+def pooled_markdown(summary: pd.DataFrame) -> list[str]:
+    lines = [
+        "| method | ADS AUC | AD AUC | rot < 10° mod sym | trans < 1 cm | median trans (mm) "
+        "| across the ray | along the ray | ms / object |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for _, r in summary.iterrows():
+        lines.append(
+            f"| {r['label']} | {_pct(r['ads_auc'])} | {_pct(r['ad_auc'])} "
+            f"| {_pct(r['rot_sym_lt_10deg'])} | {_pct(r['trans_lt_1cm'])} "
+            f"| {_mm(r['trans_median_mm'])} | {_mm(r['across_median_mm'])} "
+            f"| {_mm(r['along_median_mm'])} | {_mm(r['ms_per_object'])} |"
+        )
+    return lines
+
+
+def paired(tables: dict, contenders, refs) -> pd.DataFrame:
+    """The network minus each other method at each stage, per metric of
+    :data:`cloudpose.compare.METRICS`: ``against``, ``stage``, ``metric``, ``diff``, ``low``,
+    ``high``, ``poses``, ``instances`` (fractions)."""
+    from cloudpose.compare import METRICS, NETWORK
+    from cloudpose.report.real import versus_baseline
+
+    out = []
+    for other in contenders:
+        if other.name == NETWORK:
+            continue
+        for stage, ref, prefix in _stages(refs):
+            for metric in METRICS:
+                d = versus_baseline(
+                    [tables[(NETWORK, ref)]], tables[(other.name, ref)], metric, prefix
+                )
+                out.append({"against": other.name, "stage": stage, "metric": metric, **d})
+    return pd.DataFrame(out)
+
+
+def _paired_markdown(diffs: pd.DataFrame, contenders, refs) -> list[str]:
+    from cloudpose.compare import METRICS
+
+    labels = {c.name: c.label for c in contenders}
+    stage_label = {STAGE_ESTIMATE: "estimates", **{r.name: r.label.lstrip("+ ") for r in refs}}
+    head = " | ".join(METRICS.values())
+    lines = [f"| against | stage | {head} |", "|---|---|" + "---:|" * len(METRICS)]
+    for (against, stage), g in diffs.groupby(["against", "stage"], sort=False):
+        cells = []
+        for metric in METRICS:
+            r = g[g["metric"] == metric].iloc[0]
+            word = " ahead" if r["low"] > 0 else " behind" if r["high"] < 0 else ""
+            cells.append(f"{_signed(r['diff'])} [{_signed(r['low'])}, {_signed(r['high'])}]{word}")
+        lines.append(f"| {labels[against]} | {stage_label[stage]} | {' | '.join(cells)} |")
+    return lines
+
+
+def _columns(contenders, refs) -> list[tuple[str, str, str, str]]:
+    """``(method, table's refinement, column prefix, heading)`` of every method and stage, the
+    method named at its estimate, each refinement after it by its own label."""
+    return [
+        (c.name, ref, prefix, c.label if stage == STAGE_ESTIMATE else _ref_label(refs, stage))
+        for c in contenders
+        for stage, ref, prefix in _stages(refs)
+    ]
+
+
+def _ref_label(refs, name: str) -> str:
+    return next(r.label for r in refs if r.name == name)
+
+
+def _ads_auc(table: pd.DataFrame, prefix: str) -> float:
+    from cloudpose.metrics.summaries import voc_ap_auc
+
+    return voc_ap_auc(table[f"{prefix}_ads"].to_numpy(float))
+
+
+def _rot10(table: pd.DataFrame, prefix: str) -> float:
+    return float(np.mean(table[f"{prefix}_rot_sym_err_deg"].to_numpy(float) < 10.0))
+
+
+def by_group(tables: dict, contenders, refs, group: pd.Series, stat) -> pd.DataFrame:
+    """``stat`` (of an instance table and a column prefix) per value of ``group`` (aligned with
+    every table's rows), a row each, with its instance count; one column per method and stage
+    (:func:`_columns`' headings, numbered where two are alike)."""
+    cols = _columns(contenders, refs)
+    keys = sorted(set(group))
+    out = pd.DataFrame({"instances": [int((group == k).sum()) for k in keys]}, index=keys)
+    for i, (method, ref, prefix, _) in enumerate(cols):
+        table = tables[(method, ref)]
+        out[i] = [stat(table[group.to_numpy() == k], prefix) for k in keys]
+    return out
+
+
+def _grouped_markdown(df: pd.DataFrame, contenders, refs, what: str, zeros: bool) -> list[str]:
+    """``df`` of :func:`by_group` as a table, a row per group; ``zeros``: a last row counting
+    the groups at 0."""
+    heads = [h for *_, h in _columns(contenders, refs)]
+    cols = [c for c in df.columns if c != "instances"]
+    lines = [
+        f"| {what} | instances | " + " | ".join(heads) + " |",
+        "|---|---:|" + "---:|" * len(heads),
+    ]
+    for key, r in df.iterrows():
+        lines.append(
+            f"| {key} | {int(r['instances'])} | " + " | ".join(_pct(r[c]) for c in cols) + " |"
+        )
+    if zeros:
+        counts = [f"{int((df[c] == 0).sum())} of {len(df)}" for c in cols]
+        lines.append("| at 0% | | " + " | ".join(counts) + " |")
+    return lines
+
+
+def figure(tables: dict, contenders, refs, poses: pd.Series, path: Path) -> Path:
+    """ADS AUC and rotation < 10 deg per object pose, each method (a colour) after each
+    refinement (lighter: the paper's ICP)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = sorted(set(poses))
+    bars = [(i, c, j, r) for i, c in enumerate(contenders) for j, r in enumerate(refs)]
+    fig, axes = plt.subplots(2, 1, figsize=(max(8.0, 0.7 * len(keys) + 2), 7.5), sharex=True)
+    width = 0.8 / len(bars)
+    x = np.arange(len(keys))
+    lowest = 100.0
+    for k, (i, c, j, r) in enumerate(bars):
+        table = tables[(c.name, r.name)]
+        alpha = 0.45 + 0.55 * j / max(len(refs) - 1, 1)
+        for ax, stat in zip(axes, (_ads_auc, _rot10), strict=True):
+            values = np.array([100 * stat(table[poses.to_numpy() == p], "icp") for p in keys])
+            if stat is _ads_auc:
+                lowest = min(lowest, float(np.min(values[values > 0], initial=100.0)))
+            ax.bar(x + (k - (len(bars) - 1) / 2) * width, values, width, color=f"C{i}",
+                   alpha=alpha, label=f"{c.label} {r.label}")  # fmt: skip
+    axes[0].set_ylim(max(0.0, 5 * np.floor(lowest / 5) - 5), 100)
+    axes[0].set_ylabel("ADS AUC")
+    axes[1].set_ylabel("rotation < 10° mod sym (%)")
+    axes[1].set_xticks(x, keys, rotation=60, ha="right", fontsize=8)
+    for ax in axes:
+        ax.grid(axis="y", alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncol=len(refs), fontsize=8, frameon=False)
+    axes[0].set_title("per object pose, after each refinement", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.03 * len(contenders)))
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), suffix=".png")
+    plt.close(fig)
+    return path
+
+
+def render(
+    out_dir: Path,
+    tables: dict,
+    contenders,
+    refs,
+    icp_ms: dict[str, float],
+    *,
+    described: str,
+    command: str,
+    source: str,
+) -> tuple[Path, Path | None]:
+    """Write ``compare.md``, ``compare.csv`` and ``compare.png`` into ``out_dir``."""
+    from cloudpose.compare import NETWORK, rows
+    from cloudpose.report.real import object_pose, video_of
+
+    summary = rows(tables, contenders, refs)
+    ms = {c.name: c.ms_per_object for c in contenders}
+    summary["ms_per_object"] = [
+        ms[m] if s == STAGE_ESTIMATE else icp_ms.get(f"{m}-{s}", np.nan)
+        for m, s in zip(summary["method"], summary["stage"], strict=True)
+    ]
+    atomic_write(out_dir / "compare.csv", lambda tmp: summary.to_csv(tmp, index=False), ".csv")
+    first = tables[(NETWORK, refs[0].name)]
+    videos = video_of(first["frame_id"])
+    poses = pd.Series(object_pose(first), index=first.index)
+    misses = int(first["miss"].astype(bool).sum())
+    settings = "; ".join(
+        f"{r.label.lstrip('+ ')}: first radius {1000 * r.settings.max_distance:g} mm, "
+        f"{r.settings.iterations} iterations shrinking by {1 - r.settings.shrink:.0%}, "
+        f"{r.settings.starts} start(s) kept by {r.settings.select}"
+        for r in refs
+    )
+    lines = [
+        "# Like for like: the network against classical registration",
+        "",
+        f"Made by `{command}` (cloudpose/compare.py). Data: {described}; "
+        f"{videos.nunique()} video(s), {poses.nunique()} object poses "
+        f"({misses} instance(s) without a usable segment point: a miss for every method). "
+        f"Network: {source}. Every method estimates the pose of the same segments once; each "
+        f"estimate is then refined by each ICP: {settings}. ms / object: the method's own "
+        "(the estimate rows) or the refinement's, on this machine.",
+        "",
+        "## Pooled",
+        "",
+        *pooled_markdown(summary),
+        "",
+        "## The network against each method, paired",
+        "",
+        "Network minus the method on the same instances at the same stage, points, with a 95% "
+        "interval from a bootstrap over object poses (an object stands still in a video while "
+        "the camera moves: its instances are one pose seen many times). *ahead* / *behind*: "
+        "the interval excludes 0.",
+        "",
+        *_paired_markdown(paired(tables, contenders, refs), contenders, refs),
+        "",
+        "## ADS AUC per video",
+        "",
+        *_grouped_markdown(
+            by_group(tables, contenders, refs, videos, _ads_auc), contenders, refs, "video", False
+        ),
+        "",
+        "## Rotation < 10° modulo symmetry per object pose",
+        "",
+        *_grouped_markdown(
+            by_group(tables, contenders, refs, poses, _rot10), contenders, refs, "pose", True
+        ),
+        "",
+        "![ADS AUC and rotation per object pose](compare.png)",
+        "",
+    ]
+    fig = figure(tables, contenders, refs, poses, out_dir / "compare.png")
+    report = atomic_text(out_dir / "compare.md", "\n".join(lines))
+    return report, fig

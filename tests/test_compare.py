@@ -1,0 +1,144 @@
+"""``cloudpose compare``: the network and a classical method on the same segments, refined by the
+same ICPs; the figures are those of ``evaluate`` and ``baseline`` on the same frames, a call
+resumes from its folder, and a folder of another comparison is refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from tests.conftest import DATA, cli, one_line_error
+
+REAL = DATA / "ycb_real"  # one real annotated frame
+QUICK = ["--icp-starts", "1", "--icp-select", "fitness", "--icp-radius", "0.05"]
+
+
+def test_ray_split_separates_depth_from_a_sideways_centre():
+    from cloudpose.compare import ray_split
+
+    t_gt = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 2.0]])
+    err = np.array([[0.0, 0.0, -0.01], [0.0, 0.02, 0.0], [0.003, 0.004, 0.012]])
+    along, across = ray_split(t_gt + err, t_gt)
+    np.testing.assert_allclose(along, [0.01, 0.0, 0.012], atol=1e-12)
+    np.testing.assert_allclose(across, [0.0, 0.02, 0.005], atol=1e-12)
+    np.testing.assert_allclose(np.hypot(along, across), np.linalg.norm(err, axis=1), atol=1e-12)
+
+
+def test_refinements_are_the_papers_and_the_recipe():
+    from cloudpose.compare import refinements
+    from cloudpose.refine import ICPSettings
+
+    paper, wide = refinements(24, "depth", 0.18)
+    assert paper.settings == ICPSettings() and paper.name == "icp"
+    assert (wide.settings.starts, wide.settings.select) == (24, "depth")
+    assert wide.settings.max_distance == pytest.approx(0.18)
+    assert wide.name == "icp-starts24-selectdepth-radius180mm"
+    assert [r.name for r in refinements(1, "fitness", 0.01)] == ["icp"]  # the paper's only
+
+
+@pytest.fixture(scope="module")
+def compared(tmp_path_factory):
+    """(project folder, comparison folder, CLI output) of the shipped network against FPFH +
+    RANSAC on the one real frame."""
+    proj = tmp_path_factory.mktemp("compare")
+    out = proj / "cmp"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(proj)
+        args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", *QUICK]
+        res = cli("compare", *args, "--out", str(out), "--no-progress")
+    assert res.exit_code == 0, res.output
+    return proj, out, res.output
+
+
+def _table(out: Path, name: str) -> pd.DataFrame:
+    return pd.read_csv(out / "tables" / f"{name}.csv", dtype={"frame_id": str})
+
+
+def test_report_holds_every_method_and_stage(compared):
+    _, out, output = compared
+    assert f"report: {out / 'compare.md'}" in output
+    text = (out / "compare.md").read_text()
+    assert "`cloudpose compare --data" in text and "--method fpfh" in text
+    rows = [line for line in text.splitlines() if line.startswith("| network")]
+    assert rows[0].startswith("| network |") and len(rows) >= 3
+    for label in ("FPFH + RANSAC + ICP (paper)", "FPFH + RANSAC + ICP (1 start, by fitness, 5 cm)"):
+        assert f"| {label} |" in text
+    assert "## The network against each method, paired" in text
+    summary = pd.read_csv(out / "compare.csv")
+    assert len(summary) == 6  # 2 methods x (estimate + 2 refinements)
+    assert summary[["ads_auc", "rot_sym_lt_10deg", "trans_lt_1cm"]].notna().all().all()
+    assert (summary["ads_auc"] > 0.5).all()  # a real frame the shipped network and FPFH can do
+    assert (out / "compare.png").stat().st_size > 10_000
+    tables = [
+        _table(out, f"{m}-{r}") for m in ("network", "fpfh") for r in ("icp", "icp-radius50mm")
+    ]
+    keys = [list(zip(t["frame_id"], t["instance"], strict=True)) for t in tables]
+    assert all(k == keys[0] for k in keys)  # every method on the same segments
+
+
+def test_figures_are_evaluates_and_the_baselines(compared):
+    """The network after the paper's ICP is ``evaluate``'s, FPFH + RANSAC's estimate and its
+    refinement are ``baseline``'s, on the same frames."""
+    from cloudpose.baselines.run import run_baseline
+    from cloudpose.evaluate import evaluate
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.store.pretrained import shipped
+
+    proj, out, _ = compared
+    ours = evaluate("pretrained", data=str(REAL), frames="all", project_dir=proj, log=False,
+                    progress=False).table  # fmt: skip
+    mine = _table(out, "network-icp")
+    for col in ("net_ads", "icp_ads", "icp_rot_sym_err_deg", "icp_trans_err"):
+        np.testing.assert_allclose(mine[col], ours[col], rtol=0, atol=1e-6, err_msg=col)
+    _, cfg = load_checkpoint(shipped().path)
+    theirs = run_baseline("fpfh", cfg.preset, seed=1, project_dir=proj, data=REAL, frames="all",
+                          log=False, progress=False).table  # fmt: skip
+    fpfh = _table(out, "fpfh-icp")
+    for col in ("net_ads", "net_rot_sym_err_deg", "icp_ads", "icp_trans_err"):
+        np.testing.assert_allclose(fpfh[col], theirs[col], rtol=0, atol=1e-6, err_msg=col)
+    # the translation error's two parts make it whole
+    for t in (mine, fpfh):
+        ok = np.isfinite(t["icp_trans_err"])
+        np.testing.assert_allclose(np.hypot(t["icp_trans_along"], t["icp_trans_across"])[ok],
+                                   t["icp_trans_err"][ok], rtol=1e-6)  # fmt: skip
+
+
+def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
+    import cloudpose.baselines.run as baselines_run
+    import cloudpose.compare as compare
+
+    proj, out, _ = compared
+    before = (out / "compare.csv").read_text()
+
+    def fail(*args, **kwargs):
+        raise AssertionError("computed again")
+
+    monkeypatch.setattr(compare, "_refine", fail)
+    monkeypatch.setattr(baselines_run, "estimate_all", fail)
+    monkeypatch.chdir(proj)
+    done = compare.run_compare(out, data=REAL, frames="all", methods=["fpfh"], starts=1,
+                               select="fitness", radius=0.05, progress=False)  # fmt: skip
+    assert (out / "compare.csv").read_text() == before
+    assert len(done.tables) == 4
+
+
+def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):
+    proj, out, _ = compared
+    monkeypatch.chdir(proj)
+    args = ["--data", str(REAL), "--frames", "all", "--method", "ppf", *QUICK]
+    one_line_error(cli("compare", *args, "--out", str(out), "--no-progress"), "methods", str(out))
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["--method", "sift"], ["--method 'sift'", "fpfh"]),
+        (["--icp-starts", "5"], ["--icp-starts 5"]),
+        (["--icp-radius", "2"], ["2"]),
+    ],
+)
+def test_bad_options_are_one_line(args, needles):
+    one_line_error(cli("compare", "--data", str(REAL), *args, "--no-progress"), *needles)
