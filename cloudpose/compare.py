@@ -14,7 +14,7 @@ poses (an object stands still in a video while the camera moves, so its instance
 seen many times; :func:`cloudpose.report.real.versus_baseline`).
 
 Nothing is logged to MLflow; the output folder holds everything: ``compare.json`` (what was
-compared: data key, networks, methods, seed), ``estimates/METHOD.npz`` (each method's poses,
+compared: data key, frames, networks, the baselines' seed), ``estimates/METHOD.npz`` (each method's poses,
 saved as they are computed, so an interrupted call resumes), ``tables/METHOD-REFINEMENT.csv``
 (the instance tables of :func:`cloudpose.evaluate.instance_table`, with the translation error
 split along and across the viewing ray), and the report ``compare.md`` with its figure
@@ -37,6 +37,10 @@ from cloudpose.files import atomic_text, atomic_write, read_json
 
 NETWORK = "network"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
+CONTROL = "none"
+"""The control beside the methods: no estimate, the identity rotation at the segment's mean, refined
+alike (what a refinement finds on its own; a wide one from many starts is a search of its own)."""
+METHODS = {**BASELINES, CONTROL: "no estimate"}
 RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 """The refinement compared beside the paper's by default: 24 starts kept by their agreement with
 the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
@@ -126,7 +130,8 @@ def ray_split(t_est: np.ndarray, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def _manifest(path: Path, wanted: dict) -> None:
     """Write ``wanted`` as the folder's ``compare.json``, or refuse a folder that holds a
-    comparison of other data, networks, methods or seed (naming the field)."""
+    comparison of other data, frames, networks or seed (naming the field); methods may be added
+    to a folder (each has its own files)."""
     if path.is_file():
         have = read_json(path, "a comparison's record", f"remove {path.parent} and rerun")
         for key, value in wanted.items():
@@ -174,6 +179,14 @@ def _baseline(method: str, segs, models: dict, seed: int, path: Path, progress: 
         estimate_all(estimator, models, segs, state, method, progress)
     ms = 1000 * state.seconds / max(int(valid.sum()), 1)
     return Contender(method, BASELINES[method], [Estimates(state.R, state.t)], state.ok, ms)
+
+
+def _control(segs) -> Contender:
+    """The control (:data:`CONTROL`, :func:`cloudpose.infer.no_estimate`)."""
+    from cloudpose.infer import no_estimate
+
+    ok = np.ones(len(segs), dtype=bool)
+    return Contender(CONTROL, METHODS[CONTROL], [no_estimate(segs)], ok, 0.0)
 
 
 def _refine(contender: Contender, segs, dataset, refinement: Refinement, symmetry_table: int):
@@ -247,7 +260,8 @@ def run_compare(
         frames: its frame list (default ``all`` of the packaged frames, else ``keyframe``).
         runs: the network: a run (name, id or folder) or ``pretrained``; more than one is an
             ensemble (:func:`cloudpose.infer.refine_ensemble`). Default: the shipped network.
-        methods: baselines beside it (default FPFH + RANSAC and point-pair features).
+        methods: methods beside it (:data:`METHODS`; default FPFH + RANSAC, point-pair
+            features and the control of no estimate, :data:`CONTROL`).
         seed: the baselines' random seed (RANSAC's draws).
         starts, select, radius: the refinement beside the paper's (:func:`refinements`).
         project_dir: where the segment caches and the MLflow store of ``runs`` are.
@@ -263,10 +277,10 @@ def run_compare(
     from cloudpose.store.pretrained import PRETRAINED
 
     runs = list(runs or [PRETRAINED])
-    methods = list(BASELINES) if methods is None else list(methods)
+    methods = list(METHODS) if methods is None else list(methods)
     for m in methods:
-        if m not in BASELINES:
-            raise ValueError(f"--method {m!r}: expected one of {', '.join(BASELINES)}")
+        if m not in METHODS:
+            raise ValueError(f"--method {m!r}: expected one of {', '.join(METHODS)}")
     if len(set(runs)) < len(runs) or len(set(methods)) < len(methods):
         raise ValueError("--run / --method: each at most once")
     project_dir = Path(project_dir or Path.cwd()).resolve()
@@ -290,14 +304,14 @@ def run_compare(
     described = f"{len(segs)} instances of {describe_split(dataset, frames)} in {root.resolve()}"
     _manifest(
         out_dir / "compare.json",
-        {"data": str(segs.data_key), "frames": frames, "runs": runs, "methods": methods,
-         "seed": seed},
+        {"data": str(segs.data_key), "frames": frames, "runs": runs, "seed": seed},
     )  # fmt: skip
     contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
     models = dataset.models()
     for m in methods:
+        path = out_dir / "estimates" / f"{m}.npz"
         contenders.append(
-            _baseline(m, segs, models, seed, out_dir / "estimates" / f"{m}.npz", progress)
+            _control(segs) if m == CONTROL else _baseline(m, segs, models, seed, path, progress)
         )
     _warm_up(segs, models, refs)
     tables: dict[tuple[str, str], pd.DataFrame] = {}

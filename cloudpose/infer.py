@@ -110,6 +110,16 @@ def estimate_poses(model, segs, n_points: int, device="cpu", batch_size: int = 5
     return Estimates(R, t)
 
 
+def no_estimate(segs) -> Estimates:
+    """The control of any method: the identity rotation at the mean of each segment's
+    observed points (what ICP starts from when nothing estimated the pose)."""
+    n = len(segs)
+    t = np.zeros((n, 3))
+    for i in np.flatnonzero(segs.valid):
+        t[i] = segs.observed(i).mean(axis=0)
+    return Estimates(np.tile(np.eye(3), (n, 1, 1)), t)
+
+
 def refine_poses(
     segs,
     est: Estimates,

@@ -42,13 +42,13 @@ def test_refinements_are_the_papers_and_the_recipe():
 @pytest.fixture(scope="module")
 def compared(tmp_path_factory):
     """(project folder, comparison folder, CLI output) of the shipped network against FPFH +
-    RANSAC on the one real frame."""
+    RANSAC and the control of no estimate on the one real frame."""
     proj = tmp_path_factory.mktemp("compare")
     out = proj / "cmp"
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(proj)
-        args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", *QUICK]
-        res = cli("compare", *args, "--out", str(out), "--no-progress")
+        args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", "--method", "none"]
+        res = cli("compare", *args, *QUICK, "--out", str(out), "--no-progress")
     assert res.exit_code == 0, res.output
     return proj, out, res.output
 
@@ -68,13 +68,14 @@ def test_report_holds_every_method_and_stage(compared):
         assert f"| {label} |" in text
     assert "## The network against each method, paired" in text
     summary = pd.read_csv(out / "compare.csv")
-    assert len(summary) == 6  # 2 methods x (estimate + 2 refinements)
+    assert len(summary) == 9  # 3 methods x (estimate + 2 refinements)
+    assert "| no estimate + ICP (paper) |" in text
     assert summary[["ads_auc", "rot_sym_lt_10deg", "trans_lt_1cm"]].notna().all().all()
-    assert (summary["ads_auc"] > 0.5).all()  # a real frame the shipped network and FPFH can do
+    done = summary[summary["method"] != "none"]
+    assert (done["ads_auc"] > 0.5).all()  # a real frame the shipped network and FPFH can do
     assert (out / "compare.png").stat().st_size > 10_000
-    tables = [
-        _table(out, f"{m}-{r}") for m in ("network", "fpfh") for r in ("icp", "icp-radius50mm")
-    ]
+    methods = ("network", "fpfh", "none")
+    tables = [_table(out, f"{m}-{r}") for m in methods for r in ("icp", "icp-radius50mm")]
     keys = [list(zip(t["frame_id"], t["instance"], strict=True)) for t in tables]
     assert all(k == keys[0] for k in keys)  # every method on the same segments
 
@@ -119,17 +120,17 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
     monkeypatch.setattr(compare, "_refine", fail)
     monkeypatch.setattr(baselines_run, "estimate_all", fail)
     monkeypatch.chdir(proj)
-    done = compare.run_compare(out, data=REAL, frames="all", methods=["fpfh"], starts=1,
+    done = compare.run_compare(out, data=REAL, frames="all", methods=["fpfh", "none"], starts=1,
                                select="fitness", radius=0.05, progress=False)  # fmt: skip
     assert (out / "compare.csv").read_text() == before
-    assert len(done.tables) == 4
+    assert len(done.tables) == 6
 
 
 def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):
     proj, out, _ = compared
     monkeypatch.chdir(proj)
-    args = ["--data", str(REAL), "--frames", "all", "--method", "ppf", *QUICK]
-    one_line_error(cli("compare", *args, "--out", str(out), "--no-progress"), "methods", str(out))
+    args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", "--seed", "2", *QUICK]
+    one_line_error(cli("compare", *args, "--out", str(out), "--no-progress"), "seed", str(out))
 
 
 @pytest.mark.parametrize(
@@ -142,3 +143,52 @@ def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):
 )
 def test_bad_options_are_one_line(args, needles):
     one_line_error(cli("compare", "--data", str(REAL), *args, "--no-progress"), *needles)
+
+
+def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path):
+    """Two copies of the shipped network as an ensemble: estimates cached per member, and the
+    refinement kept per object is the one network's own."""
+    import cloudpose.compare as compare
+    from cloudpose.data.dataset import folder_segments
+    from cloudpose.data.layout import open_dataset
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.store.pretrained import shipped
+
+    proj, out, _ = compared
+    model, cfg = load_checkpoint(shipped().path)
+    dataset = open_dataset(REAL)
+    segs = folder_segments(dataset, "all", cfg.data, proj, progress=False)
+    pair = compare._network(
+        segs, [(None, model, cfg, "a"), (None, model, cfg, "b")], tmp_path / "n.npz"
+    )
+    assert len(pair.estimates) == 2 and pair.label == "network (2 networks)"
+    again = compare._network(segs, [(None, model, cfg, "a")] * 2, tmp_path / "n.npz")
+    np.testing.assert_array_equal(again.estimates[1].R, pair.estimates[1].R)  # read back
+    paper = compare.refinements(1, "fitness", 0.01)[0]
+    table, _ = compare._refine(pair, segs, dataset, paper, cfg.loss.symmetry_table)
+    one = _table(out, "network-icp")
+    np.testing.assert_allclose(table["icp_ads"], one["icp_ads"], rtol=0, atol=1e-6)
+
+
+class _Segments:
+    """What :func:`cloudpose.infer.no_estimate` reads of a segment set: its length, validity and
+    observed points."""
+
+    def __init__(self, points: np.ndarray, valid: np.ndarray):
+        self.points, self.valid = points, valid
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def observed(self, i: int) -> np.ndarray:
+        return self.points[i]
+
+
+def test_the_control_is_the_identity_at_each_segments_mean():
+    from cloudpose.infer import no_estimate
+
+    points = np.random.default_rng(0).normal(size=(3, 8, 3))
+    est = no_estimate(_Segments(points, np.array([True, False, True])))
+    np.testing.assert_array_equal(est.R, np.tile(np.eye(3), (3, 1, 1)))
+    np.testing.assert_allclose(est.t[[0, 2]], points[[0, 2]].mean(axis=1))
+    np.testing.assert_array_equal(est.t[1], np.zeros(3))  # a miss stays at the origin

@@ -43,25 +43,3 @@ def test_the_rule_takes_the_smallest_radius_within_a_tenth_of_the_best():
     chosen, got = mod.choose(_runs(means), radii)
     np.testing.assert_allclose(got, [93.1, 95.1, 95.4, 95.48], atol=0.02)
     assert chosen == 0.12  # 95.40 is within 0.1 of 95.48; 95.1 is not
-
-
-class _Segments:
-    """What no_estimate reads of a segment set: its length, validity and observed points."""
-
-    def __init__(self, points: np.ndarray, valid: np.ndarray):
-        self.points, self.valid = points, valid
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-    def observed(self, i: int) -> np.ndarray:
-        return self.points[i]
-
-
-def test_the_control_is_the_identity_at_each_segments_mean():
-    mod = diagnostic_script("multi_start_icp")
-    points = np.random.default_rng(0).normal(size=(3, 8, 3))
-    est = mod.no_estimate(_Segments(points, np.array([True, False, True])))
-    np.testing.assert_array_equal(est.R, np.tile(np.eye(3), (3, 1, 1)))
-    np.testing.assert_allclose(est.t[[0, 2]], points[[0, 2]].mean(axis=1))
-    np.testing.assert_array_equal(est.t[1], np.zeros(3))  # a miss stays at the origin

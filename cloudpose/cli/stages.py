@@ -485,7 +485,10 @@ def compare(
     ] = None,
     method: Annotated[
         list[str] | None,
-        typer.Option(help="Classical methods beside it, fpfh and/or ppf (default: both)."),
+        typer.Option(
+            help="Methods beside it: fpfh, ppf, none (no estimate: the identity at the segment's "
+            "mean, refined alike; what the refinement finds alone). Default: all three."
+        ),
     ] = None,
     seed: Annotated[int, typer.Option(help="The classical methods' random seed.")] = 1,
     icp_starts: Annotated[
@@ -504,10 +507,10 @@ def compare(
     device: DeviceOpt = "auto",
     progress: ProgressOpt = True,
 ) -> None:
-    """The network and FPFH + RANSAC and point-pair features on the same segments of one set of
-    frames, every estimate refined by the same ICPs (the paper's and a wider one), side by side:
-    pooled, per video and per object pose, the network's difference to each paired over object
-    poses (compare.md, compare.png). Resumable; logs nothing."""
+    """The network, FPFH + RANSAC, point-pair features and no estimate at all on the same
+    segments of one set of frames, every estimate refined by the same ICPs (the paper's and a
+    wider one), side by side: pooled, per video and per object pose, the network's difference
+    to each paired over object poses (compare.md, compare.png). Resumable; logs nothing."""
     from cloudpose.compare import run_compare
 
     check_icp_options(icp_starts, icp_select, icp_radius)

@@ -64,16 +64,6 @@ def poses(table: pd.DataFrame, prefix: str) -> Estimates:
     return Estimates(R, t)
 
 
-def no_estimate(segs) -> Estimates:
-    """The control of any method: the identity rotation at the mean of each segment's
-    observed points (what ICP starts from when nothing estimated the pose)."""
-    n = len(segs)
-    t = np.zeros((n, 3))
-    for i in np.flatnonzero(segs.valid):
-        t[i] = segs.observed(i).mean(axis=0)
-    return Estimates(np.tile(np.eye(3), (n, 1, 1)), t)
-
-
 class Segments:
     """The segments an evaluation of ``split`` used, built once per preset."""
 

@@ -30,7 +30,7 @@ import pandas as pd
 
 from cloudpose.config import PAPER_RADIUS
 from cloudpose.evaluate import instance_table
-from cloudpose.infer import Estimates, refine_poses, refinement_scores
+from cloudpose.infer import Estimates, no_estimate, refine_poses, refinement_scores
 from cloudpose.refine import ICPSettings, schedule_for, segment_views
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
@@ -42,7 +42,6 @@ from multi_start_icp import (
     arguments,
     logged,
     logged_segments,
-    no_estimate,
     poses,
     same_refinement,
 )
@@ -65,7 +64,7 @@ def hypotheses(
     the first radius ``radius``, :func:`cloudpose.refine.schedule_for`), each refinement's
     fitness and depth score (:func:`cloudpose.infer.refinement_scores`; not with ``scores``
     off, for a table alone), and the instance table of the refined poses. ``control``: the
-    run's segments with no estimate instead of its own (:func:`multi_start_icp.no_estimate`),
+    run's segments with no estimate instead of its own (:func:`cloudpose.infer.no_estimate`),
     refined the same way."""
     table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
