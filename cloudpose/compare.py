@@ -14,11 +14,12 @@ poses (an object stands still in a video while the camera moves, so its instance
 seen many times; :func:`cloudpose.report.real.versus_baseline`).
 
 Nothing is logged to MLflow; the output folder holds everything: ``compare.json`` (what was
-compared: data key, frames, networks, the baselines' seed), ``estimates/METHOD.npz`` (each method's poses,
-saved as they are computed, so an interrupted call resumes), ``tables/METHOD-REFINEMENT.csv``
-(the instance tables of :func:`cloudpose.evaluate.instance_table`, with the translation error
-split along and across the viewing ray), and the report ``compare.md`` with its figure
-``compare.png``. A folder holding another comparison is refused, never mixed.
+compared: data key, frames, the networks' MLflow run ids, the baselines' seed),
+``estimates/METHOD.npz`` (each method's poses, saved as they are computed, so an interrupted
+call resumes), ``tables/METHOD-REFINEMENT.csv`` (the instance tables of
+:func:`cloudpose.evaluate.instance_table`, with the translation error split along and across
+the viewing ray), and the report ``compare.md`` with its figure ``compare.png``. A folder
+holding another comparison is refused, never mixed.
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ from cloudpose.files import atomic_text, atomic_write, read_json
 NETWORK = "network"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
 CONTROL = "none"
-"""The control beside the methods: no estimate, the identity rotation at the segment's mean, refined
-alike (what a refinement finds on its own; a wide one from many starts is a search of its own)."""
+"""The control beside the methods: no estimate, the identity rotation at the segment's mean,
+refined alike (what a refinement finds on its own; a wide one from many starts is a search of
+its own)."""
 METHODS = {**BASELINES, CONTROL: "no estimate"}
 RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 """The refinement compared beside the paper's by default: 24 starts kept by their agreement with
@@ -89,7 +91,7 @@ class Contender:
     """A method of the comparison and its poses of every segment.
 
     Attributes:
-        name: :data:`NETWORK` or a baseline (``fpfh``, ``ppf``).
+        name: :data:`NETWORK`, a baseline (``fpfh``, ``ppf``) or the control (``none``).
         label: in words.
         estimates: one :class:`cloudpose.infer.Estimates` per network of an ensemble (one for
             a baseline); a segment a baseline could not register is a miss (``ok`` False).
@@ -274,7 +276,7 @@ def run_compare(
     from cloudpose.evaluate import check_member, load_network
     from cloudpose.store import tracking
     from cloudpose.store.metric_names import data_evaluation_name
-    from cloudpose.store.pretrained import PRETRAINED
+    from cloudpose.store.pretrained import PRETRAINED, shipped
 
     runs = list(runs or [PRETRAINED])
     methods = list(METHODS) if methods is None else list(methods)
@@ -295,6 +297,7 @@ def run_compare(
         check_member(cfg, other, r)
         if run_id is not None and run_id in {x[0] for x in loaded[: runs.index(r)]}:
             raise ValueError(f"--run {r}: run {run_id} is in the ensemble already")
+    ids = [rid or shipped(r).info["run_id"] for r, (rid, *_) in zip(runs, loaded, strict=True)]
     runtime.configure_threads(cfg.train.threads)
     segs = folder_segments(dataset, frames, cfg.data, project_dir, progress)
     if len(segs) == 0:
@@ -304,7 +307,7 @@ def run_compare(
     described = f"{len(segs)} instances of {describe_split(dataset, frames)} in {root.resolve()}"
     _manifest(
         out_dir / "compare.json",
-        {"data": str(segs.data_key), "frames": frames, "runs": runs, "seed": seed},
+        {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed},
     )  # fmt: skip
     contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
     models = dataset.models()
