@@ -13,13 +13,15 @@ video and per object pose, with the network's difference to each method paired o
 poses (an object stands still in a video while the camera moves, so its instances are one pose
 seen many times; :func:`cloudpose.report.real.versus_baseline`).
 
-Nothing is logged to MLflow; the output folder holds everything: ``compare.json`` (what was
-compared: data key, frames, the networks' MLflow run ids, the baselines' seed),
-``estimates/METHOD.npz`` (each method's poses, saved as they are computed, so an interrupted
-call resumes), ``tables/METHOD-REFINEMENT.csv`` (the instance tables of
+Nothing is logged to MLflow. The output folder holds ``compare.json`` (what was compared: data
+key, frames, the networks' MLflow run ids, the baselines' seed), ``estimates/network.npz`` (the
+networks' poses), ``tables/METHOD-REFINEMENT.csv`` (the instance tables of
 :func:`cloudpose.evaluate.instance_table`, with the translation error split along and across
-the viewing ray), and the report ``compare.md`` with its figure ``compare.png``. A folder
-holding another comparison is refused, never mixed.
+the viewing ray), and the report ``compare.md`` with its figure ``compare.png``; a folder
+holding another comparison is refused, never mixed. The classical methods' estimates, which do
+not depend on the networks, are kept for every comparison of the project on the same segments
+(:func:`baseline_estimates_path`), saved as they are computed: an interrupted call resumes, and
+a comparison of other networks on the same frames reuses them.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ METHODS = {**BASELINES, CONTROL: "no estimate"}
 RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 """The refinement compared beside the paper's by default: 24 starts kept by their agreement with
 the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
+MACHINE = "machine"
+"""The key of ``tables/icp_ms.json`` naming the CPU the refinements were last timed on."""
 METRICS = {
     "ads_auc": "ADS AUC",
     "rot_sym_lt_10deg": "rot < 10° mod sym",
@@ -167,6 +171,19 @@ def _network(segs, loaded: list, path: Path) -> Contender:
     return Contender(NETWORK, label, ests, ok, ms)
 
 
+def baseline_estimates_path(project_dir: Path, method: str, seed: int, data_key: str) -> Path:
+    """Where a baseline's estimates of one set of segments are kept, for every comparison of the
+    project on them: they depend on the segments (``data_key``), the method's settings
+    (``baselines.toml``, by fingerprint) and the seed, not on the networks beside them."""
+    from cloudpose.baselines import load_settings
+    from cloudpose.baselines.base import settings_fingerprint
+
+    fp = settings_fingerprint(load_settings(method))
+    return (
+        project_dir / "runs" / "compare" / "estimates" / f"{method}-{fp}-seed{seed}-{data_key}.npz"
+    )
+
+
 def _baseline(method: str, segs, models: dict, seed: int, path: Path, progress: bool) -> Contender:
     """Baseline ``method`` (``baselines.toml``'s settings) on ``segs``, resumable from ``path``."""
     from cloudpose.baselines import load_settings, make
@@ -234,6 +251,13 @@ def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
     start = Estimates(np.eye(3)[None], np.asarray(one.t, float))
     for ref in refs:
         refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
+
+
+def _described(run: str, run_id: str | None) -> str:
+    """A network of the comparison in words: the shipped one's record, or the run and its id."""
+    from cloudpose.store.pretrained import shipped
+
+    return shipped(run).describe() if run_id is None else f"{run} (MLflow run {run_id[:8]})"
 
 
 def run_compare(
@@ -304,7 +328,8 @@ def run_compare(
         raise ValueError(f"{root}: no annotated object in its {frames} frames")
     name = data_evaluation_name(root, frames, segs.data_key)
     out_dir = Path(out_dir) if out_dir is not None else project_dir / "runs" / "compare" / name
-    described = f"{len(segs)} instances of {describe_split(dataset, frames)} in {root.resolve()}"
+    where = "the packaged real development frames" if data is None else str(root.resolve())
+    described = f"{len(segs)} instances of {describe_split(dataset, frames)}, {where}"
     _manifest(
         out_dir / "compare.json",
         {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed},
@@ -312,10 +337,11 @@ def run_compare(
     contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
     models = dataset.models()
     for m in methods:
-        path = out_dir / "estimates" / f"{m}.npz"
-        contenders.append(
-            _control(segs) if m == CONTROL else _baseline(m, segs, models, seed, path, progress)
-        )
+        if m == CONTROL:
+            contenders.append(_control(segs))
+            continue
+        path = baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
+        contenders.append(_baseline(m, segs, models, seed, path, progress))
     _warm_up(segs, models, refs)
     tables: dict[tuple[str, str], pd.DataFrame] = {}
     timing_path = out_dir / "tables" / "icp_ms.json"
@@ -331,13 +357,14 @@ def run_compare(
             table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table)
             atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
             timing[f"{c.name}-{ref.name}"] = ms
+            timing[MACHINE] = runtime.describe_cpu()
             atomic_text(timing_path, json.dumps(timing, indent=2) + "\n")
             tables[(c.name, ref.name)] = table
     from cloudpose.report.compare import render
 
     report, figure = render(
         out_dir, tables, contenders, refs, timing, described=described, command=command,
-        source=", ".join(runs),
+        source="; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True)),
     )  # fmt: skip
     return Comparison(tables, contenders, refs, described, report, figure)
 

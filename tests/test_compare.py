@@ -124,6 +124,15 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
                                select="fitness", radius=0.05, progress=False)  # fmt: skip
     assert (out / "compare.csv").read_text() == before
     assert len(done.tables) == 6
+    # another folder on the same frames computes its own tables, and reuses FPFH's estimates
+    monkeypatch.undo()
+    monkeypatch.setattr(baselines_run, "estimate_all", fail)
+    monkeypatch.chdir(proj)
+    other = compare.run_compare(proj / "other", data=REAL, frames="all", methods=["fpfh"],
+                                starts=1, select="fitness", radius=0.05, progress=False)  # fmt: skip
+    pd.testing.assert_frame_equal(
+        other.tables[("fpfh", "icp")], done.tables[("fpfh", "icp")], check_dtype=False
+    )
 
 
 def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):

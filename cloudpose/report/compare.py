@@ -198,7 +198,7 @@ def render(
     source: str,
 ) -> tuple[Path, Path | None]:
     """Write ``compare.md``, ``compare.csv`` and ``compare.png`` into ``out_dir``."""
-    from cloudpose.compare import NETWORK, rows
+    from cloudpose.compare import MACHINE, NETWORK, rows
     from cloudpose.report.real import object_pose, video_of
 
     summary = rows(tables, contenders, refs)
@@ -226,7 +226,7 @@ def render(
         f"({misses} instance(s) without a usable segment point: a miss for every method). "
         f"Network: {source}. Every method estimates the pose of the same segments once; each "
         f"estimate is then refined by each ICP: {settings}. ms / object: the method's own "
-        "(the estimate rows) or the refinement's, on this machine.",
+        f"(the estimate rows) or the refinement's, on {icp_ms.get(MACHINE, 'this machine')}.",
         "",
         "## Pooled",
         "",
