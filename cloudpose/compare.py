@@ -208,7 +208,14 @@ def _control(segs) -> Contender:
     return Contender(CONTROL, METHODS[CONTROL], [no_estimate(segs)], ok, 0.0)
 
 
-def _refine(contender: Contender, segs, dataset, refinement: Refinement, symmetry_table: int):
+def _refine(
+    contender: Contender,
+    segs,
+    dataset,
+    refinement: Refinement,
+    symmetry_table: int,
+    progress: bool = False,
+):
     """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``:
     ``net_*`` its estimate (an ensemble: the network whose refinement was kept), ``icp_*`` the
     refined pose, ``*_trans_along`` / ``*_trans_across`` (:func:`ray_split`)."""
@@ -226,7 +233,7 @@ def _refine(contender: Contender, segs, dataset, refinement: Refinement, symmetr
     views = segment_views(dataset, segs) if settings.select == "depth" else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Open3D on a degenerate segment; its pose is still scored
-        icp, _, pick = refine_ensemble(segs, contender.estimates, models, settings, views)
+        icp, _, pick = refine_ensemble(segs, contender.estimates, models, settings, views, progress)
     ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
     est = {"net": Estimates.kept(contender.estimates, pick), "icp": icp}
     table = instance_table(segs, est, models, dataset.classes, symmetry_table)
@@ -237,6 +244,35 @@ def _refine(contender: Contender, segs, dataset, refinement: Refinement, symmetr
         table[f"{stage}_trans_along"] = np.where(miss, np.inf, along)
         table[f"{stage}_trans_across"] = np.where(miss, np.inf, across)
     return table, ms
+
+
+ICP_SECONDS = 1.2e-4
+"""Planning figure: seconds of ICP per object, start and iteration on one core (the paper's
+schedule, 10 iterations from one start, ~1 ms an object)."""
+
+
+def plan(segs, paths: dict[str, Path], refs: list[Refinement], out_dir: Path, names) -> str:
+    """What a call will compute and about how long it takes, before it starts: each classical
+    method's estimates left (:data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the instance
+    tables not yet in ``out_dir`` (:data:`ICP_SECONDS`)."""
+    from cloudpose.baselines.run import EstimateProgress
+    from cloudpose.stress import SECONDS_PER_INSTANCE
+
+    n = int(np.sum(segs.valid))
+    parts, seconds = [], 0.0
+    for method, path in paths.items():
+        left = n - int(EstimateProgress(path, len(segs)).done[np.asarray(segs.valid, bool)].sum())
+        seconds += left * SECONDS_PER_INSTANCE[method]
+        parts.append(f"{method} estimates: {'kept' if left == 0 else f'{left} of {n} to compute'}")
+    todo = [(m, r) for m in names for r in refs
+            if not (out_dir / "tables" / f"{m}-{r.name}.csv").is_file()]  # fmt: skip
+    seconds += sum(n * ICP_SECONDS * r.settings.starts * r.settings.iterations for _, r in todo)
+    parts.append(f"{len(todo)} of {len(names) * len(refs)} refinements to compute")
+    return (
+        f"compare: {len(segs)} instances; "
+        + "; ".join(parts)
+        + (f"; about {seconds / 60:.0f} min on one core" if seconds >= 60 else "")
+    )
 
 
 def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
@@ -334,14 +370,17 @@ def run_compare(
         out_dir / "compare.json",
         {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed},
     )  # fmt: skip
+    paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
+             for m in methods if m != CONTROL}  # fmt: skip
+    if progress:
+        print(plan(segs, paths, refs, out_dir, [NETWORK, *methods]), flush=True)
     contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
     models = dataset.models()
     for m in methods:
         if m == CONTROL:
             contenders.append(_control(segs))
             continue
-        path = baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
-        contenders.append(_baseline(m, segs, models, seed, path, progress))
+        contenders.append(_baseline(m, segs, models, seed, paths[m], progress))
     _warm_up(segs, models, refs)
     tables: dict[tuple[str, str], pd.DataFrame] = {}
     timing_path = out_dir / "tables" / "icp_ms.json"
@@ -354,7 +393,7 @@ def run_compare(
                 continue
             if progress:
                 print(f"{c.label} {ref.label} on {len(segs)} instances ...", flush=True)
-            table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table)
+            table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table, progress)
             atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
             timing[f"{c.name}-{ref.name}"] = ms
             timing[MACHINE] = runtime.describe_cpu()
