@@ -372,8 +372,7 @@ def run_compare(
     )  # fmt: skip
     paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
              for m in methods if m != CONTROL}  # fmt: skip
-    if progress:
-        print(plan(segs, paths, refs, out_dir, [NETWORK, *methods]), flush=True)
+    print(plan(segs, paths, refs, out_dir, [NETWORK, *methods]), flush=True)
     contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
     models = dataset.models()
     for m in methods:
