@@ -150,12 +150,27 @@ def _manifest(path: Path, wanted: dict) -> None:
     atomic_text(path, json.dumps(wanted, indent=2) + "\n")
 
 
+def _have(out_dir: Path, method: str, ref: Refinement, timing: dict) -> bool:
+    """Whether ``out_dir`` holds ``method``'s table after ``ref``, written whole (its timing is
+    recorded after the table)."""
+    key = f"{method}-{ref.name}"
+    return (
+        (out_dir / "tables" / f"{key}.csv").is_file()
+        and key in timing
+        and (f"{method}-estimate" in timing)
+    )
+
+
+def _network_label(n: int) -> str:
+    return NETWORK + (f" ({n} networks)" if n > 1 else "")
+
+
 def _network(segs, loaded: list, path: Path) -> Contender:
     """The network (``loaded``: :func:`cloudpose.evaluate.load_network` of each run; more than
     one an ensemble) on ``segs``; its estimates cached at ``path``."""
     from cloudpose.infer import Estimates, estimate_poses
 
-    label = NETWORK + (f" ({len(loaded)} networks)" if len(loaded) > 1 else "")
+    label = _network_label(len(loaded))
     ok = np.ones(len(segs), dtype=bool)
     if path.is_file():
         with np.load(path) as f:
@@ -251,23 +266,24 @@ ICP_SECONDS = 1.2e-4
 schedule, 10 iterations from one start, ~1 ms an object)."""
 
 
-def plan(segs, paths: dict[str, Path], refs: list[Refinement], out_dir: Path, names) -> str:
-    """What a call will compute and about how long it takes, before it starts: each classical
-    method's estimates left (:data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the instance
-    tables not yet in ``out_dir`` (:data:`ICP_SECONDS`)."""
+def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]]) -> str:
+    """What a call will compute and about how long it takes, before it starts: the estimates
+    left of each classical method whose refinements are to compute (``paths``, by
+    :data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the refinements ``todo`` per method
+    (:data:`ICP_SECONDS`)."""
     from cloudpose.baselines.run import EstimateProgress
     from cloudpose.stress import SECONDS_PER_INSTANCE
 
-    n = int(np.sum(segs.valid))
+    valid = np.asarray(segs.valid, dtype=bool)
+    n = int(valid.sum())
     parts, seconds = [], 0.0
     for method, path in paths.items():
-        left = n - int(EstimateProgress(path, len(segs)).done[np.asarray(segs.valid, bool)].sum())
+        left = n - int(EstimateProgress(path, len(segs)).done[valid].sum())
         seconds += left * SECONDS_PER_INSTANCE[method]
         parts.append(f"{method} estimates: {'kept' if left == 0 else f'{left} of {n} to compute'}")
-    todo = [(m, r) for m in names for r in refs
-            if not (out_dir / "tables" / f"{m}-{r.name}.csv").is_file()]  # fmt: skip
-    seconds += sum(n * ICP_SECONDS * r.settings.starts * r.settings.iterations for _, r in todo)
-    parts.append(f"{len(todo)} of {len(names) * len(refs)} refinements to compute")
+    refs = [r for rs in todo.values() for r in rs]
+    seconds += sum(n * ICP_SECONDS * r.settings.starts * r.settings.iterations for r in refs)
+    parts.append(f"{len(refs)} refinement(s) to compute")
     return (
         f"compare: {len(segs)} instances; "
         + "; ".join(parts)
@@ -370,34 +386,42 @@ def run_compare(
         out_dir / "compare.json",
         {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed},
     )  # fmt: skip
-    paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
-             for m in methods if m != CONTROL}  # fmt: skip
-    print(plan(segs, paths, refs, out_dir, [NETWORK, *methods]), flush=True)
-    contenders = [_network(segs, loaded, out_dir / "estimates" / "network.npz")]
-    models = dataset.models()
-    for m in methods:
-        if m == CONTROL:
-            contenders.append(_control(segs))
-            continue
-        contenders.append(_baseline(m, segs, models, seed, paths[m], progress))
-    _warm_up(segs, models, refs)
-    tables: dict[tuple[str, str], pd.DataFrame] = {}
+    names = [NETWORK, *methods]
     timing_path = out_dir / "tables" / "icp_ms.json"
     timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {}
-    for c in contenders:
+    todo = {m: [r for r in refs if not _have(out_dir, m, r, timing)] for m in names}
+    paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
+             for m in methods if m != CONTROL and todo[m]}  # fmt: skip
+    print(plan(segs, paths, todo), flush=True)
+    models = dataset.models()
+    if any(todo.values()):
+        _warm_up(segs, models, refs)
+    contenders: list[Contender] = []
+    tables: dict[tuple[str, str], pd.DataFrame] = {}
+    for m in names:
+        if not todo[m]:  # every table is there: the estimates are not needed
+            label = _network_label(len(loaded)) if m == NETWORK else METHODS[m]
+            c = Contender(m, label, [], np.ones(len(segs), bool), timing[f"{m}-estimate"])
+        elif m == NETWORK:
+            c = _network(segs, loaded, out_dir / "estimates" / "network.npz")
+        elif m == CONTROL:
+            c = _control(segs)
+        else:
+            c = _baseline(m, segs, models, seed, paths[m], progress)
+        contenders.append(c)
         for ref in refs:
-            path = out_dir / "tables" / f"{c.name}-{ref.name}.csv"
-            if path.is_file() and f"{c.name}-{ref.name}" in timing:
-                tables[(c.name, ref.name)] = pd.read_csv(path, dtype={"frame_id": str})
+            path = out_dir / "tables" / f"{m}-{ref.name}.csv"
+            if ref not in todo[m]:
+                tables[(m, ref.name)] = pd.read_csv(path, dtype={"frame_id": str})
                 continue
             if progress:
                 print(f"{c.label} {ref.label} on {len(segs)} instances ...", flush=True)
             table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table, progress)
             atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
-            timing[f"{c.name}-{ref.name}"] = ms
+            timing.update({f"{m}-{ref.name}": ms, f"{m}-estimate": c.ms_per_object})
             timing[MACHINE] = runtime.describe_cpu()
             atomic_text(timing_path, json.dumps(timing, indent=2) + "\n")
-            tables[(c.name, ref.name)] = table
+            tables[(m, ref.name)] = table
     from cloudpose.report.compare import render
 
     report, figure = render(

@@ -74,6 +74,13 @@ def test_report_holds_every_method_and_stage(compared):
     done = summary[summary["method"] != "none"]
     assert (done["ads_auc"] > 0.5).all()  # a real frame the shipped network and FPFH can do
     assert (out / "compare.png").stat().st_size > 10_000
+    diffs = pd.read_csv(out / "compare_paired.csv")
+    assert len(diffs) == 2 * 3 * 3  # (fpfh, none) x stages x metrics
+    d = diffs.set_index(["against", "stage", "metric"])["diff"]
+    s = summary.set_index(["method", "stage"])["ads_auc"]
+    for stage in ("estimate", "icp", "icp-radius50mm"):  # the paired difference is the pooled one
+        want = s[("network", stage)] - s[("fpfh", stage)]
+        assert d[("fpfh", stage, "ads_auc")] == pytest.approx(want, abs=1e-9)
     methods = ("network", "fpfh", "none")
     tables = [_table(out, f"{m}-{r}") for m in methods for r in ("icp", "icp-radius50mm")]
     keys = [list(zip(t["frame_id"], t["instance"], strict=True)) for t in tables]
