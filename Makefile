@@ -104,6 +104,10 @@ occlusion-runs: ## train + evaluate the runs occlusion-report needs that are mis
 real-report: ## the 61 real development frames per video and pooled: shared-0 (every seed found) and both baselines, without/with ICP -> reports/PRESET/real_frames.md (reads runs only)
 	$(CLI) real-report --preset $(PRESET) --seeds $(SEEDS)
 
+.PHONY: compare
+compare: ## the shipped network, FPFH + RANSAC, point-pair features and no estimate on the same segments, refined alike: the 61 real frames, or DATA=ROOT [FRAMES=all] -> runs/compare/ (~20 min on 2 cores)
+	$(CLI) compare $(if $(DATA),--data $(DATA) $(if $(FRAMES),--frames $(FRAMES)))
+
 tables: ## every report of PRESET into reports/PRESET/ from existing MLflow runs (no training)
 	$(CLI) report --all --preset $(PRESET)
 
