@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,12 +49,6 @@ RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
 MACHINE = "machine"
 """The key of ``tables/icp_ms.json`` naming the CPU the refinements were last timed on."""
-METRICS = {
-    "ads_auc": "ADS AUC",
-    "rot_sym_lt_10deg": "rot < 10° mod sym",
-    "trans_lt_1cm": "trans < 1 cm",
-}
-"""What the paired differences are taken on (:func:`cloudpose.report.real.versus_baseline`)."""
 
 
 @dataclass(frozen=True)
@@ -112,15 +105,27 @@ class Contender:
 
 @dataclass(frozen=True)
 class Comparison:
-    """A finished comparison: its instance tables per (method, refinement), what it compared,
-    and the report written."""
+    """A finished comparison (:func:`cloudpose.report.compare.render` writes its report).
 
+    Attributes:
+        out_dir: its folder.
+        tables: the instance tables per (method, refinement name).
+        contenders: the methods, the network first.
+        refinements: the ICPs, the paper's first.
+        timing: milliseconds per object of each method's estimate (``METHOD-estimate``) and of
+            each refinement (``METHOD-REFINEMENT``), and the CPU they were timed on
+            (:data:`MACHINE`).
+        described: the data in words.
+        source: the networks in words.
+    """
+
+    out_dir: Path
     tables: dict[tuple[str, str], pd.DataFrame]
     contenders: list[Contender]
     refinements: list[Refinement]
+    timing: dict
     described: str
-    report: Path
-    figure: Path | None
+    source: str
 
 
 def ray_split(t_est: np.ndarray, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -326,9 +331,9 @@ def run_compare(
     project_dir: Path | None = None,
     device: str = "auto",
     progress: bool = True,
-    command: str = "cloudpose compare",
 ) -> Comparison:
-    """Compare the network with ``methods`` on ``frames`` of ``data`` and write the report.
+    """Compare the network with ``methods`` on ``frames`` of ``data``
+    (:func:`cloudpose.report.compare.render` writes the report).
 
     Args:
         out_dir: the comparison's folder (default ``runs/compare/{data's identity}`` in
@@ -344,7 +349,6 @@ def run_compare(
         starts, select, radius: the refinement beside the paper's (:func:`refinements`).
         project_dir: where the segment caches and the MLflow store of ``runs`` are.
         device: where the network runs.
-        command: the command line written into the report.
     """
     from cloudpose import runtime
     from cloudpose.data.dataset import folder_segments
@@ -422,42 +426,5 @@ def run_compare(
             timing[MACHINE] = runtime.describe_cpu()
             atomic_text(timing_path, json.dumps(timing, indent=2) + "\n")
             tables[(m, ref.name)] = table
-    from cloudpose.report.compare import render
-
-    report, figure = render(
-        out_dir, tables, contenders, refs, timing, described=described, command=command,
-        source="; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True)),
-    )  # fmt: skip
-    return Comparison(tables, contenders, refs, described, report, figure)
-
-
-def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
-    """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
-    rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
-    its parts along and across the viewing ray (mm)."""
-    from cloudpose.metrics import summarize
-
-    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
-    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
-    pooled = summarize(sub, by_class=False)["pooled"]
-    out = {k: float(pooled[k]) for k in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")}
-    for key, col in (("trans_median_mm", "trans_err"), ("along_median_mm", "trans_along"),
-                     ("across_median_mm", "trans_across")):  # fmt: skip
-        values = table[f"{stage}_{col}"] if col != "trans_err" else sub[col]
-        out[key] = 1000 * float(np.median(values)) if len(values) else math.nan
-    return out
-
-
-def rows(tables: dict, contenders: list[Contender], refs: list[Refinement]) -> pd.DataFrame:
-    """One row per method and stage (its estimate, then after each refinement): ``method``,
-    ``stage``, ``label`` and :func:`summary`'s figures; the estimate's figures are read from
-    the paper's refinement's table (an ensemble: the network whose refinement it kept)."""
-    out = []
-    for c in contenders:
-        first = tables[(c.name, refs[0].name)]
-        out.append({"method": c.name, "stage": "estimate", "label": c.label,
-                    **summary(first, "net")})  # fmt: skip
-        for ref in refs:
-            out.append({"method": c.name, "stage": ref.name, "label": f"{c.label} {ref.label}",
-                        **summary(tables[(c.name, ref.name)], "icp")})  # fmt: skip
-    return pd.DataFrame(out)
+    source = "; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True))
+    return Comparison(out_dir, tables, contenders, refs, timing, described, source)

@@ -129,6 +129,9 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
     monkeypatch.chdir(proj)
     done = compare.run_compare(out, data=REAL, frames="all", methods=["fpfh", "none"], starts=1,
                                select="fitness", radius=0.05, progress=False)  # fmt: skip
+    from cloudpose.report.compare import render
+
+    render(done, "cloudpose compare")
     assert (out / "compare.csv").read_text() == before
     assert len(done.tables) == 6
     # another folder on the same frames computes its own tables, and reuses FPFH's estimates

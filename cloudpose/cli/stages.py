@@ -512,6 +512,7 @@ def compare(
     wider one), side by side: pooled, per video and per object pose, the network's difference
     to each paired over object poses (compare.md, compare.png). Resumable; logs nothing."""
     from cloudpose.compare import run_compare
+    from cloudpose.report.compare import render
 
     check_icp_options(icp_starts, icp_select, icp_radius)
     done = run_compare(
@@ -526,7 +527,7 @@ def compare(
         radius=icp_radius,
         device=device,
         progress=progress,
-        command=recorded_command(ctx),
     )
+    report, figure = render(done, recorded_command(ctx))
     typer.echo(done.described)
-    typer.echo(f"report: {done.report}" + (f"; figure: {done.figure}" if done.figure else ""))
+    typer.echo(f"report: {report}; figure: {figure}")

@@ -12,14 +12,22 @@ pose, each method after each refinement.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from cloudpose.compare import MACHINE, NETWORK, Comparison
 from cloudpose.files import atomic_text, atomic_write
 
 STAGE_ESTIMATE = "estimate"
+METRICS = {
+    "ads_auc": "ADS AUC",
+    "rot_sym_lt_10deg": "rot < 10° mod sym",
+    "trans_lt_1cm": "trans < 1 cm",
+}
+"""What the paired differences are taken on (:func:`cloudpose.report.real.versus_baseline`)."""
 
 
 def _pct(x: float) -> str:
@@ -40,7 +48,39 @@ def _stages(refs) -> list[tuple[str, str, str]]:
     return [(STAGE_ESTIMATE, refs[0].name, "net")] + [(r.name, r.name, "icp") for r in refs]
 
 
-def pooled_markdown(summary: pd.DataFrame) -> list[str]:
+def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
+    """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
+    rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
+    its parts along and across the viewing ray (mm)."""
+    from cloudpose.metrics import summarize
+
+    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
+    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
+    pooled = summarize(sub, by_class=False)["pooled"]
+    out = {k: float(pooled[k]) for k in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")}
+    for key, col in (("trans_median_mm", "trans_err"), ("along_median_mm", "trans_along"),
+                     ("across_median_mm", "trans_across")):  # fmt: skip
+        values = table[f"{stage}_{col}"] if col != "trans_err" else sub[col]
+        out[key] = 1000 * float(np.median(values)) if len(values) else math.nan
+    return out
+
+
+def rows(tables: dict, contenders, refs) -> pd.DataFrame:
+    """One row per method and stage (its estimate, then after each refinement): ``method``,
+    ``stage``, ``label`` and :func:`summary`'s figures; the estimate's figures are read from
+    the paper's refinement's table (an ensemble: the network whose refinement it kept)."""
+    out = []
+    for c in contenders:
+        first = tables[(c.name, refs[0].name)]
+        out.append({"method": c.name, "stage": STAGE_ESTIMATE, "label": c.label,
+                    **summary(first, "net")})  # fmt: skip
+        for ref in refs:
+            out.append({"method": c.name, "stage": ref.name, "label": f"{c.label} {ref.label}",
+                        **summary(tables[(c.name, ref.name)], "icp")})  # fmt: skip
+    return pd.DataFrame(out)
+
+
+def pooled_markdown(pooled: pd.DataFrame) -> list[str]:
     """The pooled table: a row per method and stage of :func:`cloudpose.compare.rows`, with its
     milliseconds per object."""
     lines = [
@@ -48,7 +88,7 @@ def pooled_markdown(summary: pd.DataFrame) -> list[str]:
         "| across the ray | along the ray | ms / object |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for _, r in summary.iterrows():
+    for _, r in pooled.iterrows():
         lines.append(
             f"| {r['label']} | {_pct(r['ads_auc'])} | {_pct(r['ad_auc'])} "
             f"| {_pct(r['rot_sym_lt_10deg'])} | {_pct(r['trans_lt_1cm'])} "
@@ -62,7 +102,6 @@ def paired(tables: dict, contenders, refs) -> pd.DataFrame:
     """The network minus each other method at each stage, per metric of
     :data:`cloudpose.compare.METRICS`: ``against``, ``stage``, ``metric``, ``diff``, ``low``,
     ``high``, ``poses``, ``instances`` (fractions)."""
-    from cloudpose.compare import METRICS, NETWORK
     from cloudpose.report.real import versus_baseline
 
     out = []
@@ -79,8 +118,6 @@ def paired(tables: dict, contenders, refs) -> pd.DataFrame:
 
 
 def _paired_markdown(diffs: pd.DataFrame, contenders, refs) -> list[str]:
-    from cloudpose.compare import METRICS
-
     labels = {c.name: c.label for c in contenders}
     stage_label = {STAGE_ESTIMATE: "estimates", **{r.name: r.label.lstrip("+ ") for r in refs}}
     head = " | ".join(METRICS.values())
@@ -189,29 +226,22 @@ def figure(tables: dict, contenders, refs, poses: pd.Series, path: Path) -> Path
     return path
 
 
-def render(
-    out_dir: Path,
-    tables: dict,
-    contenders,
-    refs,
-    icp_ms: dict[str, float],
-    *,
-    described: str,
-    command: str,
-    source: str,
-) -> tuple[Path, Path | None]:
-    """Write ``compare.md``, ``compare.csv``, ``compare_paired.csv`` and ``compare.png`` into
-    ``out_dir``."""
-    from cloudpose.compare import MACHINE, NETWORK, rows
+def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
+    """Write ``compare.md`` (naming ``command``, the command line that made it),
+    ``compare.csv``, ``compare_paired.csv`` and ``compare.png`` into the comparison's folder;
+    the report's and the figure's paths."""
     from cloudpose.report.real import object_pose, video_of
 
-    summary = rows(tables, contenders, refs)
-    ms = {c.name: c.ms_per_object for c in contenders}
-    summary["ms_per_object"] = [
-        ms[m] if s == STAGE_ESTIMATE else icp_ms.get(f"{m}-{s}", np.nan)
-        for m, s in zip(summary["method"], summary["stage"], strict=True)
+    out_dir, tables = comparison.out_dir, comparison.tables
+    contenders, refs = comparison.contenders, comparison.refinements
+    icp_ms, described, source = comparison.timing, comparison.described, comparison.source
+
+    pooled = rows(tables, contenders, refs)
+    pooled["ms_per_object"] = [
+        icp_ms.get(f"{m}-{s}", np.nan)
+        for m, s in zip(pooled["method"], pooled["stage"], strict=True)
     ]
-    atomic_write(out_dir / "compare.csv", lambda tmp: summary.to_csv(tmp, index=False), ".csv")
+    atomic_write(out_dir / "compare.csv", lambda tmp: pooled.to_csv(tmp, index=False), ".csv")
     diffs = paired(tables, contenders, refs)
     atomic_write(out_dir / "compare_paired.csv", lambda tmp: diffs.to_csv(tmp, index=False), ".csv")
     first = tables[(NETWORK, refs[0].name)]
@@ -236,7 +266,7 @@ def render(
         "",
         "## Pooled",
         "",
-        *pooled_markdown(summary),
+        *pooled_markdown(pooled),
         "",
         "## The network against each method, paired",
         "",
