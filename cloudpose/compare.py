@@ -27,6 +27,7 @@ a comparison of other networks on the same frames reuses them.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from dataclasses import dataclass
@@ -164,6 +165,20 @@ def _have(out_dir: Path, method: str, ref: Refinement, timing: dict) -> bool:
         and key in timing
         and (f"{method}-estimate" in timing)
     )
+
+
+def _timings(path: Path) -> dict:
+    """The milliseconds already measured in a comparison's folder (``tables/icp_ms.json``);
+    empty, with a warning, where the file is unreadable: every table is then computed again."""
+    from cloudpose.files import CorruptFileError
+
+    if not path.is_file():
+        return {}
+    try:
+        return read_json(path, "a comparison's timings", "its tables are computed again")
+    except CorruptFileError as exc:
+        print(f"warning: {exc}", flush=True)
+        return {}
 
 
 def _network_label(n: int) -> str:
@@ -336,8 +351,9 @@ def run_compare(
     (:func:`cloudpose.report.compare.render` writes the report).
 
     Args:
-        out_dir: the comparison's folder (default ``runs/compare/{data's identity}`` in
-            ``project_dir``, :func:`cloudpose.store.metric_names.data_evaluation_name`).
+        out_dir: the comparison's folder (default ``runs/compare/{data's identity}/{key}`` in
+            ``project_dir``: :func:`cloudpose.store.metric_names.data_evaluation_name`, and 8
+            hex digits of the networks' run ids and the seed).
         data: a dataset root in either layout (:mod:`cloudpose.data.layout`); None: the 61
             packaged real development frames.
         frames: its frame list (default ``all`` of the packaged frames, else ``keyframe``).
@@ -382,8 +398,11 @@ def run_compare(
     segs = folder_segments(dataset, frames, cfg.data, project_dir, progress)
     if len(segs) == 0:
         raise ValueError(f"{root}: no annotated object in its {frames} frames")
-    name = data_evaluation_name(root, frames, segs.data_key)
-    out_dir = Path(out_dir) if out_dir is not None else project_dir / "runs" / "compare" / name
+    if out_dir is None:  # one folder per data and per networks
+        key = hashlib.sha256(json.dumps([ids, seed]).encode()).hexdigest()[:8]
+        name = data_evaluation_name(root, frames, segs.data_key)
+        out_dir = project_dir / "runs" / "compare" / name / key
+    out_dir = Path(out_dir)
     where = "the packaged real development frames" if data is None else str(root.resolve())
     described = f"{len(segs)} instances of {describe_split(dataset, frames)}, {where}"
     _manifest(
@@ -392,7 +411,7 @@ def run_compare(
     )  # fmt: skip
     names = [NETWORK, *methods]
     timing_path = out_dir / "tables" / "icp_ms.json"
-    timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {}
+    timing = _timings(timing_path)
     todo = {m: [r for r in refs if not _have(out_dir, m, r, timing)] for m in names}
     paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
              for m in methods if m != CONTROL and todo[m]}  # fmt: skip

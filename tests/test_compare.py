@@ -4,6 +4,7 @@ resumes from its folder, and a folder of another comparison is refused."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +144,35 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
     pd.testing.assert_frame_equal(
         other.tables[("fpfh", "icp")], done.tables[("fpfh", "icp")], check_dtype=False
     )
+
+
+def test_unreadable_timings_are_computed_again(compared, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    import cloudpose.compare as compare
+
+    proj, out, _ = compared
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "tables" / "icp_ms.json").write_text('{"network-icp": 1.')  # a torn write
+    monkeypatch.chdir(proj)
+    done = compare.run_compare(copy, data=REAL, frames="all", methods=["fpfh"], starts=1,
+                               select="fitness", radius=0.05, progress=False)  # fmt: skip
+    assert "warning:" in capsys.readouterr().out
+    timing = json.loads((copy / "tables" / "icp_ms.json").read_text())
+    assert {"network-icp", "fpfh-icp-radius50mm", "fpfh-estimate"} <= set(timing)
+    first = _table(out, "network-icp")
+    np.testing.assert_allclose(done.tables[("network", "icp")]["icp_ads"], first["icp_ads"])
+
+
+def test_the_default_folder_is_one_per_data_and_networks(compared, monkeypatch):
+    proj = compared[0]
+    monkeypatch.chdir(proj)
+    res = cli("compare", "--data", str(REAL), "--frames", "all", "--method", "none", *QUICK,
+              "--no-progress")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    made = sorted((proj / "runs" / "compare").glob("*/*/compare.md"))
+    assert len(made) == 1 and made[0].parent.parent.name.startswith("ycb_real-all-")
 
 
 def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):

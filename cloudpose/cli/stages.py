@@ -502,7 +502,9 @@ def compare(
     ] = 0.18,
     out: Annotated[
         Path | None,
-        typer.Option(help="The comparison's folder (default runs/compare/DATA-IDENTITY)."),
+        typer.Option(
+            help="The comparison's folder (default runs/compare/DATA-IDENTITY/KEY, KEY of the networks and seed)."
+        ),
     ] = None,
     device: DeviceOpt = "auto",
     progress: ProgressOpt = True,
