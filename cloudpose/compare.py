@@ -48,8 +48,8 @@ METHODS = {**BASELINES, CONTROL: "no estimate"}
 RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 """The refinement compared beside the paper's by default: 24 starts kept by their agreement with
 the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
-MACHINE = "machine"
-"""The key of ``tables/icp_ms.json`` naming the CPU the refinements were last timed on."""
+MACHINE = "machines"
+"""The key of ``tables/icp_ms.json`` listing the CPUs the folder's refinements were timed on."""
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,9 @@ class Contender:
         label: in words.
         estimates: one :class:`cloudpose.infer.Estimates` per network of an ensemble (one for
             a baseline); a segment a baseline could not register is a miss (``ok`` False).
-        ok: per segment, whether the method gave a pose.
+            Empty where every table of the method was in the folder already.
+        ok: per segment, whether the method gave a pose (read from a table: whether it is
+            not a miss).
         ms_per_object: the method's milliseconds per object.
     """
 
@@ -142,18 +144,34 @@ def ray_split(t_est: np.ndarray, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def _manifest(path: Path, wanted: dict) -> None:
     """Write ``wanted`` as the folder's ``compare.json``, or refuse a folder that holds a
-    comparison of other data, frames, networks or seed (naming the field); methods may be added
-    to a folder (each has its own files)."""
+    comparison of other data, frames, networks or seed (naming the field), or a classical
+    method's results with other settings (``wanted["settings"]``: method -> settings
+    fingerprint); methods may be added to a folder (each has its own files)."""
+    fix = f"give another --out or remove {path.parent}"
+    have: dict = {}
     if path.is_file():
-        have = read_json(path, "a comparison's record", f"remove {path.parent} and rerun")
+        have = read_json(path, "a comparison's record", fix)
+        if not isinstance(have, dict):
+            raise ValueError(f"{path}: not a comparison's record (a JSON object); {fix}")
         for key, value in wanted.items():
+            if key == "settings":
+                continue
             if have.get(key) != value:
                 raise ValueError(
                     f"{path.parent} holds a comparison of another {key} ({have.get(key)!r}, "
-                    f"this call {value!r}); give another --out or remove that folder"
+                    f"this call {value!r}); {fix}"
                 )
-        return
-    atomic_text(path, json.dumps(wanted, indent=2) + "\n")
+        for method, fp in wanted.get("settings", {}).items():
+            old = have.get("settings", {}).get(method, fp)
+            if old != fp:
+                raise ValueError(
+                    f"{path.parent} holds {method}'s results with other settings (fingerprint "
+                    f"{old}, baselines.toml now {fp}); {fix}"
+                )
+    settings = {**have.get("settings", {}), **wanted.get("settings", {})}
+    record = {**have, **wanted, "settings": settings}
+    if record != have:
+        atomic_text(path, json.dumps(record, indent=2) + "\n")
 
 
 def _have(out_dir: Path, method: str, ref: Refinement, timing: dict) -> bool:
@@ -325,6 +343,15 @@ def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
         refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
 
 
+def _shipped_id(name: str) -> str:
+    """A shipped network's identity: its run's MLflow id and 12 hex digits of its weights'
+    checksum (one run can be shipped again, e.g. in half precision)."""
+    from cloudpose.store.pretrained import shipped
+
+    info = shipped(name).info
+    return f"{info['run_id']}:{info['sha256'][:12]}"
+
+
 def _described(run: str, run_id: str | None) -> str:
     """A network of the comparison in words: the shipped one's record, or the run and its id."""
     from cloudpose.store.pretrained import shipped
@@ -367,12 +394,14 @@ def run_compare(
         device: where the network runs.
     """
     from cloudpose import runtime
+    from cloudpose.baselines import load_settings
+    from cloudpose.baselines.base import settings_fingerprint
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
     from cloudpose.evaluate import check_member, load_network
     from cloudpose.store import tracking
     from cloudpose.store.metric_names import data_evaluation_name
-    from cloudpose.store.pretrained import PRETRAINED, shipped
+    from cloudpose.store.pretrained import PRETRAINED
 
     runs = list(runs or [PRETRAINED])
     methods = list(METHODS) if methods is None else list(methods)
@@ -389,11 +418,11 @@ def run_compare(
     client = tracking.setup(project_dir)
     loaded = [load_network(client, r, device) for r in runs]
     cfg = loaded[0][2]
-    for r, (run_id, _, other, _) in zip(runs[1:], loaded[1:], strict=True):
+    ids = [rid or _shipped_id(r) for r, (rid, *_) in zip(runs, loaded, strict=True)]
+    for i, (r, (_, _, other, _)) in enumerate(zip(runs[1:], loaded[1:], strict=True), start=1):
         check_member(cfg, other, r)
-        if run_id is not None and run_id in {x[0] for x in loaded[: runs.index(r)]}:
-            raise ValueError(f"--run {r}: run {run_id} is in the ensemble already")
-    ids = [rid or shipped(r).info["run_id"] for r, (rid, *_) in zip(runs, loaded, strict=True)]
+        if ids[i].split(":")[0] in {x.split(":")[0] for x in ids[:i]}:
+            raise ValueError(f"--run {r}: run {ids[i].split(':')[0]} is in the ensemble already")
     runtime.configure_threads(cfg.train.threads)
     segs = folder_segments(dataset, frames, cfg.data, project_dir, progress)
     if len(segs) == 0:
@@ -405,9 +434,11 @@ def run_compare(
     out_dir = Path(out_dir)
     where = "the packaged real development frames" if data is None else str(root.resolve())
     described = f"{len(segs)} instances of {describe_split(dataset, frames)}, {where}"
+    fps = {m: settings_fingerprint(load_settings(m)) for m in methods if m in BASELINES}
     _manifest(
         out_dir / "compare.json",
-        {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed},
+        {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed,
+         "settings": fps},
     )  # fmt: skip
     names = [NETWORK, *methods]
     timing_path = out_dir / "tables" / "icp_ms.json"
@@ -424,7 +455,9 @@ def run_compare(
     for m in names:
         if not todo[m]:  # every table is there: the estimates are not needed
             label = _network_label(len(loaded)) if m == NETWORK else METHODS[m]
-            c = Contender(m, label, [], np.ones(len(segs), bool), timing[f"{m}-estimate"])
+            miss = pd.read_csv(out_dir / "tables" / f"{m}-{refs[0].name}.csv", usecols=["miss"])
+            ok = ~miss["miss"].to_numpy(dtype=bool)  # the method's misses and empty segments
+            c = Contender(m, label, [], ok, timing[f"{m}-estimate"])
         elif m == NETWORK:
             c = _network(segs, loaded, out_dir / "estimates" / "network.npz")
         elif m == CONTROL:
@@ -442,7 +475,7 @@ def run_compare(
             table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table, progress)
             atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
             timing.update({f"{m}-{ref.name}": ms, f"{m}-estimate": c.ms_per_object})
-            timing[MACHINE] = runtime.describe_cpu()
+            timing[MACHINE] = sorted({*timing.get(MACHINE, []), runtime.describe_cpu()})
             atomic_text(timing_path, json.dumps(timing, indent=2) + "\n")
             tables[(m, ref.name)] = table
     source = "; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True))

@@ -60,6 +60,8 @@ def _table(out: Path, name: str) -> pd.DataFrame:
 
 def test_report_holds_every_method_and_stage(compared):
     _, out, output = compared
+    plan = "compare: 3 instances; fpfh estimates: 3 of 3 to compute; 6 refinement(s) to compute"
+    assert output.splitlines()[0] == plan  # the plan, before any work
     assert f"report: {out / 'compare.md'}" in output
     text = (out / "compare.md").read_text()
     assert "`cloudpose compare --data" in text and "--method fpfh" in text
@@ -187,17 +189,19 @@ def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):
     [
         (["--method", "sift"], ["--method 'sift'", "fpfh"]),
         (["--icp-starts", "5"], ["--icp-starts 5"]),
-        (["--icp-radius", "2"], ["2"]),
+        (["--icp-radius", "2"], ["--icp-radius 2.0", "0.5 m"]),
+        (["--run", "pretrained", "--run", "pretrained"], ["each at most once"]),
     ],
 )
 def test_bad_options_are_one_line(args, needles):
     one_line_error(cli("compare", "--data", str(REAL), *args, "--no-progress"), *needles)
 
 
-def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path):
+def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path, monkeypatch):
     """Two copies of the shipped network as an ensemble: estimates cached per member, and the
     refinement kept per object is the one network's own."""
     import cloudpose.compare as compare
+    import cloudpose.infer as infer
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import open_dataset
     from cloudpose.infer import load_checkpoint
@@ -211,6 +215,7 @@ def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path):
         segs, [(None, model, cfg, "a"), (None, model, cfg, "b")], tmp_path / "n.npz"
     )
     assert len(pair.estimates) == 2 and pair.label == "network (2 networks)"
+    monkeypatch.setattr(infer, "estimate_poses", lambda *a, **k: pytest.fail("estimated again"))
     again = compare._network(segs, [(None, model, cfg, "a")] * 2, tmp_path / "n.npz")
     np.testing.assert_array_equal(again.estimates[1].R, pair.estimates[1].R)  # read back
     paper = compare.refinements(1, "fitness", 0.01)[0]
@@ -241,3 +246,63 @@ def test_the_control_is_the_identity_at_each_segments_mean():
     np.testing.assert_array_equal(est.R, np.tile(np.eye(3), (3, 1, 1)))
     np.testing.assert_allclose(est.t[[0, 2]], points[[0, 2]].mean(axis=1))
     np.testing.assert_array_equal(est.t[1], np.zeros(3))  # a miss stays at the origin
+
+
+def test_a_method_that_cannot_register_a_segment_scores_it_as_a_miss(compared):
+    """A segment the method gave no pose for: a miss for that method only, every error
+    infinite, along and across the ray too; the other rows are refined as usual."""
+    import cloudpose.compare as compare
+    from cloudpose.data.dataset import folder_segments
+    from cloudpose.data.layout import open_dataset
+    from cloudpose.infer import load_checkpoint, no_estimate
+    from cloudpose.store.pretrained import shipped
+
+    proj, out, _ = compared
+    _, cfg = load_checkpoint(shipped().path)
+    dataset = open_dataset(REAL)
+    segs = folder_segments(dataset, "all", cfg.data, proj, progress=False)
+    ok = np.ones(len(segs), dtype=bool)
+    ok[1] = False
+    stub = compare.Contender("stub", "a stub", [no_estimate(segs)], ok, 0.0)
+    paper = compare.refinements(1, "fitness", 0.01)[0]
+    table, _ = compare._refine(stub, segs, dataset, paper, cfg.loss.symmetry_table)
+    assert table["miss"].tolist() == [False, True, False]
+    for col in ("net_ads", "icp_ads", "icp_trans_err", "icp_trans_along", "icp_trans_across"):
+        assert np.isinf(table[col][1]) and np.isfinite(table[col][[0, 2]]).all(), col
+    assert segs.valid.all()  # the caller's segments are left as they were
+    control = _table(out, "none-icp")  # the same estimates with every row registered
+    np.testing.assert_allclose(table["icp_ads"][[0, 2]], control["icp_ads"][[0, 2]], atol=1e-9)
+
+
+def test_a_folder_is_refused_for_other_frames_or_other_baseline_settings(compared, tmp_path,
+                                                                        monkeypatch):  # fmt: skip
+    import shutil
+
+    proj, out, _ = compared
+    monkeypatch.chdir(proj)
+    data = tmp_path / "real"
+    shutil.copytree(REAL, data)
+    (data / "image_sets").mkdir()
+    (data / "image_sets" / "one.txt").write_text("0000/000001\n")  # the frame, another list
+    args = ["--method", "fpfh", *QUICK, "--out", str(out), "--no-progress"]
+    res = cli("compare", "--data", str(data), "--frames", "one", *args)
+    one_line_error(res, "holds a comparison of another", "'one'")
+    record = json.loads((out / "compare.json").read_text())
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    record["settings"]["fpfh"] = "0" * 16  # as if baselines.toml had changed since
+    (copy / "compare.json").write_text(json.dumps(record))
+    args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", *QUICK]
+    res = cli("compare", *args, "--out", str(copy), "--no-progress")
+    one_line_error(res, "fpfh's results with other settings", "0" * 16)
+
+
+def test_the_commands_defaults_are_the_recipe():
+    import typer.main
+
+    from cloudpose.cli import app
+    from cloudpose.compare import RECIPE
+
+    command = typer.main.get_command(app).commands["compare"]
+    defaults = {p.name: p.default for p in command.params}
+    assert {k: defaults[f"icp_{k}"] for k in RECIPE} == RECIPE

@@ -233,7 +233,10 @@ def check_icp_options(
     if select is not None and select not in SELECTIONS:
         raise ValueError(f"--icp-select {select!r}: expected one of {', '.join(SELECTIONS)}")
     if radius is not None:
-        schedule_for(radius)
+        try:
+            schedule_for(radius)
+        except ValueError as exc:
+            raise ValueError(f"--icp-radius {radius}: {exc}") from exc
 
 
 def group_names() -> str:

@@ -39,7 +39,19 @@ def _mm(x: float) -> str:
 
 
 def _signed(x: float) -> str:
+    """Points with a sign and one decimal; two where one would round a non-zero value to 0
+    (an interval's bound just below 0 must not read as 0)."""
+    if x != 0 and round(100 * x, 1) == 0:
+        return f"{100 * x:+.2f}"
     return f"{100 * x:+.1f}"
+
+
+def _machines(machines) -> str:
+    if not machines:
+        return "on the machine that computed them"
+    if isinstance(machines, str):
+        return f"on {machines}"
+    return f"on {machines[0]}" if len(machines) == 1 else "on " + "; ".join(machines)
 
 
 def _stages(refs) -> list[tuple[str, str, str]]:
@@ -81,7 +93,7 @@ def rows(tables: dict, contenders, refs) -> pd.DataFrame:
 
 
 def pooled_markdown(pooled: pd.DataFrame) -> list[str]:
-    """The pooled table: a row per method and stage of :func:`cloudpose.compare.rows`, with its
+    """The pooled table: a row per method and stage of :func:`rows`, with its
     milliseconds per object."""
     lines = [
         "| method | ADS AUC | AD AUC | rot < 10° mod sym | trans < 1 cm | median trans (mm) "
@@ -100,7 +112,7 @@ def pooled_markdown(pooled: pd.DataFrame) -> list[str]:
 
 def paired(tables: dict, contenders, refs) -> pd.DataFrame:
     """The network minus each other method at each stage, per metric of
-    :data:`cloudpose.compare.METRICS`: ``against``, ``stage``, ``metric``, ``diff``, ``low``,
+    :data:`METRICS`: ``against``, ``stage``, ``metric``, ``diff``, ``low``,
     ``high``, ``poses``, ``instances`` (fractions)."""
     from cloudpose.report.real import versus_baseline
 
@@ -236,6 +248,9 @@ def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
     contenders, refs = comparison.contenders, comparison.refinements
     icp_ms, described, source = comparison.timing, comparison.described, comparison.source
 
+    keys = [(t["frame_id"].astype(str).tolist(), t["instance"].tolist()) for t in tables.values()]
+    if any(k != keys[0] for k in keys):  # the per-video and per-pose tables read rows by position
+        raise ValueError(f"{out_dir}: its instance tables do not list the same instances")
     pooled = rows(tables, contenders, refs)
     pooled["ms_per_object"] = [
         icp_ms.get(f"{m}-{s}", np.nan)
@@ -262,7 +277,14 @@ def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
         f"({misses} instance(s) without a usable segment point: a miss for every method). "
         f"Network: {source}. Every method estimates the pose of the same segments once; each "
         f"estimate is then refined by each ICP: {settings}. ms / object: the method's own "
-        f"(the estimate rows) or the refinement's, on {icp_ms.get(MACHINE, 'this machine')}.",
+        f"(the estimate rows) or the refinement's, {_machines(icp_ms.get(MACHINE))}."
+        + (
+            " For several networks the estimate rows hold, per object, the network whose "
+            "refinement the paper's ICP kept by its fitness (an ensemble is a choice among "
+            "refinements)."
+            if contenders[0].label != NETWORK
+            else ""
+        ),
         "",
         "## Pooled",
         "",
