@@ -265,13 +265,15 @@ def _refine(
     contender: Contender,
     segs,
     dataset,
+    models: dict,
     refinement: Refinement,
     symmetry_table: int,
     progress: bool = False,
 ):
-    """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``:
-    ``net_*`` its estimate (an ensemble: the network whose refinement was kept), ``icp_*`` the
-    refined pose, ``*_trans_along`` / ``*_trans_across`` (:func:`ray_split`)."""
+    """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``
+    against ``models`` (``dataset.models()``): ``net_*`` its estimate (an ensemble: the network
+    whose refinement was kept), ``icp_*`` the refined pose, ``*_trans_along`` /
+    ``*_trans_across`` (:func:`ray_split`)."""
     import warnings
 
     from cloudpose.evaluate import instance_table
@@ -280,7 +282,6 @@ def _refine(
 
     segs = segs.subset(np.arange(len(segs)))
     segs.valid = np.asarray(segs.valid, dtype=bool) & contender.ok
-    models = dataset.models()
     settings = refinement.settings
     t0 = time.perf_counter()
     views = segment_views(dataset, segs) if settings.select == "depth" else None
@@ -291,9 +292,9 @@ def _refine(
     est = {"net": Estimates.kept(contender.estimates, pick), "icp": icp}
     table = instance_table(segs, est, models, dataset.classes, symmetry_table)
     t_gt = np.asarray(segs.t, float)
+    miss = ~np.asarray(segs.valid, dtype=bool)
     for stage, e in est.items():
         along, across = ray_split(np.nan_to_num(e.t), t_gt)
-        miss = ~np.asarray(segs.valid, dtype=bool)
         table[f"{stage}_trans_along"] = np.where(miss, np.inf, along)
         table[f"{stage}_trans_across"] = np.where(miss, np.inf, across)
     return table, ms
@@ -332,13 +333,13 @@ def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]]) -> str
 def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
     """Refine one segment with each refinement first, so that no method's milliseconds per
     object hold the one-off setup (Open3D's, the model clouds') of the first refinement."""
-    from cloudpose.infer import Estimates, refine_poses
+    from cloudpose.infer import no_estimate, refine_poses
 
     first = np.flatnonzero(segs.valid)[:1]
     if len(first) == 0:
         return
     one = segs.subset(first)
-    start = Estimates(np.eye(3)[None], np.asarray(one.t, float))
+    start = no_estimate(one)
     for ref in refs:
         refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
 
@@ -472,7 +473,7 @@ def run_compare(
                 continue
             if progress:
                 print(f"{c.label} {ref.label} on {len(segs)} instances ...", flush=True)
-            table, ms = _refine(c, segs, dataset, ref, cfg.loss.symmetry_table, progress)
+            table, ms = _refine(c, segs, dataset, models, ref, cfg.loss.symmetry_table, progress)
             atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
             timing.update({f"{m}-{ref.name}": ms, f"{m}-estimate": c.ms_per_object})
             timing[MACHINE] = sorted({*timing.get(MACHINE, []), runtime.describe_cpu()})

@@ -219,7 +219,9 @@ def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path, mo
     again = compare._network(segs, [(None, model, cfg, "a")] * 2, tmp_path / "n.npz")
     np.testing.assert_array_equal(again.estimates[1].R, pair.estimates[1].R)  # read back
     paper = compare.refinements(1, "fitness", 0.01)[0]
-    table, _ = compare._refine(pair, segs, dataset, paper, cfg.loss.symmetry_table)
+    table, _ = compare._refine(
+        pair, segs, dataset, dataset.models(), paper, cfg.loss.symmetry_table
+    )
     one = _table(out, "network-icp")
     np.testing.assert_allclose(table["icp_ads"], one["icp_ads"], rtol=0, atol=1e-6)
 
@@ -265,7 +267,9 @@ def test_a_method_that_cannot_register_a_segment_scores_it_as_a_miss(compared):
     ok[1] = False
     stub = compare.Contender("stub", "a stub", [no_estimate(segs)], ok, 0.0)
     paper = compare.refinements(1, "fitness", 0.01)[0]
-    table, _ = compare._refine(stub, segs, dataset, paper, cfg.loss.symmetry_table)
+    table, _ = compare._refine(
+        stub, segs, dataset, dataset.models(), paper, cfg.loss.symmetry_table
+    )
     assert table["miss"].tolist() == [False, True, False]
     for col in ("net_ads", "icp_ads", "icp_trans_err", "icp_trans_along", "icp_trans_across"):
         assert np.isinf(table[col][1]) and np.isfinite(table[col][[0, 2]]).all(), col

@@ -503,7 +503,8 @@ def compare(
     out: Annotated[
         Path | None,
         typer.Option(
-            help="The comparison's folder (default runs/compare/DATA-IDENTITY/KEY, KEY of the networks and seed)."
+            help="The comparison's folder (default runs/compare/DATA-IDENTITY/KEY, KEY of the "
+            "networks and seed)."
         ),
     ] = None,
     device: DeviceOpt = "auto",

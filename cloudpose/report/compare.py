@@ -49,8 +49,6 @@ def _signed(x: float) -> str:
 def _machines(machines) -> str:
     if not machines:
         return "on the machine that computed them"
-    if isinstance(machines, str):
-        return f"on {machines}"
     return f"on {machines[0]}" if len(machines) == 1 else "on " + "; ".join(machines)
 
 
@@ -170,8 +168,8 @@ def _rot10(table: pd.DataFrame, prefix: str) -> float:
 
 def by_group(tables: dict, contenders, refs, group: pd.Series, stat) -> pd.DataFrame:
     """``stat`` (of an instance table and a column prefix) per value of ``group`` (aligned with
-    every table's rows), a row each, with its instance count; one column per method and stage
-    (:func:`_columns`' headings, numbered where two are alike)."""
+    every table's rows), a row each, with its instance count; one column per method and stage,
+    numbered in the order of :func:`_columns`."""
     cols = _columns(contenders, refs)
     keys = sorted(set(group))
     out = pd.DataFrame({"instances": [int((group == k).sum()) for k in keys]}, index=keys)
