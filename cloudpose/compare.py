@@ -67,13 +67,17 @@ class Refinement:
     settings: object
 
 
-def refinements(starts: int, select: str, radius: float) -> list[Refinement]:
+def refinements(starts: int, select: str, radius: float, networks: int = 1) -> list[Refinement]:
     """The paper's ICP (one start, ICP's fitness, 1 cm first radius), and the one of ``starts``,
-    ``select``, ``radius`` unless it is the paper's (:func:`cloudpose.refine.schedule_for`)."""
+    ``select``, ``radius`` unless it is the paper's (:func:`cloudpose.refine.schedule_for`).
+    With one start and one network (``networks``) there is nothing to select among, so
+    ``select`` is the paper's whatever it says."""
     from cloudpose.evaluate import icp_label
     from cloudpose.refine import ICPSettings, schedule_for
 
     paper = ICPSettings()
+    if starts == 1 and networks == 1:
+        select = paper.select
     out = [Refinement("icp", "+ ICP (paper)", paper)]
     other = ICPSettings(starts=starts, select=select, **schedule_for(radius))
     if other != paper:
@@ -305,11 +309,11 @@ ICP_SECONDS = 1.2e-4
 schedule, 10 iterations from one start, ~1 ms an object)."""
 
 
-def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]]) -> str:
+def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]], networks: int = 1) -> str:
     """What a call will compute and about how long it takes, before it starts: the estimates
     left of each classical method whose refinements are to compute (``paths``, by
     :data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the refinements ``todo`` per method
-    (:data:`ICP_SECONDS`)."""
+    (:data:`ICP_SECONDS`; the network's once for each of its ``networks``)."""
     from cloudpose.baselines.run import EstimateProgress
     from cloudpose.stress import SECONDS_PER_INSTANCE
 
@@ -320,8 +324,15 @@ def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]]) -> str
         left = n - int(EstimateProgress(path, len(segs)).done[valid].sum())
         seconds += left * SECONDS_PER_INSTANCE[method]
         parts.append(f"{method} estimates: {'kept' if left == 0 else f'{left} of {n} to compute'}")
-    refs = [r for rs in todo.values() for r in rs]
-    seconds += sum(n * ICP_SECONDS * r.settings.starts * r.settings.iterations for r in refs)
+    refs = [(m, r) for m, rs in todo.items() for r in rs]
+    seconds += sum(
+        n
+        * ICP_SECONDS
+        * r.settings.starts
+        * r.settings.iterations
+        * (networks if m == NETWORK else 1)
+        for m, r in refs
+    )
     parts.append(f"{len(refs)} refinement(s) to compute")
     return (
         f"compare: {len(segs)} instances; "
@@ -342,15 +353,6 @@ def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
     start = no_estimate(one)
     for ref in refs:
         refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
-
-
-def _shipped_id(name: str) -> str:
-    """A shipped network's identity: its run's MLflow id and 12 hex digits of its weights'
-    checksum (one run can be shipped again, e.g. in half precision)."""
-    from cloudpose.store.pretrained import shipped
-
-    info = shipped(name).info
-    return f"{info['run_id']}:{info['sha256'][:12]}"
 
 
 def _described(run: str, run_id: str | None) -> str:
@@ -399,10 +401,10 @@ def run_compare(
     from cloudpose.baselines.base import settings_fingerprint
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
-    from cloudpose.evaluate import check_member, load_network
-    from cloudpose.store import tracking
+    from cloudpose.evaluate import check_ensemble, load_network
     from cloudpose.store.metric_names import data_evaluation_name
     from cloudpose.store.pretrained import PRETRAINED
+    from cloudpose.store.runs import client_for
 
     runs = list(runs or [PRETRAINED])
     methods = list(METHODS) if methods is None else list(methods)
@@ -412,18 +414,14 @@ def run_compare(
     if len(set(runs)) < len(runs) or len(set(methods)) < len(methods):
         raise ValueError("--run / --method: each at most once")
     project_dir = Path(project_dir or Path.cwd()).resolve()
-    refs = refinements(starts, select, radius)
+    refs = refinements(starts, select, radius, len(runs))
     root = Path(data) if data is not None else real_dev_root()
     frames = frames or ("all" if data is None else "keyframe")
     dataset = open_dataset(root)
-    client = tracking.setup(project_dir)
+    client = client_for(runs, project_dir)
     loaded = [load_network(client, r, device) for r in runs]
     cfg = loaded[0][2]
-    ids = [rid or _shipped_id(r) for r, (rid, *_) in zip(runs, loaded, strict=True)]
-    for i, (r, (_, _, other, _)) in enumerate(zip(runs[1:], loaded[1:], strict=True), start=1):
-        check_member(cfg, other, r)
-        if ids[i].split(":")[0] in {x.split(":")[0] for x in ids[:i]}:
-            raise ValueError(f"--run {r}: run {ids[i].split(':')[0]} is in the ensemble already")
+    ids = check_ensemble(runs, loaded, "--run")
     runtime.configure_threads(cfg.train.threads)
     segs = folder_segments(dataset, frames, cfg.data, project_dir, progress)
     if len(segs) == 0:
@@ -447,7 +445,7 @@ def run_compare(
     todo = {m: [r for r in refs if not _have(out_dir, m, r, timing)] for m in names}
     paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
              for m in methods if m != CONTROL and todo[m]}  # fmt: skip
-    print(plan(segs, paths, todo), flush=True)
+    print(plan(segs, paths, todo, len(loaded)), flush=True)
     models = dataset.models()
     if any(todo.values()):
         _warm_up(segs, models, refs)

@@ -312,20 +312,51 @@ def _score(
     return table, metrics
 
 
-def check_member(cfg, other, run: str) -> None:
+def check_member(cfg, other, run: str, option: str = "--ensemble") -> None:
     """``ValueError`` unless the network of ``run`` (config ``other``) can join an ensemble with
     the evaluated run's (``cfg``): the same data section (the segments and classes it was
-    trained and is tested on) and the same rotation modulo symmetry (its errors' table)."""
+    trained and is tested on) and the same rotation modulo symmetry (its errors' table).
+    ``option`` names the command-line option that gave ``run``, for the message."""
     mine, theirs = dataclasses.asdict(cfg.data), dataclasses.asdict(other.data)
     fields = [f"data.{k}" for k in mine if mine[k] != theirs.get(k)]
     if cfg.loss.symmetry_table != other.loss.symmetry_table:
         fields.append("loss.symmetry_table")
     if fields:
         raise ValueError(
-            f"--ensemble {run}: its network differs from the evaluated run's in "
+            f"{option} {run}: its network differs from the evaluated run's in "
             f"{', '.join(fields)}; an ensemble joins networks of the same preset (other seeds "
             "or variants)"
         )
+
+
+def network_identity(run: str, run_id: str | None) -> str:
+    """The identity of the network ``run`` names: its MLflow run id (``run_id``), or for a
+    shipped network (no run id) its run's id and 12 hex digits of its weights' checksum (one
+    run can be shipped again, e.g. in half precision)."""
+    if run_id is not None:
+        return run_id
+    from cloudpose.store.pretrained import shipped
+
+    info = shipped(run).info
+    return f"{info['run_id']}:{info['sha256'][:12]}"
+
+
+def check_ensemble(names: list[str], loaded: list[tuple], option: str) -> list[str]:
+    """The identities (:func:`network_identity`) of an ensemble's networks, ``names[i]`` loaded
+    as ``loaded[i]`` (:func:`load_network`'s tuples; the first is the evaluated run).
+
+    Raises:
+        ValueError: naming ``option`` and the run, for a network that cannot join the first
+            (:func:`check_member`) or that is in the ensemble already: the same MLflow run,
+            named again, by another name, or as the network the package ships from it.
+    """
+    ids = [network_identity(n, rid) for n, (rid, *_) in zip(names, loaded, strict=True)]
+    runs = [i.split(":")[0] for i in ids]
+    for k in range(1, len(names)):
+        check_member(loaded[0][2], loaded[k][2], names[k], option)
+        if runs[k] in runs[:k]:
+            raise ValueError(f"{option} {names[k]}: run {runs[k]} is in the ensemble already")
+    return ids
 
 
 def evaluate(
@@ -371,7 +402,8 @@ def evaluate(
             estimate is refined by ICP and per instance the refinement with the best score
             of ``icp.select`` is kept (:func:`~cloudpose.infer.select_refinements`; ``depth``
             reads the frames' depth). Logged in ``run`` as ``{name}-ensemble{N}`` (N
-            networks), the members' run ids in the tag ``eval/{name}/ensemble``.
+            networks), the members' identities in the tag ``eval/{name}/ensemble``
+            (:func:`network_identity`: run ids, and a shipped network's with its checksum).
 
     Raises:
         ValueError: no instance to evaluate; a ``name`` that :func:`check_evaluation_name`
@@ -381,17 +413,12 @@ def evaluate(
         check_evaluation_name(name, data)
     project_dir = (project_dir or Path.cwd()).resolve()
     log = log and not is_pretrained(run)  # the shipped network has no MLflow run to log to
-    client = tracking.setup(project_dir)
+    client = runs.client_for([run, *(ensemble or ())], project_dir)
     run_id, model, cfg, ckpt_label = load_network(client, run, device)
-    members = []
-    for other in ensemble or ():
-        if not icp:
-            raise ValueError("--ensemble keeps one of the networks' ICP refinements; drop --no-icp")
-        member = load_network(client, other, device)
-        check_member(cfg, member[2], other)
-        if member[0] is not None and member[0] in {run_id, *(m[0] for m in members)}:
-            raise ValueError(f"--ensemble {other}: run {member[0]} is in the ensemble already")
-        members.append(member)
+    if ensemble and not icp:
+        raise ValueError("--ensemble keeps one of the networks' ICP refinements; drop --no-icp")
+    members = [load_network(client, other, device) for other in ensemble or ()]
+    ids = check_ensemble([run, *(ensemble or ())], [(run_id, model, cfg), *members], "--ensemble")
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
     test = _test_data(cfg, data, frames, name, masks, own_data, project_dir, progress)
@@ -428,7 +455,6 @@ def evaluate(
             if masks:
                 client.set_tag(run_id, f"eval/{name}/segmentation", masks)
             if members:
-                ids = [run_id, *(m[0] or other for m, other in zip(members, ensemble, strict=True))]
                 client.set_tag(run_id, f"eval/{name}/ensemble", ",".join(ids))
         except Exception as exc:
             full = _disk_full(exc, client, run_id)

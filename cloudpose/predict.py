@@ -7,8 +7,10 @@ by default). Every labelled object is segmented, sampled and posed as in evaluat
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -17,9 +19,8 @@ from cloudpose.data.cache import SegmentSet
 from cloudpose.data.segments import check_depth_scale, extract_segments
 from cloudpose.data.ycb import YCBVideo, read_frame
 from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
-from cloudpose.refine import ICPSettings
-from cloudpose.store import tracking
-from cloudpose.store.runs import local_checkpoint
+from cloudpose.refine import DepthView, ICPSettings, depth_agreement
+from cloudpose.store.runs import client_for, local_checkpoint
 
 
 @dataclass(frozen=True)
@@ -32,9 +33,12 @@ class ObjectPose:
     t: np.ndarray  # (3,) metres
     points: int  # segment points after filtering
     fitness: float  # ICP fitness (NaN without ICP)
+    coverage: float  # share of segment points within 1 cm of the posed model
+    violation: float  # share of posed model points > 1 cm in front of the observed depth
 
     def describe(self) -> str:
-        """One line: class, translation in metres, rotation as axis-angle in degrees."""
+        """One line: class, translation in metres, rotation as axis-angle in degrees, and how
+        the pose agrees with the depth (:func:`cloudpose.refine.depth_agreement`)."""
         from scipy.spatial.transform import Rotation
 
         rv = Rotation.from_matrix(self.R).as_rotvec()
@@ -44,7 +48,8 @@ class ObjectPose:
         ax = ", ".join(f"{x:+.3f}" for x in axis)
         return (
             f"{self.cls_id:2d} {self.name:<22} t = [{t}] m   R = {angle:6.1f} deg about [{ax}]"
-            f"   ({self.points} points, ICP fitness {self.fitness:.2f})"
+            f"   ({self.points} points, ICP fitness {self.fitness:.2f}, coverage "
+            f"{self.coverage:.2f}, in front of the depth {self.violation:.2f})"
         )
 
 
@@ -72,7 +77,10 @@ def load_model_for(checkpoint: str, device: str = "auto"):
     path = Path(checkpoint)
     if path.is_file():
         return load_checkpoint(path, device)
-    with local_checkpoint(tracking.setup(), checkpoint) as (_, ckpt):  # a download is removed
+    with local_checkpoint(client_for([checkpoint]), checkpoint) as (
+        _,
+        ckpt,
+    ):  # a download is removed
         return load_checkpoint(ckpt, device)
 
 
@@ -86,11 +94,16 @@ def predict(
     intrinsics: str | None = None,
     depth_factor: float = 10000.0,
     icp: bool = True,
+    icp_overrides: dict[str, Any] | None = None,
     overlay: Path | None = None,
     seed: int = 0,
     device: str = "auto",
 ) -> PredictResult:
     """Estimate the pose of every labelled object in one frame (see the module doc).
+
+    ``icp_overrides``: fields of :class:`~cloudpose.refine.ICPSettings` to change from the
+    checkpoint's own ICP (as :func:`cloudpose.evaluate.evaluate`'s), e.g. the starts, their
+    selection against this frame's depth, a wider first radius.
 
     Raises:
         ValueError: besides bad files, depth that looks like another unit than
@@ -128,15 +141,27 @@ def predict(
     )
     est = estimate_poses(model, segs, cfg.train.n_points, device=next(model.buffers()).device)
     fitness = np.full(len(segs), np.nan)
+    view = DepthView(frame.depth, np.asarray(frame.K, dtype=np.float64))
     if icp:
-        est, stats = refine_poses(segs, est, models_by_class, ICPSettings.from_config(cfg.icp))
+        settings = ICPSettings.from_config(cfg.icp)
+        settings = dataclasses.replace(settings, **(icp_overrides or {}))
+        views = [view] * len(segs) if settings.select == "depth" else None
+        est, stats = refine_poses(segs, est, models_by_class, settings, views=views)
         fitness = stats.fitness
     poses = []
     for i in np.flatnonzero(segs.valid):
         c = int(segs.cls_id[i])
+        agree = depth_agreement(segs.observed(i), models_by_class[c], est.R[i], est.t[i], view)
         poses.append(
             ObjectPose(
-                c, dataset.classes[c - 1], est.R[i], est.t[i], int(segs.count[i]), float(fitness[i])
+                c,
+                dataset.classes[c - 1],
+                est.R[i],
+                est.t[i],
+                int(segs.count[i]),
+                float(fitness[i]),
+                agree.coverage,
+                agree.violation,
             )
         )
     skipped = [int(c) for c in segs.cls_id[~segs.valid]]

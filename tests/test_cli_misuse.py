@@ -312,6 +312,30 @@ def test_export_onto_a_file_is_one_line(tmp_path):
     assert out.read_text() == "keep me\n"
 
 
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["synth"],
+        ["showcase"],
+        ["ship", "--run", "any"],
+        ["report"],
+        ["real-report"],
+        ["stress"],
+        ["ablate", "--dry-run"],
+        ["compare"],
+    ],
+)
+def test_an_output_folder_that_is_a_file_is_refused_before_any_work(command, tmp_path):
+    """Every option that names a folder to write refuses an existing file, naming the option,
+    and leaves the file as it was."""
+    out = tmp_path / "out.txt"
+    out.write_text("keep me\n")
+    res = cli(*command, "--out", str(out))
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert "'--out'" in res.output and "is a file" in res.output
+    assert out.read_text() == "keep me\n" and sorted(tmp_path.iterdir()) == [out]
+
+
 def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
     import cloudpose.suite.ablate
 

@@ -38,6 +38,30 @@ def test_refinements_are_the_papers_and_the_recipe():
     assert wide.settings.max_distance == pytest.approx(0.18)
     assert wide.name == "icp-starts24-selectdepth-radius180mm"
     assert [r.name for r in refinements(1, "fitness", 0.01)] == ["icp"]  # the paper's only
+    # one start of one network has nothing to select among: the paper's, not a second copy
+    assert [r.name for r in refinements(1, "depth", 0.01)] == ["icp"]
+    # an ensemble's selection chooses among its networks
+    assert [r.name for r in refinements(1, "depth", 0.01, networks=2)] == ["icp", "icp-selectdepth"]
+
+
+def test_the_plan_counts_each_network_of_an_ensemble():
+    """The refinements' time in the plan grows with the networks refined, the methods' not."""
+    import re
+
+    from cloudpose.compare import CONTROL, ICP_SECONDS, NETWORK, plan, refinements
+
+    class Segs:
+        valid = np.ones(1000, dtype=bool)
+
+        def __len__(self):
+            return 1000
+
+    wide = refinements(24, "depth", 0.18)[1]
+    todo = {NETWORK: [wide], CONTROL: [wide]}
+    one_ref = 1000 * ICP_SECONDS * wide.settings.starts * wide.settings.iterations
+    for networks in (1, 4):
+        minutes = re.search(r"about (\d+) min", plan(Segs(), {}, todo, networks))
+        assert minutes and int(minutes[1]) == round((networks + 1) * one_ref / 60)
 
 
 @pytest.fixture(scope="module")

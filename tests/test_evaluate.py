@@ -237,3 +237,31 @@ def test_an_ensemble_keeps_one_members_refinement_per_object(tmp_path, smoke_dat
         evaluate_real(a.run_id, ensemble=["pretrained"], log=False, **kw)
     with pytest.raises(ValueError, match="drop --no-icp"):
         evaluate_real(a.run_id, ensemble=[b.run_id], icp=False, log=False, **kw)
+
+
+def test_an_ensemble_refuses_a_network_twice_by_any_name():
+    """The shipped network and the MLflow run it came from are one network: named together, or
+    one of them twice, they are refused, and the option that named the second is in the
+    message; another run of the same preset joins, and a network of other data does not."""
+    from cloudpose.evaluate import check_ensemble
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.store.pretrained import PRETRAINED, shipped
+
+    model, cfg = load_checkpoint(shipped().path)
+    run_id = shipped().info["run_id"]
+    ids = check_ensemble(
+        [PRETRAINED, "other"], [(None, model, cfg), ("f" * 32, model, cfg)], "--run"
+    )
+    assert ids[0] == f"{run_id}:{shipped().info['sha256'][:12]}" and ids[1] == "f" * 32
+    pairs = {  # the shipped network, then its run; the run, then the shipped network
+        "--run": ([PRETRAINED, "second"], [(None, model, cfg), (run_id, model, cfg)]),
+        "--ensemble": (["first", PRETRAINED], [(run_id, model, cfg), (None, model, cfg)]),
+    }
+    for option, (names, loaded) in pairs.items():
+        with pytest.raises(ValueError, match=rf"^{option} {names[1]}: run {run_id} is in the en"):
+            check_ensemble(names, loaded, option)
+    other = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, n_fps=2 * cfg.data.n_fps))
+    with pytest.raises(ValueError, match=r"^--run second: .* differs .* in data\.n_fps"):
+        check_ensemble(
+            [PRETRAINED, "second"], [(None, model, cfg), ("f" * 32, model, other)], "--run"
+        )

@@ -203,7 +203,8 @@ OutOpt = Annotated[
     Path | None,
     typer.Option(
         help="Reports folder; default reports/PRESET, or runs/reports/PRESET in a checkout that "
-        "commits no reports of PRESET."
+        "commits no reports of PRESET.",
+        file_okay=False,
     ),
 ]
 SetOpt = Annotated[
@@ -237,6 +238,25 @@ def check_icp_options(
             schedule_for(radius)
         except ValueError as exc:
             raise ValueError(f"--icp-radius {radius}: {exc}") from exc
+
+
+def icp_overrides(
+    fallback: bool | None = None,
+    starts: int | None = None,
+    select: str | None = None,
+    radius: float | None = None,
+) -> dict:
+    """The fields of :class:`cloudpose.refine.ICPSettings` that ``--icp-fallback``,
+    ``--icp-starts``, ``--icp-select`` and ``--icp-radius`` change (None: not given), after
+    :func:`check_icp_options`."""
+    check_icp_options(starts, select, radius)
+    pairs = (("fallback", fallback), ("starts", starts), ("select", select))
+    overrides = {k: v for k, v in pairs if v is not None}
+    if radius is not None:
+        from cloudpose.refine import schedule_for
+
+        overrides |= schedule_for(radius)
+    return overrides
 
 
 def group_names() -> str:

@@ -26,7 +26,10 @@ def synth(
     ctx: typer.Context,
     out: Annotated[
         Path | None,
-        typer.Option(help="Output root (YCB-Video layout); default data/synth-seedS[-vV]."),
+        typer.Option(
+            help="Output root (YCB-Video layout); default data/synth-seedS[-vV].",
+            file_okay=False,
+        ),
     ] = None,
     train_frames: Annotated[int, typer.Option(help="Training frames.")] = 800,
     test_frames: Annotated[int, typer.Option(help="Test frames, listed in keyframe.txt.")] = 150,

@@ -13,7 +13,10 @@ from cloudpose.cli.app import ProgressOpt, app, recorded_command
 @app.command()
 def showcase(
     out: Annotated[
-        Path, typer.Option(help="Folder for the synthetic frames, caches and the overlay.")
+        Path,
+        typer.Option(
+            help="Folder for the synthetic frames, caches and the overlay.", file_okay=False
+        ),
     ] = Path("runs/showcase"),
     synthetic_frames: Annotated[
         int, typer.Option(help="Synthetic test frames of the network's preset (0: none).")
@@ -40,7 +43,8 @@ def ship(
     run: Annotated[str, typer.Option(help="Finished run: name (variant/preset/seedS) or id.")],
     name: Annotated[str, typer.Option(help="Shipped name it replaces.")] = "pretrained",
     out: Annotated[
-        Path | None, typer.Option(help="Folder to write (default: the package's resources).")
+        Path | None,
+        typer.Option(help="Folder to write (default: the package's resources).", file_okay=False),
     ] = None,
     half: Annotated[
         bool,

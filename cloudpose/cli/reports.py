@@ -98,7 +98,7 @@ def real_report(
         int, typer.Option(help="Network seeds 1..S expected (more found are shown too).")
     ] = 3,
     out: Annotated[
-        Path | None, typer.Option(help="Output folder (default reports/PRESET).")
+        Path | None, typer.Option(help="Output folder (default reports/PRESET).", file_okay=False)
     ] = None,
 ) -> None:
     """The 61 real development frames per video and pooled: the network (shared-0) and both

@@ -20,6 +20,7 @@ from cloudpose.cli.app import (
     app,
     check_icp_options,
     config_of,
+    icp_overrides,
     recorded_command,
 )
 from cloudpose.registry import DEFAULT_PRESET
@@ -160,13 +161,7 @@ def evaluate(
         check_results_destination(bop_csv, force)
     from cloudpose.evaluate import evaluate_real
 
-    check_icp_options(icp_starts, icp_select, icp_radius)
-    pairs = (("fallback", icp_fallback), ("starts", icp_starts), ("select", icp_select))
-    overrides = {k: v for k, v in pairs if v is not None}
-    if icp_radius is not None:
-        from cloudpose.refine import schedule_for
-
-        overrides |= schedule_for(icp_radius)
+    overrides = icp_overrides(icp_fallback, icp_starts, icp_select, icp_radius)
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
     kwargs = dict(
@@ -260,14 +255,39 @@ def predict(
     ] = None,
     depth_factor: Annotated[float, typer.Option(help="Depth units per metre.")] = 10000.0,
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Refine with ICP.")] = True,
+    icp_starts: Annotated[
+        int | None,
+        typer.Option(
+            help="ICP from the estimate turned by each element of a rotation group (12, 24 or "
+            "60 starts); default the checkpoint's own (1, the paper's).",
+        ),
+    ] = None,
+    icp_select: Annotated[
+        str | None,
+        typer.Option(
+            help="How the starts are scored: fitness (ICP's) or depth (agreement with this "
+            "frame's depth); default the checkpoint's own.",
+        ),
+    ] = None,
+    icp_radius: Annotated[
+        float | None,
+        typer.Option(
+            help="ICP's first correspondence distance, metres; default the checkpoint's own "
+            "(0.01, the paper's). --icp-starts 24 --icp-select depth --icp-radius 0.18 is the "
+            "refinement docs/ensemble.md measures best.",
+        ),
+    ] = None,
     overlay: Annotated[Path, typer.Option(help="Where to write the overlay PNG.")] = Path(
         "prediction.png"
     ),
     device: DeviceOpt = "auto",
 ) -> None:
-    """Estimate each labelled object's pose in one frame; print poses, write an overlay picture."""
+    """Estimate each labelled object's pose in one frame; print poses (with how each agrees
+    with the depth: ICP fitness, coverage of the segment, share of the model in front of the
+    observed surface), write an overlay picture."""
     from cloudpose.predict import predict as predict_fn
 
+    overrides = icp_overrides(None, icp_starts, icp_select, icp_radius)
     result = predict_fn(
         depth,
         label,
@@ -277,6 +297,7 @@ def predict(
         intrinsics=intrinsics,
         depth_factor=depth_factor,
         icp=icp,
+        icp_overrides=overrides,
         overlay=overlay,
         device=device,
     )
@@ -504,7 +525,8 @@ def compare(
         Path | None,
         typer.Option(
             help="The comparison's folder (default runs/compare/DATA-IDENTITY/KEY, KEY of the "
-            "networks and seed)."
+            "networks and seed).",
+            file_okay=False,
         ),
     ] = None,
     device: DeviceOpt = "auto",

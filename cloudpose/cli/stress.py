@@ -234,11 +234,10 @@ def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):
 
     paths = list(checkpoints)
     if runs:
-        from cloudpose.store import tracking
         from cloudpose.store.pretrained import is_pretrained, shipped
-        from cloudpose.store.runs import resolve_run
+        from cloudpose.store.runs import client_for, resolve_run
 
-        client = tracking.setup(project)
+        client = client_for(runs, project)
         paths += [shipped(r).path if is_pretrained(r) else resolve_run(client, r)[1] for r in runs]
     out: list[Method] = []
     for path in paths:

@@ -573,6 +573,17 @@ def read_checkpoint(
     return state
 
 
+def client_for(names: list[str], project_dir: Path | None = None):
+    """The MLflow client that :func:`local_checkpoint` needs to resolve ``names``, on the store
+    of ``project_dir`` (:func:`cloudpose.store.tracking.setup`); None when every name is a
+    shipped network, so that no store is opened, nor created in the working folder."""
+    from cloudpose.store.pretrained import is_pretrained
+
+    if all(is_pretrained(n) for n in names):
+        return None
+    return tracking.setup(project_dir)
+
+
 @contextlib.contextmanager
 def local_checkpoint(client, run: str) -> Iterator[tuple[str, Path]]:
     """:func:`resolve_run` whose downloaded checkpoint (a run whose folder is not on this

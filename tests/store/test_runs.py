@@ -184,3 +184,15 @@ def test_a_run_folder_of_another_store_is_named_not_resumed(tmp_path, monkeypatc
     message = str(err.value)
     assert str(folder / "run.json") in message and "0" * 32 in message
     assert "MLFLOW_TRACKING_URI" in message and "remove the folder" in message
+
+
+def test_resolving_only_the_shipped_network_opens_no_store(tmp_path, monkeypatch):
+    """A command given only the shipped network creates no mlflow.db; one that also names a
+    run opens the project's store."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    assert runs.client_for(["pretrained", "pretrained"], tmp_path) is None
+    assert list(tmp_path.iterdir()) == []
+    with runs.local_checkpoint(None, "pretrained") as (run_id, path):
+        assert run_id is None and path.is_file()
+    assert runs.client_for(["pretrained", "shared-0/cpu/seed1"], tmp_path) is not None
+    assert (tmp_path / tracking.STORE_DB).is_file()
