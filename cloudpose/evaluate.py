@@ -323,7 +323,7 @@ def check_member(cfg, other, run: str, option: str = "--ensemble") -> None:
         fields.append("loss.symmetry_table")
     if fields:
         raise ValueError(
-            f"{option} {run}: its network differs from the evaluated run's in "
+            f"{option} {run}: its network differs from the first network's in "
             f"{', '.join(fields)}; an ensemble joins networks of the same preset (other seeds "
             "or variants)"
         )
@@ -351,11 +351,11 @@ def check_ensemble(names: list[str], loaded: list[tuple], option: str) -> list[s
             named again, by another name, or as the network the package ships from it.
     """
     ids = [network_identity(n, rid) for n, (rid, *_) in zip(names, loaded, strict=True)]
-    runs = [i.split(":")[0] for i in ids]
+    run_ids = [i.split(":")[0] for i in ids]
     for k in range(1, len(names)):
         check_member(loaded[0][2], loaded[k][2], names[k], option)
-        if runs[k] in runs[:k]:
-            raise ValueError(f"{option} {names[k]}: run {runs[k]} is in the ensemble already")
+        if run_ids[k] in run_ids[:k]:
+            raise ValueError(f"{option} {names[k]}: run {run_ids[k]} is in the ensemble already")
     return ids
 
 

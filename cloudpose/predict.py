@@ -34,7 +34,7 @@ class ObjectPose:
     points: int  # segment points after filtering
     fitness: float  # ICP fitness (NaN without ICP)
     coverage: float  # share of segment points within 1 cm of the posed model
-    violation: float  # share of posed model points > 1 cm in front of the observed depth
+    violation: float  # of posed model points on a depth reading, share > 1 cm in front of it
 
     def describe(self) -> str:
         """One line: class, translation in metres, rotation as axis-angle in degrees, and how
@@ -77,10 +77,8 @@ def load_model_for(checkpoint: str, device: str = "auto"):
     path = Path(checkpoint)
     if path.is_file():
         return load_checkpoint(path, device)
-    with local_checkpoint(client_for([checkpoint]), checkpoint) as (
-        _,
-        ckpt,
-    ):  # a download is removed
+    client = client_for([checkpoint])  # None for the shipped network: no store is opened
+    with local_checkpoint(client, checkpoint) as (_, ckpt):  # a download is removed
         return load_checkpoint(ckpt, device)
 
 

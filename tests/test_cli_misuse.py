@@ -336,6 +336,19 @@ def test_an_output_folder_that_is_a_file_is_refused_before_any_work(command, tmp
     assert out.read_text() == "keep me\n" and sorted(tmp_path.iterdir()) == [out]
 
 
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["evaluate", "--run", "pretrained"],
+        ["predict", "--depth", "d.png", "--label", "l.png", "--checkpoint", "pretrained"],
+    ],
+)
+def test_icp_options_beside_no_icp_are_refused(command):
+    """An ICP setting that --no-icp would ignore is an error naming both, before any work."""
+    res = cli(*command, "--no-icp", "--icp-starts", "24", "--icp-radius", "0.18")
+    one_line_error(res, "--icp-starts --icp-radius with --no-icp")
+
+
 def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
     import cloudpose.suite.ablate
 

@@ -233,7 +233,7 @@ def test_an_ensemble_keeps_one_members_refinement_per_object(tmp_path, smoke_dat
     assert tags[f"eval/{ens.name}/ensemble"] == f"{a.run_id},{b.run_id}"
     with pytest.raises(ValueError, match="in the ensemble already"):
         evaluate_real(a.run_id, ensemble=[a.run_id], log=False, **kw)
-    with pytest.raises(ValueError, match=r"differs from the evaluated run's in data\."):
+    with pytest.raises(ValueError, match=r"differs from the first network's in data\."):
         evaluate_real(a.run_id, ensemble=["pretrained"], log=False, **kw)
     with pytest.raises(ValueError, match="drop --no-icp"):
         evaluate_real(a.run_id, ensemble=[b.run_id], icp=False, log=False, **kw)

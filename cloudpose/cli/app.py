@@ -245,13 +245,18 @@ def icp_overrides(
     starts: int | None = None,
     select: str | None = None,
     radius: float | None = None,
+    icp: bool = True,
 ) -> dict:
     """The fields of :class:`cloudpose.refine.ICPSettings` that ``--icp-fallback``,
     ``--icp-starts``, ``--icp-select`` and ``--icp-radius`` change (None: not given), after
-    :func:`check_icp_options`."""
+    :func:`check_icp_options`; ``ValueError`` for any of them beside ``--no-icp`` (``icp``
+    False), which would ignore it."""
     check_icp_options(starts, select, radius)
     pairs = (("fallback", fallback), ("starts", starts), ("select", select))
     overrides = {k: v for k, v in pairs if v is not None}
+    if not icp and (overrides or radius is not None):
+        given = [f"--icp-{k}" for k, v in (*pairs, ("radius", radius)) if v is not None]
+        raise ValueError(f"{' '.join(given)} with --no-icp: no ICP to set; drop one or the other")
     if radius is not None:
         from cloudpose.refine import schedule_for
 

@@ -161,7 +161,7 @@ def evaluate(
         check_results_destination(bop_csv, force)
     from cloudpose.evaluate import evaluate_real
 
-    overrides = icp_overrides(icp_fallback, icp_starts, icp_select, icp_radius)
+    overrides = icp_overrides(icp_fallback, icp_starts, icp_select, icp_radius, icp)
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
     kwargs = dict(
@@ -287,7 +287,7 @@ def predict(
     observed surface), write an overlay picture."""
     from cloudpose.predict import predict as predict_fn
 
-    overrides = icp_overrides(None, icp_starts, icp_select, icp_radius)
+    overrides = icp_overrides(None, icp_starts, icp_select, icp_radius, icp)
     result = predict_fn(
         depth,
         label,
