@@ -101,6 +101,7 @@ class Contender:
         ok: per segment, whether the method gave a pose (read from a table: whether it is
             not a miss).
         ms_per_object: the method's milliseconds per object.
+        parts: a combination's methods (:func:`combination`); empty for one method.
     """
 
     name: str
@@ -108,6 +109,7 @@ class Contender:
     estimates: list
     ok: np.ndarray
     ms_per_object: float
+    parts: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -265,6 +267,57 @@ def _control(segs) -> Contender:
     return Contender(CONTROL, METHODS[CONTROL], [no_estimate(segs)], ok, 0.0)
 
 
+COMBINED = "+"
+"""Joins the methods of a combination (``--combine network+fpfh``)."""
+
+
+def combination(text: str, names: list[str]) -> tuple[str, ...]:
+    """The methods of ``--combine`` ``text`` (``network+fpfh``), in the order of ``names`` (the
+    network and the methods of the call); ``ValueError`` naming the option unless it names two
+    or more of them, each once."""
+    parts = text.split(COMBINED)
+    if len(parts) < 2 or len(set(parts)) < len(parts) or not set(parts) <= set(names):
+        raise ValueError(
+            f"--combine {text!r}: expected two or more of {', '.join(names)} joined by "
+            f"{COMBINED!r}, each once (a classical method also given by --method)"
+        )
+    return tuple(n for n in names if n in parts)
+
+
+def _combined(parts: tuple[str, ...], members: list[Contender]) -> Contender:
+    """The combination of ``members`` (the contenders of ``parts``): every estimate of each, a
+    member's miss filled with another member's estimate of that segment (a miss only where
+    every member misses); its time, theirs together."""
+    from cloudpose.infer import Estimates
+
+    ok = np.logical_or.reduce([c.ok for c in members])
+    estimates = []
+    for c in members:
+        for e in c.estimates:
+            R, t, left = e.R.copy(), e.t.copy(), ~c.ok
+            for other in members:
+                fill = left & other.ok
+                R[fill], t[fill] = other.estimates[0].R[fill], other.estimates[0].t[fill]
+                left &= ~fill
+            estimates.append(Estimates(R, t))
+    ms = sum(c.ms_per_object for c in members)
+    return Contender(COMBINED.join(parts), _combined_label(members), estimates, ok, ms, parts)
+
+
+def _combined_label(members: list[Contender]) -> str:
+    return " or ".join(c.label for c in members) + ", by the depth"
+
+
+def _from_tables(
+    out_dir: Path, name: str, label: str, refs, timing: dict, parts: tuple[str, ...] = ()
+) -> Contender:
+    """A method whose every table is in ``out_dir``: no estimates, its misses (and empty
+    segments) read from its first table, its time from ``timing``."""
+    miss = pd.read_csv(out_dir / "tables" / f"{name}-{refs[0].name}.csv", usecols=["miss"])
+    ok = ~miss["miss"].to_numpy(dtype=bool)
+    return Contender(name, label, [], ok, timing[f"{name}-estimate"], parts)
+
+
 def _refine(
     contender: Contender,
     segs,
@@ -277,7 +330,9 @@ def _refine(
     """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``
     against ``models`` (``dataset.models()``): ``net_*`` its estimate (an ensemble: the network
     whose refinement was kept), ``icp_*`` the refined pose, ``*_trans_along`` /
-    ``*_trans_across`` (:func:`ray_split`)."""
+    ``*_trans_across`` (:func:`ray_split`). A combination (``contender.parts``) keeps, per
+    object, the refinement that agrees best with the depth (``select = "depth"``, for the
+    starts too)."""
     import warnings
 
     from cloudpose.evaluate import instance_table
@@ -287,6 +342,8 @@ def _refine(
     segs = segs.subset(np.arange(len(segs)))
     segs.valid = np.asarray(segs.valid, dtype=bool) & contender.ok
     settings = refinement.settings
+    if contender.parts:
+        settings = dataclasses.replace(settings, select="depth")
     t0 = time.perf_counter()
     views = segment_views(dataset, segs) if settings.select == "depth" else None
     with warnings.catch_warnings():
@@ -309,11 +366,17 @@ ICP_SECONDS = 1.2e-4
 schedule, 10 iterations from one start, ~1 ms an object)."""
 
 
-def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]], networks: int = 1) -> str:
+def plan(
+    segs,
+    paths: dict[str, Path],
+    todo: dict[str, list[Refinement]],
+    estimates: dict[str, int] | None = None,
+) -> str:
     """What a call will compute and about how long it takes, before it starts: the estimates
     left of each classical method whose refinements are to compute (``paths``, by
     :data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the refinements ``todo`` per method
-    (:data:`ICP_SECONDS`; the network's once for each of its ``networks``)."""
+    (:data:`ICP_SECONDS`, once for each of the method's ``estimates``: an ensemble's networks,
+    a combination's methods; default one)."""
     from cloudpose.baselines.run import EstimateProgress
     from cloudpose.stress import SECONDS_PER_INSTANCE
 
@@ -325,12 +388,9 @@ def plan(segs, paths: dict[str, Path], todo: dict[str, list[Refinement]], networ
         seconds += left * SECONDS_PER_INSTANCE[method]
         parts.append(f"{method} estimates: {'kept' if left == 0 else f'{left} of {n} to compute'}")
     refs = [(m, r) for m, rs in todo.items() for r in rs]
+    each = estimates or {}
     seconds += sum(
-        n
-        * ICP_SECONDS
-        * r.settings.starts
-        * r.settings.iterations
-        * (networks if m == NETWORK else 1)
+        n * ICP_SECONDS * r.settings.starts * r.settings.iterations * each.get(m, 1)
         for m, r in refs
     )
     parts.append(f"{len(refs)} refinement(s) to compute")
@@ -369,6 +429,7 @@ def run_compare(
     frames: str | None = None,
     runs: list[str] | None = None,
     methods: list[str] | None = None,
+    combine: list[str] | None = None,
     seed: int = 1,
     starts: int = RECIPE["starts"],
     select: str = RECIPE["select"],
@@ -391,6 +452,10 @@ def run_compare(
             ensemble (:func:`cloudpose.infer.refine_ensemble`). Default: the shipped network.
         methods: methods beside it (:data:`METHODS`; default FPFH + RANSAC, point-pair
             features and the control of no estimate, :data:`CONTROL`).
+        combine: combinations of the network and ``methods``, each ``A+B[+C]``
+            (:func:`combination`): every estimate of each refined alike, per object the
+            refinement kept that agrees best with the depth (:func:`_refine`), a method beside
+            the others.
         seed: the baselines' random seed (RANSAC's draws).
         starts, select, radius: the refinement beside the paper's (:func:`refinements`).
         project_dir: where the segment caches and the MLflow store of ``runs`` are.
@@ -413,6 +478,10 @@ def run_compare(
             raise ValueError(f"--method {m!r}: expected one of {', '.join(METHODS)}")
     if len(set(runs)) < len(runs) or len(set(methods)) < len(methods):
         raise ValueError("--run / --method: each at most once")
+    names = [NETWORK, *methods]
+    combos = [combination(c, names) for c in combine or ()]
+    if len(set(combos)) < len(combos):
+        raise ValueError("--combine: each combination at most once")
     project_dir = Path(project_dir or Path.cwd()).resolve()
     refs = refinements(starts, select, radius, len(runs))
     root = Path(data) if data is not None else real_dev_root()
@@ -439,31 +508,43 @@ def run_compare(
         {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed,
          "settings": fps},
     )  # fmt: skip
-    names = [NETWORK, *methods]
     timing_path = out_dir / "tables" / "icp_ms.json"
     timing = _timings(timing_path)
-    todo = {m: [r for r in refs if not _have(out_dir, m, r, timing)] for m in names}
+    combined = [COMBINED.join(parts) for parts in combos]
+    todo = {m: [r for r in refs if not _have(out_dir, m, r, timing)] for m in names + combined}
+    needed = {m for parts, c in zip(combos, combined, strict=True) if todo[c] for m in parts}
     paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
-             for m in methods if m != CONTROL and todo[m]}  # fmt: skip
-    print(plan(segs, paths, todo, len(loaded)), flush=True)
+             for m in methods if m != CONTROL and (todo[m] or m in needed)}  # fmt: skip
+    counts = {NETWORK: len(loaded)}
+    counts |= {
+        c: sum(counts.get(m, 1) for m in parts) for parts, c in zip(combos, combined, strict=True)
+    }
+    print(plan(segs, paths, todo, counts), flush=True)
     models = dataset.models()
     if any(todo.values()):
         _warm_up(segs, models, refs)
     contenders: list[Contender] = []
-    tables: dict[tuple[str, str], pd.DataFrame] = {}
     for m in names:
-        if not todo[m]:  # every table is there: the estimates are not needed
+        if not todo[m] and m not in needed:  # every table is there: no estimate is needed
             label = _network_label(len(loaded)) if m == NETWORK else METHODS[m]
-            miss = pd.read_csv(out_dir / "tables" / f"{m}-{refs[0].name}.csv", usecols=["miss"])
-            ok = ~miss["miss"].to_numpy(dtype=bool)  # the method's misses and empty segments
-            c = Contender(m, label, [], ok, timing[f"{m}-estimate"])
+            contenders.append(_from_tables(out_dir, m, label, refs, timing))
         elif m == NETWORK:
-            c = _network(segs, loaded, out_dir / "estimates" / "network.npz")
+            contenders.append(_network(segs, loaded, out_dir / "estimates" / "network.npz"))
         elif m == CONTROL:
-            c = _control(segs)
+            contenders.append(_control(segs))
         else:
-            c = _baseline(m, segs, models, seed, paths[m], progress)
-        contenders.append(c)
+            contenders.append(_baseline(m, segs, models, seed, paths[m], progress))
+    by_name = {c.name: c for c in contenders}
+    for parts, m in zip(combos, combined, strict=True):
+        members = [by_name[p] for p in parts]
+        if not todo[m]:
+            label = _combined_label(members)
+            contenders.append(_from_tables(out_dir, m, label, refs, timing, parts))
+        else:
+            contenders.append(_combined(parts, members))
+    tables: dict[tuple[str, str], pd.DataFrame] = {}
+    for c in contenders:
+        m = c.name
         for ref in refs:
             path = out_dir / "tables" / f"{m}-{ref.name}.csv"
             if ref not in todo[m]:

@@ -60,7 +60,7 @@ def test_the_plan_counts_each_network_of_an_ensemble():
     todo = {NETWORK: [wide], CONTROL: [wide]}
     one_ref = 1000 * ICP_SECONDS * wide.settings.starts * wide.settings.iterations
     for networks in (1, 4):
-        minutes = re.search(r"about (\d+) min", plan(Segs(), {}, todo, networks))
+        minutes = re.search(r"about (\d+) min", plan(Segs(), {}, todo, {NETWORK: networks}))
         assert minutes and int(minutes[1]) == round((networks + 1) * one_ref / 60)
 
 
@@ -93,7 +93,7 @@ def test_report_holds_every_method_and_stage(compared):
     assert rows[0].startswith("| network |") and len(rows) >= 3
     for label in ("FPFH + RANSAC + ICP (paper)", "FPFH + RANSAC + ICP (1 start, by fitness, 5 cm)"):
         assert f"| {label} |" in text
-    assert "## The network against each method, paired" in text
+    assert "## Paired: the network against each method" in text
     summary = pd.read_csv(out / "compare.csv")
     assert len(summary) == 9  # 3 methods x (estimate + 2 refinements)
     assert "| no estimate + ICP (paper) |" in text
@@ -334,3 +334,63 @@ def test_the_commands_defaults_are_the_recipe():
     command = typer.main.get_command(app).commands["compare"]
     defaults = {p.name: p.default for p in command.params}
     assert {k: defaults[f"icp_{k}"] for k in RECIPE} == RECIPE
+
+
+def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared, tmp_path,
+                                                                        monkeypatch):  # fmt: skip
+    """``--combine network+fpfh`` in a folder that holds both methods' tables: their estimates
+    are read back (FPFH's from the project's cache, none computed), each object keeps one of
+    the two methods' own refinements, and the report sets the combination against the method
+    not in it."""
+    import shutil
+
+    import cloudpose.baselines.run as baselines_run
+
+    proj, out, _ = compared
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    monkeypatch.setattr(baselines_run, "estimate_all", lambda *a, **k: pytest.fail("estimated"))
+    monkeypatch.chdir(proj)
+    args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", "--method", "none"]
+    res = cli("compare", *args, "--combine", "fpfh+network", *QUICK, "--out", str(copy),
+              "--no-progress")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "fpfh estimates: kept; 2 refinement(s) to compute" in res.output.splitlines()[0]
+    for ref in ("icp", "icp-radius50mm"):
+        both = _table(copy, f"network+fpfh-{ref}")
+        own = [_table(copy, f"{m}-{ref}")["icp_ads"].to_numpy() for m in ("network", "fpfh")]
+        for i, ads in enumerate(both["icp_ads"]):
+            assert min(abs(ads - o[i]) for o in own) < 1e-9, (ref, i)
+    text = (copy / "compare.md").read_text()
+    label = "network or FPFH + RANSAC, by the depth"
+    assert f"| {label} + ICP (paper) |" in text and f"| {label} | no estimate | estimates |" in text
+    diffs = pd.read_csv(copy / "compare_paired.csv")
+    assert (
+        len(diffs) == 3 * 3 * 3
+    )  # (network - fpfh, network - none, both - none) x stages x metrics
+    assert set(zip(diffs["method"], diffs["against"], strict=True)) == {
+        ("network", "fpfh"),
+        ("network", "none"),
+        ("network+fpfh", "none"),
+    }
+
+
+def test_combinations_fill_a_members_miss_and_refuse_what_the_call_lacks():
+    from cloudpose.compare import Contender, _combined, combination
+    from cloudpose.infer import Estimates
+
+    names = ["network", "fpfh", "none"]
+    assert combination("none+network", names) == ("network", "none")
+    for bad in ("network", "network+network", "network+ppf", "network+"):
+        with pytest.raises(ValueError, match=r"^--combine"):
+            combination(bad, names)
+    n = 3
+    a = Estimates(np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)))
+    b = Estimates(-np.tile(np.eye(3), (n, 1, 1)), np.ones((n, 3)))
+    first = Contender("fpfh", "F", [a], np.array([True, False, False]), 2.0)
+    second = Contender("ppf", "P", [b], np.array([False, True, False]), 3.0)
+    both = _combined(("fpfh", "ppf"), [first, second])
+    assert both.ok.tolist() == [True, True, False] and both.ms_per_object == 5.0
+    assert both.label == "F or P, by the depth" and both.parts == ("fpfh", "ppf")
+    np.testing.assert_array_equal(both.estimates[0].t[1], b.t[1])  # fpfh's miss: ppf's estimate
+    np.testing.assert_array_equal(both.estimates[1].t[0], a.t[0])  # ppf's miss: fpfh's estimate

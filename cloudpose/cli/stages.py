@@ -511,6 +511,14 @@ def compare(
             "mean, refined alike; what the refinement finds alone). Default: all three."
         ),
     ] = None,
+    combine: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Also a combination, e.g. network+fpfh (repeatable): each estimate of its "
+            "methods refined alike, per object the refinement that agrees best with the depth "
+            "kept; a method beside the others."
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option(help="The classical methods' random seed.")] = 1,
     icp_starts: Annotated[
         int, typer.Option(help="Starts of the refinement beside the paper's (1, 12, 24, 60).")
@@ -546,6 +554,7 @@ def compare(
         frames=frames,
         runs=run,
         methods=method,
+        combine=combine,
         seed=seed,
         starts=icp_starts,
         select=icp_select,

@@ -4,8 +4,9 @@ from the comparison's instance tables only.
 
 Sections: every method and stage pooled (ADS AUC, AD AUC, rotation < 10 deg modulo symmetry,
 translation < 1 cm, median translation and its parts along and across the viewing ray,
-milliseconds per object); the network minus each method at each stage, paired over object
-poses with a 95% bootstrap interval (:func:`cloudpose.report.real.versus_baseline`); ADS AUC per
+milliseconds per object); the network minus each method at each stage (and each combination
+minus each method not in it), paired over object poses with a 95% bootstrap interval
+(:func:`cloudpose.report.real.versus_baseline`); ADS AUC per
 video; rotation < 10 deg per object pose. The figure: ADS AUC and rotation < 10 deg per object
 pose, each method after each refinement.
 """
@@ -108,22 +109,30 @@ def pooled_markdown(pooled: pd.DataFrame) -> list[str]:
     return lines
 
 
+def pairs(contenders) -> list[tuple[str, str]]:
+    """``(method, against)`` of every paired difference: the network against each other single
+    method, then each combination against each single method not in it."""
+    singles = [c.name for c in contenders if not c.parts]
+    out = [(NETWORK, other) for other in singles if other != NETWORK]
+    for c in contenders:
+        out += [(c.name, other) for other in singles if c.parts and other not in c.parts]
+    return out
+
+
 def paired(tables: dict, contenders, refs) -> pd.DataFrame:
-    """The network minus each other method at each stage, per metric of
-    :data:`METRICS`: ``against``, ``stage``, ``metric``, ``diff``, ``low``,
+    """Each method of :func:`pairs` minus the other at each stage, per metric of
+    :data:`METRICS`: ``method``, ``against``, ``stage``, ``metric``, ``diff``, ``low``,
     ``high``, ``poses``, ``instances`` (fractions)."""
     from cloudpose.report.real import versus_baseline
 
     out = []
-    for other in contenders:
-        if other.name == NETWORK:
-            continue
+    for method, against in pairs(contenders):
         for stage, ref, prefix in _stages(refs):
             for metric in METRICS:
-                d = versus_baseline(
-                    [tables[(NETWORK, ref)]], tables[(other.name, ref)], metric, prefix
+                d = versus_baseline([tables[(method, ref)]], tables[(against, ref)], metric, prefix)
+                out.append(
+                    {"method": method, "against": against, "stage": stage, "metric": metric, **d}
                 )
-                out.append({"against": other.name, "stage": stage, "metric": metric, **d})
     return pd.DataFrame(out)
 
 
@@ -131,14 +140,15 @@ def _paired_markdown(diffs: pd.DataFrame, contenders, refs) -> list[str]:
     labels = {c.name: c.label for c in contenders}
     stage_label = {STAGE_ESTIMATE: "estimates", **{r.name: r.label.lstrip("+ ") for r in refs}}
     head = " | ".join(METRICS.values())
-    lines = [f"| against | stage | {head} |", "|---|---|" + "---:|" * len(METRICS)]
-    for (against, stage), g in diffs.groupby(["against", "stage"], sort=False):
+    lines = [f"| method | against | stage | {head} |", "|---|---|---|" + "---:|" * len(METRICS)]
+    for (method, against, stage), g in diffs.groupby(["method", "against", "stage"], sort=False):
         cells = []
         for metric in METRICS:
             r = g[g["metric"] == metric].iloc[0]
             word = " ahead" if r["low"] > 0 else " behind" if r["high"] < 0 else ""
             cells.append(f"{_signed(r['diff'])} [{_signed(r['low'])}, {_signed(r['high'])}]{word}")
-        lines.append(f"| {labels[against]} | {stage_label[stage]} | {' | '.join(cells)} |")
+        row = f"{labels[method]} | {labels[against]} | {stage_label[stage]}"
+        lines.append(f"| {row} | {' | '.join(cells)} |")
     return lines
 
 
@@ -245,6 +255,7 @@ def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
     out_dir, tables = comparison.out_dir, comparison.tables
     contenders, refs = comparison.contenders, comparison.refinements
     icp_ms, described, source = comparison.timing, comparison.described, comparison.source
+    combined = [c for c in contenders if c.parts]
 
     keys = [(t["frame_id"].astype(str).tolist(), t["instance"].tolist()) for t in tables.values()]
     if any(k != keys[0] for k in keys):  # the per-video and per-pose tables read rows by position
@@ -282,18 +293,28 @@ def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
             "refinements)."
             if contenders[0].label != NETWORK
             else ""
+        )
+        + (
+            " A combination (`--combine`) refines every estimate of each of its methods by "
+            "each ICP and keeps, per object, the refinement that agrees best with the depth "
+            "(`cloudpose.refine.depth_score`: fitness and coverage of the segment against "
+            "free-space violations; for the paper's ICP too); its estimate rows are the "
+            "estimate whose refinement the paper's ICP kept, its ms the methods' together."
+            if combined
+            else ""
         ),
         "",
         "## Pooled",
         "",
         *pooled_markdown(pooled),
         "",
-        "## The network against each method, paired",
+        "## Paired: the network against each method"
+        + (", each combination against each method not in it" if combined else ""),
         "",
-        "Network minus the method on the same instances at the same stage, points, with a 95% "
-        "interval from a bootstrap over object poses (an object stands still in a video while "
-        "the camera moves: its instances are one pose seen many times). *ahead* / *behind*: "
-        "the interval excludes 0.",
+        "The method minus the one it is set against, on the same instances at the same stage, "
+        "points, with a 95% interval from a bootstrap over object poses (an object stands "
+        "still in a video while the camera moves: its instances are one pose seen many "
+        "times). *ahead* / *behind*: the interval excludes 0.",
         "",
         *_paired_markdown(diffs, contenders, refs),
         "",
