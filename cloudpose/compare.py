@@ -500,7 +500,7 @@ def run_compare(
         name = data_evaluation_name(root, frames, segs.data_key)
         out_dir = project_dir / "runs" / "compare" / name / key
     out_dir = Path(out_dir)
-    where = "the packaged real development frames" if data is None else str(root.resolve())
+    where = "the packaged real development frames" if data is None else str(root)
     described = f"{len(segs)} instances of {describe_split(dataset, frames)}, {where}"
     fps = {m: settings_fingerprint(load_settings(m)) for m in methods if m in BASELINES}
     _manifest(
