@@ -279,7 +279,7 @@ def combination(text: str, names: list[str]) -> tuple[str, ...]:
     if len(parts) < 2 or len(set(parts)) < len(parts) or not set(parts) <= set(names):
         raise ValueError(
             f"--combine {text!r}: expected two or more of {', '.join(names)} joined by "
-            f"{COMBINED!r}, each once (a classical method also given by --method)"
+            f"{COMBINED!r}, each once (a method also given by --method)"
         )
     return tuple(n for n in names if n in parts)
 
@@ -330,9 +330,9 @@ def _refine(
     """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``
     against ``models`` (``dataset.models()``): ``net_*`` its estimate (an ensemble: the network
     whose refinement was kept), ``icp_*`` the refined pose, ``*_trans_along`` /
-    ``*_trans_across`` (:func:`ray_split`). A combination (``contender.parts``) keeps, per
-    object, the refinement that agrees best with the depth (``select = "depth"``, for the
-    starts too)."""
+    ``*_trans_across`` (:func:`ray_split`). A combination (``contender.parts``) refines each
+    estimate as its methods do and keeps, per object, the refinement that agrees best with the
+    depth (:func:`cloudpose.refine.depth_score`)."""
     import warnings
 
     from cloudpose.evaluate import instance_table
@@ -342,13 +342,14 @@ def _refine(
     segs = segs.subset(np.arange(len(segs)))
     segs.valid = np.asarray(segs.valid, dtype=bool) & contender.ok
     settings = refinement.settings
-    if contender.parts:
-        settings = dataclasses.replace(settings, select="depth")
+    choose = "depth" if contender.parts else None
     t0 = time.perf_counter()
-    views = segment_views(dataset, segs) if settings.select == "depth" else None
+    views = segment_views(dataset, segs) if "depth" in (settings.select, choose) else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Open3D on a degenerate segment; its pose is still scored
-        icp, _, pick = refine_ensemble(segs, contender.estimates, models, settings, views, progress)
+        icp, _, pick = refine_ensemble(
+            segs, contender.estimates, models, settings, views, progress, choose
+        )
     ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
     est = {"net": Estimates.kept(contender.estimates, pick), "icp": icp}
     table = instance_table(segs, est, models, dataset.classes, symmetry_table)

@@ -233,10 +233,12 @@ def refine_ensemble(
     settings: ICPSettings,
     views=None,
     progress: bool = False,
+    choose: str | None = None,
 ) -> tuple[Estimates, ICPStats, np.ndarray]:
     """Several networks' estimates of the same rows as one: each refined by ICP
     (:func:`refine_poses` with ``settings``), per row the refinement with the best score of
-    ``settings.select`` kept (:func:`select_refinements`; one network: its own, unscored).
+    ``choose`` kept (default ``settings.select``, the score of the starts too;
+    :func:`select_refinements`; one network: its own, unscored).
 
     Returns:
         The kept refinements, their ICP figures, and (M,) the index of the network each row
@@ -248,7 +250,7 @@ def refine_ensemble(
     if len(refined) == 1:
         return *refined[0], np.zeros(len(segs), dtype=np.int64)
     poses, stats = [r for r, _ in refined], [st for _, st in refined]
-    pick = select_refinements(segs, poses, stats, models_by_class, settings.select, views)
+    pick = select_refinements(segs, poses, stats, models_by_class, choose or settings.select, views)
     kept_stats = ICPStats(*(_per_row(list(field), pick) for field in zip(*stats, strict=True)))
     return Estimates.kept(poses, pick), kept_stats, pick
 

@@ -356,7 +356,12 @@ def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared,
               "--no-progress")  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "fpfh estimates: kept; 2 refinement(s) to compute" in res.output.splitlines()[0]
-    for ref in ("icp", "icp-radius50mm"):
+    # 12 starts kept by ICP's fitness: each member refined as on its own, the depth choosing
+    many = ["--icp-starts", "12", "--icp-select", "fitness", "--icp-radius", "0.05"]
+    res = cli("compare", *args, "--combine", "fpfh+network", *many, "--out", str(copy),
+              "--no-progress")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    for ref in ("icp", "icp-radius50mm", "icp-starts12-radius50mm"):
         both = _table(copy, f"network+fpfh-{ref}")
         own = [_table(copy, f"{m}-{ref}")["icp_ads"].to_numpy() for m in ("network", "fpfh")]
         for i, ads in enumerate(both["icp_ads"]):
@@ -365,6 +370,7 @@ def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared,
     label = "network or FPFH + RANSAC, by the depth"
     assert f"| {label} + ICP (paper) |" in text and f"| {label} | no estimate | estimates |" in text
     diffs = pd.read_csv(copy / "compare_paired.csv")
+    assert set(diffs["stage"]) == {"estimate", "icp", "icp-starts12-radius50mm"}
     pairs = {("network", "fpfh"), ("network", "none")}
     pairs |= {("network+fpfh", m) for m in ("network", "fpfh", "none")}
     assert set(zip(diffs["method"], diffs["against"], strict=True)) == pairs
@@ -390,3 +396,40 @@ def test_combinations_fill_a_members_miss_and_refuse_what_the_call_lacks():
     assert both.label == "F or P, by the depth" and both.parts == ("fpfh", "ppf")
     np.testing.assert_array_equal(both.estimates[0].t[1], b.t[1])  # fpfh's miss: ppf's estimate
     np.testing.assert_array_equal(both.estimates[1].t[0], a.t[0])  # ppf's miss: fpfh's estimate
+
+
+def test_a_combination_chooses_by_the_depth_and_refines_by_the_refinements_own_score(
+    compared, monkeypatch
+):
+    """The starts of each estimate are scored as the refinement says (here ICP's fitness); only
+    the choice among the combination's methods is the depth's."""
+    import cloudpose.compare as compare
+    import cloudpose.infer as infer
+    from cloudpose.data.dataset import folder_segments
+    from cloudpose.data.layout import open_dataset
+    from cloudpose.infer import load_checkpoint, no_estimate
+    from cloudpose.store.pretrained import shipped
+
+    proj, _, _ = compared
+    _, cfg = load_checkpoint(shipped().path)
+    dataset = open_dataset(REAL)
+    segs = folder_segments(dataset, "all", cfg.data, proj, progress=False)
+    ok = np.ones(len(segs), dtype=bool)
+    members = [compare.Contender(m, m, [no_estimate(segs)], ok, 0.0) for m in ("a", "b")]
+    both = compare._combined(("a", "b"), members)
+    seen = {"starts": set(), "choice": []}
+    refine, select = infer.refine_poses, infer.select_refinements
+
+    def refine_spy(segs, est, models, settings, *args, **kwargs):
+        seen["starts"].add(settings.select)
+        return refine(segs, est, models, settings, *args, **kwargs)
+
+    def select_spy(segs, poses, stats, models, how, views):
+        seen["choice"].append(how)
+        return select(segs, poses, stats, models, how, views)
+
+    monkeypatch.setattr(infer, "refine_poses", refine_spy)
+    monkeypatch.setattr(infer, "select_refinements", select_spy)
+    ref = compare.refinements(12, "fitness", 0.05)[1]
+    compare._refine(both, segs, dataset, dataset.models(), ref, cfg.loss.symmetry_table)
+    assert seen == {"starts": {"fitness"}, "choice": ["depth"]}
