@@ -48,9 +48,7 @@ def _signed(x: float) -> str:
 
 
 def _machines(machines) -> str:
-    if not machines:
-        return "on the machine that computed them"
-    return f"on {machines[0]}" if len(machines) == 1 else "on " + "; ".join(machines)
+    return "on " + "; ".join(machines) if machines else "on the machine that computed them"
 
 
 def _stages(refs) -> list[tuple[str, str, str]]:
@@ -115,9 +113,7 @@ def pairs(contenders) -> list[tuple[str, str]]:
     add to it)."""
     singles = [c.name for c in contenders if not c.parts]
     out = [(NETWORK, other) for other in singles if other != NETWORK]
-    for c in contenders:
-        out += [(c.name, other) for other in singles if c.parts]
-    return out
+    return out + [(c.name, other) for c in contenders if c.parts for other in singles]
 
 
 def paired(tables: dict, contenders, refs) -> pd.DataFrame:
