@@ -927,3 +927,26 @@ def test_claims_across_two_budgets_hold_change_or_stay_undecided():
     assert list(df["across_budgets"]) == ["holds", "changes", "undecided", "undecided"]
     assert df["verdict_at_small"].iloc[1] == stats.EQUIVALENT
     assert df["diff_pp_at_small"].iloc[0] == pytest.approx(2.0)
+
+
+def test_occlusion_only_writes_the_occlusion_plots(rendered, tmp_path):
+    from cloudpose.report import render_reports
+
+    root, _, _ = rendered
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
+        with pytest.warns(UserWarning):
+            res = render_reports(
+                PRESET,
+                ["shared"],
+                project_dir=root,
+                command=COMMAND,
+                out_dir=tmp_path,
+                only_occlusion=True,
+                log_mlflow=False,
+            )
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["occlusion.csv", "occlusion.png", "occlusion_shared.png"]
+    assert sorted(p.name for p in res.files) == names
+    first = (tmp_path / "occlusion.csv").read_text().splitlines()[0]
+    assert f"made by `{COMMAND}`" in first and "seeds 1" in first

@@ -6,6 +6,7 @@ imports them in the order ``--help`` lists them).
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Annotated
 
@@ -52,6 +53,11 @@ class _Commands(TyperGroup):
             message = " ".join(str(exc).split()) or type(exc).__name__
             typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
             raise typer.Exit(2) from None
+        except OSError as exc:  # permissions, not a folder, read-only, ...: the path and why
+            if _DEBUG:
+                raise
+            typer.secho(f"error: {file_system_message(exc)}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(2) from None
 
     def get_command(self, ctx: click.Context, cmd_name: str):
         cmd = super().get_command(ctx, cmd_name)
@@ -62,6 +68,26 @@ class _Commands(TyperGroup):
     def format_help(self, ctx: click.Context, formatter) -> None:
         _help_layout(self, ctx)
         return super().format_help(ctx, formatter)
+
+
+_FS_ADVICE = {
+    errno.EACCES: "no permission: check the folder's owner and mode, or choose another --out",
+    errno.EPERM: "not permitted (an immutable or read-only file?): choose another --out",
+    errno.EROFS: "a read-only file system: choose another --out",
+    errno.ENOTDIR: "a part of the path is a file, not a folder: choose another --out",
+    errno.EISDIR: "a folder where a file was expected",
+    errno.ENOSPC: "no space left on the device: free some or write elsewhere",
+    errno.EEXIST: "it exists already",
+}
+
+
+def file_system_message(exc: OSError) -> str:
+    """One line for a file-system error: the path(s), what the system said and what to do."""
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    where = " -> ".join(paths) or "a file this command writes"
+    said = exc.strerror or type(exc).__name__
+    advice = _FS_ADVICE.get(exc.errno or 0)
+    return f"{where}: {said}" + (f" ({advice})" if advice else "")
 
 
 def _corrupt_types() -> tuple[type[BaseException], ...]:

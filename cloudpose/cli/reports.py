@@ -86,6 +86,7 @@ def report(
         out_dir=out,
         readme=readme,
         against=against,
+        echo=typer.echo,
     )
     typer.echo(f"{len(res.files)} files from {len(res.runs.records)} runs in {res.out_dir}")
 
@@ -107,7 +108,12 @@ def real_report(
 
     _committed_if_lacking(preset)
     report, files = render_real_report(
-        preset, Path.cwd(), out_dir=out, command=recorded_command(ctx), seeds=seeds
+        preset,
+        Path.cwd(),
+        out_dir=out,
+        command=recorded_command(ctx),
+        seeds=seeds,
+        echo=typer.echo,
     )
     for line in report.missing:
         typer.echo(f"missing: {line}")
@@ -207,7 +213,7 @@ def occlusion_report(
                 err=True,
             )
             raise typer.Exit(1)
-        typer.echo(f"plan: occlusion report {preset} from {len(variants) * seeds} existing runs")
+        typer.echo(f"plan: occlusion report {preset}: {_runs_found(variants, preset)}")
     if dry_run:
         return
     res = occlusion_fn(
@@ -219,7 +225,27 @@ def occlusion_report(
         train_missing=train_missing,
         command=recorded_command(ctx),
         out_dir=out,
+        echo=typer.echo,
     )
+    if not res.files:
+        raise ValueError(
+            f"occlusion-report: no run of {', '.join(variants)} ({preset}) has an instance table "
+            "(eval/test/instances.parquet); nothing written (`cloudpose evaluate --run RUN` "
+            "writes it)"
+        )
     for p in res.files:
-        if p.stem.startswith("occlusion"):
-            typer.echo(str(p))
+        typer.echo(str(p))
+
+
+def _runs_found(variants: list[str], preset: str) -> str:
+    """The runs an occlusion plot draws from: each variant's seeds and the baselines'."""
+    from cloudpose.report.runs import load_runs
+
+    runs = load_runs(preset)
+    drawn = [*variants, *(b for b in runs.variants if b.startswith("baseline-"))]
+    parts = [
+        f"{v} seed{'s' if len(found) > 1 else ''} {', '.join(str(r.seed) for r in found)}"
+        for v in drawn
+        if (found := runs.of(v))
+    ]
+    return f"from {sum(len(runs.of(v)) for v in drawn)} existing runs ({'; '.join(parts)})"

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from cloudpose.report.claims import (
     evaluate_claims,
     update_verdicts_block,
 )
+from cloudpose.report.committed import refuse_empty, report_folder
 from cloudpose.report.formats import Provenance
 from cloudpose.report.runs import RunSet, load_runs
 from cloudpose.report.tables import (
@@ -99,6 +101,8 @@ def render_reports(
     client=None,
     readme: Path | None = None,
     against: str | None = None,
+    echo: Callable[[str], object] = print,
+    only_occlusion: bool = False,
 ) -> ReportResult:
     """Render the reports of ``group_names`` (default: every group) from MLflow runs.
 
@@ -121,6 +125,17 @@ def render_reports(
         against: another preset (e.g. the same recipe at another budget): claims.md and
             claims.csv also give its verdicts and, per claim, whether the verdict holds,
             changes or is undecided across the two (:func:`~cloudpose.report.claims.across_budgets`).
+        echo: where the one-line notes go (a redirected folder, a replaced committed report).
+        only_occlusion: write the occlusion plots only (``occlusion.*`` and the groups'
+            ``occlusion_GROUP.png``): no tables, claims, index or MLflow report run.
+
+    Raises:
+        NoRunsError: the store holds no finished, evaluated run of ``preset`` (nothing is
+            written).
+
+    The default folder is :func:`default_out_dir`, except that the committed reports of a
+    preset are rendered over only by runs that include every committed (variant, seed)
+    (:func:`~cloudpose.report.committed.report_folder`).
     """
     project_dir = (project_dir or Path.cwd()).resolve()
     if readme is not None and not readme.is_file():
@@ -130,20 +145,41 @@ def render_reports(
     for g in names:
         if g != segmentation.GROUP:
             get_group(g)  # unknown names raise with the valid list
-    out_dir = out_dir or default_out_dir(project_dir, preset)
-    out_dir.mkdir(parents=True, exist_ok=True)
     command = command or tracking.command_line()
     renderer = tracking.git_commit()
     runs = load_runs(preset, data_key=data_key, client=client)
+    refuse_empty(len(runs.records), preset, project_dir, "the report")
+    pairs = {(r.variant, r.seed) for r in runs.records}
+    out_dir = report_folder(
+        preset,
+        project_dir,
+        out_dir,
+        default_out_dir(project_dir, preset),
+        pairs,
+        echo,
+        data_key=runs.data_key,
+    )
+    out_dir.mkdir(parents=True, exist_ok=True)
     prov_all = Provenance.of(runs, command, renderer)
     written: dict[str, list[Path]] = {"overall": []}
 
     base = runs.subset(["shared-0"])
+    with_baselines = runs.subset(
+        ["shared-0", *(v for v in runs.variants if v.startswith("baseline-"))]
+    )
+    if only_occlusion:
+        files = _occlusion_overall(
+            with_baselines, out_dir, Provenance.of(with_baselines, command, renderer)
+        )
+        for g in names:
+            sub, series = _group_series(runs, g)
+            if series:
+                files.append(
+                    _occlusion_group(sub, g, series, out_dir, Provenance.of(sub, command, renderer))
+                )
+        return ReportResult(out_dir, sorted(files), runs, [], {})
     if base.records:
         prov = Provenance.of(base, command, renderer)
-        with_baselines = runs.subset(
-            ["shared-0", *(v for v in runs.variants if v.startswith("baseline-"))]
-        )
         written["overall"] += table1_overall(with_baselines).write(out_dir, prov)
         written["overall"] += table2_per_class(with_baselines).write(out_dir, prov)
         written["overall"] += _occlusion_overall(with_baselines, out_dir, prov)
@@ -252,9 +288,24 @@ def _occlusion_overall(runs: RunSet, out_dir: Path, prov: Provenance) -> list[Pa
     return [png, csv]
 
 
-def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: str) -> list[Path]:
+def _group_series(runs: RunSet, g: str):
+    """A group's runs, its provenance's run set and one occlusion series per variant present."""
     group = get_group(g)
     sub = runs.subset(group.members)
+    present = [v for v in group.members if sub.of(v)]
+    return sub, [s for v in present if (s := _series(sub, v, f"{v} ({group.labels.get(v, v)})"))]
+
+
+def _occlusion_group(sub: RunSet, g: str, series, out_dir: Path, prov: Provenance) -> Path:
+    base_icp = _series(sub, "shared-0", "shared-0 + ICP", "icp")
+    occ = series + ([base_icp] if base_icp and "icp_ads" in base_icp.tables[0] else [])
+    return plots.plot_occlusion(
+        occ, out_dir / f"occlusion_{g}.png", prov, f"ADS < 1 cm accuracy vs occlusion, group {g}"
+    )
+
+
+def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: str) -> list[Path]:
+    sub, series = _group_series(runs, g)
     if not sub.records:
         return []
     prov = Provenance.of(sub, command, renderer)
@@ -264,20 +315,8 @@ def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: s
     else:
         both = runs.subset(set().union(*(get_group(n).members for n in TABLE4_GROUPS)))
         files += table4_rotation(both).write(out_dir, Provenance.of(both, command, renderer))
-    present = [v for v in group.members if sub.of(v)]
-    labels = {v: f"{v} ({group.labels.get(v, v)})" for v in present}
-    series = [s for v in present if (s := _series(sub, v, labels[v]))]
     if series:
-        base_icp = _series(sub, "shared-0", "shared-0 + ICP", "icp")
-        occ = series + ([base_icp] if base_icp and "icp_ads" in base_icp.tables[0] else [])
-        files.append(
-            plots.plot_occlusion(
-                occ,
-                out_dir / f"occlusion_{g}.png",
-                prov,
-                f"ADS < 1 cm accuracy vs occlusion, group {g}",
-            )
-        )
+        files.append(_occlusion_group(sub, g, series, out_dir, prov))
         files.append(
             plots.plot_threshold_curves(
                 series,
@@ -294,9 +333,13 @@ def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: s
                 f"Rotation error, group {g}, without ICP",
             )
         )
+    group = get_group(g)
     histories = {
-        labels[v]: [{k: r.history(k) for k in ("train/loss", "val/ads_auc")} for r in sub.of(v)]
-        for v in present
+        f"{v} ({group.labels.get(v, v)})": [
+            {k: r.history(k) for k in ("train/loss", "val/ads_auc")} for r in sub.of(v)
+        ]
+        for v in group.members
+        if sub.of(v)
     }
     files.append(
         plots.plot_training_curves(

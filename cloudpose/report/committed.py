@@ -129,3 +129,119 @@ def holds_preset(project_dir: Path, preset: str) -> bool:
     if db is not None and not db.is_file():
         return False
     return bool(tracking.find_runs(tracking.setup(project_dir), preset=preset))
+
+
+class NoRunsError(ValueError):
+    """A report command was pointed at a store that holds none of the runs it renders."""
+
+
+def store_label(project_dir: Path) -> str:
+    """The store this process reads, as a user named it (``MLFLOW_TRACKING_URI`` or ./mlflow.db)."""
+    from cloudpose.store import tracking
+
+    return tracking.tracking_uri(project_dir)
+
+
+def refuse_empty(found: int, preset: str, project_dir: Path, command: str) -> None:
+    """Raise :class:`NoRunsError` (one line naming the store and the preset) when ``found`` is
+    0, before anything is written."""
+    if found:
+        return
+    raise NoRunsError(
+        f"{store_label(project_dir)}: no finished, evaluated run of preset {preset!r}; "
+        f"{command} wrote nothing (train them with `cloudpose ablate --preset {preset}`, or "
+        "leave MLFLOW_TRACKING_URI unset to read the committed runs)"
+    )
+
+
+def committed_pairs(
+    preset: str,
+    project_dir: Path,
+    *,
+    variants: set[str] | None = None,
+    split: str = "test",
+    data_key: str | None = None,
+) -> set[tuple[str, int]] | None:
+    """The (variant, seed) pairs of the preset's finished runs in its committed compact store
+    (``reports/PRESET/mlflow-store/runs/*/run.json``): training runs of the preset's own config
+    and baseline runs on ``split``, trained on ``data_key`` (or the same data under another key)
+    where one is given. None when the checkout commits no compact store of it."""
+    import json
+
+    from cloudpose.data.keys import same_data
+    from cloudpose.store.runs import _is_own
+
+    folder = Path(project_dir) / "reports" / preset / COMPACT / "runs"
+    if not folder.is_dir():
+        return None
+    pairs: set[tuple[str, int]] = set()
+    for path in folder.glob("*/run.json"):
+        row = json.loads(path.read_text(encoding="utf-8"))
+        tags, params = row.get("tags", {}), row.get("params", {})
+        if tags.get("preset") != preset or row.get("run", {}).get("status") != "FINISHED":
+            continue
+        variant, seed = tags.get("variant"), tags.get("seed", "")
+        if not variant or not seed.isdigit() or (variants and variant not in variants):
+            continue
+        if data_key and tags.get("data") and not same_data(tags["data"], data_key):
+            continue
+        if tags.get("kind") == "baseline":
+            if tags.get("split", "test") != split:
+                continue
+        elif not _is_own(
+            variant, preset, int(seed), params.get("data.root", ""), tags.get("config")
+        ):
+            continue
+        pairs.add((variant, int(seed)))
+    return pairs
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    return Path(a).resolve() == Path(b).resolve()
+
+
+def report_folder(
+    preset: str,
+    project_dir: Path,
+    out_dir: Path | None,
+    default: Path,
+    pairs: set[tuple[str, int]],
+    echo: Callable[[str], object],
+    *,
+    variants: set[str] | None = None,
+    split: str = "test",
+    data_key: str | None = None,
+) -> Path:
+    """Where a report of ``pairs`` (the (variant, seed) pairs its runs are) may be written.
+
+    Into the preset's committed reports (``reports/PRESET``, which commits a store) only when
+    its runs include every committed run's (variant, seed): a smaller sweep of a user's renders
+    into ``runs/reports/PRESET`` instead, said in one line with the counts. An ``out_dir`` the
+    user named is written as asked, with the same counts said first when it replaces committed
+    reports with fewer runs."""
+    committed_dir = Path(project_dir) / "reports" / preset
+    target = Path(out_dir) if out_dir is not None else default
+    if not _same_folder(target, committed_dir):
+        return target
+    theirs = committed_pairs(preset, project_dir, variants=variants, split=split, data_key=data_key)
+    if not theirs or theirs <= pairs:
+        if theirs and pairs - theirs:
+            echo(
+                f"rendering over reports/{preset}/: its {len(theirs)} committed runs and "
+                f"{len(pairs - theirs)} more"
+            )
+        return target
+    lacking = len(theirs - pairs)
+    counts = (
+        f"the committed reports count {len(theirs)} runs, this store's {len(pairs)} "
+        f"lack {lacking} of them"
+    )
+    if out_dir is not None:
+        echo(f"warning: replacing reports/{preset}/ by --out: {counts}")
+        return target
+    own = Path(project_dir) / "runs" / "reports" / preset
+    echo(
+        f"{counts}: rendering into {own.relative_to(project_dir)}/ and leaving reports/{preset}/ "
+        f"as committed (--out reports/{preset} to replace them)"
+    )
+    return own

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.data.keys import canonical_key
+from cloudpose.report.committed import refuse_empty, report_folder
 from cloudpose.store import tracking
 from cloudpose.store.instances import run_instance_table
 from cloudpose.store.metric_names import (
@@ -586,11 +587,18 @@ def render_real_report(
     out_dir: Path | None = None,
     command: str = "",
     seeds: int = 3,
+    echo=print,
 ) -> tuple[RealReport, list[Path]]:
     """Write ``real_frames.md`` and ``real_frames.csv`` into ``out_dir`` (default
-    ``{project_dir}/reports/{preset}``) from the evaluations in the project's store."""
+    ``{project_dir}/reports/{preset}``) from the evaluations in the project's store.
+
+    Refuses (:class:`~cloudpose.report.committed.NoRunsError`, nothing written) a store with no
+    real-frame evaluation of the preset's network; renders into ``runs/reports/PRESET`` rather
+    than over committed reports whose runs it lacks
+    (:func:`~cloudpose.report.committed.report_folder`)."""
     client = tracking.setup(project_dir)
     evaluations, missing, found, borrowed = find_evaluations(client, preset, seeds)
+    refuse_empty(len(found.get(NETWORK, [])), preset, project_dir, "real-report")
     report = RealReport(
         build(evaluations),
         missing,
@@ -600,7 +608,19 @@ def render_real_report(
         misses(evaluations),
         seed_spread(evaluations),
     )
-    out_dir = Path(out_dir or project_dir / "reports" / preset)
+    pairs = {
+        (m if m == NETWORK else f"baseline-{m}", seed) for m, ss in found.items() for seed in ss
+    }
+    out_dir = report_folder(
+        preset,
+        project_dir,
+        out_dir,
+        Path(project_dir) / "reports" / preset,
+        pairs,
+        echo,
+        variants={NETWORK, *(f"baseline-{m}" for m in BASELINES)},
+        split=REAL_DEV,
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     command = command or f"cloudpose real-report --preset {preset}"
     md, csv = out_dir / "real_frames.md", out_dir / "real_frames.csv"

@@ -491,7 +491,8 @@ def occlusion_report(
 ):
     """The occlusion plot: shared-0 without and with ICP (and a group's variants if asked).
 
-    Renders from the runs in MLflow only. With ``train_missing`` the runs it needs that the
+    Writes ``occlusion.png``/``.csv`` (and ``occlusion_GROUP.png``) only, from every finished
+    run of those variants in MLflow (seeds ``1..seeds`` are the ones required). With ``train_missing`` the runs it needs that the
     store lacks are trained and evaluated first; without, a missing run raises
     :class:`MissingRuns` naming them.
     """
@@ -512,7 +513,14 @@ def occlusion_report(
             echo=echo,
         )
     return render_reports(
-        preset, [group] if group else [], project_dir=project_dir, command=command, out_dir=out_dir
+        preset,
+        [group] if group else [],
+        project_dir=project_dir,
+        command=command,
+        out_dir=out_dir,
+        echo=echo or print,
+        only_occlusion=True,
+        log_mlflow=False,
     )
 
 

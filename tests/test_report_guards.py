@@ -1,0 +1,109 @@
+"""Report commands never render from an empty store nor over committed reports they lack runs of."""
+
+from __future__ import annotations
+
+import errno
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cloudpose.cli import app
+from cloudpose.cli.app import file_system_message
+from cloudpose.report.committed import (
+    NoRunsError,
+    committed_pairs,
+    refuse_empty,
+    report_folder,
+)
+
+
+def _committed(project: Path, preset: str, runs: list[tuple[str, int]]) -> None:
+    """A compact store's run folders of baseline runs (their pairs need no config fingerprint)."""
+    for i, (variant, seed) in enumerate(runs):
+        folder = project / "reports" / preset / "mlflow-store" / "runs" / f"run{i}"
+        folder.mkdir(parents=True)
+        row = {
+            "run": {"status": "FINISHED"},
+            "tags": {
+                "preset": preset,
+                "variant": variant,
+                "seed": str(seed),
+                "kind": "baseline",
+                "split": "test",
+            },
+            "params": {},
+        }
+        (folder / "run.json").write_text(json.dumps(row))
+
+
+def test_refuse_empty_names_the_store_and_the_preset(tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'EMPTY.db'}")
+    with pytest.raises(NoRunsError, match=r"EMPTY\.db: no finished, evaluated run of preset 'p1'"):
+        refuse_empty(0, "p1", tmp_path, "the report")
+    refuse_empty(3, "p1", tmp_path, "the report")  # runs found: nothing raised
+
+
+def test_committed_pairs_reads_the_compact_store(tmp_path):
+    _committed(tmp_path, "p1", [("baseline-fpfh", 1), ("baseline-fpfh", 2)])
+    assert committed_pairs("p1", tmp_path) == {("baseline-fpfh", 1), ("baseline-fpfh", 2)}
+    assert committed_pairs("p1", tmp_path, split="real") == set()
+    assert committed_pairs("p2", tmp_path) is None
+
+
+def test_a_smaller_sweep_renders_beside_the_committed_reports(tmp_path):
+    _committed(tmp_path, "p1", [("baseline-fpfh", s) for s in (1, 2, 3)])
+    said: list[str] = []
+    committed = tmp_path / "reports" / "p1"
+    fewer = {("baseline-fpfh", 1)}
+    assert report_folder("p1", tmp_path, None, committed, fewer, said.append) == (
+        tmp_path / "runs" / "reports" / "p1"
+    )
+    assert "count 3 runs" in said[-1] and "lack 2" in said[-1]
+    more = {("baseline-fpfh", s) for s in (1, 2, 3, 4)}
+    assert report_folder("p1", tmp_path, None, committed, more, said.append) == committed
+    assert "3 committed runs and 1 more" in said[-1]
+    # named by the user: written as asked, the counts said first
+    assert report_folder("p1", tmp_path, committed, committed, fewer, said.append) == committed
+    assert said[-1].startswith("warning: replacing reports/p1/")
+    # another folder: no question
+    other = tmp_path / "mine"
+    assert report_folder("p1", tmp_path, other, committed, fewer, said.append) == other
+
+
+@pytest.mark.parametrize("command", [["report", "--no-mlflow"], ["real-report"]])
+def test_report_commands_refuse_an_empty_store(tmp_path, monkeypatch, command):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'EMPTY.db'}")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, [*command, "--preset", "cpu-online", "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "no finished, evaluated run of preset 'cpu-online'" in res.output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("code", "words"),
+    [
+        (errno.ENOTDIR, "a part of the path is a file"),
+        (errno.EACCES, "no permission"),
+        (errno.EROFS, "read-only file system"),
+        (errno.ENOSPC, "no space left"),
+    ],
+)
+def test_file_system_errors_are_one_line_naming_the_path(code, words):
+    exc = OSError(code, "said", "/some/where/out")
+    message = file_system_message(exc)
+    assert message.startswith("/some/where/out: said (") and words in message
+    assert "\n" not in message
+
+
+def test_a_file_system_error_in_a_command_is_one_line(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'EMPTY.db'}")
+    res = CliRunner().invoke(app, ["curves", "--run", "x", "--out", str(blocker / "c.png")])
+    assert res.exit_code != 0
+    assert "Traceback" not in res.output
