@@ -49,3 +49,20 @@ def test_a_bad_file_is_named_with_what_was_expected(same_file, text, match):
     with pytest.raises(ValueError, match=match) as err:
         keys.same_data_keys("aa")
     assert str(path) in str(err.value)
+
+
+def test_every_committed_run_of_the_synthetic_presets_is_on_one_data():
+    """The committed sweep's runs of cpu-online, cpu-online-4x and gpu were trained on machines
+    of several kinds; a run on a key that no same-data entry joins to the others would be left
+    out of every report (``cloudpose same-data --run RUN`` checks a key and prints its entry)."""
+    import json
+    from pathlib import Path
+
+    store = Path(__file__).resolve().parents[1] / "reports" / "cpu-online" / "mlflow-store"
+    found: dict[str, set[str]] = {}
+    for path in sorted(store.glob("runs/*/run.json")):
+        tags = json.loads(path.read_text()).get("tags", {})
+        data = tags.get("data", "")
+        if tags.get("preset") in ("cpu-online", "cpu-online-4x", "gpu") and data:
+            found.setdefault(keys.canonical_key(data), set()).add(data)
+    assert len(found) == 1, f"the committed runs fall into {len(found)} data: {found}"
