@@ -31,8 +31,8 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 	$(PY) -m pip install "$(TORCH_SPEC)"
 	$(PY) -m pip install -c constraints.txt -e '.[dev,cluster]'
 
-demo: ## plumbing check of the main job on the smoke preset: synth -> prepare -> train (seconds) -> evaluate; its numbers are near zero by design
-	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED)
+demo: ## (DRY=1: its plan) plumbing check of the main job on the smoke preset: synth -> prepare -> train (seconds) -> evaluate; its numbers are near zero by design
+	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED) $(if $(DRY),--dry-run)
 
 showcase: ## the shipped network (shared-0, cpu-online) beside FPFH + RANSAC on the 61 real frames and 40 synthetic test frames, + an overlay picture (no training)
 	$(CLI) showcase --out runs/showcase
@@ -61,45 +61,49 @@ MLFLOW_PORT ?= 5000
 GROUP ?=
 EXECUTOR ?= local
 MLFLOW_HOST ?= 127.0.0.1
+# DRY=1: print the plan of a training target (what the store holds, what would train, how long)
+# and stop. FRESH=1: train every run anew into ./mlflow.db instead of reusing the committed sweep
+# (stores/PRESET/, unpacked once from reports/PRESET/mlflow-store).
+SWEEP_FLAGS = $(if $(DRY),--dry-run) $(if $(FRESH),--fresh)
 .PHONY: headline-claims ablations-resolve ablation-shared ablation-rotation ablation-loss ablation-symmetry ablations ablation-masks baselines occlusion-report occlusion-runs real-report tables mlflow-ui mlflow-server
 
-ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET (finished runs skipped), then its reports
-	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
+ablation-shared: ## shared-layers group: train+evaluate every variant x SEEDS on PRESET, reusing the committed runs (DRY=1: the plan only; FRESH=1: retrain all), then its reports
+	$(CLI) ablate --group shared --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) $(SWEEP_FLAGS)
 
 ablation-rotation: ## rotation-representation group (axis-angle, quaternion, 6D) x SEEDS on PRESET, then its reports
-	$(CLI) ablate --group rotation --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
+	$(CLI) ablate --group rotation --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) $(SWEEP_FLAGS)
 
 ablation-loss: ## rotation-loss group (geodesic, L2) x SEEDS on PRESET, then its reports
-	$(CLI) ablate --group loss --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
+	$(CLI) ablate --group loss --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) $(SWEEP_FLAGS)
 
 ablation-symmetry: ## rotation loss modulo symmetry vs the plain geodesic x SEEDS on PRESET, then its reports
-	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
+	$(CLI) ablate --group symmetry --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) $(SWEEP_FLAGS)
 
 ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## all four ablation groups (EXECUTOR=ray: a Ray task per run, cluster RAY_ADDRESS)
 
 MAX_SEEDS ?= 10
 ablations-resolve: ## every group x SEEDS, then more seeds (up to MAX_SEEDS) for the variants of each undecided claim; then the reports
-	for g in shared rotation loss symmetry; do $(CLI) ablate --group $$g --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) --until-resolved --max-seeds $(MAX_SEEDS) || exit 1; done
+	for g in shared rotation loss symmetry; do $(CLI) ablate --group $$g --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) --until-resolved --max-seeds $(MAX_SEEDS) $(SWEEP_FLAGS) || exit 1; done
 
 AGAINST ?= cpu-online
 headline-claims: ## the paper's headline claims on PRESET (e.g. PRESET=cpu-online-4x): shared-0, shared-all, quaternion, l2, geodesic-plain x SEEDS (finished runs skipped), then claims.md with AGAINST's verdicts beside
-	$(CLI) ablate --group shared --only shared-0 --only shared-all --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR)
-	for g in rotation:quaternion loss:l2 symmetry:geodesic-plain; do $(CLI) ablate --group $${g%%:*} --only shared-0 --only $${g#*:} --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) || exit 1; done
-	$(CLI) report --preset $(PRESET) --against $(AGAINST)
+	$(CLI) ablate --group shared --only shared-0 --only shared-all --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) $(SWEEP_FLAGS)
+	for g in rotation:quaternion loss:l2 symmetry:geodesic-plain; do $(CLI) ablate --group $${g%%:*} --only shared-0 --only $${g#*:} --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) $(SWEEP_FLAGS) || exit 1; done
+	$(if $(DRY),@echo "then: claims.md of $(PRESET) with $(AGAINST)'s verdicts beside",$(CLI) report --preset $(PRESET) --against $(AGAINST))
 
 ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
-	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS)
+	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS) $(SWEEP_FLAGS)
 
 baselines: ## classical baselines on PRESET's test set, with and without ICP: FPFH + RANSAC (SEEDS seeds), point-pair features (deterministic: seed 1); logged runs are skipped
 	@echo "plan: baselines on the $(PRESET) test set, without and with ICP: FPFH + RANSAC seeds 1-$(SEEDS), point-pair features once; a run logged before is shown, not computed again"
-	for s in $$(seq 1 $(SEEDS)); do $(CLI) baseline --method fpfh --preset $(PRESET) --seed $$s || exit 1; done
-	$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT))
+	$(if $(DRY),,for s in $$(seq 1 $(SEEDS)); do $(CLI) baseline --method fpfh --preset $(PRESET) --seed $$s || exit 1; done)
+	$(if $(DRY),,$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT)))
 
 occlusion-report: ## occlusion plot of shared-0 without/with ICP from existing runs only (a missing run: names it and fails; GROUP=... adds a group's variants)
 	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))
 
 occlusion-runs: ## train + evaluate the runs occlusion-report needs that are missing (prints the plan first), then the plot
-	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP)) --train-missing
+	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP)) --train-missing $(if $(DRY),--dry-run)
 
 real-report: ## the 61 real development frames per video and pooled: shared-0 (every seed found) and both baselines, without/with ICP -> reports/PRESET/real_frames.md (reads runs only)
 	$(CLI) real-report --preset $(PRESET) --seeds $(SEEDS)

@@ -100,7 +100,7 @@ def atomic_write(path: str | Path, write: Callable[[Path], object], suffix: str 
 
 def atomic_text(path: str | Path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (:func:`atomic_write`)."""
-    return atomic_write(path, lambda tmp: tmp.write_text(text))
+    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
 def read_npz(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -107,3 +108,67 @@ def test_a_file_system_error_in_a_command_is_one_line(tmp_path, monkeypatch):
     res = CliRunner().invoke(app, ["curves", "--run", "x", "--out", str(blocker / "c.png")])
     assert res.exit_code != 0
     assert "Traceback" not in res.output
+
+
+def test_a_sweep_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatch):
+    from cloudpose.report import committed
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    _committed(tmp_path, "cpu-online", [("baseline-fpfh", 1)])
+    unpacked = tmp_path / "stores" / "cpu-online"
+
+    def unpack(preset, project_dir):
+        unpacked.mkdir(parents=True, exist_ok=True)
+        (unpacked / "mlflow.db").touch()
+        return unpacked
+
+    monkeypatch.setattr(committed, "committed_store", unpack)
+    said: list[str] = []
+    shown = committed.sweep_store("cpu-online", tmp_path, False, said.append)
+    assert shown == "stores/cpu-online/mlflow.db"
+    assert "MLFLOW_TRACKING_URI" in os.environ
+    assert str(unpacked.resolve()) in os.environ["MLFLOW_TRACKING_URI"]
+    assert "unpacked now" in said[0] and "FRESH=1" in said[0]
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    said.clear()
+    assert committed.sweep_store("cpu-online", tmp_path, True, said.append) == "./mlflow.db"
+    assert "MLFLOW_TRACKING_URI" not in os.environ and "--fresh" in said[0]
+    # a store the user named is used as named
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///mine.db")
+    assert committed.sweep_store("cpu-online", tmp_path, False, said.append) == "sqlite:///mine.db"
+    # a preset the checkout commits no store of trains into the project's own
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    assert committed.sweep_store("smoke", tmp_path, False, said.append) == "./mlflow.db"
+
+
+def test_a_render_of_the_same_numbers_leaves_the_files_as_they_are(tmp_path):
+    import matplotlib.pyplot as plt
+
+    from cloudpose.report import plots
+    from cloudpose.report.formats import Provenance, write_text
+
+    def prov(command: str) -> Provenance:
+        return Provenance(command, "cpu-online", "synthetic", (1, 2), ("abc123",))
+
+    text = tmp_path / "t.md"
+    write_text(text, f"_{prov('cloudpose report').line()}_\n| a | 1.0 |\n")
+    before = text.stat().st_mtime_ns
+    write_text(text, f"_{prov('cloudpose ablate --group shared').line()}_\n| a | 1.0 |\n")
+    assert text.stat().st_mtime_ns == before and "cloudpose report" in text.read_text()
+    write_text(text, f"_{prov('cloudpose ablate').line()}_\n| a | 2.0 |\n")
+    assert "2.0" in text.read_text() and "cloudpose ablate" in text.read_text()
+
+    def figure(command: str, y: float):
+        fig, ax = plt.subplots()
+        ax.plot([0, 1], [0, y])
+        plots._footer(fig, prov(command))
+        return fig
+
+    png = tmp_path / "f.png"
+    plots._save(figure("cloudpose report", 1.0), png)
+    first = png.read_bytes()
+    plots._save(figure("cloudpose occlusion-report", 1.0), png)
+    assert png.read_bytes() == first
+    plots._save(figure("cloudpose occlusion-report", 2.0), png)
+    assert png.read_bytes() != first

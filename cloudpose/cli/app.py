@@ -225,6 +225,15 @@ FramesOpt = Annotated[
 DryRunOpt = Annotated[
     bool, typer.Option("--dry-run", help="Print the plan (frames, runs, time) and stop.")
 ]
+FreshOpt = Annotated[
+    bool,
+    typer.Option(
+        "--fresh",
+        help="Train every run anew into the project's own store (./mlflow.db), reusing none "
+        "of the committed runs; default: a sweep of a preset the checkout commits reads and "
+        "adds to stores/PRESET/ (the committed sweep, unpacked once).",
+    ),
+]
 OutOpt = Annotated[
     Path | None,
     typer.Option(

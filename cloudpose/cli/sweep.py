@@ -9,6 +9,7 @@ import typer
 
 from cloudpose.cli.app import (
     DryRunOpt,
+    FreshOpt,
     OutOpt,
     PresetOpt,
     ProgressOpt,
@@ -44,6 +45,7 @@ def ablate(
     ] = 30.0,
     dry_run: DryRunOpt = False,
     out: OutOpt = None,
+    fresh: FreshOpt = False,
     until_resolved: Annotated[
         bool,
         typer.Option(
@@ -67,11 +69,13 @@ def ablate(
 
     Prints its plan first: frames to render, runs to train and those finished before, time."""
     from cloudpose.registry import parse_overrides
+    from cloudpose.report.committed import sweep_store
     from cloudpose.suite.ablate import resolve_claims, run_group
     from cloudpose.suite.cluster import RayOptions
     from cloudpose.suite.plan import plan_group
 
     overrides = parse_overrides(set_) or None
+    sweep_store(preset, Path.cwd(), fresh, typer.echo)
     try:
         plan = plan_group(
             group, preset, seeds, Path.cwd(), overrides=overrides, out_dir=out, only=only
@@ -97,6 +101,7 @@ def ablate(
         out_dir=out,
         report=not until_resolved,
         only=only,
+        other_data=fresh,
     )
     if until_resolved:
         from cloudpose.report import render_reports
@@ -112,6 +117,7 @@ def ablate(
             executor=executor,
             ray=ray,
             only=only,
+            other_data=fresh,
         )
         res.report = render_reports(preset, [group], project_dir=Path.cwd(), out_dir=out)
     counts = {s: sum(r.status == s for r in res.runs) for s in ("trained", "skipped", "failed")}
@@ -130,6 +136,7 @@ def ablate_masks(
     progress: ProgressOpt = True,
     dry_run: DryRunOpt = False,
     out: OutOpt = None,
+    fresh: FreshOpt = False,
 ) -> None:
     """Segmentation quality: shared-0 (trained on ground truth) under each test mask source.
 
@@ -137,14 +144,22 @@ def ablate_masks(
     are trained, evaluations already logged are skipped; then table_masks and occlusion_masks
     in reports/PRESET/ and the MLflow run report/masks/PRESET. Prints its plan first.
     """
+    from cloudpose.report.committed import sweep_store
     from cloudpose.suite.masks import mask_ablation
     from cloudpose.suite.plan import plan_masks
 
+    sweep_store(preset, Path.cwd(), fresh, typer.echo)
     typer.echo(plan_masks(preset, seeds, Path.cwd(), out_dir=out).text())
     if dry_run:
         return
     res = mask_ablation(
-        preset, seeds, Path.cwd(), progress, command=recorded_command(ctx), out_dir=out
+        preset,
+        seeds,
+        Path.cwd(),
+        progress,
+        command=recorded_command(ctx),
+        out_dir=out,
+        other_data=fresh,
     )
     trained = sum(r.status == "trained" for r in res.runs)
     done = sum(e.status == "evaluated" for e in res.evaluations)

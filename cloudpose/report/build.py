@@ -38,7 +38,7 @@ from cloudpose.report.claims import (
     update_verdicts_block,
 )
 from cloudpose.report.committed import refuse_empty, report_folder
-from cloudpose.report.formats import Provenance
+from cloudpose.report.formats import Provenance, write_text
 from cloudpose.report.runs import RunSet, load_runs
 from cloudpose.report.tables import (
     table1_overall,
@@ -194,9 +194,9 @@ def render_reports(
         claims_df = claims_df.merge(
             budgets_frame(rows, against), on=["claim", "metric"], how="outer", sort=False
         )
-    (out_dir / "claims.md").write_text(claims_md, encoding="utf-8")
+    write_text(out_dir / "claims.md", claims_md)
     claims_csv = f"# {prov_all.line()}\n" + claims_df.to_csv(index=False, float_format="%.3f")
-    (out_dir / "claims.csv").write_text(claims_csv, encoding="utf-8")
+    write_text(out_dir / "claims.csv", claims_csv)
     written["overall"] += [out_dir / "claims.md", out_dir / "claims.csv"]
     if readme is not None:
         update_verdicts_block(readme, preset, results, prov_all)
@@ -280,10 +280,10 @@ def _occlusion_overall(runs: RunSet, out_dir: Path, prov: Provenance) -> list[Pa
         + (" and the baselines)" if len(series) > 2 else ")"),
     )
     csv = out_dir / "occlusion.csv"
-    csv.write_text(
+    write_text(
+        csv,
         f"# {prov.line()}\n"
         + plots.occlusion_frame(series).to_csv(index=False, float_format="%.2f"),
-        encoding="utf-8",
     )
     return [png, csv]
 
@@ -387,8 +387,7 @@ def _write_index(out_dir: Path, prov: Provenance, preset: str) -> Path:
         desc = _describe(stem) or stem
         lines.append(f"| {desc} | {links} |")
     path = out_dir / "README.md"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+    return write_text(path, "\n".join(lines) + "\n")
 
 
 def log_report_run(

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.registry import get_group
-from cloudpose.report.formats import Provenance
+from cloudpose.report.formats import Provenance, write_text
 from cloudpose.report.runs import RunSet
 from cloudpose.report.stats import (
     AUC_MARGIN,
@@ -533,7 +533,7 @@ def update_verdicts_block(
         *claims_matrix(results),
         end,
     ]
-    readme.write_text(head + "\n".join(block) + tail, encoding="utf-8")
+    write_text(readme, head + "\n".join(block) + tail)
 
 
 def decide_at(r: ClaimResult, cap: int = MAX_SEEDS) -> int | None:

@@ -119,6 +119,54 @@ def use_committed_store(
     return True
 
 
+def sweep_store(preset: str, project_dir: Path, fresh: bool, echo: Callable[[str], object]) -> str:
+    """Point this process's MLflow client at the store a sweep of ``preset`` trains into, and
+    say which in one line; returns the store as shown.
+
+    A sweep reuses the committed runs: when the user named no store (``MLFLOW_TRACKING_URI``
+    unset) and the checkout commits the preset's store, the sweep reads and writes its unpacked
+    copy ``stores/PRESET/``, so a run finished there on the same config and data is skipped and
+    a new run lands beside the committed ones (the MLflow UI and the reports then show both).
+    The committed runs were trained by this code on this data (keys of other CPUs' renders are
+    checked to be the same data, :mod:`cloudpose.data.keys`): retraining them repeats hours of
+    work to reproduce the same distribution. ``fresh`` trains every run into the project's own
+    store instead (``./mlflow.db``, or the store the user named): an independent replication,
+    whose reports render beside the committed ones (:func:`report_folder`).
+    """
+    from cloudpose.store.tracking import STORE_DB
+
+    if os.environ.get("MLFLOW_TRACKING_URI"):
+        shown = os.environ["MLFLOW_TRACKING_URI"]
+        why = "--fresh: the committed runs are not reused" if fresh else "MLFLOW_TRACKING_URI"
+        echo(f"store: {shown} ({why})")
+        return shown
+    if fresh or committed_archive(preset, project_dir) is None:
+        why = (
+            "--fresh: every run of the plan trains here; the committed runs are not reused"
+            if fresh
+            else f"the checkout commits no store of {preset}"
+        )
+        echo(f"store: ./{STORE_DB} ({why})")
+        return f"./{STORE_DB}"
+    fresh_copy = not (Path(project_dir) / STORES / preset / STORE_DB).is_file()
+    folder = committed_store(preset, project_dir)
+    os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{(folder / STORE_DB).resolve()}"
+    shown = f"{STORES}/{preset}/{STORE_DB}"
+    name = committed_archive(preset, project_dir).name
+    how = f"unpacked now from reports/{preset}/{name}" if fresh_copy else "the committed sweep"
+    echo(
+        f"store: {shown} ({how}; its finished runs are reused and new runs are added beside "
+        f"them; FRESH=1 / --fresh trains every run into ./{STORE_DB} instead)"
+    )
+    if is_stale(preset, project_dir):
+        echo(
+            f"note: reports/{preset}/{name} has changed since {STORES}/{preset}/ was unpacked "
+            f"from it; runs trained into {STORES}/{preset}/ live only there (store-pack keeps "
+            "them), so it is read as it is"
+        )
+    return shown
+
+
 def holds_preset(project_dir: Path, preset: str) -> bool:
     """Whether the project's own store (``MLFLOW_TRACKING_URI`` or ``./mlflow.db``) holds a
     finished run of ``preset``; False without a store (nothing is created to ask)."""

@@ -7,12 +7,36 @@ compute with.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
 
+from cloudpose.files import atomic_text
 from cloudpose.report.runs import RunSet
+
+_COMMAND = re.compile(r"made by `[^`]*`", re.IGNORECASE)
+"""The command in a provenance line (:meth:`Provenance.line`)."""
+
+
+def same_but_command(old: str, new: str) -> bool:
+    """Whether two renders of a report say the same but for the command their provenance
+    line names."""
+    return _COMMAND.sub("made by ``", old) == _COMMAND.sub("made by ``", new)
+
+
+def write_text(path: Path, text: str) -> Path:
+    """Write a report's text (atomically), leaving a file that holds it already but for the
+    command in its provenance line: a command that renders the same numbers from the same runs
+    changes no file, so ``git status`` shows only what a render changed."""
+    path = Path(path)
+    try:
+        if path.is_file() and same_but_command(path.read_text(encoding="utf-8"), text):
+            return path
+    except (OSError, UnicodeDecodeError):
+        pass  # unreadable: written anew
+    return atomic_text(path, text)
 
 
 @dataclass(frozen=True)
@@ -132,9 +156,7 @@ class Table:
             ("tex", self.latex(prov)),
             ("csv", self.csv(prov)),
         ):
-            p = out_dir / f"{self.name}.{ext}"
-            p.write_text(text, encoding="utf-8")
-            paths.append(p)
+            paths.append(write_text(out_dir / f"{self.name}.{ext}", text))
         return paths
 
 

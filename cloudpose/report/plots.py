@@ -12,6 +12,9 @@ Every figure carries a footer naming the command, preset, data, seeds and code t
 
 from __future__ import annotations
 
+import hashlib
+import io
+import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -24,7 +27,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 from matplotlib.ticker import MaxNLocator
+from PIL import Image
 
+from cloudpose.files import atomic_write
 from cloudpose.metrics import accuracy_curve, occlusion_bin_index, occlusion_bins
 from cloudpose.report.formats import Provenance
 
@@ -55,10 +60,11 @@ def _footer(fig, prov: Provenance) -> None:
     rendered again from the same runs is the same file, byte for byte, so a re-render adds
     nothing to the repository where only the renderer moved (the tables beside it say which
     code rendered them)."""
-    fig.text(
+    line = replace(prov, renderer="").line().replace("`", "")
+    fig._cloudpose_footer = fig.text(  # read back by _save
         0.01,
         0.005,
-        replace(prov, renderer="").line().replace("`", ""),
+        line,
         fontsize=6,
         color="0.35",
         ha="left",
@@ -293,9 +299,42 @@ def plot_rotation_histograms(
     return _save(fig, path)
 
 
+CONTENT_KEY = "cloudpose-content"
+"""PNG text chunk of a figure: the digest of what it shows, the command in its footer left out."""
+
+
+def _content_digest(fig) -> str:
+    """SHA-256 of the figure rendered as a PNG with the command left out of its footer."""
+    footer = getattr(fig, "_cloudpose_footer", None)
+    shown = footer.get_text() if footer is not None else None
+    if footer is not None:
+        footer.set_text(re.sub(r"^made by [^;]*;", "made by;", shown))
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, dpi=120, format="png", metadata={"Software": None})
+    finally:
+        if footer is not None:
+            footer.set_text(shown)
+    return hashlib.sha256(buf.getvalue()).hexdigest()
+
+
 def _save(fig, path: Path) -> Path:
+    """Write ``fig`` as a PNG (atomically), leaving a file that shows the same already but
+    for the command in its footer (:func:`cloudpose.report.formats.write_text` for figures)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    digest = _content_digest(fig)
+    try:
+        with Image.open(path) as old:
+            if old.text.get(CONTENT_KEY) == digest:
+                plt.close(fig)
+                return path
+    except (OSError, ValueError, AttributeError):
+        pass  # none, or not a PNG of ours: written anew
+    metadata = {CONTENT_KEY: digest}
+    atomic_write(
+        path, lambda tmp: fig.savefig(tmp, dpi=120, format="png", metadata=metadata), ".png"
+    )
     plt.close(fig)
     return path
 

@@ -30,6 +30,7 @@ import pandas as pd
 
 from cloudpose.data.keys import canonical_key
 from cloudpose.report.committed import refuse_empty, report_folder
+from cloudpose.report.formats import write_text
 from cloudpose.store import tracking
 from cloudpose.store.instances import run_instance_table
 from cloudpose.store.metric_names import (
@@ -625,7 +626,7 @@ def render_real_report(
     command = command or f"cloudpose real-report --preset {preset}"
     md, csv = out_dir / "real_frames.md", out_dir / "real_frames.csv"
     store = "the project's MLflow store"
-    md.write_text(markdown(report, preset, command, store), encoding="utf-8")
+    write_text(md, markdown(report, preset, command, store))
     report.rows.to_csv(csv, index=False, float_format="%.6g")
     files = [md, csv]
     if not report.versus.empty:

@@ -33,7 +33,12 @@ from cloudpose.store import tracking
 from cloudpose.store.runs import TEST_KEY, finished_run, run_dir, run_name
 from cloudpose.suite import pipeline
 from cloudpose.suite.cluster import EXECUTORS, RayOptions, RaySweep, check_cluster, import_ray
-from cloudpose.suite.plan import format_seconds, missing_report_runs, seed_list
+from cloudpose.suite.plan import (
+    finished_run_any_data,
+    format_seconds,
+    missing_report_runs,
+    seed_list,
+)
 
 
 @dataclass(frozen=True)
@@ -234,8 +239,14 @@ def ensure_runs(
     echo: Callable[[str], None] | None = None,
     executor: str = "local",
     ray: RayOptions | None = None,
+    other_data: bool = False,
 ) -> list[RunStatus]:
     """Train and evaluate every (variant, seed) that has no finished, evaluated run yet.
+
+    A run to train whose exact config has finished on data of another key (the same recipe
+    rendered on a kind of CPU not yet listed in ``same_data.toml``, or by changed code) stops
+    the sweep before it trains anything, naming a run to check with ``cloudpose same-data``:
+    hours of retraining are not started on a guess. ``other_data`` trains them anyway.
 
     Args:
         variants: variant names.
@@ -249,9 +260,13 @@ def ensure_runs(
         echo: where the per-run progress lines go (default: print).
         executor: "local" (here, one run after another) or "ray" (a Ray task per run).
         ray: the cluster and each task's resources, for the ray executor.
+        other_data: train a run even when its config finished on data of another key.
 
     Returns:
         One status per (variant, seed), in order.
+
+    Raises:
+        OtherDataError: without ``other_data``, runs to train have finished on other data.
     """
     _check_executor(executor, ray)
     project_dir = (project_dir or Path.cwd()).resolve()
@@ -263,6 +278,8 @@ def ensure_runs(
     todo = [resolve(v, preset, s, overrides) for v in variants for s in seeds]
     data_of = _data_once(project_dir, progress)
     pending = [cfg for cfg in todo if finished_run(client, cfg, data_of(cfg).data_key) is None]
+    if not other_data:
+        _refuse_other_data(client, pending, data_of)
     prior = _seconds_per_run_before(client, preset, todo[0].train.epochs) if todo else None
     book = _Progress(len(todo), log_path, echo, prior)
     echo(
@@ -302,6 +319,30 @@ def ensure_runs(
     return [book.statuses[k] for k in sorted(book.statuses)]
 
 
+class OtherDataError(ValueError):
+    """Runs a sweep would train have finished on data of another key."""
+
+
+def _refuse_other_data(client, pending: list[Config], data_of) -> None:
+    """Raise :class:`OtherDataError` when a run of ``pending`` has finished, with its exact
+    config, on data whose key is not the same data as the one rendered here."""
+    elsewhere = [(cfg, finished_run_any_data(client, cfg)) for cfg in pending]
+    elsewhere = [(cfg, run) for cfg, run in elsewhere if run is not None]
+    if not elsewhere:
+        return
+    cfg, run = elsewhere[0]
+    theirs, here = run.data.tags.get("data", "?"), data_of(cfg).data_key
+    raise OtherDataError(
+        f"{len(elsewhere)} of the {len(pending)} runs to train finished before with the same "
+        f"config on data keyed {theirs} (e.g. {run_name(cfg.variant, cfg.preset, cfg.seed)}, "
+        f"run {run.info.run_id}), and the data rendered here is keyed {here}: if it is the "
+        f"same data rendered on another kind of CPU, `cloudpose same-data --run "
+        f"{run.info.run_id}` checks it and prints the line of "
+        "cloudpose/resources/registry/same_data.toml that lets the sweep reuse them; "
+        "--fresh (FRESH=1) trains every run anew instead, into a store of its own"
+    )
+
+
 def _log(path: Path, k: int, n: int, name: str, st: RunStatus, ads_auc: float | None) -> None:
     stamp = time.strftime("%Y-%m-%d %H:%M:%S")
     auc = f"{100 * ads_auc:.1f}" if ads_auc is not None else "-"
@@ -331,6 +372,7 @@ def run_group(
     ray: RayOptions | None = None,
     out_dir: Path | None = None,
     only: Sequence[str] | None = None,
+    other_data: bool = False,
 ) -> SuiteResult:
     """Train and evaluate every member of ``group`` over ``seeds``, then render its reports.
 
@@ -348,6 +390,8 @@ def run_group(
         executor, ray: where the runs train (:func:`ensure_runs`).
         out_dir: the reports' folder (default :func:`cloudpose.report.build.default_out_dir`).
         only: these members of the group only (:meth:`cloudpose.registry.Group.pick`).
+        other_data: train runs whose config finished on data of another key
+            (:func:`ensure_runs`).
     """
     members = get_group(group).pick(only)
     project_dir = (project_dir or Path.cwd()).resolve()
@@ -363,6 +407,7 @@ def run_group(
         echo=echo,
         executor=executor,
         ray=ray,
+        other_data=other_data,
     )
     result = SuiteResult(
         group, preset, statuses, log=project_dir / "runs" / f"ablate-{group}-{preset}.log"

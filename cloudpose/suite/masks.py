@@ -64,6 +64,7 @@ def mask_ablation(
     command: str | None = None,
     echo: Callable[[str], None] | None = None,
     out_dir: Path | None = None,
+    other_data: bool = False,
 ) -> MaskAblationResult:
     """Segmentation quality as an ablation: shared-0, trained on ground-truth masks, tested
     under each mask source, with and without ICP; then the ``masks`` report.
@@ -86,6 +87,8 @@ def mask_ablation(
         command: the command line the reports name (default: this process's).
         echo: where progress lines go (default: print).
         out_dir: the reports' folder (default :func:`cloudpose.report.build.default_out_dir`).
+        other_data: train shared-0 seeds whose config finished on data of another key
+            (:func:`~cloudpose.suite.ablate.ensure_runs`).
     """
     project_dir = (project_dir or Path.cwd()).resolve()
     echo = echo or (lambda s: print(s, flush=True))
@@ -100,6 +103,7 @@ def mask_ablation(
         project_dir=project_dir,
         progress=progress,
         echo=echo,
+        other_data=other_data,
     )
     client = tracking.setup(project_dir)
     log_path = project_dir / "runs" / f"ablate-{segmentation.GROUP}-{preset}.log"

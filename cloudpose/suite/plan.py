@@ -103,9 +103,9 @@ class Plan:
             ablation's sources.
         notes: further lines (what follows the runs, caveats).
         data_ready: whether every dataset is rendered (the finished runs are found by the
-            data's fingerprint, so before rendering none is known for certain).
-        matched_elsewhere: with the data not rendered, runs of the same config that the
-            store holds finished on some data.
+            data's fingerprint, so before rendering a run of the same config on any data
+            counts as finished).
+        matched_elsewhere: with the data not rendered, runs counted finished that way.
         finished: what happens to a finished run, in words.
     """
 
@@ -163,16 +163,13 @@ class Plan:
                     if s:
                         parts.append(f"seed {','.join(s)} {status}")
                 out.append(f"    {v:<18} {'; '.join(parts)}")
-            if not self.data_ready:
-                more = (
-                    f" ({self.matched_elsewhere} of them have finished runs of the same config "
-                    "in the store)"
-                    if self.matched_elsewhere
-                    else ""
-                )
+            if not self.data_ready and self.matched_elsewhere:
                 out.append(
-                    "    (the data is not rendered yet, so every run counts as to train"
-                    f"{more}; a run finished on identical data is skipped after rendering)"
+                    f"    (the data is not rendered yet: the {self.matched_elsewhere} finished "
+                    "runs are of the same config, and are skipped once the data rendered here "
+                    "has the key of theirs or of the same data rendered on another kind of CPU; "
+                    "a key not known to be the same data stops the sweep before it trains, "
+                    "naming the check to run)"
                 )
         for name, seconds in self.evaluations:
             out.append(f"  evaluate: {name} (~{format_seconds(seconds)})")
@@ -288,7 +285,8 @@ def plan_configs(
 
     Frames are counted on disk; a run counts as finished when the store holds a finished,
     evaluated run of its config on its data (the data's fingerprint needs the rendered frames:
-    before they exist, every run counts as to train). The time of a run is the median of the
+    before they exist, a finished run of the config on any data counts, as the runner then
+    either skips it or stops, :func:`cloudpose.suite.ablate.ensure_runs`). The time of a run is the median of the
     preset's finished runs in the store when there are any, else :func:`estimate_run_s`.
 
     Args:
@@ -315,8 +313,9 @@ def plan_configs(
     for cfg in todo:
         data_key = data_keys[repr(cfg.data)]
         done = finished_run(client, cfg, data_key) if data_key is not None else None
-        if data_key is None and finished_run_any_data(client, cfg) is not None:
-            plan.matched_elsewhere += 1
+        if data_key is None:
+            done = finished_run_any_data(client, cfg)
+            plan.matched_elsewhere += done is not None
         plan.runs.append(
             PlannedRun(
                 cfg.variant,
@@ -370,7 +369,13 @@ def plan_group(
     )
     if report:
         out = out_dir or default_out_dir(project_dir, preset)
-        plan.notes.append(f"then: the group's reports into {_shown(out, project_dir)}/")
+        note = f"then: the group's reports into {_shown(out, project_dir)}/"
+        if out_dir is None:
+            note += (
+                f" (into runs/reports/{preset}/ instead if the store then lacks runs that "
+                "the committed reports count: no committed result is replaced by fewer runs)"
+            )
+        plan.notes.append(note)
     return plan
 
 

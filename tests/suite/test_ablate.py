@@ -153,11 +153,20 @@ def test_interrupted_suite_resumes_where_it_stopped(fakes, tmp_path):
     assert "\tinterrupted\t" in log
 
 
-def test_other_data_is_trained_again(fakes, tmp_path):
-    _run(tmp_path, seeds=1)
+def test_other_data_stops_before_training_then_trains_when_asked(fakes, tmp_path):
+    # the same configs finished on data of another key: a new CPU's render, or changed data;
+    # hours of retraining are not started on a guess
+    res, _ = _run(tmp_path, seeds=1)
+    first = res.runs[0].run_id
     fakes.trained.clear()
     fakes.data_key = "otherdata9999"
-    _run(tmp_path, seeds=1)
+    with pytest.raises(ablate.OtherDataError) as err:
+        _run(tmp_path, seeds=1)
+    text = str(err.value)
+    assert fakes.trained == []
+    assert "2 of the 2 runs" in text and "otherdata9999" in text
+    assert f"cloudpose same-data --run {first}" in text and "--fresh" in text
+    _run(tmp_path, seeds=1, other_data=True)
     assert sorted(fakes.trained) == [("l2", 1), ("shared-0", 1)]
 
 

@@ -66,8 +66,10 @@ def test_plan_time_comes_from_the_store_when_it_has_runs(project):
     _finished_run(project, "shared-0", "smoke", 1)
     plan = plans.plan_runs(["shared-0"], "smoke", [1, 2], title="t", project_dir=project)
     assert "median wall time of 1 finished smoke run" in plan.per_run_source
-    # the data is not rendered: the run on other data is only mentioned, not skipped
-    assert len(plan.to_train) == 2 and plan.matched_elsewhere == 1
+    # the data is not rendered: the run of the same config counts as finished (the runner
+    # then skips it, or stops when its data turns out to be other data), the other to train
+    assert [r.status for r in plan.runs] == ["finished", "to train"]
+    assert plan.matched_elsewhere == 1 and "not rendered yet" in plan.text()
 
 
 def test_plan_time_leaves_out_a_run_trained_partly_elsewhere(project):
@@ -93,7 +95,9 @@ def test_ablate_dry_run_prints_the_plan_and_trains_nothing(project, monkeypatch)
         app, ["ablate", "--group", "loss", "--preset", "smoke", "--seeds", "2", "--dry-run"]
     )
     assert res.exit_code == 0, res.output
-    assert res.output.startswith("plan: ablation loss/smoke, seeds 1-2")
+    store, plan = res.output.split("\n", 1)
+    assert store.startswith("store: sqlite:///") and store.endswith("(MLFLOW_TRACKING_URI)")
+    assert plan.startswith("plan: ablation loss/smoke, seeds 1-2")
     assert "4 to train + evaluate" in res.output and "render 16 of 16 frames" in res.output
     assert not (project / "data").exists()
 
