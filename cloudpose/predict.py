@@ -3,6 +3,9 @@
 Input: a depth PNG, a label PNG (class ids; ground-truth or a segmentation network's output), an
 optional color PNG, and intrinsics (a YCB-Video meta.mat, ``fx,fy,cx,cy``, or YCB-Video's camera
 by default). Every labelled object is segmented, sampled and posed as in evaluation.
+
+The overlay goes where ``--overlay`` says (:func:`overlay_path`): a folder (one that exists, or
+a name ending in ``/``) holds :data:`OVERLAY_NAME`; a name without a suffix gets ``.png``.
 """
 
 from __future__ import annotations
@@ -20,7 +23,14 @@ from cloudpose.data.segments import check_depth_scale, extract_segments
 from cloudpose.data.ycb import YCBVideo, read_frame
 from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
 from cloudpose.refine import DepthView, ICPSettings, depth_agreement
-from cloudpose.store.runs import client_for, local_checkpoint
+from cloudpose.store.checkpoints import FORM_KEY, packed_form, unpacked_name
+from cloudpose.store.checkpoints import load as load_stored
+from cloudpose.store.pretrained import is_pretrained
+from cloudpose.store.runs import INFO, client_for, is_run_folder, local_checkpoint
+
+OVERLAY_NAME = "prediction.png"
+"""The overlay's file name in a folder that ``--overlay`` names (and in the current one by
+default)."""
 
 
 @dataclass(frozen=True)
@@ -55,10 +65,29 @@ class ObjectPose:
 
 @dataclass(frozen=True)
 class PredictResult:
-    """Poses of every object with a usable segment; the frame they came from."""
+    """Poses of every object with a usable segment, the labelled ones without, and the overlay
+    written (None: none asked for)."""
 
     poses: list[ObjectPose]
     skipped: list[int]  # class ids with no usable segment point
+    overlay: Path | None = None
+
+    def notes(self, depth: Path, label: Path) -> list[str]:
+        """Lines on the objects not posed, and what to check: none labelled in ``label``, or
+        labelled ones without a usable point in ``depth``."""
+        if not self.poses and not self.skipped:
+            return [
+                f"no object found: --label {label} labels no pixel (every one is 0, "
+                "background); check that it is this frame's label image, class ids 1-21"
+            ]
+        if not self.skipped:
+            return []
+        ids = ", ".join(str(c) for c in self.skipped)
+        head = "no object posed" if not self.poses else "not posed"
+        return [
+            f"{head}: class ids {ids} of --label {label} have no usable point in --depth "
+            f"{depth}; check that the two are of one frame, and --depth-factor (or the meta's)"
+        ]
 
 
 def parse_intrinsics(text: str | None) -> np.ndarray:
@@ -72,14 +101,74 @@ def parse_intrinsics(text: str | None) -> np.ndarray:
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
 
+def overlay_path(overlay: str | Path) -> Path:
+    """The file an ``--overlay`` value names: :data:`OVERLAY_NAME` inside a folder (one that
+    exists, or a name ending in ``/``), ``NAME.png`` for a name without a suffix, else the
+    ``.png`` file named.
+
+    Raises:
+        ValueError: a name with another suffix than ``.png``.
+    """
+    text = str(overlay)
+    path = Path(text)
+    if text.endswith(("/", "\\")) or path.is_dir():
+        return path / OVERLAY_NAME
+    if not path.suffix:
+        return path.with_name(path.name + ".png")
+    if path.suffix.lower() != ".png":
+        raise ValueError(
+            f"--overlay {text}: expected a .png file, a folder, or a name without a suffix "
+            "(.png is added)"
+        )
+    return path
+
+
+def _packed(checkpoint: str, form: str) -> ValueError:
+    return ValueError(
+        f"--checkpoint {checkpoint}: a packed form ({form}) of a compact store's checkpoint; "
+        "unpack the store first (cloudpose store-unpack STORE --into FOLDER) and give its "
+        f"{unpacked_name(Path(checkpoint).name)}"
+    )
+
+
 def load_model_for(checkpoint: str, device: str = "auto"):
-    """(model, config) from a ``model.pt``, a run folder, an MLflow run id or a run name."""
+    """(model, config) from a ``model.pt``, a run folder, an MLflow run id, a run name or a
+    shipped network's name.
+
+    Raises:
+        ValueError: a packed checkpoint of a compact store (``model.f24.pt``; by its name or
+            content), or a name that is none of these; each naming ``--checkpoint``.
+        FileNotFoundError: a ``.pt`` file that does not exist.
+    """
     path = Path(checkpoint)
+    form = packed_form(path.name)
+    if form is not None:
+        raise _packed(checkpoint, form)
     if path.is_file():
-        return load_checkpoint(path, device)
+        try:
+            return load_checkpoint(path, device)
+        except ValueError:
+            stored = load_stored(path)
+            if stored is not None and FORM_KEY in stored:
+                raise _packed(checkpoint, stored[FORM_KEY].get("form", "?")) from None
+            raise
+    if path.suffix == ".pt":
+        raise FileNotFoundError(f"--checkpoint {checkpoint}: no such file")
+    if path.exists() and not is_run_folder(path):
+        raise ValueError(
+            f"--checkpoint {checkpoint}: a folder, but not a run folder (no {INFO}); expected a "
+            "model.pt, a run folder, an MLflow run id or a run name"
+        )
     client = client_for([checkpoint])  # None for the shipped network: no store is opened
-    with local_checkpoint(client, checkpoint) as (_, ckpt):  # a download is removed
-        return load_checkpoint(ckpt, device)
+    try:
+        with local_checkpoint(client, checkpoint) as (_, ckpt):  # a download is removed
+            return load_checkpoint(ckpt, device)
+    except ValueError as exc:
+        message = str(exc)
+        if is_pretrained(checkpoint) or not message.startswith("--run "):
+            raise
+        # the resolver speaks of evaluate's --run; here the same value came as --checkpoint
+        raise ValueError("--checkpoint " + message.removeprefix("--run ")) from exc
 
 
 def predict(
@@ -93,7 +182,7 @@ def predict(
     depth_factor: float = 10000.0,
     icp: bool = True,
     icp_overrides: dict[str, Any] | None = None,
-    overlay: Path | None = None,
+    overlay: str | Path | None = None,
     seed: int = 0,
     device: str = "auto",
 ) -> PredictResult:
@@ -101,12 +190,14 @@ def predict(
 
     ``icp_overrides``: fields of :class:`~cloudpose.refine.ICPSettings` to change from the
     checkpoint's own ICP (as :func:`cloudpose.evaluate.evaluate`'s), e.g. the starts, their
-    selection against this frame's depth, a wider first radius.
+    selection against this frame's depth, a wider first radius. ``overlay``: where to draw
+    the poses (:func:`overlay_path`; the result names the file written).
 
     Raises:
         ValueError: besides bad files, depth that looks like another unit than
             ``depth_factor`` says (:func:`cloudpose.data.segments.check_depth_scale`).
     """
+    overlay = None if overlay is None else overlay_path(overlay)
     model, cfg = load_model_for(checkpoint, device)
     K = None if meta is not None else parse_intrinsics(intrinsics)
     frame = read_frame(
@@ -165,11 +256,12 @@ def predict(
     skipped = [int(c) for c in segs.cls_id[~segs.valid]]
     if overlay is not None:
         draw_overlay(frame, poses, models_by_class, overlay)
-    return PredictResult(poses, skipped)
+    return PredictResult(poses, skipped, overlay)
 
 
 def draw_overlay(frame, poses: list[ObjectPose], models_by_class, path: Path) -> None:
-    """Model points projected with each estimated pose, one colour per object, on the image."""
+    """Model points projected with each estimated pose, one colour per object, on the image,
+    written to ``path`` as PNG (whatever its suffix)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,5 +290,5 @@ def draw_overlay(frame, poses: list[ObjectPose], models_by_class, path: Path) ->
     ax.set_title("cloudpose predict: model points at the estimated poses", fontsize=8)
     fig.tight_layout(pad=0.2)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    fig.savefig(path, format="png")
     plt.close(fig)

@@ -52,6 +52,22 @@ def _pooled(table: pd.DataFrame) -> dict[str, dict[str, float]]:
     return out
 
 
+def check_options(synthetic_frames: int, baseline: str) -> None:
+    """``ValueError`` naming the option unless ``synthetic_frames`` is 0 or more and
+    ``baseline`` is a method of ``baselines.toml`` or ''."""
+    import tomllib
+
+    from cloudpose.registry import BASELINES_FILE
+
+    if synthetic_frames < 0:
+        raise ValueError(
+            f"--synthetic-frames {synthetic_frames}: expected 0 (real frames only) or more"
+        )
+    known = list(tomllib.loads(BASELINES_FILE.read_text()).get("baseline", {}))
+    if baseline and baseline not in known:
+        raise ValueError(f"--baseline {baseline!r}: expected one of {', '.join(known)}, or ''")
+
+
 def run_showcase(
     out_dir: Path,
     synthetic_frames: int = 40,
@@ -65,6 +81,10 @@ def run_showcase(
         out_dir: where the synthetic frames, segment caches and the overlay go.
         synthetic_frames: test frames to render (0: real frames only).
         baseline: a registered baseline (``cloudpose baseline --help``), or "" for none.
+
+    Raises:
+        ValueError: a negative ``synthetic_frames`` or an unknown ``baseline`` (before any
+            work; :func:`check_options`).
     """
     from cloudpose.baselines.run import run_baseline
     from cloudpose.data.layout import real_dev_root
@@ -73,6 +93,7 @@ def run_showcase(
     from cloudpose.infer import load_checkpoint
     from cloudpose.predict import predict
 
+    check_options(synthetic_frames, baseline)
     out_dir = Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     net = shipped()

@@ -41,11 +41,18 @@ def showcase(
 def ship(
     ctx: typer.Context,
     run: Annotated[str, typer.Option(help="Finished run: name (variant/preset/seedS) or id.")],
-    name: Annotated[str, typer.Option(help="Shipped name it replaces.")] = "pretrained",
+    name: Annotated[str, typer.Option(help="Shipped name it answers to.")] = "pretrained",
     out: Annotated[
         Path | None,
         typer.Option(help="Folder to write (default: the package's resources).", file_okay=False),
     ] = None,
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force",
+            help="Replace the network that --name answers to in --out (its files are removed).",
+        ),
+    ] = False,
     half: Annotated[
         bool,
         typer.Option(
@@ -54,38 +61,66 @@ def ship(
     ] = True,
     progress: ProgressOpt = True,
 ) -> None:
-    """Package a finished run's network as the shipped one (weights, config and a record of the
-    run, its data key and metrics, with a checksum), from this folder's MLflow store."""
-    from cloudpose.conventions import resource_path
-    from cloudpose.data.dataset import folder_segments
+    """Package a finished run's network as a shipped one, VARIANT_PRESET_seedS.pt in --out
+    (weights, config and a record of the run, its data key and metrics, with a checksum), from
+    this folder's MLflow store. Names the run's preset and metrics first; a network the name
+    answers to there already (the package's own, by default) is replaced only with --force,
+    and its files are then removed."""
     from cloudpose.data.keys import DataKey
-    from cloudpose.data.layout import open_dataset, real_dev_root
     from cloudpose.infer import load_checkpoint
     from cloudpose.store import tracking
-    from cloudpose.store.pretrained import SHIPPED
+    from cloudpose.store.pretrained import (
+        SHIPPED,
+        check_replace,
+        describe_record,
+        describe_run,
+        file_stem,
+        shipped_folder,
+    )
     from cloudpose.store.pretrained import ship as write
-    from cloudpose.store.runs import local_checkpoint
+    from cloudpose.store.runs import display_name, local_checkpoint
 
     if name not in SHIPPED:
         raise ValueError(f"--name {name!r}: expected one of {', '.join(SHIPPED)}")
+    folder = out or shipped_folder()
     client = tracking.setup(Path.cwd())
     with local_checkpoint(client, run) as (run_id, ckpt):
         if run_id is None:
             raise ValueError(f"--run {run!r} is a shipped network already; name a trained run")
         _, cfg = load_checkpoint(ckpt)
         record = client.get_run(run_id)
-        segs = folder_segments(open_dataset(real_dev_root()), "all", cfg.data, Path.cwd(), progress)
+        run_name = display_name(cfg)
+        stem = file_stem(run_name)
+        incoming = describe_run(run_name, cfg.preset, record.data.metrics)
+        replaced = check_replace(folder, stem, name, force=force, incoming=incoming)
+        typer.echo(f"shipping {incoming}")
+        typer.echo(f"as {name!r}: {folder / stem}.pt")
+        if replaced is not None:
+            typer.echo(f"replacing {describe_record(replaced)} ({replaced.with_suffix('.pt')})")
         path = write(
             ckpt,
-            out or resource_path("pretrained"),
-            SHIPPED[name],
+            folder,
+            stem,
             run_name=record.info.run_name,
             run_id=run_id,
             data_key=DataKey(record.data.tags.get("data", "")),
             fingerprint=record.data.tags.get("config", cfg.fingerprint()),
             metrics=record.data.metrics,
             command=recorded_command(ctx),
-            check_segments=[("real development frames", segs)],
+            check_segments=_check_segments(cfg, progress) if half else [],
             half=half,
+            name=name,
+            force=force,
         )
     typer.echo(f"wrote {path} and {path.with_suffix('.json')}")
+    if replaced is not None and replaced.stem != stem:
+        typer.echo(f"removed {replaced.with_suffix('.pt')} and {replaced}")
+
+
+def _check_segments(cfg, progress: bool) -> list:
+    """The segment sets half precision is checked on: the packaged real development frames."""
+    from cloudpose.data.dataset import folder_segments
+    from cloudpose.data.layout import open_dataset, real_dev_root
+
+    segs = folder_segments(open_dataset(real_dev_root()), "all", cfg.data, Path.cwd(), progress)
+    return [("real development frames", segs)]

@@ -277,14 +277,19 @@ def predict(
             "refinement docs/ensemble.md measures best.",
         ),
     ] = None,
-    overlay: Annotated[Path, typer.Option(help="Where to write the overlay PNG.")] = Path(
-        "prediction.png"
-    ),
+    overlay: Annotated[
+        str,
+        typer.Option(
+            help="Where to write the overlay PNG: a .png file, a folder (prediction.png inside "
+            "it; one that exists, or a name ending in /), or a name without a suffix (.png is "
+            "added)."
+        ),
+    ] = "prediction.png",
     device: DeviceOpt = "auto",
 ) -> None:
     """Estimate each labelled object's pose in one frame; print poses (with how each agrees
     with the depth: ICP fitness, coverage of the segment, share of the model in front of the
-    observed surface), write an overlay picture."""
+    observed surface) and the objects not posed, write an overlay picture and name it."""
     from cloudpose.predict import predict as predict_fn
 
     overrides = icp_overrides(None, icp_starts, icp_select, icp_radius, icp)
@@ -303,7 +308,9 @@ def predict(
     )
     for p in result.poses:
         typer.echo(p.describe())
-    typer.echo(f"overlay: {overlay}")
+    for line in result.notes(depth, label):
+        typer.echo(line)
+    typer.echo(f"overlay: {result.overlay}")
 
 
 @app.command()
