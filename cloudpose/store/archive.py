@@ -22,7 +22,11 @@ every address into the target's ``mlartifacts/`` relative to the store's folder 
 machine the addresses came from: archives packed by hand, with absolute addresses, included),
 writes each run's ``run_dir`` tag relative to it too (``runs/VARIANT/PRESET/FOLDER``), and only
 then moves the store into place, ``mlflow.db`` last: an unpack that is stopped (Ctrl-C,
-SIGTERM, an error) leaves no store behind, and its rerun is not refused. Nothing in the
+SIGTERM, an error) leaves no store behind, and its rerun is not refused. Into an
+``mlartifacts/`` already there (an earlier unpack's, its ``mlflow.db`` removed), each run's
+artifact folder replaces the one of the same address, so that a run's artifacts are the
+store's and no others (a folder that held other files is named in a warning); folders of runs
+the store does not hold are left as they are. Nothing in the
 unpacked ``mlflow.db`` names the folder it was unpacked into: the folder can be moved or
 copied, and every command reads its artifacts against the store's folder
 (:func:`cloudpose.store.tracking.artifact_address`). An archive with a member outside the folder (``../``,
@@ -34,6 +38,8 @@ in the original project.
 from __future__ import annotations
 
 import contextlib
+import filecmp
+import json
 import lzma
 import os
 import shutil
@@ -43,9 +49,10 @@ import tempfile
 import time
 import warnings
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from typing import NamedTuple
 
 from cloudpose.failures import disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write, checked_members
@@ -103,6 +110,8 @@ class PackSummary:
     :mod:`cloudpose.store.checkpoints`)."""
     killed: tuple[tuple[str, str], ...] = ()
     """(run name, why) of each run left RUNNING by a process that is gone, packed KILLED."""
+    running: tuple[tuple[str, str], ...] = ()
+    """(run name, what is packed of it) of each run packed RUNNING: its process may live."""
 
 
 def _relative(uri: str) -> str | None:
@@ -199,25 +208,54 @@ def _relative_run_dirs(db: Path, project: Path | None = None) -> None:
         con.close()
 
 
-def _folder_locked(run_dir: str, project: Path) -> bool:
-    """Whether a process on this machine holds the lock of the run folder ``run_dir`` (a
-    relative one under ``project``): it trains."""
-    from cloudpose.store.runs import folder_locked
+LOCK_HELD = "held"
+LOCK_RELEASED = "released"
 
-    return folder_locked(Path(run_dir) if Path(run_dir).is_absolute() else project / run_dir)
+
+def _lock_state(run_id: str, run_dir: str, project: Path) -> str | None:
+    """How the run folder ``run_dir`` (a relative one under ``project``) of the run ``run_id``
+    stands on this machine: :data:`LOCK_HELD` while a process holds its lock (it trains);
+    :data:`LOCK_RELEASED` when the folder is here, its ``run.json`` names this run and no
+    process holds its lock file (the one that trained it is gone: the system releases a dead
+    process's lock); else None (nothing here to ask)."""
+    from cloudpose.store.runs import INFO, folder_locked, lock_path
+
+    if not run_dir:
+        return None
+    folder = Path(run_dir) if Path(run_dir).is_absolute() else project / run_dir
+    if folder_locked(folder):
+        return LOCK_HELD
+    if not lock_path(folder).is_file():
+        return None
+    try:
+        info = json.loads((folder / INFO).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return LOCK_RELEASED if isinstance(info, dict) and info.get("run_id") == run_id else None
 
 
 def _utc(ms: int) -> str:
     return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(ms / 1000))
 
 
-def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple[str, str]]:
+class Marked(NamedTuple):
+    """What :func:`_mark_dead` found of the runs left RUNNING: (run name, why) of each
+    recorded KILLED, (run name, what is packed of it) of each packed RUNNING."""
+
+    killed: list[tuple[str, str]]
+    running: list[tuple[str, str]]
+
+
+def _mark_dead(
+    db: Path, project: Path, keep: Collection[str] = (), now_ms: int | None = None
+) -> Marked:
     """Record as KILLED (end time: its last activity; tag ``marked_killed``: why) each active
-    run of the store copy ``db`` left RUNNING by a process that is gone, by the rule of the
-    MLflow UI's preparation (:func:`cloudpose.store.liveness.dead_reason`: no process here holds
-    its run folder's lock, and a later run of the same variant, preset, seed and config
-    started after its last activity, or it logged nothing for
-    :data:`~cloudpose.store.liveness.STALE_AFTER_S`). Returns (run name, why) of each."""
+    run of the store copy ``db`` left RUNNING by a process that is gone, by the rule of
+    :mod:`cloudpose.store.liveness` (:func:`~cloudpose.store.liveness.dead_runs`): its run
+    folder is here and no process holds its lock; or, with no folder here to ask, a later run
+    of the same variant, preset, seed and config started after its last activity, or it
+    logged nothing for :data:`~cloudpose.store.liveness.STALE_AFTER_S`. Every other RUNNING run
+    is packed RUNNING as it stands; ``keep``: the runs whose checkpoints are packed."""
     from cloudpose.store.liveness import KILLED_TAG, STALE_AFTER_S, dead_runs
     from cloudpose.store.runs import TRAINING_PREFIXES
 
@@ -234,18 +272,24 @@ def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple
         start_of = {rid: start or 0 for rid, _, _, start in runs}
         name_of = {rid: name for rid, name, _, _ in runs}
 
-        def last_activity(rid: str) -> int:
-            last = start_of[rid]
-            for key, ts in con.execute(
-                "SELECT key, MAX(timestamp) FROM metrics WHERE run_uuid = ? GROUP BY key", (rid,)
+        def training(rid: str) -> tuple[int, int | None]:
+            """(last activity ms, last training step or None) of a run."""
+            last, step = start_of[rid], None
+            for key, ts, top in con.execute(
+                "SELECT key, MAX(timestamp), MAX(step) FROM metrics WHERE run_uuid = ? "
+                "GROUP BY key",
+                (rid,),
             ):
                 if key.split("/")[0] in TRAINING_PREFIXES:
-                    last = max(last, ts)
-            return last
+                    last, step = max(last, ts), max(step or 0, top)
+            return last, step
 
-        def locked(rid: str) -> bool:
-            run_dir = tags[rid].get(RUN_DIR_TAG)
-            return bool(run_dir) and _folder_locked(run_dir, project)
+        state: dict[str, str | None] = {}
+
+        def lock(rid: str) -> str | None:
+            if rid not in state:
+                state[rid] = _lock_state(rid, tags[rid].get(RUN_DIR_TAG, ""), project)
+            return state[rid]
 
         config = ("variant", "preset", "seed", "config")
         dead = dead_runs(
@@ -254,15 +298,21 @@ def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple
                 for rid, _, status, start in runs
             ],
             now_ms,
-            last_activity,
-            locked,
+            lambda rid: training(rid)[0],
+            lambda rid: lock(rid) == LOCK_HELD,
+            lambda rid: lock(rid) == LOCK_RELEASED,
         )
-        out = []
+        killed = []
         with con:
             for d in dead:
                 rid, last, later = d.run, d.last_activity_ms, d.later_start_ms
                 # said without the time of packing, so that a repack writes the same tag
-                if later is not None and later > last:
+                if d.lock_released:
+                    why = (
+                        f"RUNNING when packed, but no process holds its run folder's lock: the "
+                        f"process that trained it is gone (last activity {_utc(last)})"
+                    )
+                elif later is not None and later > last:
                     why = (
                         f"RUNNING when packed, but a later run of the same config started "
                         f"{_utc(later)}, after its last activity ({_utc(last)})"
@@ -280,8 +330,29 @@ def _mark_dead(db: Path, project: Path, now_ms: int | None = None) -> list[tuple
                     "INSERT OR REPLACE INTO tags (key, value, run_uuid) VALUES (?, ?, ?)",
                     (KILLED_TAG, f"{why}; marked by cloudpose store-pack", rid),
                 )
-                out.append((name_of[rid], why))
-        return out
+                killed.append((name_of[rid], why))
+        gone = {d.run for d in dead}
+        running = []
+        for rid, name, status, _ in runs:
+            if status != "RUNNING" or rid in gone:
+                continue
+            last, step = training(rid)
+            if lock(rid) == LOCK_HELD:
+                alive = "its process holds its run folder's lock"
+            else:
+                alive = (
+                    "its process may live: no run folder of it here to ask, and it logged "
+                    f"within {STALE_AFTER_S / 3600:.0f} h"
+                )
+            logged = (
+                f"training metrics to step {step}, {_utc(last)}"
+                if step is not None
+                else f"no training metric yet, started {_utc(last)}"
+            )
+            ckpt = ", its checkpoints as they are now" if rid in keep else ""
+            what = f"{alive}; packed RUNNING as it stands ({logged}{ckpt}): pack again when it ends"
+            running.append((name, what))
+        return Marked(killed, running)
     finally:
         con.close()
 
@@ -297,8 +368,9 @@ def _under_artifacts(base: str) -> Callable[[str], str | None]:
     return to
 
 
-def _run_ids(db: Path, names: list[str]) -> set[str]:
-    """Run ids of ``names``: each a run id, or a run name (its newest active run)."""
+def _run_ids(db: Path, names: list[str], store: Path) -> set[str]:
+    """Run ids of ``names`` (``--checkpoint``): each a run id, or a run name (its newest active
+    run), looked up in ``db`` (a copy of the store ``store``, which a message names)."""
     con = sqlite3.connect(db)
     try:
         ids = set()
@@ -313,7 +385,18 @@ def _run_ids(db: Path, names: list[str]) -> set[str]:
                 ).fetchone()
             )
             if row is None:
-                raise ValueError(f"{db}: no run with the id or name {name!r}")
+                some = [
+                    n
+                    for (n,) in con.execute(
+                        "SELECT DISTINCT name FROM runs WHERE lifecycle_stage = 'active' "
+                        "ORDER BY name LIMIT 3"
+                    )
+                ]
+                given = f"e.g. {', '.join(some)}" if some else "it holds no run"
+                raise ValueError(
+                    f"--checkpoint {name!r}: no run of {store} has that id or name (expected a "
+                    f"run id or a run name: {given}); nothing packed"
+                )
             ids.add(row[0])
         return ids
     finally:
@@ -462,13 +545,14 @@ def pack_store(
         finally:
             src.close()
             dst.close()
-        keep = _run_ids(copy, list(checkpoints))
+        keep = _run_ids(copy, list(checkpoints), db)
         plan, moved = _artifact_plan(copy, project)
         runs = _rewrite(
             copy,
             lambda uri: moved.get(uri) or _under_artifacts(ARTIFACT_DIR)(uri) or _portable(uri),
         )
-        killed = tuple(_mark_dead(copy, project))
+        marked = _mark_dead(copy, project, keep)
+        killed, running = tuple(marked.killed), tuple(marked.running)
         _relative_run_dirs(copy, project)
         files = kept = left = 0
         without = tuple(r.run_id for r in plan if r.expected and not r.source.is_dir())
@@ -494,6 +578,7 @@ def pack_store(
                 without,
                 c.checked,
                 killed,
+                running,
             )
 
         def write(path: Path) -> None:
@@ -522,7 +607,9 @@ def pack_store(
             if full is None:
                 raise
             raise full from exc
-    return PackSummary(runs, files, kept, left, out.stat().st_size, without, killed=killed)
+    return PackSummary(
+        runs, files, kept, left, out.stat().st_size, without, killed=killed, running=running
+    )
 
 
 def _unreadable(archive: Path, exc: BaseException) -> ValueError:
@@ -558,14 +645,61 @@ def _checked_members(archive: Path, tar: tarfile.TarFile, staging: str) -> list[
     return members
 
 
-def _move_in(staging: Path, into: Path) -> None:
-    """Move an unpacked store from ``staging`` into ``into``: the artifacts (one rename, or
-    file by file into an artifact folder already there), then ``mlflow.db``, last."""
+def _run_folders(db: Path) -> list[str]:
+    """The artifact folder of each run of the unpacked store ``db`` that lies under
+    ``mlartifacts/`` (``mlartifacts/GROUP/RUN_ID/artifacts``, relative to the store's folder)."""
+    con = sqlite3.connect(db)
+    try:
+        rows = con.execute("SELECT artifact_uri FROM runs").fetchall()
+    finally:
+        con.close()
+    out = set()
+    for (uri,) in rows:
+        parts = PurePosixPath(uri or "").parts
+        if len(parts) > 2 and parts[0] == ARTIFACT_DIR and ".." not in parts:
+            out.add("/".join(parts))
+    return sorted(out)
+
+
+def _same_tree(a: Path, b: Path) -> bool:
+    """Whether the folders ``a`` and ``b`` (either may be missing) hold the same files."""
+
+    def files(d: Path) -> dict[str, Path]:
+        found = d.rglob("*") if d.is_dir() else []
+        return {p.relative_to(d).as_posix(): p for p in found if p.is_file() or p.is_symlink()}
+
+    fa, fb = files(a), files(b)
+    return fa.keys() == fb.keys() and all(filecmp.cmp(fa[k], fb[k], shallow=False) for k in fa)
+
+
+def _move_in(staging: Path, into: Path, run_folders: Sequence[str]) -> list[str]:
+    """Move an unpacked store from ``staging`` into ``into``: the artifacts, then ``mlflow.db``,
+    last. Into an artifact folder already there, each run's folder (``run_folders``) replaces
+    the one there (a run's artifacts are the store's, with no file of an earlier unpack left
+    among them), and any other file is moved in beside what is there.
+
+    Returns:
+        The run folders that held other files than the store's (replaced).
+    """
     art, dest = staging / ARTIFACT_DIR, into / ARTIFACT_DIR
+    replaced = []
     if art.is_dir() and not dest.exists():
         os.replace(art, dest)
-    elif art.is_dir():
-        for f in sorted(art.rglob("*")):
+    elif dest.exists():
+        for rel in run_folders:  # every old folder out first: an address may hold another
+            old = into / rel
+            if old.is_symlink() or old.is_file():
+                old.unlink()
+                replaced.append(rel)
+            elif old.is_dir():
+                if not _same_tree(old, staging / rel):
+                    replaced.append(rel)
+                shutil.rmtree(old)
+        for rel in run_folders:
+            if (staging / rel).is_dir():
+                (into / rel).parent.mkdir(parents=True, exist_ok=True)
+                os.replace(staging / rel, into / rel)
+        for f in sorted(art.rglob("*")) if art.is_dir() else []:
             target = dest / f.relative_to(art)
             if f.is_dir() and not f.is_symlink():
                 target.mkdir(parents=True, exist_ok=True)
@@ -573,6 +707,7 @@ def _move_in(staging: Path, into: Path) -> None:
                 target.parent.mkdir(parents=True, exist_ok=True)
                 os.replace(f, target)
     os.replace(staging / STORE_DB, into / STORE_DB)
+    return replaced
 
 
 def _outside_addresses(db: Path) -> list[str]:
@@ -594,7 +729,9 @@ def unpack_store(archive: Path, into: Path) -> int:
             or packed by hand with absolute addresses of another machine), or a folder in the
             compact form (:mod:`cloudpose.store.compact`; every file checked against its index
             before anything is written, and ``mlflow.db`` rebuilt).
-        into: the folder to hold the store; it must not hold an ``mlflow.db`` yet.
+        into: the folder to hold the store; it must not hold an ``mlflow.db`` yet. Each run's
+            artifact folder under its ``mlartifacts/`` is replaced by the store's
+            (:func:`_move_in`).
 
     Returns:
         The number of runs in the store. Nothing is left in ``into`` when it fails or is
@@ -647,7 +784,7 @@ def unpack_store(archive: Path, into: Path) -> int:
                     f"{archive}: its {STORE_DB} is not an MLflow store ({exc}); nothing unpacked"
                 ) from exc
             outside = _outside_addresses(staging / STORE_DB)
-            _move_in(staging, into)
+            replaced = _move_in(staging, into, _run_folders(staging / STORE_DB))
         finally:
             if staging is not None:
                 shutil.rmtree(staging, ignore_errors=True)
@@ -657,6 +794,13 @@ def unpack_store(archive: Path, into: Path) -> int:
         warnings.warn(
             f"{len(outside)} of {n} runs in {archive} keep their artifacts outside it (e.g. "
             f"{outside[0]}): their artifacts are not in {into / ARTIFACT_DIR}",
+            stacklevel=2,
+        )
+    if replaced:
+        warnings.warn(
+            f"{len(replaced)} runs' artifact folders under {into / ARTIFACT_DIR} held other "
+            f"files than {archive} (e.g. {into / replaced[0]}, left by an earlier unpack?): "
+            "replaced by the store's",
             stacklevel=2,
         )
     return n

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from cloudpose.conventions import resource_path
+from cloudpose.files import CorruptFileError, why
 from cloudpose.store.pretrained import HALF_TOLERANCE_DEG, pose_difference
 
 FLOAT16 = "float16"
@@ -146,12 +147,39 @@ def decode(packed: Mapping[str, Any]) -> dict[str, Any]:
     form, changed = meta["form"], set(meta["keys"])
     if form not in REDUCED:
         raise ValueError(f"unknown checkpoint form {form!r}; expected one of {list(REDUCED)}")
+    absent = sorted(changed - set(packed["model"]))
+    if absent:
+        raise ValueError(f"{FORM_KEY} names state tensors that it lacks: {absent[:3]}")
     model = {}
     for key, value in packed["model"].items():
         if key in changed:
+            _check_stored(key, value, form)
             value = value.float() if form == FLOAT16 else _from_float24(value)
         model[key] = value
     return {k: (model if k == "model" else v) for k, v in packed.items() if k != FORM_KEY}
+
+
+def _check_stored(key: str, value: Any, form: str) -> None:
+    """``ValueError`` unless ``value`` is a tensor as :func:`encode` stores one in ``form``:
+    float16, or float24's uint8 byte planes ``(3, *shape)``."""
+    if form == FLOAT16:
+        ok = isinstance(value, torch.Tensor) and value.dtype == torch.float16
+        expected = "a float16 tensor"
+    else:
+        ok = (
+            isinstance(value, torch.Tensor)
+            and value.dtype == torch.uint8
+            and value.dim() >= 1
+            and value.shape[0] == 3
+        )
+        expected = "uint8 byte planes (3, *shape)"
+    if not ok:
+        got = (
+            f"{value.dtype} {tuple(value.shape)}"
+            if isinstance(value, torch.Tensor)
+            else type(value).__name__
+        )
+        raise ValueError(f"state tensor {key!r} is {got}, not {form}'s {expected}")
 
 
 def round_trip(ckpt: Mapping[str, Any], form: str) -> dict[str, Any]:
@@ -356,12 +384,33 @@ def pack_checkpoint(
 
 
 def unpack_checkpoint(packed: Path, target: Path) -> Path:
-    """Write the float32 checkpoint of the packed file ``packed`` to ``target`` (a file)."""
-    obj = torch.load(packed, map_location="cpu", weights_only=True)
-    if not isinstance(obj, dict) or FORM_KEY not in obj:
-        raise ValueError(f"{packed}: not a packed checkpoint (no {FORM_KEY!r} entry)")
-    target.write_bytes(to_bytes(decode(obj)))
+    """Write the float32 checkpoint of the packed file ``packed`` to ``target`` (a file).
+
+    Raises:
+        CorruptFileError: ``packed`` does not load, or is not a checkpoint in the form its
+            name says (:func:`decode` cannot read it); nothing is written.
+    """
+    form = packed_form(Path(packed).name) or "packed"
+    try:
+        obj = torch.load(packed, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises RuntimeError, UnpicklingError, EOFError, ...
+        raise CorruptFileError(
+            packed, f"not a readable {form} checkpoint (torch.load: {_short(why(exc))})"
+        ) from exc
+    if not isinstance(obj, dict) or FORM_KEY not in obj or "model" not in obj:
+        raise CorruptFileError(
+            packed, f"not a {form} checkpoint: no {FORM_KEY!r} and 'model' entries"
+        )
+    try:
+        ckpt = decode(obj)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as exc:
+        raise CorruptFileError(packed, f"not a readable {form} checkpoint ({why(exc)})") from exc
+    target.write_bytes(to_bytes(ckpt))
     return target
+
+
+def _short(text: str, limit: int = 120) -> str:
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def same_packed(new: Path, old: Path) -> bool:

@@ -19,8 +19,9 @@ of the index) and git stores nothing again of the runs it had::
 :func:`write_compact` writes it from a packed database copy (addresses made relative by
 :func:`cloudpose.store.archive.pack_store`); a file whose content did not change keeps its
 bytes (an instance table is compared by its values, so a repack with another pyarrow leaves it
-as it is). :func:`check_compact` verifies every file the index lists, before anything is
-written, and names the first missing or damaged one; :func:`extract_compact` rebuilds
+as it is). :func:`check_compact` checks the index against the folder before anything is
+written: every file it lists there whole, every file there listed, every run listed with its
+record and metrics; it names the first file that is not; :func:`extract_compact` rebuilds
 ``mlflow.db``: an empty store made by the installed MLflow (its schema, whatever its version),
 then the stored rows written into it with their run and experiment ids, and each metric's
 latest value derived as MLflow derives it (highest step, then timestamp, then value).
@@ -371,11 +372,13 @@ def _restore(path: Path) -> str:
 
 def check_compact(folder: Path) -> list[tuple[str, int, str]]:
     """The files the index of ``folder`` lists, each checked to be there whole (size and
-    SHA-256), as ``(path, bytes, sha256)``.
+    SHA-256), as ``(path, bytes, sha256)``; the folder holds no file the index does not list.
 
     Raises:
-        FileNotFoundError: no index, or a listed file is missing (the message names it).
-        CorruptFileError: the index is not one, or a file differs from what it lists.
+        FileNotFoundError: no index, a listed file is missing, or the index lists files of a
+            run but not its :data:`RUN_FILE` or :data:`METRICS_FILE` (the message names it).
+        CorruptFileError: the index is not one, a file differs from what it lists, or a file
+            in the folder is not listed.
     """
     folder = Path(folder)
     index = folder / INDEX
@@ -407,17 +410,70 @@ def check_compact(folder: Path) -> list[tuple[str, int, str]]:
         entries.append((rel, int(parts[1]), parts[2]))
     if not any(rel == EXPERIMENTS for rel, _, _ in entries):
         raise CorruptFileError(index, f"lists no {EXPERIMENTS}; {_restore(index)}")
+    listed = [rel for rel, _, _ in entries]
+    missing = [rel for rel in listed if not (folder / rel).is_file()]
+    if missing:
+        path = folder / missing[0]
+        raise FileNotFoundError(
+            f"{path}: missing (listed in {index}){_more(missing)}; nothing unpacked: "
+            + _restore(path)
+        )
+    unlisted = sorted(set(_files_in(folder)) - set(listed))
+    if unlisted:
+        raise CorruptFileError(
+            folder / unlisted[0],
+            f"in {folder} but not listed in {index}{_more(unlisted)}, so it would not be "
+            f"unpacked; nothing unpacked: restore the index (git checkout -- {index}), pack "
+            "the store again (cloudpose store-pack --force), or move the file out",
+        )
+    lacking = _runs_without_record(listed)
+    if lacking:
+        path = folder / RUNS / lacking[0][0] / lacking[0][1]
+        raise FileNotFoundError(
+            f"{path}: missing and not listed in {index}, which lists other files of run "
+            f"{lacking[0][0]}{_more(lacking)}: the run would be lost; nothing unpacked: "
+            + _restore(path)
+        )
     for rel, size, sha in entries:
         path = folder / rel
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: missing (listed in {index}); {_restore(path)}")
         if path.stat().st_size != size or _sha256(path) != sha:
             raise CorruptFileError(
                 path,
                 f"damaged: {path.stat().st_size} bytes, not the {size} bytes of SHA-256 "
-                f"{sha[:12]}... that {INDEX} lists; {_restore(path)}",
+                f"{sha[:12]}... that {INDEX} lists; nothing unpacked: {_restore(path)}",
             )
     return entries
+
+
+def _more(paths: Sequence[str]) -> str:
+    """`` (and N more)`` after the first of ``paths`` that a message names."""
+    return f" (and {len(paths) - 1} more)" if len(paths) > 1 else ""
+
+
+def _files_in(folder: Path) -> list[str]:
+    """Every file (or link) in the compact ``folder`` but its index, relative, sorted."""
+    return sorted(
+        p.relative_to(folder).as_posix()
+        for p in folder.rglob("*")
+        if (p.is_file() or p.is_symlink()) and p != folder / INDEX
+    )
+
+
+def _runs_without_record(listed: Iterable[str]) -> list[tuple[str, str]]:
+    """(run id, :data:`RUN_FILE` or :data:`METRICS_FILE`) of each run folder of which the
+    index lists files but not that one: without both, :func:`extract_compact` cannot rebuild
+    the run."""
+    have: dict[str, set[str]] = {}
+    for rel in listed:
+        parts = rel.split("/")
+        if parts[0] == RUNS and len(parts) > 2:
+            have.setdefault(parts[1], set()).add("/".join(parts[2:]))
+    return [
+        (rid, name)
+        for rid, files in sorted(have.items())
+        for name in (RUN_FILE, METRICS_FILE)
+        if name not in files
+    ]
 
 
 def _new_database(db: Path) -> None:
@@ -549,9 +605,14 @@ def extract_compact(folder: Path, entries: list[tuple[str, int, str]], staging: 
             if target.name == instances.PARQUET:
                 _unpack_table(folder, rel, listed, shared, target)
             elif checkpoints.packed_form(target.name) is not None:
-                checkpoints.unpack_checkpoint(
-                    folder / rel, target.with_name(checkpoints.unpacked_name(target.name))
-                )
+                try:
+                    checkpoints.unpack_checkpoint(
+                        folder / rel, target.with_name(checkpoints.unpacked_name(target.name))
+                    )
+                except CorruptFileError as exc:
+                    raise CorruptFileError(
+                        exc.path, f"{exc.message}; nothing unpacked: {_restore(exc.path)}"
+                    ) from exc
             else:
                 shutil.copyfile(folder / rel, target)
     db = staging / STORE_DB

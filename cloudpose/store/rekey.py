@@ -89,12 +89,20 @@ def rekey_runs(
 
     Raises:
         ValueError: an old key shorter than 8 digits, or today's key among them.
+        FileNotFoundError: the preset's data is missing (today's keys are made from it).
     """
     project_dir = Path(project_dir or Path.cwd()).resolve()
     old = [k.strip() for k in old]
     if any(len(k) < 8 for k in old):
         raise ValueError(f"old keys {old}: give at least 8 hex digits of each")
-    data_keys = current_keys(preset, project_dir)
+    try:
+        data_keys = current_keys(preset, project_dir)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(
+            f"--preset {preset}: {' '.join(str(exc).split())}; store-rekey computes today's "
+            "keys (those it gives the runs, and a --dry-run prints) from the preset's data "
+            f"itself: prepare it first (cloudpose prepare --preset {preset})"
+        ) from exc
     if any(data_keys["data"].startswith(k) for k in old):
         raise ValueError(f"{data_keys['data']} is today's key of the {preset} data, not an old one")
     client = tracking.setup(project_dir)

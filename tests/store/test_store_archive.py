@@ -156,7 +156,7 @@ def test_unpacking_never_replaces_a_store_and_names_a_foreign_archive(project, t
         ValueError, match=r"'notes/other\.db' is not mlflow\.db or under mlartifacts/"
     ):
         unpack_store(foreign, tmp_path / "x")
-    with pytest.raises(ValueError, match="no run with the id or name 'nope'"):
+    with pytest.raises(ValueError, match=r"--checkpoint 'nope': no run of .* has that id or name"):
         pack_store(project, tmp_path / "y.tar.xz", checkpoints=["nope"])
     with pytest.raises(FileNotFoundError, match="no MLflow store to pack"):
         pack_store(tmp_path / "empty", tmp_path / "z.tar.xz")
