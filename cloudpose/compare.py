@@ -20,8 +20,12 @@ networks' poses), ``tables/METHOD-REFINEMENT.csv`` (the instance tables of
 the viewing ray), and the report ``compare.md`` with its figure ``compare.png``; a folder
 holding another comparison is refused, never mixed. The classical methods' estimates, which do
 not depend on the networks, are kept for every comparison of the project on the same segments
-(:func:`baseline_estimates_path`), saved as they are computed: an interrupted call resumes, and
-a comparison of other networks on the same frames reuses them.
+(:func:`baseline_estimates_path`), saved as they are computed and on Ctrl-C or SIGTERM (which
+stops a call as Ctrl-C does): an interrupted call resumes, and a comparison of other networks
+on the same frames reuses them. What a folder keeps is checked before it is used: a cached
+estimate that is unreadable, lacks an array or is no pose (an all-zero rotation), and a table
+that lacks a column, lists other instances or is not the file written (its checksum, kept in
+``tables/icp_ms.json``), are each named in a one-line warning and computed again.
 """
 
 from __future__ import annotations
@@ -30,13 +34,15 @@ import dataclasses
 import hashlib
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from cloudpose.files import atomic_text, atomic_write, read_json
+from cloudpose.failures import sigterm_as_interrupt
+from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json, read_npz, why
 
 NETWORK = "network"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
@@ -50,6 +56,12 @@ RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
 MACHINE = "machines"
 """The key of ``tables/icp_ms.json`` listing the CPUs the folder's refinements were timed on."""
+CHECKSUMS = "sha256"
+"""The key of ``tables/icp_ms.json`` holding each table's SHA-256 as written (table name ->
+hex digest): a table changed since is computed again."""
+PREPARATION = {"ppf": "training {n} detector(s) first"}
+"""A method's one-off stage per model, in the plan's words, where it takes time of its own
+(point-pair features' hash tables; FPFH's model features take milliseconds)."""
 
 
 @dataclass(frozen=True)
@@ -122,8 +134,8 @@ class Comparison:
         contenders: the methods, the network first.
         refinements: the ICPs, the paper's first.
         timing: milliseconds per object of each method's estimate (``METHOD-estimate``) and of
-            each refinement (``METHOD-REFINEMENT``), and the CPU they were timed on
-            (:data:`MACHINE`).
+            each refinement (``METHOD-REFINEMENT``), the CPU they were timed on
+            (:data:`MACHINE`) and each table's checksum (:data:`CHECKSUMS`).
         described: the data in words.
         source: the networks in words.
     """
@@ -180,15 +192,62 @@ def _manifest(path: Path, wanted: dict) -> None:
         atomic_text(path, json.dumps(record, indent=2) + "\n")
 
 
-def _have(out_dir: Path, method: str, ref: Refinement, timing: dict) -> bool:
-    """Whether ``out_dir`` holds ``method``'s table after ``ref``, written whole (its timing is
-    recorded after the table)."""
+_ERRORS = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err", "trans_along",
+           "trans_across")  # fmt: skip
+TABLE_COLUMNS = (
+    "frame_id", "instance", "cls_id", "class", "miss",
+    *(f"{stage}_{k}" for stage in ("net", "icp") for k in _ERRORS),
+)  # fmt: skip
+"""The columns of an instance table that the report reads (:func:`_refine` writes them)."""
+
+
+def table_problem(table: pd.DataFrame, segs=None) -> str | None:
+    """What makes ``table`` no instance table of the comparison, in words (the columns of
+    :data:`TABLE_COLUMNS` it lacks; with ``segs``, rows that are not the segments'), or None."""
+    missing = [c for c in TABLE_COLUMNS if c not in table.columns]
+    if missing:
+        return f"lacks column(s) {', '.join(missing)}"
+    if segs is not None:
+        rows = list(zip(table["frame_id"].astype(str), table["instance"].astype(int), strict=True))
+        want = list(zip(np.asarray(segs.frame_id).astype(str), np.asarray(segs.instance).astype(int),
+                        strict=True))  # fmt: skip
+        if rows != want:
+            return f"lists {len(rows)} instances that are not the {len(want)} segments compared"
+    return None
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _checksums(timing: dict) -> dict:
+    """The tables' recorded checksums (:data:`CHECKSUMS`); none where the record is not a
+    mapping."""
+    sums = timing.get(CHECKSUMS)
+    return sums if isinstance(sums, dict) else {}
+
+
+def _kept_table(out_dir: Path, method: str, ref: Refinement, timing: dict, segs):
+    """``out_dir``'s table of ``method`` after ``ref`` if it was written whole (its timing is
+    recorded after the table), is an instance table of ``segs`` (:func:`table_problem`) and is
+    the file written (its checksum in :data:`CHECKSUMS`, where recorded), else None: a table
+    that fails is warned of, naming the file and why, and computed again."""
     key = f"{method}-{ref.name}"
-    return (
-        (out_dir / "tables" / f"{key}.csv").is_file()
-        and key in timing
-        and (f"{method}-estimate" in timing)
-    )
+    path = out_dir / "tables" / f"{key}.csv"
+    if not (path.is_file() and key in timing and f"{method}-estimate" in timing):
+        return None
+    try:
+        table = pd.read_csv(path, dtype={"frame_id": str})
+        problem = table_problem(table, segs)
+    except (ValueError, OSError, KeyError) as exc:  # empty, garbled, not UTF-8
+        problem = f"is not a readable table ({why(exc)})"
+    recorded = _checksums(timing).get(key)
+    if problem is None and recorded is not None and recorded != _sha256(path):
+        problem = "is not the table this comparison wrote (its checksum differs: edited since?)"
+    if problem is not None:
+        warnings.warn(f"{path}: {problem}; computed again", stacklevel=2)
+        return None
+    return table
 
 
 def _timings(path: Path) -> dict:
@@ -211,16 +270,15 @@ def _network_label(n: int) -> str:
 
 def _network(segs, loaded: list, path: Path) -> Contender:
     """The network (``loaded``: :func:`cloudpose.evaluate.load_network` of each run; more than
-    one an ensemble) on ``segs``; its estimates cached at ``path``."""
+    one an ensemble) on ``segs``; its estimates cached at ``path`` (:func:`_cached_network`)."""
     from cloudpose.infer import Estimates, estimate_poses
 
     label = _network_label(len(loaded))
     ok = np.ones(len(segs), dtype=bool)
-    if path.is_file():
-        with np.load(path) as f:
-            if f["R"].shape[:2] == (len(loaded), len(segs)):
-                ests = [Estimates(R, t) for R, t in zip(f["R"], f["t"], strict=True)]
-                return Contender(NETWORK, label, ests, ok, float(f["ms"]))
+    cached = _cached_network(path, len(loaded), segs) if path.is_file() else None
+    if cached is not None:
+        ests = [Estimates(R, t) for R, t in zip(cached["R"], cached["t"], strict=True)]
+        return Contender(NETWORK, label, ests, ok, float(cached["ms"]))
     t0 = time.perf_counter()
     ests = [estimate_poses(m, segs, c.train.n_points, device=next(m.buffers()).device)
             for _, m, c, _ in loaded]  # fmt: skip
@@ -228,6 +286,36 @@ def _network(segs, loaded: list, path: Path) -> Contender:
     arrays = {"R": np.stack([e.R for e in ests]), "t": np.stack([e.t for e in ests]), "ms": ms}
     atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
     return Contender(NETWORK, label, ests, ok, ms)
+
+
+def _cached_network(path: Path, networks: int, segs) -> dict[str, np.ndarray] | None:
+    """The arrays ``R`` (K, M, 3, 3), ``t`` (K, M, 3) and ``ms`` of the networks' estimates
+    cached at ``path`` for ``networks`` networks (K) on ``segs`` (M), or None: a cache of
+    another ensemble or segments is computed again, and so, with a one-line warning naming it,
+    is one that is unreadable, lacks an array, or holds a valid segment's estimate that is no
+    pose (:func:`cloudpose.baselines.base.not_poses`: an all-zero rotation)."""
+    from cloudpose.baselines.base import not_poses
+
+    try:
+        f = read_npz(path, ("R", "t", "ms"), "the networks' estimates")
+        if f["R"].shape[:2] != (networks, len(segs)):
+            return None
+        shapes = (f["R"].shape, f["t"].shape, f["ms"].shape)
+        if shapes != ((networks, len(segs), 3, 3), (networks, len(segs), 3), ()):
+            raise CorruptFileError(path, f"the networks' estimates of other shapes {shapes}")
+        valid = np.flatnonzero(np.asarray(segs.valid, dtype=bool))
+        each = zip(f["R"], f["t"], strict=True)  # per network
+        bad = sum(int(np.sum(not_poses(R[valid], t[valid]))) for R, t in each)
+        if bad:
+            raise CorruptFileError(
+                path,
+                f"the networks' estimates hold {bad} that are no pose (a rotation that is not "
+                "one, or a value not finite)",
+            )
+    except CorruptFileError as exc:
+        warnings.warn(f"{exc}; computed again", stacklevel=3)
+        return None
+    return f
 
 
 def baseline_estimates_path(project_dir: Path, method: str, seed: int, data_key: str) -> Path:
@@ -243,13 +331,14 @@ def baseline_estimates_path(project_dir: Path, method: str, seed: int, data_key:
     )
 
 
-def _baseline(method: str, segs, models: dict, seed: int, path: Path, progress: bool) -> Contender:
-    """Baseline ``method`` (``baselines.toml``'s settings) on ``segs``, resumable from ``path``."""
+def _baseline(method: str, segs, models: dict, seed: int, state, progress: bool) -> Contender:
+    """Baseline ``method`` (``baselines.toml``'s settings) on ``segs``, resumable from ``state``
+    (:class:`cloudpose.baselines.run.EstimateProgress`: its estimates so far, saved as they
+    are computed and on an interrupt)."""
     from cloudpose.baselines import load_settings, make
-    from cloudpose.baselines.run import EstimateProgress, estimate_all
+    from cloudpose.baselines.run import estimate_all
     from cloudpose.infer import Estimates
 
-    state = EstimateProgress(path, len(segs))
     valid = np.asarray(segs.valid, dtype=bool)
     if not state.done[valid].all():
         estimator = make(method, models, load_settings(method), seed=seed)
@@ -309,12 +398,11 @@ def _combined_label(members: list[Contender]) -> str:
 
 
 def _from_tables(
-    out_dir: Path, name: str, label: str, refs, timing: dict, parts: tuple[str, ...] = ()
+    first: pd.DataFrame, name: str, label: str, timing: dict, parts: tuple[str, ...] = ()
 ) -> Contender:
-    """A method whose every table is in ``out_dir``: no estimates, its misses (and empty
-    segments) read from its first table, its time from ``timing``."""
-    miss = pd.read_csv(out_dir / "tables" / f"{name}-{refs[0].name}.csv", usecols=["miss"])
-    ok = ~miss["miss"].to_numpy(dtype=bool)
+    """A method whose every table is kept: no estimates, its misses (and empty segments) read
+    from its ``first`` table, its time from ``timing``."""
+    ok = ~first["miss"].to_numpy(dtype=bool)
     return Contender(name, label, [], ok, timing[f"{name}-estimate"], parts)
 
 
@@ -369,25 +457,31 @@ schedule, 10 iterations from one start, ~1 ms an object)."""
 
 def plan(
     segs,
-    paths: dict[str, Path],
+    states: dict,
     todo: dict[str, list[Refinement]],
     estimates: dict[str, int] | None = None,
 ) -> str:
-    """What a call will compute and about how long it takes, before it starts: the estimates
-    left of each classical method whose refinements are to compute (``paths``, by
-    :data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the refinements ``todo`` per method
+    """What a call will compute and about how long it takes, before it starts: for each
+    classical method whose refinements are to compute, the estimates left (``states``:
+    method -> :class:`cloudpose.baselines.run.EstimateProgress`;
+    :data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the one-off preparation of the models
+    they need (:data:`cloudpose.stress.SECONDS_PER_MODEL`: PPF's detector training, named
+    where :data:`PREPARATION` has words for it), and the refinements ``todo`` per method
     (:data:`ICP_SECONDS`, once for each of the method's ``estimates``: an ensemble's networks,
     a combination's methods; default one)."""
-    from cloudpose.baselines.run import EstimateProgress
-    from cloudpose.stress import SECONDS_PER_INSTANCE
+    from cloudpose.stress import SECONDS_PER_INSTANCE, SECONDS_PER_MODEL
 
     valid = np.asarray(segs.valid, dtype=bool)
     n = int(valid.sum())
     parts, seconds = [], 0.0
-    for method, path in paths.items():
-        left = n - int(EstimateProgress(path, len(segs)).done[valid].sum())
-        seconds += left * SECONDS_PER_INSTANCE[method]
-        parts.append(f"{method} estimates: {'kept' if left == 0 else f'{left} of {n} to compute'}")
+    for method, state in states.items():
+        left = np.flatnonzero(valid & ~state.done)
+        models = len(set(np.asarray(segs.cls_id)[left].tolist()))
+        seconds += len(left) * SECONDS_PER_INSTANCE[method] + models * SECONDS_PER_MODEL[method]
+        said = "kept" if len(left) == 0 else f"{len(left)} of {n} to compute"
+        if len(left) and method in PREPARATION:
+            said += ", " + PREPARATION[method].format(n=models)
+        parts.append(f"{method} estimates: {said}")
     refs = [(m, r) for m, rs in todo.items() for r in rs]
     each = estimates or {}
     seconds += sum(
@@ -465,6 +559,7 @@ def run_compare(
     from cloudpose import runtime
     from cloudpose.baselines import load_settings
     from cloudpose.baselines.base import settings_fingerprint
+    from cloudpose.baselines.run import EstimateProgress
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
     from cloudpose.evaluate import check_ensemble, load_network
@@ -512,52 +607,75 @@ def run_compare(
     timing_path = out_dir / "tables" / "icp_ms.json"
     timing = _timings(timing_path)
     combined = [COMBINED.join(parts) for parts in combos]
-    todo = {m: [r for r in refs if not _have(out_dir, m, r, timing)] for m in names + combined}
+    kept = {(m, r.name): table for m in names + combined for r in refs
+            if (table := _kept_table(out_dir, m, r, timing, segs)) is not None}  # fmt: skip
+    todo = {m: [r for r in refs if (m, r.name) not in kept] for m in names + combined}
     needed = {m for parts, c in zip(combos, combined, strict=True) if todo[c] for m in parts}
-    paths = {m: baseline_estimates_path(project_dir, m, seed, str(segs.data_key))
-             for m in methods if m != CONTROL and (todo[m] or m in needed)}  # fmt: skip
+    states = {
+        m: EstimateProgress(baseline_estimates_path(project_dir, m, seed, str(segs.data_key)),
+                            len(segs))
+        for m in methods if m != CONTROL and (todo[m] or m in needed)
+    }  # fmt: skip
     counts = {NETWORK: len(loaded)}
     counts |= {
         c: sum(counts.get(m, 1) for m in parts) for parts, c in zip(combos, combined, strict=True)
     }
-    print(plan(segs, paths, todo, counts), flush=True)
+    print(plan(segs, states, todo, counts), flush=True)
     models = dataset.models()
-    if any(todo.values()):
-        _warm_up(segs, models, refs)
-    contenders: list[Contender] = []
-    for m in names:
-        if not todo[m] and m not in needed:  # every table is there: no estimate is needed
-            label = _network_label(len(loaded)) if m == NETWORK else METHODS[m]
-            contenders.append(_from_tables(out_dir, m, label, refs, timing))
-        elif m == NETWORK:
-            contenders.append(_network(segs, loaded, out_dir / "estimates" / "network.npz"))
-        elif m == CONTROL:
-            contenders.append(_control(segs))
-        else:
-            contenders.append(_baseline(m, segs, models, seed, paths[m], progress))
-    by_name = {c.name: c for c in contenders}
-    for parts, m in zip(combos, combined, strict=True):
-        members = [by_name[p] for p in parts]
-        if not todo[m]:
-            label = _combined_label(members)
-            contenders.append(_from_tables(out_dir, m, label, refs, timing, parts))
-        else:
-            contenders.append(_combined(parts, members))
-    tables: dict[tuple[str, str], pd.DataFrame] = {}
-    for c in contenders:
-        m = c.name
-        for ref in refs:
-            path = out_dir / "tables" / f"{m}-{ref.name}.csv"
-            if ref not in todo[m]:
-                tables[(m, ref.name)] = pd.read_csv(path, dtype={"frame_id": str})
-                continue
-            if progress:
-                print(f"{c.label} {ref.label} on {len(segs)} instances ...", flush=True)
-            table, ms = _refine(c, segs, dataset, models, ref, cfg.loss.symmetry_table, progress)
-            atomic_write(path, lambda tmp, t=table: t.to_csv(tmp, index=False), suffix=".csv")
-            timing.update({f"{m}-{ref.name}": ms, f"{m}-estimate": c.ms_per_object})
-            timing[MACHINE] = sorted({*timing.get(MACHINE, []), runtime.describe_cpu()})
-            atomic_text(timing_path, json.dumps(timing, indent=2) + "\n")
-            tables[(m, ref.name)] = table
+    with sigterm_as_interrupt():  # a kill stops as Ctrl-C does: what is done is kept
+        if any(todo.values()):
+            _warm_up(segs, models, refs)
+        contenders: list[Contender] = []
+        for m in names:
+            if not todo[m] and m not in needed:  # every table is there: no estimate is needed
+                label = _network_label(len(loaded)) if m == NETWORK else METHODS[m]
+                contenders.append(_from_tables(kept[(m, refs[0].name)], m, label, timing))
+            elif m == NETWORK:
+                contenders.append(_network(segs, loaded, out_dir / "estimates" / "network.npz"))
+            elif m == CONTROL:
+                contenders.append(_control(segs))
+            else:
+                contenders.append(_baseline(m, segs, models, seed, states[m], progress))
+        by_name = {c.name: c for c in contenders}
+        for parts, m in zip(combos, combined, strict=True):
+            members = [by_name[p] for p in parts]
+            if not todo[m]:
+                label = _combined_label(members)
+                first = kept[(m, refs[0].name)]
+                contenders.append(_from_tables(first, m, label, timing, parts))
+            else:
+                contenders.append(_combined(parts, members))
+        tables: dict[tuple[str, str], pd.DataFrame] = {}
+        for c in contenders:
+            for ref in refs:
+                if ref not in todo[c.name]:
+                    tables[(c.name, ref.name)] = kept[(c.name, ref.name)]
+                    continue
+                tables[(c.name, ref.name)] = _write_table(
+                    c, segs, dataset, models, ref, cfg.loss.symmetry_table, out_dir, timing,
+                    progress,
+                )  # fmt: skip
     source = "; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True))
     return Comparison(out_dir, tables, contenders, refs, timing, described, source)
+
+
+def _write_table(
+    c: Contender, segs, dataset, models: dict, ref: Refinement, symmetry_table: int,
+    out_dir: Path, timing: dict, progress: bool,
+) -> pd.DataFrame:  # fmt: skip
+    """:func:`_refine` ``c`` by ``ref`` into ``out_dir/tables/METHOD-REFINEMENT.csv``, then
+    its milliseconds, the CPU and the file's checksum into ``timing`` and
+    ``tables/icp_ms.json`` (after the table: a table without them was not written whole)."""
+    from cloudpose import runtime
+
+    key = f"{c.name}-{ref.name}"
+    path = out_dir / "tables" / f"{key}.csv"
+    if progress:
+        print(f"{c.label} {ref.label} on {len(segs)} instances ...", flush=True)
+    table, ms = _refine(c, segs, dataset, models, ref, symmetry_table, progress)
+    atomic_write(path, lambda tmp: table.to_csv(tmp, index=False), suffix=".csv")
+    timing.update({key: ms, f"{c.name}-estimate": c.ms_per_object})
+    timing[MACHINE] = sorted({*timing.get(MACHINE, []), runtime.describe_cpu()})
+    timing[CHECKSUMS] = {**_checksums(timing), key: _sha256(path)}
+    atomic_text(out_dir / "tables" / "icp_ms.json", json.dumps(timing, indent=2) + "\n")
+    return table

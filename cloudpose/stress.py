@@ -617,6 +617,10 @@ class Method:
 
 SECONDS_PER_INSTANCE = {"segment": 0.05, "net": 0.03, "fpfh": 0.6, "ppf": 3.5}
 """Planning figures per instance on one busy core, until a result file measured them."""
+SECONDS_PER_MODEL = {"fpfh": 0.03, "ppf": 25.0}
+"""Planning figures of a baseline's one-off preparation per model on one busy core: FPFH's
+model features, point-pair features' detector training (its hash table of model point pairs;
+422-602 s for the 21 models, logged as ``prepare_s`` of the baseline runs)."""
 
 
 def _kind(method: Method) -> str:
@@ -755,12 +759,25 @@ class Plan:
 
 
 def make_plan(
-    out_dir: Path, sources: dict[str, int], perts: list[Perturbation], methods: list[Method]
+    out_dir: Path,
+    sources: dict[str, int],
+    perts: list[Perturbation],
+    methods: list[Method],
+    models: dict[str, int] | None = None,
 ) -> Plan:
-    """The conditions left per (source, method) and the time they should take."""
+    """The conditions left per (source, method) and the time they should take, a baseline's
+    preparation of each of the source's ``models`` (a count per source; default none,
+    :data:`SECONDS_PER_MODEL`) included once where it has a condition left there."""
     todo: dict[tuple[str, str], int] = {}
     secs = 0.0
     for src, n in sources.items():
+        for m in methods:
+            if _kind(m) in SECONDS_PER_MODEL and any(
+                m.runs_at(p, lv) and not result_path(out_dir, src, p.name, lv, m.name).is_file()
+                for p, lv in conditions(perts)
+            ):
+                k = (models or {}).get(src, 0)
+                secs += (k if m.limit is None else min(m.limit, k)) * SECONDS_PER_MODEL[_kind(m)]
         seg_needed = 0
         for p, lv in conditions(perts):
             missing = [
@@ -839,7 +856,13 @@ def run_sweep(
         for key in ("sources", "methods", "perturbations"):
             meta[key] = {**old.get(key, {}), **meta[key]}
     atomic_write(meta_path, lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
-    plan = make_plan(out_dir, {s: len(src.instances) for s, src in opened.items()}, perts, methods)
+    models = {
+        s: len({int(src.frames[f].cls_ids[i]) for f, i in src.instances})
+        for s, src in opened.items()
+    }
+    plan = make_plan(
+        out_dir, {s: len(src.instances) for s, src in opened.items()}, perts, methods, models
+    )
     echo("stress plan:\n" + plan.describe(methods))
     if dry_run:
         return plan

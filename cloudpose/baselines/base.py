@@ -101,6 +101,25 @@ class Estimator(Protocol):
         ...
 
 
+ROTATION_TOLERANCE = 1e-3
+"""How far from orthonormal, with determinant 1, a kept estimate's rotation may be: a network's
+float32 rotations are orthonormal to ~1e-6, a registration's to ~1e-12."""
+
+
+def not_poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Per row, whether ``R`` (N, 3, 3), ``t`` (N, 3) metres is no pose at all: a value that is
+    not finite, or a matrix that is not a rotation (``R^T R = I`` and ``det R = 1`` within
+    :data:`ROTATION_TOLERANCE`; an all-zero matrix is not one). A check of estimates read back
+    from a file, which the method could not have given."""
+    R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    finite = np.isfinite(R).all(axis=(-2, -1)) & np.isfinite(t).all(axis=-1)
+    Rf = np.where(finite[:, None, None], R, np.eye(3))
+    gram = np.einsum("nji,njk->nik", Rf, Rf)  # (N, 3, 3) R^T R
+    orthonormal = np.abs(gram - np.eye(3)).max(axis=(-2, -1)) <= ROTATION_TOLERANCE
+    proper = np.abs(np.linalg.det(Rf) - 1.0) <= ROTATION_TOLERANCE
+    return ~(finite & orthonormal & proper)
+
+
 def check_segment(points: np.ndarray, cls_id: int, models: dict, min_points: int) -> np.ndarray:
     """(N, 3) float64 finite points of a segment, or a ValueError saying what is wrong."""
     pts = np.asarray(points, dtype=np.float64)

@@ -172,15 +172,28 @@ def prepare(
 
 @app.command("same-data")
 def same_data(
-    run: Annotated[str, typer.Option(help="MLflow run id of a run of a preset (its test set).")],
+    run: Annotated[
+        str,
+        typer.Option(
+            help="A run of a preset, evaluated on its test set: name variant/preset/seedS, "
+            "MLflow run id or run folder."
+        ),
+    ],
 ) -> None:
     """Whether a run's data is the data its preset makes here under another key (frames
     rendered on another CPU): its test instances against today's, point by point count. If so,
     prints the entries that cloudpose/resources/registry/same_data.toml needs for the runner
     and the reports to take the run's data as today's."""
+    from cloudpose.store import tracking
     from cloudpose.store.rekey import SAME_POINT_SHARE, compare_test_segments
+    from cloudpose.store.runs import resolve_run_id
 
-    c = compare_test_segments(run, Path.cwd())
+    try:  # as every command that takes --run resolves it
+        run_id = resolve_run_id(tracking.setup(Path.cwd()), run)
+    except ValueError as exc:
+        said = str(exc)
+        raise ValueError(said if said.startswith("--run") else f"--run {run!r}: {said}") from exc
+    c = compare_test_segments(run_id, Path.cwd())
     for kind, (old, new) in c.keys.items():
         typer.echo(f"{kind} key: the run's {old}, here {new}" + (" (equal)" if old == new else ""))
     typer.echo(

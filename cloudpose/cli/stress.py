@@ -132,6 +132,10 @@ def stress(
 
     check_name("--preset", preset)
     check_icp_options(radius=icp_radius)
+    check_counts(
+        instances=instances, fpfh_instances=fpfh_instances, ppf_instances=ppf_instances,
+        synth_frames=synth_frames, icp_selection=icp_selection,
+    )  # fmt: skip
     project = Path.cwd()
     results = results or project / "runs" / "stress" / preset
     if not report_only and results.is_file():
@@ -174,6 +178,25 @@ def stress(
                 folder, out or default_out_dir(project, preset), command=recorded_command(ctx)
             )
             typer.echo(" ".join(str(f) for f in files))
+
+
+COUNTS = {
+    "instances": (1, "a positive number of instances per source (default all)"),
+    "fpfh_instances": (0, "a number of instances (0: none; default all)"),
+    "ppf_instances": (0, "a number of instances (0: none; default all)"),
+    "synth_frames": (1, "a positive number of frames"),
+    "icp_selection": (0, "a number of instances (0: none)"),
+}
+"""The least value of each count option of ``stress`` and what it is, for its message."""
+
+
+def check_counts(**given: int | None) -> None:
+    """``ValueError`` naming the first option of :data:`COUNTS` in ``given`` (by parameter
+    name) below its least value; None is its default."""
+    for name, value in given.items():
+        least, what = COUNTS[name]
+        if value is not None and value < least:
+            raise ValueError(f"--{name.replace('_', '-')} {value}: expected {what}")
 
 
 def _all_methods(

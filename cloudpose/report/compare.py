@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.compare import MACHINE, NETWORK, Comparison
+from cloudpose.compare import MACHINE, NETWORK, Comparison, table_problem
 from cloudpose.files import atomic_text, atomic_write
 
 STAGE_ESTIMATE = "estimate"
@@ -246,7 +246,8 @@ def figure(tables: dict, contenders, refs, poses: pd.Series, path: Path) -> Path
 def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
     """Write ``compare.md`` (naming ``command``, the command line that made it),
     ``compare.csv``, ``compare_paired.csv`` and ``compare.png`` into the comparison's folder;
-    the report's and the figure's paths."""
+    the report's and the figure's paths; ``ValueError`` naming a table that lacks a column
+    the report reads (:func:`cloudpose.compare.table_problem`)."""
     from cloudpose.report.real import object_pose, video_of
 
     out_dir, tables = comparison.out_dir, comparison.tables
@@ -254,6 +255,11 @@ def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
     icp_ms, described, source = comparison.timing, comparison.described, comparison.source
     combined = [c for c in contenders if c.parts]
 
+    for (method, ref), table in tables.items():
+        problem = table_problem(table)
+        if problem is not None:
+            path = out_dir / "tables" / f"{method}-{ref}.csv"
+            raise ValueError(f"{path}: {problem}; run the comparison again to compute it")
     keys = [(t["frame_id"].astype(str).tolist(), t["instance"].tolist()) for t in tables.values()]
     if any(k != keys[0] for k in keys):  # the per-video and per-pose tables read rows by position
         raise ValueError(f"{out_dir}: its instance tables do not list the same instances")
