@@ -56,7 +56,7 @@ variants: ## print the variant registry with parameter counts
 	$(CLI) variants
 
 # --- ablation suite and reports (cloudpose ablate / report / occlusion-report) ---------------
-MLFLOW_URI ?= $(or $(MLFLOW_TRACKING_URI),sqlite:///$(CURDIR)/mlflow.db)
+MLFLOW_URI ?= $(MLFLOW_TRACKING_URI)
 MLFLOW_PORT ?= 5000
 GROUP ?=
 EXECUTOR ?= local
@@ -122,8 +122,8 @@ renderer-vs-real: ## synthetic frames (generator versions 1 and 2) against the r
 mlflow-server: ## MLflow tracking server for several machines on MLFLOW_HOST:MLFLOW_PORT (127.0.0.1:5000): SQLite ./mlflow-server/ or MLFLOW_BACKEND, artifacts served
 	$(CLI) mlflow-server --host $(MLFLOW_HOST) --port $(MLFLOW_PORT) $(if $(MLFLOW_BACKEND),--backend $(MLFLOW_BACKEND))
 
-mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000; store MLFLOW_URI, default ./mlflow.db); prints each ablation group's saved view (every variant, the report's runs, mean/sd/seeds in percent)
-	$(CLI) mlflow-ui --backend $(MLFLOW_URI) --host 127.0.0.1 --port $(MLFLOW_PORT)
+mlflow-ui: ## MLflow UI on http://127.0.0.1 (MLFLOW_PORT=5000) over the committed sweep and the runs added to it (MLFLOW_URI=sqlite:///mlflow.db: your own store); prints each group's saved view
+	$(CLI) mlflow-ui $(if $(MLFLOW_URI),--backend $(MLFLOW_URI)) --host 127.0.0.1 --port $(MLFLOW_PORT)
 
 # --- benchmarks ---------------------------------------------------------------------
 .PHONY: bench

@@ -86,7 +86,11 @@ def mlflow_server(
 def mlflow_ui(
     backend: Annotated[
         str | None,
-        typer.Option(help="Store to browse; default MLFLOW_TRACKING_URI, else ./mlflow.db."),
+        typer.Option(
+            help="Store to browse; default MLFLOW_TRACKING_URI, else the committed sweep of the "
+            "default preset (stores/PRESET/, unpacked once; the runs a sweep adds are there "
+            "too), else ./mlflow.db."
+        ),
     ] = None,
     host: Annotated[str, typer.Option(help="Interface to bind.")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="TCP port.")] = 5000,
@@ -107,6 +111,8 @@ def mlflow_ui(
 
     if backend:
         os.environ["MLFLOW_TRACKING_URI"] = backend
+    elif not os.environ.get("MLFLOW_TRACKING_URI"):
+        _committed_sweep(Path.cwd())
     uri = tracking.tracking_uri()
     remote = tracking.is_remote(uri)
     if serve and not remote:
@@ -127,6 +133,36 @@ def mlflow_ui(
     cmd = ui.ui_command(f"sqlite:///{db.resolve()}" if db else uri, host, port)
     _serve_until_interrupted(
         cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}, f"MLflow UI on {host}:{port}", folder
+    )
+
+
+def _committed_sweep(project_dir: Path) -> None:
+    """Browse the default preset's committed sweep when the user named no store: unpacked once
+    into ``stores/PRESET/`` (said in one line), with the project's own ``./mlflow.db`` one
+    switch away."""
+    import os
+
+    from cloudpose.registry import DEFAULT_PRESET
+    from cloudpose.report.committed import STORES, committed_archive, committed_store
+    from cloudpose.store.tracking import STORE_DB
+
+    archive = committed_archive(DEFAULT_PRESET, project_dir)
+    if archive is None:
+        return
+    fresh = not (project_dir / STORES / DEFAULT_PRESET / STORE_DB).is_file()
+    folder = committed_store(DEFAULT_PRESET, project_dir)
+    os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{(folder / STORE_DB).resolve()}"
+    how = f"unpacked now from {archive.relative_to(project_dir)}" if fresh else "the committed sweep"
+    own = project_dir / STORE_DB
+    mine = (
+        f"; your own ./{STORE_DB}: --backend sqlite:///{STORE_DB} (make mlflow-ui "
+        f"MLFLOW_URI=sqlite:///{STORE_DB})"
+        if own.is_file()
+        else ""
+    )
+    typer.echo(
+        f"store: {STORES}/{DEFAULT_PRESET}/{STORE_DB} ({how}, with the runs sweeps added to "
+        f"it){mine}"
     )
 
 

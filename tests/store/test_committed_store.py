@@ -43,8 +43,11 @@ def test_occlusion_report_renders_from_the_committed_store(clone_with_a_committe
         res = cli("occlusion-report", "--preset", "smoke", "--seeds", "1", "--out", "out")
         assert res.exit_code == 0, res.output
         assert "reading the committed store (unpacked from reports/smoke/" in res.output
-        # rendered from the committed run (the smoke test set is too small for occlusion bins)
-        assert (clone / "out" / "table1_overall.md").is_file(), res.output
+        # rendered from the committed run, and only the occlusion plot and its table
+        assert sorted(p.name for p in (clone / "out").iterdir()) == [
+            "occlusion.csv",
+            "occlusion.png",
+        ], res.output
         assert (clone / STORES / "smoke" / "mlflow.db").is_file()
         assert not (clone / "mlflow.db").exists()  # the project's own store is not made
         # a second call reads the unpacked copy in place
@@ -96,5 +99,24 @@ def test_an_unpacked_committed_store_is_read_in_place(clone_with_an_archive, mon
         assert use_committed_store("smoke", clone, lambda: True, said.append)
         assert os.environ["MLFLOW_TRACKING_URI"] == f"sqlite:///{(folder / 'mlflow.db').resolve()}"
         assert said and f"in {STORES}/smoke/;" in said[0]
+    finally:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
+
+
+@pytest.mark.slow
+def test_mlflow_ui_opens_on_the_committed_sweep(clone_with_a_committed_store, monkeypatch):
+    """A fresh clone's `make mlflow-ui`: the default preset's committed runs, unpacked once,
+    with the project's own store one switch away."""
+    clone = clone_with_a_committed_store
+    monkeypatch.setattr("cloudpose.registry.DEFAULT_PRESET", "smoke")
+    (clone / "mlflow.db").write_bytes(b"")  # a store of its own (a demo run's), not browsed
+    try:
+        res = cli("mlflow-ui", "--no-serve", "--port", "5124")
+        assert res.exit_code == 0, res.output
+        first = res.output.splitlines()[0]
+        assert first.startswith(f"store: {STORES}/smoke/mlflow.db (unpacked now from reports/")
+        assert "--backend sqlite:///mlflow.db" in first
+        assert (clone / STORES / "smoke" / "mlflow.db").stat().st_size > 0
+        assert "no cloudpose run" not in res.output and "smoke" in res.output
     finally:
         os.environ.pop("MLFLOW_TRACKING_URI", None)
