@@ -857,7 +857,7 @@ def run_sweep(
             meta[key] = {**old.get(key, {}), **meta[key]}
     atomic_write(meta_path, lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
     models = {
-        s: len({int(src.frames[f].cls_ids[i]) for f, i in src.instances})
+        s: len({int(src.frames[f].frame.cls_ids[i]) for f, i in src.instances})
         for s, src in opened.items()
     }
     plan = make_plan(
