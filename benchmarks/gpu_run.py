@@ -112,7 +112,7 @@ def profile(preset: str, val_file: Path, seconds: float, variant: str = "shared-
     cfg = resolve(variant, preset, 1)
     device, sets, _ = _setup(cfg, val_file)
     model, opt = loop._network(cfg, device)
-    trainer = loop.Trainer(cfg, model, opt, device, SINGLE, sets, loop.RunRecord(Path("."), {}))
+    trainer = loop.Trainer(cfg, model, opt, device, SINGLE, sets, loop.TrainingRun(Path("."), {}))
     bs = cfg.train.batch_size
     fit = sets.fit
     points = fit.points  # a step's batch holds a segment's forms side by side, as the stream's
@@ -188,7 +188,7 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     log = out / "epochs.jsonl"
 
-    class Record(loop.RunRecord):
+    class Record(loop.TrainingRun):
         def log_epoch(self, epoch: int, metrics: dict[str, float]) -> None:
             row = {"epoch": epoch, "elapsed_s": round(time.monotonic() - t0, 1), **metrics}
             with log.open("a") as f:

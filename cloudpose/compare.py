@@ -125,7 +125,7 @@ class Contender:
 
 
 @dataclass(frozen=True)
-class Comparison:
+class MethodComparison:
     """A finished comparison (:func:`cloudpose.report.compare.render` writes its report).
 
     Attributes:
@@ -532,7 +532,7 @@ def run_compare(
     project_dir: Path | None = None,
     device: str = "auto",
     progress: bool = True,
-) -> Comparison:
+) -> MethodComparison:
     """Compare the network with ``methods`` on ``frames`` of ``data``
     (:func:`cloudpose.report.compare.render` writes the report).
 
@@ -656,7 +656,7 @@ def run_compare(
                     progress,
                 )  # fmt: skip
     source = "; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True))
-    return Comparison(out_dir, tables, contenders, refs, timing, described, source)
+    return MethodComparison(out_dir, tables, contenders, refs, timing, described, source)
 
 
 def _write_table(

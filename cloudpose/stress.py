@@ -740,7 +740,7 @@ def conditions(perts: list[Perturbation]) -> list[tuple[Perturbation, float]]:
 
 
 @dataclass(frozen=True)
-class Plan:
+class StressPlan:
     """What a sweep will compute: per (source, method), the conditions left and instances."""
 
     todo: dict[tuple[str, str], int]
@@ -764,7 +764,7 @@ def make_plan(
     perts: list[Perturbation],
     methods: list[Method],
     models: dict[str, int] | None = None,
-) -> Plan:
+) -> StressPlan:
     """The conditions left per (source, method) and the time they should take, a baseline's
     preparation of each of the source's ``models`` (a count per source; default none,
     :data:`SECONDS_PER_MODEL`) included once where it has a condition left there."""
@@ -792,7 +792,7 @@ def make_plan(
                 k = n if m.limit is None else min(m.limit, n)
                 secs += k * SECONDS_PER_INSTANCE[_kind(m)]
         secs += seg_needed * n * SECONDS_PER_INSTANCE["segment"]
-    return Plan(todo, dict(sources), secs)
+    return StressPlan(todo, dict(sources), secs)
 
 
 def model_trees(models: dict[int, np.ndarray]) -> dict[int, cKDTree]:
@@ -814,7 +814,7 @@ def run_sweep(
     echo: Callable[[str], None] = print,
     dry_run: bool = False,
     icp_radius: float = PAPER_RADIUS,
-) -> Plan:
+) -> StressPlan:
     """Compute every missing (source, perturbation, level, method) result into ``out_dir``
     (module doc); prints the plan first. ``only`` names perturbations (default all).
     ``icp_radius``: ICP's first radius for every method (:func:`cloudpose.refine.schedule_for`),

@@ -118,7 +118,7 @@ def test_statistic_keys_are_mlflow_keys_and_the_chart_filter_matches_only_them()
     keys = ui.stat_keys()
     assert keys[-1] == "seeds" and len(keys) == 2 * len(ui.HEADLINE) + 1
     assert all(re.fullmatch(r"[A-Za-z0-9_\-./ ]+", k) for k in keys)
-    comp = ui.Comparison("rotation", "smoke", "aaaa", (), None)
+    comp = ui.GroupComparison("rotation", "smoke", "aaaa", (), None)
     pattern = re.compile(ui.comparison_view(comp)["chartsSearchFilter"])
     assert all(pattern.search(k) for k in keys)
     others = ["ads_auc", "test/ads_auc", "ADS AUC mean/x", "train/loss", "seeds2"]
@@ -134,7 +134,7 @@ def _comparison():
         ui.Row("quaternion", "quaternion", ("c",), {"ADS AUC mean": 91.4}),
         ui.Row("rot6d", "6D"),  # no run yet
     )
-    return ui.Comparison(
+    return ui.GroupComparison(
         "rotation", "smoke", "aaaa", rows, "r", report_experiment="4", experiments=("1", "4")
     )
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.compare import MACHINE, NETWORK, Comparison, table_problem
+from cloudpose.compare import MACHINE, NETWORK, MethodComparison, table_problem
 from cloudpose.files import atomic_text, atomic_write
 
 STAGE_ESTIMATE = "estimate"
@@ -243,7 +243,7 @@ def figure(tables: dict, contenders, refs, poses: pd.Series, path: Path) -> Path
     return path
 
 
-def render(comparison: Comparison, command: str) -> tuple[Path, Path]:
+def render(comparison: MethodComparison, command: str) -> tuple[Path, Path]:
     """Write ``compare.md`` (naming ``command``, the command line that made it),
     ``compare.csv``, ``compare_paired.csv`` and ``compare.png`` into the comparison's folder;
     the report's and the figure's paths; ``ValueError`` naming a table that lacks a column

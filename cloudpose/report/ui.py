@@ -189,7 +189,7 @@ class Row:
 
 
 @dataclass(frozen=True)
-class Comparison:
+class GroupComparison:
     """The variants of one group on one preset, as the report's table compares them."""
 
     group: str
@@ -248,7 +248,7 @@ def _group_id(key: str, value: str) -> str:
     return f"tag.{key}.{value}"
 
 
-def comparison_view(comp: Comparison) -> dict:
+def comparison_view(comp: GroupComparison) -> dict:
     """The runs table's state of a comparison's view: the search facets (filter, order) and
     the UI state (columns, grouping, charts) that the MLflow UI keeps in a saved view.
 
@@ -303,7 +303,7 @@ def runs_view() -> dict:
     }
 
 
-def view_name(comp: Comparison) -> str:
+def view_name(comp: GroupComparison) -> str:
     """A comparison view's name in the UI's "Views" menu."""
     return f"{comp.group} ({comp.preset}): percent, mean and sd over seeds"
 
@@ -378,7 +378,7 @@ def counted_runs(client, presets: Iterable[str]) -> dict[str, object]:
 
 def build_comparisons(
     runset, report_runs: Mapping[tuple[str, str], object], experiment_of: Mapping[str, str]
-) -> list[Comparison]:
+) -> list[GroupComparison]:
     """The comparisons of one preset's counted runs.
 
     Args:
@@ -400,7 +400,7 @@ def build_comparisons(
         report_id = report.info.run_id if report is not None else None
         ids = [i for r in rows for i in r.run_ids] + ([report_id] if report_id else [])
         exps = tuple(sorted({experiment_of[i] for i in ids if i in experiment_of}))
-        comp = Comparison(group, runset.preset, runset.data_key or "", tuple(rows), report_id)
+        comp = GroupComparison(group, runset.preset, runset.data_key or "", tuple(rows), report_id)
         out.append(
             replace(comp, experiments=exps, report_experiment=experiment_of.get(report_id, ""))
         )
@@ -459,10 +459,10 @@ def _config_key(run) -> tuple:
 
 
 @dataclass(frozen=True)
-class Prepared:
+class PreparedUI:
     """What :func:`prepare_ui` found and wrote."""
 
-    comparisons: list[Comparison]
+    comparisons: list[GroupComparison]
     experiments: dict[str, str]
     """Experiment id -> name, of every cloudpose experiment."""
     backfilled: int = 0
@@ -534,7 +534,7 @@ def install_view(client, experiment, key: str, name: str, state: dict) -> bool:
     return wrote
 
 
-def comparison_table(comp: Comparison) -> str:
+def comparison_table(comp: GroupComparison) -> str:
     """A comparison as a Markdown table: the grid's numbers (:func:`format_stat`)."""
     head = ["variant", comp.group, *[f"{n} (%)" for n in COLUMNS.values()], "seeds"]
     lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
@@ -547,8 +547,8 @@ def comparison_table(comp: Comparison) -> str:
 
 def description(
     title: str,
-    own: Sequence[Comparison],
-    others: Sequence[Comparison],
+    own: Sequence[GroupComparison],
+    others: Sequence[GroupComparison],
     report_note: str = "",
     runs_link: str = "",
 ) -> str:
@@ -583,7 +583,7 @@ def description(
     return text[:_NOTE_LIMIT]
 
 
-def prepare_ui(client, now_ms: int | None = None) -> Prepared:
+def prepare_ui(client, now_ms: int | None = None) -> PreparedUI:
     """Make every cloudpose experiment of the store ready for the MLflow UI (see the module's
     docstring): dead runs marked KILLED, headline metrics back-filled, the runs of each
     comparison tagged and given their statistics, runs the report does not count tagged
@@ -624,7 +624,7 @@ def prepare_ui(client, now_ms: int | None = None) -> Prepared:
             written += write_run(client, r, tags.get(i, {}), metrics.get(i, {}))
     for exp in exps.values():
         written += _prepare_experiment(client, exp, comps, reports)
-    return Prepared(
+    return PreparedUI(
         comps,
         {i: e.name for i, e in exps.items()},
         backfilled,
@@ -647,7 +647,7 @@ def _report_runs(runs: Iterable) -> dict[tuple[str, str], object]:
 
 
 def run_updates(
-    runs: Sequence, evaluated: Sequence, comps: Sequence[Comparison], runsets: Mapping
+    runs: Sequence, evaluated: Sequence, comps: Sequence[GroupComparison], runsets: Mapping
 ) -> tuple[dict[str, dict[str, str | None]], dict[str, dict[str, float]], int]:
     """What :func:`write_run` is to make of each run (run id -> tags, None to delete; run id
     -> metrics) and how many evaluated runs do not count.
@@ -690,7 +690,7 @@ def run_updates(
     return tags, metrics, superseded
 
 
-def _prepare_experiment(client, exp, comps: Sequence[Comparison], reports: Mapping) -> int:
+def _prepare_experiment(client, exp, comps: Sequence[GroupComparison], reports: Mapping) -> int:
     """Views and description of one experiment: the views of the comparisons it is named for
     or holds runs of (else :data:`RUNS_VIEW`), its views of earlier versions removed; returns
     the tags written."""

@@ -1,7 +1,7 @@
 """Training of one variant from the segment cache, resumable and tracked in MLflow.
 
-A run is a sequence of steps (:func:`_train`): open the run folder (:class:`RunRecord`), build the
-data (:class:`TrainingSets`) and the network, resume from the last checkpoint (a
+A run is a sequence of steps (:func:`_train`): open the run folder (:class:`TrainingRun`), build
+the data (:class:`TrainingSets`) and the network, resume from the last checkpoint (a
 :class:`Position`), open the MLflow run (:func:`cloudpose.store.runs.open_training_run`),
 train the epochs (:class:`Trainer`; each optimiser step is
 :func:`cloudpose.train.step.train_step`, on batches augmented by :mod:`cloudpose.train.augment`),
@@ -318,7 +318,7 @@ def _training_device(cfg: Config, world: World) -> torch.device:
 
 
 @dataclass
-class RunRecord:
+class TrainingRun:
     """A run's folder and MLflow run as this process sees them: rank 0 holds the MLflow
     client and writes; the other processes hold what rank 0 broadcast."""
 
@@ -421,10 +421,10 @@ def _open_run(
     project_dir: Path,
     world: World,
     artifacts: bool | None,
-) -> RunRecord:
+) -> TrainingRun:
     """The run folder as it stands: its ``run.json`` (rebuilt from MLflow on a machine without
     it when checkpoints are logged there), on every process."""
-    run = RunRecord(rdir, {})
+    run = TrainingRun(rdir, {})
     if world.is_main:
         run.info = runs.read_info(rdir)
         run.client = tracking.setup(project_dir)
@@ -584,7 +584,7 @@ class Position:
 
 
 def _resume(
-    run: RunRecord, model: torch.nn.Module, opt, cfg: Config, world: World, device: torch.device
+    run: TrainingRun, model: torch.nn.Module, opt, cfg: Config, world: World, device: torch.device
 ) -> Position:
     """Load the run's last checkpoint (rank 0's, on every process) into ``model`` and ``opt``
     and return its position; the start when there is none."""
@@ -619,7 +619,7 @@ class Trainer:
         device: torch.device,
         world: World,
         sets: TrainingSets,
-        run: RunRecord,
+        run: TrainingRun,
     ) -> None:
         self.cfg, self.model, self.opt, self.device = cfg, model, opt, device
         self.world, self.sets, self.run_record = world, sets, run
