@@ -436,12 +436,14 @@ def check_compact(folder: Path) -> list[tuple[str, int, str]]:
         )
     for rel, size, sha in entries:
         path = folder / rel
-        if path.stat().st_size != size or _sha256(path) != sha:
-            raise CorruptFileError(
-                path,
-                f"damaged: {path.stat().st_size} bytes, not the {size} bytes of SHA-256 "
-                f"{sha[:12]}... that {INDEX} lists; nothing unpacked: {_restore(path)}",
-            )
+        have = path.stat().st_size
+        if have != size:
+            what = f"{have} bytes, not the {size} bytes that {INDEX} lists"
+        elif (digest := _sha256(path)) != sha:
+            what = f"SHA-256 {digest[:12]}..., not the {sha[:12]}... that {INDEX} lists (same size)"
+        else:
+            continue
+        raise CorruptFileError(path, f"damaged: {what}; nothing unpacked: {_restore(path)}")
     return entries
 
 

@@ -202,6 +202,8 @@ def test_a_missing_or_damaged_file_is_named_in_one_line_and_nothing_is_unpacked(
     res = cli("store-unpack", str(out), "--into", "copy")
     line = one_line_error(res, str(victim), damage)
     assert "git checkout --" in line
+    if damage == "damaged":  # same size: the checksum is what differs, and it says so
+        assert "SHA-256" in line and "same size" in line and "bytes, not the" not in line
     assert not (tmp_path / "copy").exists()
 
 
