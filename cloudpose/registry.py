@@ -2,8 +2,9 @@
 ``cloudpose/resources/registry/`` (``variants.toml``, ``presets.toml``; the baselines' settings in
 ``baselines.toml``), applied to the base :class:`~cloudpose.config.Config`.
 
-A variant and a preset each list only the fields they change. :func:`resolve` applies the
-preset, then the variant, then explicit overrides.
+A variant and a preset each list only the fields they change (a preset may extend another:
+:func:`read_presets`). :func:`resolve` applies the preset, then the variant, then explicit
+overrides.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
+from pathlib import Path
 from typing import Any
 
 from cloudpose.config import _SECTIONS, Config, check_delta
@@ -83,15 +85,52 @@ def _load_variants() -> tuple[dict[str, Variant], dict[str, Group]]:
     return variants, groups
 
 
-@cache
-def _load_presets() -> dict[str, tuple[str, dict[str, dict[str, Any]]]]:
-    raw = tomllib.loads(PRESETS_FILE.read_text())
-    presets = {}
+def read_presets(path: Path = PRESETS_FILE) -> dict[str, tuple[str, dict[str, dict[str, Any]]]]:
+    """Preset name -> (its why, the fields it changes) from a presets file, in file order.
+
+    A preset table may name a base, ``extends = "cpu-online"``: it changes the base's fields
+    (resolved the same way, so bases chain) and then its own, which win. Its ``why`` is its own.
+
+    Raises:
+        ValueError: naming the file, the preset and the field, for an unknown section or field,
+            an ``extends`` that names no preset, or a chain of ``extends`` that comes back to a
+            preset it passed (a cycle, listed).
+    """
+    raw = tomllib.loads(Path(path).read_text())
+    own: dict[str, tuple[str | None, str, dict[str, dict[str, Any]]]] = {}
     for name, entry in raw.get("preset", {}).items():
         entry = dict(entry)
         why = entry.pop("why", "")
-        presets[name] = (why, check_delta(f"{PRESETS_FILE} [{name}]", entry))
-    return presets
+        base = entry.pop("extends", None)
+        if base is not None and not isinstance(base, str):
+            raise ValueError(f"{path} [{name}]: extends = {base!r}: expected a preset's name")
+        own[name] = (base, why, check_delta(f"{path} [{name}]", entry))
+    return {name: (own[name][1], _extended(name, own, path)) for name in own}
+
+
+def _extended(name: str, own: dict, path: Path) -> dict[str, dict[str, Any]]:
+    """The delta of preset ``name`` with every base of its ``extends`` chain under it."""
+    chain = [name]
+    while (base := own[chain[-1]][0]) is not None:
+        if base not in own:
+            raise ValueError(
+                f"{path} [{chain[-1]}]: extends = {base!r}, which is no preset; "
+                f"valid presets: {', '.join(own)}"
+            )
+        if base in chain:
+            cycle = " -> ".join([*chain[chain.index(base) :], base])
+            raise ValueError(f"{path} [{chain[-1]}]: extends = {base!r} makes a cycle: {cycle}")
+        chain.append(base)
+    delta: dict[str, dict[str, Any]] = {}
+    for link in reversed(chain):  # the furthest base first, the preset's own fields last
+        for section, fields in own[link][2].items():
+            delta.setdefault(section, {}).update(fields)
+    return delta
+
+
+@cache
+def _load_presets() -> dict[str, tuple[str, dict[str, dict[str, Any]]]]:
+    return read_presets(PRESETS_FILE)
 
 
 def variants() -> dict[str, Variant]:
@@ -141,8 +180,6 @@ def parse_overrides(items: list[str] | None) -> dict[str, dict]:
 
     Values are TOML (numbers, true/false, quoted strings, arrays); a bare word is a string.
     """
-    import tomllib
-
     out: dict[str, dict] = {}
     for item in items or []:
         key, sep, text = item.partition("=")

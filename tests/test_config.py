@@ -225,7 +225,7 @@ def test_config_fingerprint():
     others = [
         resolve("shared-3", "cpu", seed=3),
         resolve("shared-4", "cpu", seed=2),
-        resolve("shared-3", "cpu-long", seed=2),
+        resolve("shared-3", "cpu-paper", seed=2),
         resolve("shared-3", "cpu", seed=2, overrides={"train": {"lr": 1e-3}}),
         dataclasses.replace(a, data=dataclasses.replace(a.data, test_frames=151)),
     ]
@@ -244,12 +244,186 @@ def test_rotation_centre_at_its_implied_value_keeps_a_stored_runs_identity():
     assert dataclasses.replace(translation_only.model, rotation_centre="centre") == cfg.model
 
 
-def test_cpu_long_is_cpu_paper_with_the_papers_epochs():
-    # the diagnostic preset must reuse the cpu data (same frames, same segment cache)
-    cpu, long = resolve("shared-0", "cpu-paper", seed=1), resolve("shared-0", "cpu-long", seed=1)
-    assert long.data == cpu.data and long.model == cpu.model and long.loss == cpu.loss
-    assert long.train.epochs == resolve("shared-0", "paper").train.epochs == 90
-    assert dataclasses.replace(long.train, epochs=cpu.train.epochs) == cpu.train
+def test_cpu_is_cpu_paper_with_the_recipe():
+    # the cpu preset extends cpu-paper: the same frames and segment cache, the recipe on top
+    cpu, literal = resolve("shared-0", "cpu", seed=1), resolve("shared-0", "cpu-paper", seed=1)
+    assert cpu.data == literal.data and (cpu.train.epochs, cpu.train.batch_size) == (25, 32)
+    assert dataclasses.replace(literal.train, bn_recalibrate=50, lr_schedule="cosine") == cpu.train
+
+
+# --- presets that extend a preset --------------------------------------------------------------
+
+# Config fingerprints (MLflow tag ``config``, run folder suffix) of every registered preset: the
+# committed stores' runs are found by them, so a change to presets.toml must leave them as they
+# are (a new preset adds its own here).
+PRESET_FINGERPRINTS = {
+    "smoke": ("05f1b3f3ce5bf427", "dadbbb7efc3c35d2"),
+    "cpu": ("ef338e3a7c1144f5", "fd247e1025f0f450"),
+    "online": ("b7a924ca3b84b65e", "66b2722a2266fa5b"),
+    "cpu-online": ("541c58429a09604b", "aa68bfa81e905d74"),
+    "cpu-online-4x": ("1a9737c49051fa74", "3381f449b8c5b563"),
+    "gpu": ("f21fd55a7d85d916", "b3230d247b40347d"),
+    "cpu-paper": ("44912df2a29512f6", "acec99161b886f06"),
+    "paper": ("fd061ca528aaa89b", "dc8ea5e7633f61b4"),
+    "paper-literal": ("16fad932f400e5c0", "26c7759ed429f54f"),
+}
+
+# The presets that now extend another, spelled out field by field as presets.toml held them
+# before ``extends`` (commit c90e01f).
+SPELLED_OUT = """
+[preset.cpu]
+why = "cpu"
+data.train_frames = 800
+data.test_frames = 150
+data.synth_version = 1
+data.segment_streams = "frame"
+train.epochs = 25
+train.batch_size = 32
+model.xyz_scale = 0.03
+model.rotation_input = "centred"
+loss.symmetric = true
+train.lr_schedule = "cosine"
+
+[preset.cpu-online]
+why = "cpu-online"
+data.train_source = "online"
+data.train_frames = 100
+data.test_frames = 420
+data.synth_version = 2
+data.online_epoch_segments = 8192
+data.online_reuse = 4
+data.online_workers = 1
+train.epochs = 16
+train.batch_size = 32
+train.augment_roll_deg = 15.0
+train.augment_depth_noise_mm = 3.0
+model.xyz_scale = 0.03
+model.rotation_input = "centred"
+loss.symmetric = true
+loss.symmetry_table = 2
+train.lr_schedule = "cosine"
+
+[preset.cpu-online-4x]
+why = "cpu-online-4x"
+data.train_source = "online"
+data.train_frames = 100
+data.test_frames = 420
+data.synth_version = 2
+data.online_epoch_segments = 8192
+data.online_reuse = 2
+data.online_version = 3
+data.online_workers = 1
+train.epochs = 64
+train.batch_size = 32
+train.augment_roll_deg = 15.0
+train.augment_depth_noise_mm = 3.0
+model.xyz_scale = 0.03
+model.rotation_input = "centred"
+loss.symmetric = true
+loss.symmetry_table = 2
+train.lr_schedule = "cosine"
+
+[preset.gpu]
+why = "gpu"
+data.train_source = "online"
+data.train_frames = 100
+data.test_frames = 420
+data.synth_version = 2
+data.online_epoch_segments = 32768
+data.online_reuse = 1
+data.online_version = 3
+data.online_workers = 15
+train.epochs = 32
+train.batch_size = 32
+train.augment_roll_deg = 15.0
+train.augment_depth_noise_mm = 3.0
+model.xyz_scale = 0.03
+model.rotation_input = "centred"
+loss.symmetric = true
+loss.symmetry_table = 2
+train.lr_schedule = "cosine"
+"""
+
+
+def test_every_preset_keeps_the_fingerprint_its_stored_runs_have():
+    assert set(presets()) == set(PRESET_FINGERPRINTS)
+    for name, (shared0, shared_all) in PRESET_FINGERPRINTS.items():
+        assert resolve("shared-0", name, seed=1).fingerprint() == shared0, name
+        assert resolve("shared-all", name, seed=2).fingerprint() == shared_all, name
+
+
+def test_presets_that_extend_resolve_as_their_spelled_out_fields(tmp_path, monkeypatch):
+    spelled = registry_module.read_presets(_write(tmp_path / "spelled.toml", SPELLED_OUT))
+    assert set(spelled) <= set(presets())
+    for name in spelled:
+        with monkeypatch.context() as m:
+            m.setattr(registry_module, "PRESETS_FILE", tmp_path / "spelled.toml")
+            registry_module._load_presets.cache_clear()
+            plain = {v: resolve(v, name, seed=3) for v in variants()}
+        registry_module._load_presets.cache_clear()
+        for v, cfg in plain.items():
+            assert resolve(v, name, seed=3) == cfg, (v, name)
+            assert resolve(v, name, seed=3).fingerprint() == cfg.fingerprint(), (v, name)
+
+
+def _write(path, text):
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def test_a_preset_extends_a_chain_of_bases_its_own_fields_winning(registry):
+    registry(
+        """
+        [variant.plain]
+        why = "base"
+        """,
+        """
+        [preset.leaf]
+        why = "the leaf"
+        extends = "mid"
+        train.epochs = 3
+        [preset.mid]
+        why = "the middle"
+        extends = "root"
+        train.batch_size = 8
+        data.test_frames = 7
+        [preset.root]
+        why = "the root"
+        train.epochs = 50
+        train.batch_size = 64
+        model.width = 2.0
+        """,
+    )
+    leaf = resolve("plain", "leaf")
+    assert (leaf.train.epochs, leaf.train.batch_size, leaf.model.width) == (3, 8, 2.0)
+    assert leaf.data.test_frames == 7 and leaf.preset == "leaf"
+    assert resolve("plain", "mid").train.epochs == 50
+    assert presets() == {"leaf": "the leaf", "mid": "the middle", "root": "the root"}
+
+
+@pytest.mark.parametrize(
+    "presets_toml, message",
+    [
+        (
+            '[preset.a]\nwhy = "a"\nextends = "nope"\n',
+            r"\[a\]: extends = 'nope', which is no preset; valid presets: a",
+        ),
+        (
+            '[preset.a]\nwhy = "a"\nextends = "b"\n[preset.b]\nwhy = "b"\nextends = "a"\n',
+            r"\[b\]: extends = 'a' makes a cycle: a -> b -> a",
+        ),
+        ('[preset.a]\nwhy = "a"\nextends = "a"\n', r"\[a\]: extends = 'a' makes a cycle: a -> a"),
+        ('[preset.a]\nwhy = "a"\nextends = 3\n', r"\[a\]: extends = 3: expected a preset's name"),
+        (
+            '[preset.a]\nwhy = "a"\nextends = "b"\n[preset.b]\nwhy = "b"\ntrain.epoch = 2\n',
+            r"\[b\]: unknown field train.epoch",
+        ),
+    ],
+)
+def test_extends_names_the_preset_and_field_it_cannot_resolve(tmp_path, presets_toml, message):
+    path = _write(tmp_path / "presets.toml", presets_toml)
+    with pytest.raises(ValueError, match=message):
+        registry_module.read_presets(path)
 
 
 @pytest.mark.parametrize("preset", list(presets()))

@@ -1,9 +1,12 @@
-"""Every figure the front page quotes is one its sources hold (README.md).
+"""Every figure the front pages quote is one their sources hold (README.md, reports/README.md),
+and every local link of the hand-written pages leads somewhere.
 
 A page is read in blocks (paragraphs, tables, list items); a block that quotes a decimal figure
 must link the report it comes from, in the block or in the caption just before it, and each
-figure must be one of that report's (as it prints it). A figure that drifts from its source, or
-one quoted without a source, fails here, naming the page, the line and the figure.
+figure must be one of that report's (as it prints it). A verdict table that ``cloudpose report
+--readme`` renders between ``<!-- verdicts PRESET -->`` markers comes from that preset's
+``claims.md``. A figure that drifts from its source, or one quoted without a source, fails here,
+naming the page, the line and the figure.
 """
 
 from __future__ import annotations
@@ -14,7 +17,17 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = ["README.md"]
+PAGES = ["README.md", "reports/README.md"]
+
+LINKED_PAGES = sorted(
+    str(p.relative_to(ROOT))
+    for p in [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), *(ROOT / "reports").rglob("*.md")]
+    if "mlflow-store" not in p.parts  # a committed store's artifacts, as the runs logged them
+)
+"""The pages whose links :func:`test_every_local_link_resolves` follows: the hand-written ones
+and the rendered reports beside them."""
+
+RENDERED = re.compile(r"<!-- (/?)verdicts (\S+) -->")
 
 FIGURE = re.compile(r"(?<![\w.\-/])\d+\.\d+(?![\w/])")
 """A decimal figure (91.3, 0.2), not part of a version, a name or a path."""
@@ -66,26 +79,42 @@ def _figures_of(path: Path) -> set[str]:
     return set(FIGURE.findall(path.read_text(encoding="utf-8")))
 
 
+def _rendered(text: str) -> list[tuple[int, int, Path]]:
+    """(first line, last line, claims.md) of each verdict table ``cloudpose report --readme``
+    renders into ``text``."""
+    out, open_at = [], {}
+    for i, line in enumerate(text.splitlines(), 1):
+        m = RENDERED.fullmatch(line.strip())
+        if m and not m.group(1):
+            open_at[m.group(2)] = i
+        elif m and m.group(2) in open_at:
+            out.append((open_at.pop(m.group(2)), i, ROOT / "reports" / m.group(2) / "claims.md"))
+    return out
+
+
 def problems(page: Path) -> list[str]:
     """One line per figure of ``page`` that its linked reports do not hold, or that it
     quotes without linking one."""
-    blocks = _blocks(page.read_text(encoding="utf-8"))
+    text = page.read_text(encoding="utf-8")
+    blocks, rendered = _blocks(text), _rendered(text)
+    name = str(page.relative_to(ROOT)) if page.is_relative_to(ROOT) else page.name
     out = []
     for k, (line, block) in enumerate(blocks):
         figures = FIGURE.findall(CODE.sub("", block))
         if not figures:
             continue
         sources = _sources(block, page)
+        sources += [claims for a, b, claims in rendered if a <= line < b]
         if not sources and k and blocks[k - 1][1].lstrip().startswith(("Sources", "From")):
             sources = _sources(blocks[k - 1][1], page)
         if not sources:
-            out.append(f"{page.name}:{line}: {figures[:4]} quoted without a linked report")
+            out.append(f"{name}:{line}: {figures[:4]} quoted without a linked report")
             continue
         held = set().union(*(_figures_of(p) for p in sources))
         missing = [f for f in figures if f not in held]
         if missing:
             shown = ", ".join(p.name for p in sources)
-            out.append(f"{page.name}:{line}: {missing} not in {shown}")
+            out.append(f"{name}:{line}: {missing} not in {shown}")
     return out
 
 
@@ -101,10 +130,14 @@ def test_the_checker_catches_a_drifted_figure_and_one_without_a_source(tmp_path)
     page.write_text(
         "Sources: [Table I](table.md).\n\n| method | ADS |\n|---|---:|\n| ours | 91.4 ± 0.2 |\n"
         "| ours + ICP | 91.3 ± 0.2 |\n\nNo source here: 12.5.\n\n- an item, [linked](table.md): 91.3\n"
+        "\n<!-- verdicts cpu-online -->\n| claim | ADS AUC |\n|---|---|\n| a | x [+0.8] |\n"
+        "| b | y [+99.9] |\n<!-- /verdicts cpu-online -->\n\nAfter the block: 0.8.\n"
     )
     assert problems(page) == [
         "page.md:3: ['91.4'] not in table.md",
         "page.md:8: ['12.5'] quoted without a linked report",
+        "page.md:12: ['99.9'] not in claims.md",  # a rendered table is the preset's claims.md
+        "page.md:19: ['0.8'] quoted without a linked report",
     ]
     assert FIGURE.findall("v2.13.0, 91.3 ± 0.2, shared-1.42x, 0.18 m") == ["91.3", "0.2", "0.18"]
 
@@ -140,7 +173,7 @@ def test_the_docs_index_lists_every_docs_file():
     assert listed == present
 
 
-@pytest.mark.parametrize("page_name", ["README.md", "docs/README.md"])
+@pytest.mark.parametrize("page_name", LINKED_PAGES)
 def test_every_local_link_resolves(page_name):
     page = ROOT / page_name
     text = page.read_text(encoding="utf-8")

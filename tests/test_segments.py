@@ -286,7 +286,7 @@ def test_the_committed_cpu_presets_keep_one_stream_per_frame():
     from cloudpose.data import cache
     from cloudpose.registry import resolve
 
-    for preset in ("cpu", "cpu-paper", "cpu-long", "memorize", "cpu-4k"):
+    for preset in ("cpu", "cpu-paper"):
         cfg = resolve("shared-0", preset, 1)
         assert cfg.data.segment_streams == "frame", preset
         assert cache._settings(cfg.data)["pipeline_version"] == 1

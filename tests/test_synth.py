@@ -431,7 +431,7 @@ def test_presets_of_the_committed_sweep_pin_version1():
     from cloudpose.config import Config
     from cloudpose.registry import resolve
 
-    for preset in ("cpu", "cpu-paper", "cpu-long", "cpu-4k", "memorize"):
+    for preset in ("cpu", "cpu-paper"):
         assert resolve("shared-0", preset).data.synth_version == 1
     assert resolve("shared-0", "smoke").data.synth_version == 2
     # a stored config without the field is version 1, with the fingerprint it had

@@ -16,11 +16,8 @@ from cloudpose.train.seeds import PURPOSES, generator, seed_for
 # were before ``train.seed_streams`` existed, computed from the commit before it.
 FINGERPRINTS = {
     ("shared-0", "cpu", 1): "ef338e3a7c1144f5",
-    ("shared-0", "cpu-4k", 1): "654d33c1fbbac3e1",
-    ("shared-0", "cpu-long", 1): "b8fbee2f4e90e4d5",
     ("shared-0", "cpu-online", 1): "541c58429a09604b",
     ("shared-0", "cpu-paper", 1): "44912df2a29512f6",
-    ("shared-0", "memorize", 1): "66c343400d1ded7d",
     ("shared-0", "online", 1): "b7a924ca3b84b65e",
     ("shared-0", "paper", 1): "fd061ca528aaa89b",
     ("shared-0", "paper-literal", 1): "16fad932f400e5c0",
