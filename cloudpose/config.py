@@ -463,6 +463,51 @@ PAPER_RADIUS = 0.01
 MAX_RADIUS = 0.5
 """The widest first ICP correspondence distance a setting may give, metres."""
 
+REFINEMENTS: dict[str, dict[str, Any]] = {
+    "paper": {"starts": 1, "select": "fitness", "radius": PAPER_RADIUS},
+    "wide": {"starts": 24, "select": "depth", "radius": 0.18},
+}
+"""The named refinements (``--refine``): ``paper``, Open3D's point-to-point ICP on the paper's
+schedule from the estimate alone (the refinement of the ablation tables, which reproduce the
+paper); ``wide``, ICP from the estimate turned by each of the 24 rotations of the octahedral
+group, from an 18 cm first radius, the start that agrees best with the frame's depth kept
+(:func:`cloudpose.refine.depth_score`): the best measured on real frames (docs/ensemble.md)."""
+
+PRODUCT_REFINEMENT = "wide"
+"""The refinement of the commands that pose objects for a user (``predict``, ``showcase``,
+``compare``'s second refinement); ``evaluate``, ``baseline`` and the sweeps keep a run's own."""
+
+
+def refinement(
+    name: str | None = None,
+    starts: int | None = None,
+    select: str | None = None,
+    radius: float | None = None,
+) -> dict[str, Any]:
+    """``{"starts", "select", "radius"}`` of the named refinement (:data:`REFINEMENTS`), each
+    field given replacing the recipe's; with no name only the fields given (None: not given).
+    ``ValueError`` naming ``--refine`` for an unknown name."""
+    if name is not None and name not in REFINEMENTS:
+        raise ValueError(f"--refine {name!r}: expected one of {', '.join(REFINEMENTS)}")
+    out = dict(REFINEMENTS[name]) if name is not None else {}
+    given = {"starts": starts, "select": select, "radius": radius}
+    return out | {k: v for k, v in given.items() if v is not None}
+
+
+def describe_refinement(starts: int, select: str, radius: float) -> str:
+    """A refinement in words, its recipe's name first where it is one (:data:`REFINEMENTS`),
+    e.g. ``wide: ICP from 24 starts, the one that agrees best with the depth kept, first
+    radius 18 cm``."""
+    fields = {"starts": starts, "select": select, "radius": radius}
+    named = [k for k, v in REFINEMENTS.items() if v == fields]
+    if starts == 1:
+        text = "ICP from the estimate"
+    else:
+        kept = "agrees best with the depth" if select == "depth" else "fits best"
+        text = f"ICP from {starts} starts, the one that {kept} kept"
+    text += f", first radius {radius * 100:g} cm"
+    return f"{named[0]}: {text}" if named else text
+
 
 @dataclass(frozen=True)
 class ICPConfig:

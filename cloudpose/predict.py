@@ -190,8 +190,9 @@ def predict(
 
     ``icp_overrides``: fields of :class:`~cloudpose.refine.ICPSettings` to change from the
     checkpoint's own ICP (as :func:`cloudpose.evaluate.evaluate`'s), e.g. the starts, their
-    selection against this frame's depth, a wider first radius. ``overlay``: where to draw
-    the poses (:func:`overlay_path`; the result names the file written).
+    selection against this frame's depth, a wider first radius (``cloudpose predict`` passes
+    the product's refinement, :data:`cloudpose.config.PRODUCT_REFINEMENT`). ``overlay``: where
+    to draw the poses (:func:`overlay_path`; the result names the file written).
 
     Raises:
         ValueError: besides bad files, depth that looks like another unit than

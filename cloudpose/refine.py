@@ -259,6 +259,16 @@ def schedule_for(radius: float) -> dict[str, float | int]:
     return {"max_distance": float(radius), "iterations": base.iterations + extra}
 
 
+def settings_overrides(fields: dict) -> dict:
+    """The fields of :class:`ICPSettings` a refinement's ``{"starts", "select", "radius"}``
+    (any of them; :func:`cloudpose.config.refinement`) set: the radius as its schedule
+    (:func:`schedule_for`)."""
+    out = {k: fields[k] for k in ("starts", "select") if k in fields}
+    if "radius" in fields:
+        out |= schedule_for(fields["radius"])
+    return out
+
+
 class ICPSolution(NamedTuple):
     """A refined pose with Open3D's quality figures for the last iteration.
 

@@ -1,12 +1,15 @@
 """The shipped network at work (``cloudpose showcase``, the end of ``make setup``).
 
-The shipped network (:mod:`cloudpose.store.pretrained`) and FPFH + RANSAC, each without and with the
-network's ICP, on the same instances: the 61 packaged real development frames and the first
-``synthetic_frames`` test frames of the network's preset (frame i of a synthetic split depends
-on the scene seed, the split and i alone, so these are the preset's own first test frames),
-rendered into ``out_dir``. Plus an overlay picture of one real frame. Nothing is logged to
-MLflow; the real-frame figures are those the network's run logged for the same frames (its
-record, ``resources/pretrained/*.json``), up to the last digits of another CPU.
+The shipped network (:mod:`cloudpose.store.pretrained`) and FPFH + RANSAC on the same segments,
+each estimate as it is, after the paper's ICP and after the product's refinement
+(:data:`cloudpose.config.PRODUCT_REFINEMENT`): one comparison
+(:func:`cloudpose.compare.run_compare`) on the 61 packaged real development frames and one on
+the first ``synthetic_frames`` test frames of the network's preset (frame i of a synthetic split
+depends on the scene seed, the split and i alone, so these are the preset's own first test
+frames), in ``out_dir``. Plus an overlay picture of one real frame, posed as ``cloudpose
+predict`` poses it. Nothing is logged to MLflow; the real-frame figures of the estimate and the
+paper's ICP are those the network's run logged for the same frames (its record,
+``resources/pretrained/*.json``), up to the last digits of another CPU.
 """
 
 from __future__ import annotations
@@ -16,6 +19,14 @@ from pathlib import Path
 
 import pandas as pd
 
+from cloudpose.compare import NETWORK, run_compare
+from cloudpose.config import PRODUCT_REFINEMENT, describe_refinement, refinement
+from cloudpose.data.layout import real_dev_root
+from cloudpose.data.synth.write import synthesize
+from cloudpose.infer import load_checkpoint
+from cloudpose.predict import predict
+from cloudpose.refine import settings_overrides
+from cloudpose.report.compare import rows as compare_rows
 from cloudpose.store.pretrained import PRETRAINED, shipped
 
 COLUMNS = {
@@ -40,18 +51,6 @@ class Showcase:
     described: str
 
 
-def _pooled(table: pd.DataFrame) -> dict[str, dict[str, float]]:
-    """``{"": {metric: %}, " + ICP": {...}}`` of one instance table."""
-    from cloudpose.evaluate import summary_metrics
-
-    metrics = summary_metrics(table, "x")
-    out = {}
-    for prefix, suffix in (("x", ""), ("x_icp", " + ICP")):
-        if f"{prefix}/ads_auc" in metrics:
-            out[suffix] = {col: 100 * metrics[f"{prefix}/{key}"] for key, col in COLUMNS.items()}
-    return out
-
-
 def check_options(synthetic_frames: int, baseline: str) -> None:
     """``ValueError`` naming the option unless ``synthetic_frames`` is 0 or more and
     ``baseline`` is a method of ``baselines.toml`` or ''."""
@@ -73,32 +72,30 @@ def run_showcase(
     synthetic_frames: int = 40,
     baseline: str = "fpfh",
     progress: bool = True,
+    refine: str = PRODUCT_REFINEMENT,
 ) -> Showcase:
-    """Evaluate the shipped network and ``baseline`` on the real development frames and the
-    first ``synthetic_frames`` synthetic test frames of the network's preset; draw one real frame.
+    """Compare the shipped network and ``baseline`` on the real development frames and the
+    first ``synthetic_frames`` synthetic test frames of the network's preset, each estimate
+    also after the paper's ICP and after ``refine``; draw one real frame.
 
     Args:
-        out_dir: where the synthetic frames, segment caches and the overlay go.
+        out_dir: where the synthetic frames, segment caches, comparisons and the overlay go.
         synthetic_frames: test frames to render (0: real frames only).
         baseline: a registered baseline (``cloudpose baseline --help``), or "" for none.
+        refine: the refinement beside the paper's (:data:`cloudpose.config.REFINEMENTS`);
+            the overlay's too.
 
     Raises:
-        ValueError: a negative ``synthetic_frames`` or an unknown ``baseline`` (before any
-            work; :func:`check_options`).
+        ValueError: a negative ``synthetic_frames``, an unknown ``baseline`` or ``refine``
+            (before any work; :func:`check_options`).
     """
-    from cloudpose.baselines.run import run_baseline
-    from cloudpose.data.layout import real_dev_root
-    from cloudpose.data.synth.write import synthesize
-    from cloudpose.evaluate import evaluate
-    from cloudpose.infer import load_checkpoint
-    from cloudpose.predict import predict
-
     check_options(synthetic_frames, baseline)
+    fields = refinement(refine)
     out_dir = Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     net = shipped()
     _, cfg = load_checkpoint(net.path)
-    sets = [("real development frames", real_dev_root(), "all")]
+    sets = [("real development frames", None, None)]
     if synthetic_frames > 0:
         root = out_dir / "data" / f"synth-seed{cfg.data.synth_seed}-v{cfg.data.synth_version}-test"
         synthesize(
@@ -112,31 +109,24 @@ def run_showcase(
         sets.append((f"synthetic test frames of {cfg.preset}", root, "keyframe"))
     rows, counts = [], []
     for label, root, frames in sets:
-        ours = evaluate(
-            PRETRAINED,
-            data=str(root),
+        done = run_compare(
+            out_dir / "compare" / ("real" if root is None else "synthetic"),
+            data=root,
             frames=frames,
+            runs=[PRETRAINED],
+            methods=[baseline] if baseline else [],
+            seed=1,
             project_dir=out_dir,
-            log=False,
             progress=progress,
+            **fields,
         )
-        results = [(f"network ({cfg.variant})", ours.table)]
-        if baseline:
-            theirs = run_baseline(
-                baseline,
-                cfg.preset,
-                seed=1,
-                project_dir=out_dir,
-                data=root,
-                frames=frames,
-                log=False,
-                progress=progress,
+        counts.append(f"{label}: {len(done.tables[(NETWORK, done.refinements[0].name)])} instances")
+        pooled = compare_rows(done.tables, done.contenders, done.refinements)
+        for r in pooled.to_dict("records"):
+            method = r["label"].replace(NETWORK, f"{NETWORK} ({cfg.variant})", 1)
+            rows.append(
+                {"data": label, "method": method, **{c: 100 * r[k] for k, c in COLUMNS.items()}}
             )
-            results.append((baseline, theirs.table))
-        counts.append(f"{label}: {len(ours.table)} instances")
-        for method, table in results:
-            for suffix, values in _pooled(table).items():
-                rows.append({"data": label, "method": method + suffix, **values})
     frame_dir = real_dev_root() / "data" / OVERLAY_FRAME[0]
     stem = frame_dir / OVERLAY_FRAME[1]
     overlay = out_dir / f"overlay_{OVERLAY_FRAME[0]}_{OVERLAY_FRAME[1]}.png"
@@ -147,8 +137,12 @@ def run_showcase(
         color=Path(f"{stem}-color.png"),
         meta=Path(f"{stem}-meta.mat"),
         overlay=overlay,
+        icp_overrides=settings_overrides(fields),
     )
-    described = f"{net.describe()}; " + "; ".join(counts)
+    described = (
+        f"{net.describe()}; refinement beside the paper's ICP: "
+        f"{describe_refinement(**fields)}; " + "; ".join(counts)
+    )
     return Showcase(pd.DataFrame(rows), overlay, described)
 
 

@@ -330,10 +330,12 @@ def test_the_commands_defaults_are_the_recipe():
 
     from cloudpose.cli import app
     from cloudpose.compare import RECIPE
+    from cloudpose.config import PRODUCT_REFINEMENT, REFINEMENTS
 
     command = typer.main.get_command(app).commands["compare"]
     defaults = {p.name: p.default for p in command.params}
-    assert {k: defaults[f"icp_{k}"] for k in RECIPE} == RECIPE
+    assert defaults["refine"] == PRODUCT_REFINEMENT and REFINEMENTS[PRODUCT_REFINEMENT] == RECIPE
+    assert {k: defaults[f"icp_{k}"] for k in RECIPE} == dict.fromkeys(RECIPE)  # the recipe's
 
 
 def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared, tmp_path,

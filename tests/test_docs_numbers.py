@@ -150,6 +150,20 @@ def test_the_readme_verdict_counts_are_those_of_the_claims_it_links():
     assert f"Summary: {lines[0].removeprefix('Verdicts: ')}" in claims
 
 
+def test_the_readme_budget_counts_are_those_of_the_4x_claims():
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    quoted = re.findall(r"holds: (\d+); changes: (\d+); undecided: (\d+), of (\d+)", readme)
+    assert len(quoted) == 1, "README.md quotes the across-budget counts once"
+    claims = (ROOT / "reports" / "cpu-online-4x" / "claims.md").read_text(encoding="utf-8")
+    on_reports = " ".join((ROOT / "reports" / "README.md").read_text(encoding="utf-8").split())
+    quoted = [q[:3] for q in quoted]
+    quoted += re.findall(r"(\d+) hold, (\d+) change and (\d+) are undecided", on_reports)
+    held = re.findall(
+        r"Summary: holds: (\d+); changes: (\d+); undecided: (\d+) \(of (\d+)\)", claims
+    )
+    assert len(quoted) == 2 and {q for q in quoted} == {h[:3] for h in held}, (quoted, held)
+
+
 def test_the_readme_stays_short_and_opens_with_its_commands():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(readme.encode()) <= 12 * 1024

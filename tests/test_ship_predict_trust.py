@@ -291,20 +291,26 @@ def test_a_same_size_shipped_file_with_another_checksum_names_the_checksum(packa
 @pytest.fixture
 def no_work(monkeypatch):
     """Rendering or evaluating anything fails the test: the options are checked first."""
-    import cloudpose.data.synth.write
-    import cloudpose.evaluate
+    import cloudpose.showcase
 
     def work(*args, **kwargs):
         raise AssertionError("work started before the options were checked")
 
-    monkeypatch.setattr(cloudpose.data.synth.write, "synthesize", work)
-    monkeypatch.setattr(cloudpose.evaluate, "evaluate", work)
+    for name in ("synthesize", "run_compare", "predict", "shipped"):
+        monkeypatch.setattr(cloudpose.showcase, name, work)
 
 
 def test_showcase_refuses_a_negative_frame_count_before_any_work(no_work, tmp_path):
     out = tmp_path / "show"
     res = cli("showcase", "--synthetic-frames", "-4", "--out", str(out), "--no-progress")
     one_line_error(res, "--synthetic-frames -4", "0")
+    assert not out.exists()
+
+
+def test_showcase_refuses_an_unknown_refinement_before_any_work(no_work, tmp_path):
+    out = tmp_path / "show"
+    res = cli("showcase", "--refine", "fast", "--out", str(out), "--no-progress")
+    one_line_error(res, "--refine 'fast'", "paper", "wide")
     assert not out.exists()
 
 

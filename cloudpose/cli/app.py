@@ -6,6 +6,7 @@ imports them in the order ``--help`` lists them).
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 from pathlib import Path
 from typing import Annotated
@@ -253,6 +254,49 @@ SetOpt = Annotated[
 ]
 
 
+RefineOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--refine",
+        help="The refinement: paper (the paper's ICP from the estimate, first radius 1 cm) or "
+        "wide (ICP from 24 starts, the one that agrees best with the frame's depth kept, first "
+        "radius 18 cm: the best measured on real frames, docs/ensemble.md); --icp-starts, "
+        "--icp-select and --icp-radius replace one field of it.",
+    ),
+]
+IcpStartsOpt = Annotated[
+    int | None,
+    typer.Option(
+        "--icp-starts",
+        help="ICP from the estimate turned by each element of a rotation group (12, 24 or 60 "
+        "starts), the best kept; 1: the estimate alone.",
+    ),
+]
+IcpSelectOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--icp-select",
+        help="How the starts are scored: fitness (ICP's) or depth (agreement with the frame's "
+        "depth: coverage and free-space violations).",
+    ),
+]
+IcpRadiusOpt = Annotated[
+    float | None,
+    typer.Option(
+        "--icp-radius",
+        help="ICP's first correspondence distance, metres (0.01: the paper's); a wider one adds "
+        "iterations at the same shrink down to the paper's last radius.",
+    ),
+]
+IcpFallbackOpt = Annotated[
+    bool | None,
+    typer.Option(
+        "--icp-fallback/--no-icp-fallback",
+        help="Keep the network's pose where ICP's fitness is below icp.fallback_min_fitness.",
+    ),
+]
+
+
 def check_icp_options(
     starts: int | None = None, select: str | None = None, radius: float | None = None
 ) -> None:
@@ -281,22 +325,41 @@ def icp_overrides(
     select: str | None = None,
     radius: float | None = None,
     icp: bool = True,
+    refine: str | None = None,
 ) -> dict:
-    """The fields of :class:`cloudpose.refine.ICPSettings` that ``--icp-fallback``,
-    ``--icp-starts``, ``--icp-select`` and ``--icp-radius`` change (None: not given), after
-    :func:`check_icp_options`; ``ValueError`` for any of them beside ``--no-icp`` (``icp``
-    False), which would ignore it."""
-    check_icp_options(starts, select, radius)
-    pairs = (("fallback", fallback), ("starts", starts), ("select", select))
-    overrides = {k: v for k, v in pairs if v is not None}
-    if not icp and (overrides or radius is not None):
-        given = [f"--icp-{k}" for k, v in (*pairs, ("radius", radius)) if v is not None]
-        raise ValueError(f"{' '.join(given)} with --no-icp: no ICP to set; drop one or the other")
-    if radius is not None:
-        from cloudpose.refine import schedule_for
+    """The fields of :class:`cloudpose.refine.ICPSettings` that ``--refine`` (a named recipe,
+    :data:`cloudpose.refine.REFINEMENTS`), ``--icp-fallback``, ``--icp-starts``,
+    ``--icp-select`` and ``--icp-radius`` change (None: not given; each ``--icp-*`` replaces
+    one field of the recipe), after :func:`check_icp_options`; ``ValueError`` for any of them
+    beside ``--no-icp`` (``icp`` False), which would ignore it."""
+    from cloudpose.config import refinement
+    from cloudpose.refine import settings_overrides
 
-        overrides |= schedule_for(radius)
+    given = [
+        f"--{k}"
+        for k, v in (("refine", refine), ("icp-fallback", fallback), ("icp-starts", starts),
+                     ("icp-select", select), ("icp-radius", radius))
+        if v is not None
+    ]  # fmt: skip
+    if not icp and given:
+        raise ValueError(f"{' '.join(given)} with --no-icp: no ICP to set; drop one or the other")
+    fields = refinement(refine, starts, select, radius)
+    check_icp_options(fields.get("starts"), fields.get("select"), fields.get("radius"))
+    overrides = settings_overrides(fields)
+    if fallback is not None:
+        overrides["fallback"] = fallback
     return overrides
+
+
+def refinement_of(overrides: dict, cfg_icp=None) -> str:
+    """The refinement ``overrides`` (:func:`icp_overrides`) make of ``cfg_icp`` (an ``icp``
+    config section; None: the defaults), in words (:func:`cloudpose.refine.describe_refinement`)."""
+    from cloudpose.config import describe_refinement
+    from cloudpose.refine import ICPSettings
+
+    base = ICPSettings.from_config(cfg_icp) if cfg_icp is not None else ICPSettings()
+    s = dataclasses.replace(base, **overrides)
+    return describe_refinement(s.starts, s.select, s.max_distance)
 
 
 def group_names() -> str:

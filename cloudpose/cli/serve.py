@@ -100,10 +100,9 @@ def mlflow_ui(
 ) -> None:
     """The MLflow UI, with one saved view per ablation group and preset: its variants (the
     reference shared-0 included) one row each, mean and sd over the seeds the report counts in
-    percent, and a link to the report run's tables and plots. First prepares the store
-    (cloudpose.report.ui.prepare_ui: runs the report does not count tagged `superseded`,
-    dead RUNNING runs marked KILLED, statistics, views and descriptions written) and prints each
-    view's address."""
+    percent, and a link to the report run's tables and plots. First prepares the store (runs
+    the report does not count tagged `superseded`, dead RUNNING runs marked KILLED, statistics,
+    views and descriptions written) and prints each view's address."""
     import os
 
     from cloudpose.report import ui
@@ -152,7 +151,9 @@ def _committed_sweep(project_dir: Path) -> None:
     fresh = not (project_dir / STORES / DEFAULT_PRESET / STORE_DB).is_file()
     folder = committed_store(DEFAULT_PRESET, project_dir)
     os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{(folder / STORE_DB).resolve()}"
-    how = f"unpacked now from {archive.relative_to(project_dir)}" if fresh else "the committed sweep"
+    how = (
+        f"unpacked now from {archive.relative_to(project_dir)}" if fresh else "the committed sweep"
+    )
     own = project_dir / STORE_DB
     mine = (
         f"; your own ./{STORE_DB}: --backend sqlite:///{STORE_DB} (make mlflow-ui "
@@ -302,7 +303,7 @@ def store_rekey(
 ) -> None:
     """Give the runs of PRESET made on data keyed OLD (a key of an earlier definition) today's
     keys of that data, so that the runner and the reports find them; each old key stays as a
-    tag rekeyed/.... Check first that OLD is the same data (cloudpose.store.rekey says how)."""
+    tag rekeyed/.... Check first that OLD is the same data (`cloudpose same-data --run ID`)."""
     from cloudpose.store.rekey import rekey_runs
 
     changes = rekey_runs(preset, old, Path.cwd(), dry_run=dry_run)

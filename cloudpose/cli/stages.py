@@ -12,8 +12,13 @@ from cloudpose.cli.app import (
     DeviceOpt,
     DryRunOpt,
     FramesOpt,
+    IcpFallbackOpt,
+    IcpRadiusOpt,
+    IcpSelectOpt,
+    IcpStartsOpt,
     PresetOpt,
     ProgressOpt,
+    RefineOpt,
     SeedOpt,
     SetOpt,
     VariantOpt,
@@ -22,7 +27,9 @@ from cloudpose.cli.app import (
     config_of,
     icp_overrides,
     recorded_command,
+    refinement_of,
 )
+from cloudpose.config import PRODUCT_REFINEMENT, refinement
 from cloudpose.registry import DEFAULT_PRESET
 
 
@@ -76,40 +83,11 @@ def evaluate(
     ] = None,
     frames: FramesOpt = "keyframe",
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
-    icp_fallback: Annotated[
-        bool | None,
-        typer.Option(
-            "--icp-fallback/--no-icp-fallback",
-            help="Keep the network's pose where ICP's fitness is below the default "
-            "icp.fallback_min_fitness (default: the run's icp settings). Other settings than "
-            "the run's are logged as {name}-fallback / {name}-nofallback.",
-        ),
-    ] = None,
-    icp_starts: Annotated[
-        int | None,
-        typer.Option(
-            help="ICP from the estimate turned by each element of a rotation group (12, 24 or "
-            "60 starts), keeping the best fit; 1 = the estimate only (the paper). Other "
-            "settings than the run's are logged as {name}-starts{N}.",
-        ),
-    ] = None,
-    icp_select: Annotated[
-        str | None,
-        typer.Option(
-            help="How the ICP starts are scored: fitness (ICP's) or depth (agreement with the "
-            "frame's depth: coverage and free-space violations; cloudpose.refine). Other "
-            "settings than the run's are logged as {name}-selectdepth.",
-        ),
-    ] = None,
-    icp_radius: Annotated[
-        float | None,
-        typer.Option(
-            help="ICP's first correspondence distance, metres (0.01: the paper's schedule); a "
-            "wider one adds iterations at the same shrink down to the paper's last radius "
-            "(cloudpose.refine.schedule_for). Other settings than the run's are logged as "
-            "{name}-radius{MM}mm.",
-        ),
-    ] = None,
+    refine: RefineOpt = None,
+    icp_fallback: IcpFallbackOpt = None,
+    icp_starts: IcpStartsOpt = None,
+    icp_select: IcpSelectOpt = None,
+    icp_radius: IcpRadiusOpt = None,
     real: Annotated[
         bool,
         typer.Option(
@@ -153,7 +131,10 @@ def evaluate(
     ] = False,
     progress: ProgressOpt = True,
 ) -> None:
-    """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow."""
+    """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow.
+
+    ICP is the run's own (the paper's, as the ablation tables) unless --refine or an --icp-*
+    option says otherwise; another refinement is logged under a name of its own."""
     from cloudpose.data.bop import check_results_destination, write_evaluation_csv
     from cloudpose.evaluate import evaluate as evaluate_fn
 
@@ -161,7 +142,7 @@ def evaluate(
         check_results_destination(bop_csv, force)
     from cloudpose.evaluate import evaluate_real
 
-    overrides = icp_overrides(icp_fallback, icp_starts, icp_select, icp_radius, icp)
+    overrides = icp_overrides(icp_fallback, icp_starts, icp_select, icp_radius, icp, refine)
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
     kwargs = dict(
@@ -255,28 +236,10 @@ def predict(
     ] = None,
     depth_factor: Annotated[float, typer.Option(help="Depth units per metre.")] = 10000.0,
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Refine with ICP.")] = True,
-    icp_starts: Annotated[
-        int | None,
-        typer.Option(
-            help="ICP from the estimate turned by each element of a rotation group (12, 24 or "
-            "60 starts); default the checkpoint's own (1, the paper's).",
-        ),
-    ] = None,
-    icp_select: Annotated[
-        str | None,
-        typer.Option(
-            help="How the starts are scored: fitness (ICP's) or depth (agreement with this "
-            "frame's depth); default the checkpoint's own.",
-        ),
-    ] = None,
-    icp_radius: Annotated[
-        float | None,
-        typer.Option(
-            help="ICP's first correspondence distance, metres; default the checkpoint's own "
-            "(0.01, the paper's). --icp-starts 24 --icp-select depth --icp-radius 0.18 is the "
-            "refinement docs/ensemble.md measures best.",
-        ),
-    ] = None,
+    refine: RefineOpt = PRODUCT_REFINEMENT,
+    icp_starts: IcpStartsOpt = None,
+    icp_select: IcpSelectOpt = None,
+    icp_radius: IcpRadiusOpt = None,
     overlay: Annotated[
         str,
         typer.Option(
@@ -292,7 +255,7 @@ def predict(
     observed surface) and the objects not posed, write an overlay picture and name it."""
     from cloudpose.predict import predict as predict_fn
 
-    overrides = icp_overrides(None, icp_starts, icp_select, icp_radius, icp)
+    overrides = icp_overrides(None, icp_starts, icp_select, icp_radius, icp, refine)
     result = predict_fn(
         depth,
         label,
@@ -306,6 +269,11 @@ def predict(
         overlay=overlay,
         device=device,
     )
+    if icp and result.poses:
+        typer.echo(
+            f"refinement: {refinement_of(overrides)}"
+            + ("; --refine paper: the paper's ICP" if refine != "paper" else "")
+        )
     for p in result.poses:
         typer.echo(p.describe())
     for line in result.notes(depth, label):
@@ -414,27 +382,10 @@ def baseline(
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
     ] = None,
     icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
-    icp_radius: Annotated[
-        float,
-        typer.Option(
-            help="ICP's first correspondence distance, metres (0.01: the paper's schedule; "
-            "cloudpose.refine.schedule_for). Another radius is a run of its own."
-        ),
-    ] = 0.01,
-    icp_starts: Annotated[
-        int,
-        typer.Option(
-            help="ICP from the estimate turned by each element of a rotation group (12, 24, "
-            "60), as evaluate --icp-starts; 1: the paper. Another is a run of its own."
-        ),
-    ] = 1,
-    icp_select: Annotated[
-        str,
-        typer.Option(
-            help="How ICP's starts are scored: fitness or depth, as evaluate --icp-select. "
-            "Another than fitness is a run of its own."
-        ),
-    ] = "fitness",
+    refine: RefineOpt = None,
+    icp_starts: IcpStartsOpt = None,
+    icp_select: IcpSelectOpt = None,
+    icp_radius: IcpRadiusOpt = None,
     rerun: Annotated[
         bool, typer.Option(help="Compute and log a new run even if this one is logged.")
     ] = False,
@@ -448,7 +399,10 @@ def baseline(
     from cloudpose.baselines.run import run_baseline
     from cloudpose.registry import parse_overrides
 
-    check_icp_options(icp_starts, icp_select, icp_radius)
+    fields = refinement("paper") | refinement(refine, icp_starts, icp_select, icp_radius)
+    check_icp_options(**fields)
+    if not icp and (refine, icp_starts, icp_select, icp_radius) != (None,) * 4:
+        raise ValueError("--refine / --icp-* with --no-icp: no ICP to set; drop one or the other")
 
     overrides = {
         k: v
@@ -467,9 +421,9 @@ def baseline(
         icp=icp,
         progress=progress,
         rerun=rerun,
-        icp_radius=icp_radius,
-        icp_starts=icp_starts,
-        icp_select=icp_select,
+        icp_radius=fields["radius"],
+        icp_starts=fields["starts"],
+        icp_select=fields["select"],
     )
     on = f"{out.split} in {data}, {preset} settings" if data is not None else preset
     if out.reused:
@@ -527,15 +481,10 @@ def compare(
         ),
     ] = None,
     seed: Annotated[int, typer.Option(help="The classical methods' random seed.")] = 1,
-    icp_starts: Annotated[
-        int, typer.Option(help="Starts of the refinement beside the paper's (1, 12, 24, 60).")
-    ] = 24,
-    icp_select: Annotated[
-        str, typer.Option(help="How its starts are scored: fitness or depth.")
-    ] = "depth",
-    icp_radius: Annotated[
-        float, typer.Option(help="Its first correspondence distance, metres (0.01: the paper's).")
-    ] = 0.18,
+    refine: RefineOpt = PRODUCT_REFINEMENT,
+    icp_starts: IcpStartsOpt = None,
+    icp_select: IcpSelectOpt = None,
+    icp_radius: IcpRadiusOpt = None,
     out: Annotated[
         Path | None,
         typer.Option(
@@ -554,7 +503,8 @@ def compare(
     from cloudpose.compare import run_compare
     from cloudpose.report.compare import render
 
-    check_icp_options(icp_starts, icp_select, icp_radius)
+    fields = refinement(refine, icp_starts, icp_select, icp_radius)
+    check_icp_options(**fields)
     done = run_compare(
         out,
         data=data,
@@ -563,9 +513,9 @@ def compare(
         methods=method,
         combine=combine,
         seed=seed,
-        starts=icp_starts,
-        select=icp_select,
-        radius=icp_radius,
+        starts=fields["starts"],
+        select=fields["select"],
+        radius=fields["radius"],
         device=device,
         progress=progress,
     )

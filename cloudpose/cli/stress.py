@@ -10,6 +10,7 @@ import typer
 
 from cloudpose.cli.app import (
     DryRunOpt,
+    IcpRadiusOpt,
     OutOpt,
     PresetOpt,
     ProgressOpt,
@@ -17,6 +18,7 @@ from cloudpose.cli.app import (
     check_icp_options,
     recorded_command,
 )
+from cloudpose.config import PAPER_RADIUS
 from cloudpose.registry import DEFAULT_PRESET
 
 QUICK = {"instances": 24, "fpfh_instances": 12, "ppf_instances": 4, "synth_frames": 8}
@@ -85,14 +87,7 @@ def stress(
         ),
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of every random choice of the sweep.")] = 1,
-    icp_radius: Annotated[
-        float,
-        typer.Option(
-            help="ICP's first correspondence distance for every method, metres (0.01: the "
-            "paper's schedule; cloudpose.refine.schedule_for). Another radius needs its own "
-            "--results folder."
-        ),
-    ] = 0.01,
+    icp_radius: IcpRadiusOpt = None,
     quick: Annotated[
         bool, typer.Option("--quick", help="A small subsample (a look, not a measurement).")
     ] = False,
@@ -131,6 +126,7 @@ def stress(
     from cloudpose.store.tracking import check_name
 
     check_name("--preset", preset)
+    icp_radius = PAPER_RADIUS if icp_radius is None else icp_radius
     check_icp_options(radius=icp_radius)
     check_counts(
         instances=instances, fpfh_instances=fpfh_instances, ppf_instances=ppf_instances,
