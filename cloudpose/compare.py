@@ -41,8 +41,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose import baselines, infer, runtime  # by module: the tests replace their functions
+from cloudpose.baselines import run as baselines_run
+from cloudpose.baselines.base import not_poses, settings_fingerprint
+from cloudpose.baselines.run import EstimateProgress
+from cloudpose.data.dataset import folder_segments
+from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
+from cloudpose.evaluate import check_ensemble, icp_label, instance_table, load_network
 from cloudpose.failures import sigterm_as_interrupt
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json, read_npz, why
+from cloudpose.refine import ICPSettings, schedule_for, segment_views
+from cloudpose.store.metric_names import data_evaluation_name
+from cloudpose.store.pretrained import PRETRAINED, shipped
+from cloudpose.store.runs import client_for
+from cloudpose.stress import SECONDS_PER_INSTANCE, SECONDS_PER_MODEL
 
 NETWORK = "network"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
@@ -84,9 +96,6 @@ def refinements(starts: int, select: str, radius: float, networks: int = 1) -> l
     ``select``, ``radius`` unless it is the paper's (:func:`cloudpose.refine.schedule_for`).
     With one start and one network (``networks``) there is nothing to select among, so
     ``select`` is the paper's whatever it says."""
-    from cloudpose.evaluate import icp_label
-    from cloudpose.refine import ICPSettings, schedule_for
-
     paper = ICPSettings()
     if starts == 1 and networks == 1:
         select = paper.select
@@ -253,8 +262,6 @@ def _kept_table(out_dir: Path, method: str, ref: Refinement, timing: dict, segs)
 def _timings(path: Path) -> dict:
     """The milliseconds already measured in a comparison's folder (``tables/icp_ms.json``);
     empty, with a warning, where the file is unreadable: every table is then computed again."""
-    from cloudpose.files import CorruptFileError
-
     if not path.is_file():
         return {}
     try:
@@ -271,16 +278,14 @@ def _network_label(n: int) -> str:
 def _network(segs, loaded: list, path: Path) -> Contender:
     """The network (``loaded``: :func:`cloudpose.evaluate.load_network` of each run; more than
     one an ensemble) on ``segs``; its estimates cached at ``path`` (:func:`_cached_network`)."""
-    from cloudpose.infer import Estimates, estimate_poses
-
     label = _network_label(len(loaded))
     ok = np.ones(len(segs), dtype=bool)
     cached = _cached_network(path, len(loaded), segs) if path.is_file() else None
     if cached is not None:
-        ests = [Estimates(R, t) for R, t in zip(cached["R"], cached["t"], strict=True)]
+        ests = [infer.Estimates(R, t) for R, t in zip(cached["R"], cached["t"], strict=True)]
         return Contender(NETWORK, label, ests, ok, float(cached["ms"]))
     t0 = time.perf_counter()
-    ests = [estimate_poses(m, segs, c.train.n_points, device=next(m.buffers()).device)
+    ests = [infer.estimate_poses(m, segs, c.train.n_points, device=next(m.buffers()).device)
             for _, m, c, _ in loaded]  # fmt: skip
     ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
     arrays = {"R": np.stack([e.R for e in ests]), "t": np.stack([e.t for e in ests]), "ms": ms}
@@ -294,8 +299,6 @@ def _cached_network(path: Path, networks: int, segs) -> dict[str, np.ndarray] | 
     another ensemble or segments is computed again, and so, with a one-line warning naming it,
     is one that is unreadable, lacks an array, or holds a valid segment's estimate that is no
     pose (:func:`cloudpose.baselines.base.not_poses`: an all-zero rotation)."""
-    from cloudpose.baselines.base import not_poses
-
     try:
         f = read_npz(path, ("R", "t", "ms"), "the networks' estimates")
         if f["R"].shape[:2] != (networks, len(segs)):
@@ -322,10 +325,7 @@ def baseline_estimates_path(project_dir: Path, method: str, seed: int, data_key:
     """Where a baseline's estimates of one set of segments are kept, for every comparison of the
     project on them: they depend on the segments (``data_key``), the method's settings
     (``baselines.toml``, by fingerprint) and the seed, not on the networks beside them."""
-    from cloudpose.baselines import load_settings
-    from cloudpose.baselines.base import settings_fingerprint
-
-    fp = settings_fingerprint(load_settings(method))
+    fp = settings_fingerprint(baselines.load_settings(method))
     return (
         project_dir / "runs" / "compare" / "estimates" / f"{method}-{fp}-seed{seed}-{data_key}.npz"
     )
@@ -335,25 +335,19 @@ def _baseline(method: str, segs, models: dict, seed: int, state, progress: bool)
     """Baseline ``method`` (``baselines.toml``'s settings) on ``segs``, resumable from ``state``
     (:class:`cloudpose.baselines.run.EstimateProgress`: its estimates so far, saved as they
     are computed and on an interrupt)."""
-    from cloudpose.baselines import load_settings, make
-    from cloudpose.baselines.run import estimate_all
-    from cloudpose.infer import Estimates
-
     valid = np.asarray(segs.valid, dtype=bool)
     if not state.done[valid].all():
-        estimator = make(method, models, load_settings(method), seed=seed)
+        estimator = baselines.make(method, models, baselines.load_settings(method), seed=seed)
         estimator.calls = state.calls
-        estimate_all(estimator, models, segs, state, method, progress)
+        baselines_run.estimate_all(estimator, models, segs, state, method, progress)
     ms = 1000 * state.seconds / max(int(valid.sum()), 1)
-    return Contender(method, BASELINES[method], [Estimates(state.R, state.t)], state.ok, ms)
+    return Contender(method, BASELINES[method], [infer.Estimates(state.R, state.t)], state.ok, ms)
 
 
 def _control(segs) -> Contender:
     """The control (:data:`CONTROL`, :func:`cloudpose.infer.no_estimate`)."""
-    from cloudpose.infer import no_estimate
-
     ok = np.ones(len(segs), dtype=bool)
-    return Contender(CONTROL, METHODS[CONTROL], [no_estimate(segs)], ok, 0.0)
+    return Contender(CONTROL, METHODS[CONTROL], [infer.no_estimate(segs)], ok, 0.0)
 
 
 COMBINED = "+"
@@ -377,8 +371,6 @@ def _combined(parts: tuple[str, ...], members: list[Contender]) -> Contender:
     """The combination of ``members`` (the contenders of ``parts``): every estimate of each, a
     member's miss filled with another member's estimate of that segment (a miss only where
     every member misses); its time, theirs together."""
-    from cloudpose.infer import Estimates
-
     ok = np.logical_or.reduce([c.ok for c in members])
     estimates = []
     for c in members:
@@ -388,7 +380,7 @@ def _combined(parts: tuple[str, ...], members: list[Contender]) -> Contender:
                 fill = left & other.ok
                 R[fill], t[fill] = other.estimates[0].R[fill], other.estimates[0].t[fill]
                 left &= ~fill
-            estimates.append(Estimates(R, t))
+            estimates.append(infer.Estimates(R, t))
     ms = sum(c.ms_per_object for c in members)
     return Contender(COMBINED.join(parts), _combined_label(members), estimates, ok, ms, parts)
 
@@ -423,10 +415,6 @@ def _refine(
     depth (:func:`cloudpose.refine.depth_score`)."""
     import warnings
 
-    from cloudpose.evaluate import instance_table
-    from cloudpose.infer import Estimates, refine_ensemble
-    from cloudpose.refine import segment_views
-
     segs = segs.subset(np.arange(len(segs)))
     segs.valid = np.asarray(segs.valid, dtype=bool) & contender.ok
     settings = refinement.settings
@@ -435,11 +423,11 @@ def _refine(
     views = segment_views(dataset, segs) if "depth" in (settings.select, choose) else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Open3D on a degenerate segment; its pose is still scored
-        icp, _, pick = refine_ensemble(
+        icp, _, pick = infer.refine_ensemble(
             segs, contender.estimates, models, settings, views, progress, choose
         )
     ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
-    est = {"net": Estimates.kept(contender.estimates, pick), "icp": icp}
+    est = {"net": infer.Estimates.kept(contender.estimates, pick), "icp": icp}
     table = instance_table(segs, est, models, dataset.classes, symmetry_table)
     t_gt = np.asarray(segs.t, float)
     miss = ~np.asarray(segs.valid, dtype=bool)
@@ -469,8 +457,6 @@ def plan(
     where :data:`PREPARATION` has words for it), and the refinements ``todo`` per method
     (:data:`ICP_SECONDS`, once for each of the method's ``estimates``: an ensemble's networks,
     a combination's methods; default one)."""
-    from cloudpose.stress import SECONDS_PER_INSTANCE, SECONDS_PER_MODEL
-
     valid = np.asarray(segs.valid, dtype=bool)
     n = int(valid.sum())
     parts, seconds = [], 0.0
@@ -499,21 +485,17 @@ def plan(
 def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
     """Refine one segment with each refinement first, so that no method's milliseconds per
     object hold the one-off setup (Open3D's, the model clouds') of the first refinement."""
-    from cloudpose.infer import no_estimate, refine_poses
-
     first = np.flatnonzero(segs.valid)[:1]
     if len(first) == 0:
         return
     one = segs.subset(first)
-    start = no_estimate(one)
+    start = infer.no_estimate(one)
     for ref in refs:
-        refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
+        infer.refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
 
 
 def _described(run: str, run_id: str | None) -> str:
     """A network of the comparison in words: the shipped one's record, or the run and its id."""
-    from cloudpose.store.pretrained import shipped
-
     return shipped(run).describe() if run_id is None else f"{run} (MLflow run {run_id[:8]})"
 
 
@@ -556,17 +538,6 @@ def run_compare(
         project_dir: where the segment caches and the MLflow store of ``runs`` are.
         device: where the network runs.
     """
-    from cloudpose import runtime
-    from cloudpose.baselines import load_settings
-    from cloudpose.baselines.base import settings_fingerprint
-    from cloudpose.baselines.run import EstimateProgress
-    from cloudpose.data.dataset import folder_segments
-    from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
-    from cloudpose.evaluate import check_ensemble, load_network
-    from cloudpose.store.metric_names import data_evaluation_name
-    from cloudpose.store.pretrained import PRETRAINED
-    from cloudpose.store.runs import client_for
-
     runs = list(runs or [PRETRAINED])
     methods = list(METHODS) if methods is None else list(methods)
     for m in methods:
@@ -598,7 +569,7 @@ def run_compare(
     out_dir = Path(out_dir)
     where = "the packaged real development frames" if data is None else str(root)
     described = f"{len(segs)} instances of {describe_split(dataset, frames)}, {where}"
-    fps = {m: settings_fingerprint(load_settings(m)) for m in methods if m in BASELINES}
+    fps = {m: settings_fingerprint(baselines.load_settings(m)) for m in methods if m in BASELINES}
     _manifest(
         out_dir / "compare.json",
         {"data": str(segs.data_key), "frames": frames, "networks": ids, "seed": seed,
@@ -666,8 +637,6 @@ def _write_table(
     """:func:`_refine` ``c`` by ``ref`` into ``out_dir/tables/METHOD-REFINEMENT.csv``, then
     its milliseconds, the CPU and the file's checksum into ``timing`` and
     ``tables/icp_ms.json`` (after the table: a table without them was not written whole)."""
-    from cloudpose import runtime
-
     key = f"{c.name}-{ref.name}"
     path = out_dir / "tables" / f"{key}.csv"
     if progress:

@@ -35,7 +35,7 @@ from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
 from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_ensemble
 from cloudpose.metrics import pose_errors
 from cloudpose.refine import ICPSettings, schedule_for, segment_views
-from cloudpose.store import runs, tracking
+from cloudpose.store import instances, runs, tracking
 from cloudpose.store.headline import headline
 from cloudpose.store.metric_names import (
     ICP_SUFFIX,
@@ -50,7 +50,7 @@ from cloudpose.store.metric_names import (
     video_metrics,
     write_detail,
 )
-from cloudpose.store.pretrained import is_pretrained
+from cloudpose.store.pretrained import is_pretrained, shipped
 from cloudpose.store.runs import local_checkpoint
 
 
@@ -335,8 +335,6 @@ def network_identity(run: str, run_id: str | None) -> str:
     run can be shipped again, e.g. in half precision)."""
     if run_id is not None:
         return run_id
-    from cloudpose.store.pretrained import shipped
-
     info = shipped(run).info
     return f"{info['run_id']}:{info['sha256'][:12]}"
 
@@ -501,8 +499,6 @@ def log_evaluation(
     per-video detail as tables beside it (:func:`log_detail`) and the other finite metrics; on
     the run's own test set (:data:`OWN_TEST`) also its headline metrics
     (:data:`cloudpose.store.headline.HEADLINE`)."""
-    from cloudpose.store import instances
-
     with tempfile.TemporaryDirectory() as tmp:
         path = instances.write_table(table, Path(tmp) / instances.PARQUET)
         client.log_artifact(run_id, str(path), artifact_path=f"eval/{name}")

@@ -14,8 +14,9 @@ from typing import NamedTuple
 import torch
 
 from cloudpose.config import ROTATION_LOSSES
+from cloudpose.conventions import packaged_classes
 from cloudpose.geometry.rotations import rotmat_geodesic_distance, rotmat_to_rotvec, safe_norm
-from cloudpose.geometry.symmetry import SymmetryTensors
+from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
 
 __all__ = ["LossTerms", "geodesic_loss", "pose_loss", "rotvec_l2_loss", "translation_loss"]
 
@@ -168,9 +169,6 @@ def pose_loss(
 @functools.cache
 def ycb_symmetry_tensors(table: int = 1) -> SymmetryTensors:
     """The packaged symmetry table ``table`` for the 21 YCB-Video class ids, as loss tensors."""
-    from cloudpose.conventions import packaged_classes
-    from cloudpose.geometry.symmetry import symmetries_for
-
     return SymmetryTensors(symmetries_for(packaged_classes(), table))
 
 

@@ -14,6 +14,7 @@ paper's ICP are those the network's run logged for the same frames (its record,
 
 from __future__ import annotations
 
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from cloudpose.data.synth.write import synthesize
 from cloudpose.infer import load_checkpoint
 from cloudpose.predict import predict
 from cloudpose.refine import settings_overrides
+from cloudpose.registry import BASELINES_FILE
 from cloudpose.report.compare import rows as compare_rows
 from cloudpose.store.pretrained import PRETRAINED, shipped
 
@@ -54,10 +56,6 @@ class Showcase:
 def check_options(synthetic_frames: int, baseline: str) -> None:
     """``ValueError`` naming the option unless ``synthetic_frames`` is 0 or more and
     ``baseline`` is a method of ``baselines.toml`` or ''."""
-    import tomllib
-
-    from cloudpose.registry import BASELINES_FILE
-
     if synthetic_frames < 0:
         raise ValueError(
             f"--synthetic-frames {synthetic_frames}: expected 0 (real frames only) or more"

@@ -45,11 +45,33 @@ import pandas as pd
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from cloudpose.baselines import load_settings, make
+from cloudpose.baselines.base import NotRegistered
+from cloudpose.baselines.run import subsample
 from cloudpose.config import PAPER_RADIUS
+from cloudpose.data.layout import open_dataset, real_dev_root
 from cloudpose.data.segment_set import SegmentSet
-from cloudpose.data.segments import Segment, backproject, farthest_point_sampling
+from cloudpose.data.segments import (
+    ALONE_SURFACE_VERSION,
+    Segment,
+    backproject,
+    farthest_point_sampling,
+)
+from cloudpose.data.synth import synthesize
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import smooth_depth
+from cloudpose.evaluate import instance_table
 from cloudpose.files import atomic_write, checked_members
+from cloudpose.infer import (
+    Estimates,
+    estimate_poses,
+    load_checkpoint,
+    refine_ensemble,
+    refine_poses,
+)
+from cloudpose.metrics import summarize
+from cloudpose.refine import DepthView, ICPSettings, schedule_for
+from cloudpose.registry import DEFAULT_PRESET, resolve
 
 SOURCES = ("real", "synth")
 """Where the frames come from: the 61 packaged real development frames
@@ -501,8 +523,6 @@ class Source:
 
 def evenly_spaced(n: int, limit: int | None) -> np.ndarray:
     """Indices of an evenly spaced ``limit`` of ``n`` (all when None or >= n)."""
-    from cloudpose.baselines.run import subsample
-
     return subsample(n, limit)
 
 
@@ -513,17 +533,11 @@ def open_source(
     ``synth_frames`` synthetic test frames of the preset (written under ``out_dir/synth``:
     frame i is a pure function of the synthesis seed, split and i, so they are the preset's own
     test frames 0..synth_frames-1); ``instances`` evenly spaced instances of them."""
-    from cloudpose.data.layout import open_dataset
-
     if name == "real":
-        from cloudpose.data.layout import real_dev_root
-
         ds = open_dataset(real_dev_root())
         ids = ds.image_set("all")
         described = f"the {len(ids)} packaged real development frames"
     elif name == "synth":
-        from cloudpose.data.synth import synthesize
-
         root = out_dir / "synth"
         d = cfg.data
         synthesize(
@@ -555,9 +569,6 @@ def open_source(
         alone = ds.alone_pixels(f.frame_id) if hasattr(ds, "alone_pixels") else None
         if alone is None:
             if renderer is None:
-                from cloudpose.data.segments import ALONE_SURFACE_VERSION
-                from cloudpose.data.synth.render import Renderer
-
                 renderer = Renderer(
                     {c: p.copy() for c, p in ds.models().items()},
                     surface_version=ALONE_SURFACE_VERSION,
@@ -629,8 +640,6 @@ def _kind(method: Method) -> str:
 
 def _networks(paths, cache: dict) -> list:
     """(model, config) of each checkpoint, loaded once per sweep call."""
-    from cloudpose.infer import load_checkpoint
-
     out = []
     for p in paths:
         key = ("net", str(p))
@@ -651,10 +660,6 @@ def run_method(
     """The instance table (:func:`cloudpose.evaluate.instance_table`, ``net_*`` and ``icp_*``
     columns) of ``method`` on ``segs``; a segment a baseline cannot register is a miss. ICP
     starts at ``icp_radius`` (:func:`cloudpose.refine.schedule_for`) for every method."""
-    from cloudpose.evaluate import instance_table
-    from cloudpose.infer import Estimates, estimate_poses, refine_ensemble
-    from cloudpose.refine import ICPSettings, schedule_for
-
     models = cache.setdefault("models", dataset.models())
     rows = evenly_spaced(len(segs), method.limit)
     segs = segs.subset(rows)
@@ -666,10 +671,6 @@ def run_method(
             icp_settings = dataclasses.replace(icp_settings, select="fitness")
         ests = [estimate_poses(m, segs, c.train.n_points) for m, c in nets]
     else:
-        from cloudpose.baselines import load_settings, make
-        from cloudpose.baselines.base import NotRegistered
-        from cloudpose.registry import DEFAULT_PRESET, resolve
-
         key = ("estimator", method.name)
         if key not in cache:  # per-model state (features, PPF's hash tables) built once
             cache[key] = make(method.name, models, load_settings(method.name), seed=seed)
@@ -925,10 +926,6 @@ def run_icp_selection(
     of ``methods`` followed by ICP under each of :data:`ICP_SELECTIONS` (from the first radius
     ``icp_radius``); one instance table per (source, setting, network) in
     ``OUT/icp_select/{source}/{setting}/{method}.csv``, skipped where it exists."""
-    from cloudpose.evaluate import instance_table
-    from cloudpose.infer import estimate_poses, refine_poses
-    from cloudpose.refine import DepthView, ICPSettings, schedule_for
-
     meta_path = out_dir / "sweep.json"
     if meta_path.is_file():
         check_icp_radius(out_dir, json.loads(meta_path.read_text()), icp_radius)
@@ -1030,8 +1027,6 @@ SUMMARY_COLUMNS = ("ads_auc", "rot_sym_lt_10deg", "trans_lt_1cm", "trans_median_
 def summary_of(table: pd.DataFrame, stage: str) -> dict[str, float]:
     """:data:`SUMMARY_COLUMNS` of one method's result table at ``stage`` (``net``: its own
     estimate, ``icp``: after ICP), pooled over its instances."""
-    from cloudpose.metrics import summarize
-
     cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
     sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
     pooled = summarize(sub, by_class=False)["pooled"]

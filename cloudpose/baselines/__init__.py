@@ -21,6 +21,8 @@ from cloudpose.baselines.base import (
     PoseEstimate,
     load_settings,
 )
+from cloudpose.baselines.fpfh import FPFHEstimator
+from cloudpose.baselines.ppf import PPFEstimator
 
 __all__ = [
     "METHODS",
@@ -41,11 +43,7 @@ def make(
     """The estimator ``method`` (one of :data:`METHODS`) for these models."""
     settings = settings or load_settings(method)
     if method == "fpfh":
-        from cloudpose.baselines.fpfh import FPFHEstimator
-
         return FPFHEstimator(models_by_class, settings, seed)
     if method == "ppf":
-        from cloudpose.baselines.ppf import PPFEstimator
-
         return PPFEstimator(models_by_class, settings, seed)
     raise ValueError(f"baseline method {method!r}: expected one of {', '.join(METHODS)}")

@@ -12,6 +12,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from cloudpose.registry import BASELINES_FILE
+
 
 @dataclass(frozen=True)
 class BaselineSettings:
@@ -40,8 +42,6 @@ class BaselineSettings:
 
 def load_settings(method: str, path: Path | None = None) -> BaselineSettings:
     """The settings of ``method`` from ``cloudpose/resources/registry/baselines.toml``."""
-    from cloudpose.registry import BASELINES_FILE
-
     raw = tomllib.loads((path or BASELINES_FILE).read_text())
     table = raw.get("baseline", {})
     if method not in table:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cloudpose.data.keys import DataKey
-from cloudpose.registry import get_group, groups
+from cloudpose.registry import get_group, groups, resolve
 from cloudpose.report import plots, segmentation
 from cloudpose.report.claims import (
     ClaimResult,
@@ -41,6 +41,7 @@ from cloudpose.report.committed import refuse_empty, report_folder
 from cloudpose.report.formats import Provenance, write_text
 from cloudpose.report.runs import RunSet, load_runs
 from cloudpose.report.tables import (
+    BASELINE_LABELS,
     table1_overall,
     table2_per_class,
     table3_shared_layers,
@@ -48,6 +49,7 @@ from cloudpose.report.tables import (
 )
 from cloudpose.store import runs as run_records
 from cloudpose.store import tracking
+from cloudpose.train.loop import online_epoch_steps
 
 TABLE4_GROUPS = ("rotation", "loss", "symmetry")
 """The groups whose rows Table IV holds, one section each."""
@@ -257,8 +259,6 @@ def _series(runs: RunSet, variant: str, label: str, method: str = "net"):
 
 
 def _occlusion_overall(runs: RunSet, out_dir: Path, prov: Provenance) -> list[Path]:
-    from cloudpose.report.tables import BASELINE_LABELS
-
     candidates = [
         _series(runs, "shared-0", "shared-0, network alone", "net"),
         _series(runs, "shared-0", "shared-0 + ICP", "icp"),
@@ -456,9 +456,6 @@ def _remove_local_artifacts(path: Path | None) -> None:
 
 def budget_words(preset: str) -> str:
     """A preset's training budget in words: Adam steps, batch and distinct on-line segments."""
-    from cloudpose.registry import resolve
-    from cloudpose.train.loop import online_epoch_steps
-
     cfg = resolve(preset=preset)
     batch = cfg.train.batch_size
     if cfg.data.train_source != "online":

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose.geometry.symmetry import load_symmetries
 from cloudpose.registry import get_group
 from cloudpose.report.formats import Provenance, write_text
 from cloudpose.report.runs import RunSet
@@ -203,8 +204,6 @@ def paper_claims() -> list[Claim]:
 @functools.cache
 def _asymmetric_classes(table: int) -> frozenset[str]:
     """The classes without a symmetry in symmetry table ``table``."""
-    from cloudpose.geometry.symmetry import load_symmetries
-
     return frozenset(name for name, sym in load_symmetries(table).items() if sym.kind == "none")
 
 

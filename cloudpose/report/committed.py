@@ -22,6 +22,13 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+from cloudpose.data.keys import same_data
+from cloudpose.store import tracking
+from cloudpose.store.archive import unpack_store
+from cloudpose.store.compact import INDEX
+from cloudpose.store.runs import _is_own
+from cloudpose.store.tracking import STORE_DB
+
 COMPACT = "mlflow-store"
 """The compact store's folder name in ``reports/PRESET/``."""
 
@@ -46,8 +53,6 @@ def committed_archive(preset: str, project_dir: Path) -> Path | None:
 
 def _index_digest(store: Path) -> str | None:
     """SHA-256 of a compact store's index (None for an archive, or a folder without one)."""
-    from cloudpose.store.compact import INDEX
-
     index = store / INDEX
     return hashlib.sha256(index.read_bytes()).hexdigest() if index.is_file() else None
 
@@ -59,9 +64,6 @@ def committed_store(preset: str, project_dir: Path) -> Path:
     Raises:
         FileNotFoundError: the checkout commits no store for ``preset``.
     """
-    from cloudpose.store.archive import unpack_store
-    from cloudpose.store.tracking import STORE_DB
-
     archive = committed_archive(preset, project_dir)
     if archive is None:
         raise FileNotFoundError(
@@ -94,8 +96,6 @@ def use_committed_store(
     """Point this process's MLflow client at the preset's committed store when the user named
     no store, ``lacking()`` says the project's own store lacks the runs, and the checkout
     commits one; says so in one line through ``echo``. Returns whether it did."""
-    from cloudpose.store.tracking import STORE_DB
-
     if os.environ.get("MLFLOW_TRACKING_URI") or committed_archive(preset, project_dir) is None:
         return False
     own = Path(project_dir) / STORE_DB
@@ -133,8 +133,6 @@ def sweep_store(preset: str, project_dir: Path, fresh: bool, echo: Callable[[str
     store instead (``./mlflow.db``, or the store the user named): an independent replication,
     whose reports render beside the committed ones (:func:`report_folder`).
     """
-    from cloudpose.store.tracking import STORE_DB
-
     if os.environ.get("MLFLOW_TRACKING_URI"):
         shown = os.environ["MLFLOW_TRACKING_URI"]
         why = "--fresh: the committed runs are not reused" if fresh else "MLFLOW_TRACKING_URI"
@@ -170,8 +168,6 @@ def sweep_store(preset: str, project_dir: Path, fresh: bool, echo: Callable[[str
 def holds_preset(project_dir: Path, preset: str) -> bool:
     """Whether the project's own store (``MLFLOW_TRACKING_URI`` or ``./mlflow.db``) holds a
     finished run of ``preset``; False without a store (nothing is created to ask)."""
-    from cloudpose.store import tracking
-
     uri = tracking.tracking_uri(project_dir)
     db = tracking.sqlite_path(uri)
     if db is not None and not db.is_file():
@@ -185,8 +181,6 @@ class NoRunsError(ValueError):
 
 def store_label(project_dir: Path) -> str:
     """The store this process reads, as a user named it (``MLFLOW_TRACKING_URI`` or ./mlflow.db)."""
-    from cloudpose.store import tracking
-
     return tracking.tracking_uri(project_dir)
 
 
@@ -215,9 +209,6 @@ def committed_pairs(
     and baseline runs on ``split``, trained on ``data_key`` (or the same data under another key)
     where one is given. None when the checkout commits no compact store of it."""
     import json
-
-    from cloudpose.data.keys import same_data
-    from cloudpose.store.runs import _is_own
 
     folder = Path(project_dir) / "reports" / preset / COMPACT / "runs"
     if not folder.is_dir():

@@ -21,6 +21,9 @@ import pandas as pd
 
 from cloudpose.compare import MACHINE, NETWORK, MethodComparison, table_problem
 from cloudpose.files import atomic_text, atomic_write
+from cloudpose.metrics import summarize
+from cloudpose.metrics.summaries import voc_ap_auc
+from cloudpose.report.real import object_pose, versus_baseline, video_of
 
 STAGE_ESTIMATE = "estimate"
 METRICS = {
@@ -61,8 +64,6 @@ def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
     """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
     rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
     its parts along and across the viewing ray (mm)."""
-    from cloudpose.metrics import summarize
-
     cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
     sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
     pooled = summarize(sub, by_class=False)["pooled"]
@@ -120,8 +121,6 @@ def paired(tables: dict, contenders, refs) -> pd.DataFrame:
     """Each method of :func:`pairs` minus the other at each stage, per metric of
     :data:`METRICS`: ``method``, ``against``, ``stage``, ``metric``, ``diff``, ``low``,
     ``high``, ``poses``, ``instances`` (fractions)."""
-    from cloudpose.report.real import versus_baseline
-
     out = []
     for method, against in pairs(contenders):
         for stage, ref, prefix in _stages(refs):
@@ -164,8 +163,6 @@ def _ref_label(refs, name: str) -> str:
 
 
 def _ads_auc(table: pd.DataFrame, prefix: str) -> float:
-    from cloudpose.metrics.summaries import voc_ap_auc
-
     return voc_ap_auc(table[f"{prefix}_ads"].to_numpy(float))
 
 
@@ -248,8 +245,6 @@ def render(comparison: MethodComparison, command: str) -> tuple[Path, Path]:
     ``compare.csv``, ``compare_paired.csv`` and ``compare.png`` into the comparison's folder;
     the report's and the figure's paths; ``ValueError`` naming a table that lacks a column
     the report reads (:func:`cloudpose.compare.table_problem`)."""
-    from cloudpose.report.real import object_pose, video_of
-
     out_dir, tables = comparison.out_dir, comparison.tables
     contenders, refs = comparison.contenders, comparison.refinements
     icp_ms, described, source = comparison.timing, comparison.described, comparison.source

@@ -18,6 +18,7 @@ from matplotlib.ticker import MaxNLocator
 
 from cloudpose.report.plots import _save  # also selects the Agg backend
 from cloudpose.report.runs import metric_history
+from cloudpose.store.runs import resolve_run_id
 
 METRIC_LABELS = {
     "train/loss": "training loss (10·m + rad)",
@@ -67,8 +68,6 @@ def fetch_curves(client, runs: Sequence[str], metrics: Sequence[str]) -> list[Ru
     Raises:
         ValueError: a run that cannot be found, or a metric none of the runs logged.
     """
-    from cloudpose.store.runs import resolve_run_id
-
     out = []
     for spec in runs:
         label, sep, run = spec.rpartition("=")

@@ -28,9 +28,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from cloudpose.baselines import load_settings
+from cloudpose.baselines.base import settings_fingerprint
 from cloudpose.data.keys import canonical_key
 from cloudpose.report.committed import refuse_empty, report_folder
 from cloudpose.report.formats import write_text
+from cloudpose.report.stats import auc_of_rows, share_below
 from cloudpose.store import tracking
 from cloudpose.store.instances import run_instance_table
 from cloudpose.store.metric_names import (
@@ -41,6 +44,7 @@ from cloudpose.store.metric_names import (
     summary_metrics,
     video_metrics,
 )
+from cloudpose.store.runs import is_preset_config
 
 NETWORK = "shared-0"
 BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
@@ -183,10 +187,6 @@ def find_evaluations(
         ``1..seeds`` of the network and seed 1 of each baseline are expected); the seeds found
         per method; the other presets each borrowed baseline came from.
     """
-    from cloudpose.baselines import load_settings
-    from cloudpose.baselines.base import settings_fingerprint
-    from cloudpose.store.runs import is_preset_config
-
     found: list[Evaluation] = []
     missing: list[str] = []
     seeds_found: dict[str, list[int]] = {}
@@ -313,8 +313,6 @@ def object_pose(table: pd.DataFrame) -> np.ndarray:
 
 def _stat(metric: str):
     """(column suffix, stat over an (R, N) array of per-instance values) of a metric."""
-    from cloudpose.report.stats import auc_of_rows, share_below
-
     return {
         "ads_auc": ("ads", auc_of_rows),
         "rot_sym_lt_10deg": ("rot_sym_err_deg", share_below(10.0)),

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
+from cloudpose.baselines.base import is_current
 from cloudpose.data.keys import DataKey, canonical_key, same_data
 from cloudpose.store import instances, tracking
 from cloudpose.store.metric_names import DetailReader, detail_kind
@@ -166,8 +167,6 @@ class RunSet:
 def _current(run) -> bool:
     """A training run of its preset's own config, or a baseline run of today's settings."""
     if run.data.tags.get("kind") == "baseline":
-        from cloudpose.baselines.base import is_current
-
         return is_current(run)
     return is_preset_config(run)
 

@@ -32,6 +32,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats as sps
 
+from cloudpose.metrics.summaries import voc_ap_auc
+
 SUPPORTED = "supported"
 """The interval excludes 0 on the claimed side and holds the paper's size (or there is none)."""
 CONTRADICTED = "contradicted"
@@ -471,6 +473,4 @@ def share_below(threshold: float) -> Callable[[np.ndarray], np.ndarray]:
 
 def auc_of_rows(x: np.ndarray) -> np.ndarray:
     """``stat`` for :func:`bootstrap_difference`: the toolbox AUC of each row, (R, N) -> (R,)."""
-    from cloudpose.metrics.summaries import voc_ap_auc
-
     return np.array([voc_ap_auc(row) for row in np.atleast_2d(x)])

@@ -19,12 +19,15 @@ import pandas as pd
 from cloudpose.config import PAPER_RADIUS
 from cloudpose.refine import schedule_for
 from cloudpose.stress import (
+    ICP_SELECTIONS,
     PERTURBATIONS,
     STATISTICS,
     collect,
+    collect_icp_selection,
     collect_stats,
     identity_level,
     real_level,
+    result_path,
 )
 
 NETWORK = "network"
@@ -379,8 +382,6 @@ def per_pose_markdown(run_dir: Path) -> str:
     + RANSAC + ICP at the identity, and which segment statistic lies farthest outside the
     synthetic segments' range (its percentile among the synthetic identity's), naming the
     perturbation that moves it: the candidate cause of a miss. "" without the results."""
-    from cloudpose.stress import PERTURBATIONS, result_path
-
     ident = ("dilate", 0.0)
     real_stats = result_path(run_dir, "real", *ident, "stats")
     syn_stats = result_path(run_dir, "synth", *ident, "stats")
@@ -452,8 +453,6 @@ def _more_perturbed(stat: str, percentile: float) -> float:
 def icp_selection_markdown(run_dir: Path) -> str:
     """The section comparing how ICP starts are chosen (:func:`cloudpose.stress.run_icp_selection`),
     or "" without its results."""
-    from cloudpose.stress import ICP_SELECTIONS, collect_icp_selection
-
     df = collect_icp_selection(run_dir)
     if df.empty:
         return ""

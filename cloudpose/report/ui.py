@@ -62,11 +62,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import quote
 
+from cloudpose.baselines.base import is_current
 from cloudpose.data.keys import same_data
+from cloudpose.registry import groups
+from cloudpose.report.runs import load_runs
+from cloudpose.report.stats import mean_std
+from cloudpose.report.tables import BASELINE_LABELS
 from cloudpose.store import tracking
 from cloudpose.store.archive import relative_run_dir
 from cloudpose.store.headline import HEADLINE, headline
 from cloudpose.store.liveness import KILLED_TAG, dead_runs, when
+from cloudpose.store.runs import TRAINING_PREFIXES, folder_locked, is_preset_config
 
 COLUMNS: dict[str, str] = {
     "ads_auc": "ADS AUC",
@@ -149,8 +155,6 @@ def variant_stats(values: Mapping[str, Sequence[float]], seeds: int) -> dict[str
         rounded as the report prints them (:func:`shown`), for each headline with a finite
         value; ``seeds``.
     """
-    from cloudpose.report.stats import mean_std
-
     out: dict[str, float] = {}
     for key, name in COLUMNS.items():
         ms = mean_std(list(values.get(key, ())))
@@ -227,9 +231,6 @@ def comparison_members(variants: Iterable[str]) -> list[tuple[str, list[tuple[st
     ``(variant, label)`` members in the group's order: every registry group with a member
     among them (all its members listed, those without runs too), and :data:`BASELINES`
     (:data:`REFERENCE` and every ``baseline-*`` variant) when a baseline is among them."""
-    from cloudpose.registry import groups
-    from cloudpose.report.tables import BASELINE_LABELS
-
     present = set(variants)
     out = []
     for g in groups().values():
@@ -355,19 +356,13 @@ def superseded_reason(run, counted: Mapping[tuple[str, int], object], data: str 
 def _current(run) -> bool:
     """The report's test of a run's config (:func:`cloudpose.report.runs.load_runs`)."""
     if run.data.tags.get("kind") == "baseline":
-        from cloudpose.baselines.base import is_current
-
         return is_current(run)
-    from cloudpose.store.runs import is_preset_config
-
     return is_preset_config(run)
 
 
 def counted_runs(client, presets: Iterable[str]) -> dict[str, object]:
     """preset -> the report's :class:`~cloudpose.report.runs.RunSet` of it (its own warnings
     about left-out runs silenced: :func:`superseded_reason` tags each of them)."""
-    from cloudpose.report.runs import load_runs
-
     out = {}
     for preset in sorted(set(presets)):
         with warnings.catch_warnings():
@@ -413,15 +408,11 @@ def build_comparisons(
 def _folder_locked(run_dir: str | None, store: str | None = None) -> bool:
     """Whether a process on this machine holds the lock of run folder ``run_dir`` (a relative
     one under the folder of the SQLite store ``store``: :func:`tracking.store_path`)."""
-    from cloudpose.store.runs import folder_locked
-
     return folder_locked(tracking.store_path(run_dir, store) if run_dir else None)
 
 
 def _last_activity(client, run) -> int:
     """The run's start or the last time it logged a training metric, in ms."""
-    from cloudpose.store.runs import TRAINING_PREFIXES
-
     last = run.info.start_time or 0
     for key in run.data.metrics:
         if key.split("/")[0] in TRAINING_PREFIXES:

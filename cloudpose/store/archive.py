@@ -57,7 +57,16 @@ from typing import NamedTuple
 from cloudpose.failures import disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write, checked_members
 from cloudpose.store import tracking
-from cloudpose.store.compact import CHECKPOINT_SUFFIX
+from cloudpose.store.checkpoints import PoseCheck
+from cloudpose.store.compact import (
+    CHECKPOINT_SUFFIX,
+    RunSource,
+    check_compact,
+    extract_compact,
+    write_compact,
+)
+from cloudpose.store.liveness import KILLED_TAG, STALE_AFTER_S, dead_runs
+from cloudpose.store.runs import INFO, TRAINING_PREFIXES, folder_locked, lock_path
 from cloudpose.store.tracking import ARTIFACT_DIR, EXPERIMENT_PREFIX, STORE_DB
 
 """Files left out of a packed store but for the runs named to keep them."""
@@ -218,8 +227,6 @@ def _lock_state(run_id: str, run_dir: str, project: Path) -> str | None:
     :data:`LOCK_RELEASED` when the folder is here, its ``run.json`` names this run and no
     process holds its lock file (the one that trained it is gone: the system releases a dead
     process's lock); else None (nothing here to ask)."""
-    from cloudpose.store.runs import INFO, folder_locked, lock_path
-
     if not run_dir:
         return None
     folder = Path(run_dir) if Path(run_dir).is_absolute() else project / run_dir
@@ -256,9 +263,6 @@ def _mark_dead(
     of the same variant, preset, seed and config started after its last activity, or it
     logged nothing for :data:`~cloudpose.store.liveness.STALE_AFTER_S`. Every other RUNNING run
     is packed RUNNING as it stands; ``keep``: the runs whose checkpoints are packed."""
-    from cloudpose.store.liveness import KILLED_TAG, STALE_AFTER_S, dead_runs
-    from cloudpose.store.runs import TRAINING_PREFIXES
-
     now_ms = int(time.time() * 1000) if now_ms is None else now_ms
     con = sqlite3.connect(db)
     try:
@@ -557,9 +561,6 @@ def pack_store(
         files = kept = left = 0
         without = tuple(r.run_id for r in plan if r.expected and not r.source.is_dir())
         if compact:
-            from cloudpose.store.checkpoints import PoseCheck
-            from cloudpose.store.compact import RunSource, write_compact
-
             sources = [RunSource(r.run_id, r.source, r.run_id in keep) for r in plan]
             check = PoseCheck(project) if reduce_checkpoints else None
             try:
@@ -737,8 +738,6 @@ def unpack_store(archive: Path, into: Path) -> int:
         The number of runs in the store. Nothing is left in ``into`` when it fails or is
         stopped (:data:`UNPACK_PREFIX`).
     """
-    from cloudpose.store import compact
-
     archive, into = Path(archive), Path(into)
     if (into / STORE_DB).exists():
         raise FileExistsError(
@@ -755,7 +754,7 @@ def unpack_store(archive: Path, into: Path) -> int:
             try:
                 with contextlib.ExitStack() as stack:
                     if folder:
-                        entries = compact.check_compact(archive)
+                        entries = check_compact(archive)
                     else:
                         tar = stack.enter_context(tarfile.open(archive, "r:*"))
                         members = _checked_members(archive, tar, str(into / UNPACK_PREFIX))
@@ -764,7 +763,7 @@ def unpack_store(archive: Path, into: Path) -> int:
                     prefix = f"{UNPACK_PREFIX}{os.getpid()}-"
                     staging = Path(tempfile.mkdtemp(prefix=prefix, dir=into))
                     if folder:
-                        compact.extract_compact(archive, entries, staging)
+                        extract_compact(archive, entries, staging)
                     else:
                         tar.extractall(staging, members=members, filter="data")
             except _ARCHIVE_ERRORS as exc:

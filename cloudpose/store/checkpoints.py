@@ -252,6 +252,7 @@ class PoseCheck:
         if self.segments is not None:
             return self.segments
         if cfg.data not in self._sets:
+            # lazy: data loads numba and scipy; store-pack and -unpack start without them
             from cloudpose.data.dataset import folder_segments
             from cloudpose.data.layout import open_dataset, real_dev_root
             from cloudpose.data.segments import SegmentWarning
@@ -266,6 +267,7 @@ class PoseCheck:
     def poses(self, ckpt: Mapping[str, Any]) -> tuple[Any, np.ndarray]:
         """(:class:`~cloudpose.infer.Estimates`, valid rows) of ``ckpt``'s network on the set,
         loaded as every reader loads a checkpoint (:func:`cloudpose.infer.load_checkpoint`)."""
+        # lazy: infer loads numba and scipy; store-pack and -unpack start without them
         from cloudpose.infer import estimate_poses, load_checkpoint
 
         with tempfile.TemporaryDirectory(prefix="cloudpose-check-") as tmp:

@@ -127,6 +127,7 @@ def _rotmat_to_quat32(R: np.ndarray) -> np.ndarray:
     much)."""
     import torch
 
+    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
     from cloudpose.geometry.rotations import rotmat_to_unitquat
 
     U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
@@ -140,6 +141,7 @@ def _quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """(M, 4) quaternions XYZW (normalised here, in float64) -> (M, 3, 3) float64 rotations."""
     import torch
 
+    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
     from cloudpose.geometry.rotations import normalize_quat, unitquat_to_rotmat
 
     q64 = torch.from_numpy(np.asarray(q, dtype=np.float64))

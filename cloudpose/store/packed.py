@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloudpose.store.instances import QUATERNIONS_KEY
+
 PACKED_KEY = "cloudpose.packed"
 """Parquet key-value metadata of a packed table: JSON (:class:`Layout`)."""
 
@@ -208,8 +210,6 @@ def _settled_micrometres(t: np.ndarray) -> np.ndarray | None:
 
 
 def _quaternion_names(table) -> dict[str, str]:
-    from cloudpose.store.instances import QUATERNIONS_KEY
-
     meta = table.schema.metadata or {}
     return json.loads(meta.get(QUATERNIONS_KEY.encode(), b"{}"))
 

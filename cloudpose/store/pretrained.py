@@ -28,6 +28,7 @@ import torch
 from cloudpose.conventions import resource_path
 from cloudpose.data.keys import DataKey
 from cloudpose.files import atomic_text, atomic_write
+from cloudpose.registry import DEFAULT_PRESET
 
 PRETRAINED = "pretrained"
 """The name of the shipped network wherever a checkpoint or run is asked for."""
@@ -87,8 +88,6 @@ def file_stem(run_name: str) -> str:
 def describe_run(run_name: str, preset: str, metrics: dict[str, float]) -> str:
     """One line: the run, its preset and its metrics of :data:`SHOWN` (0-1; those not logged
     are named so)."""
-    from cloudpose.registry import DEFAULT_PRESET
-
     shown = ", ".join(f"{k} {metrics[k]:.3f}" if k in metrics else f"{k} not logged" for k in SHOWN)
     other = "" if preset == DEFAULT_PRESET else f", not the default {DEFAULT_PRESET}"
     return f"{run_name} (preset {preset}{other}): {shown}"
@@ -212,6 +211,7 @@ def half_state(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 def pose_difference(a, b, valid: np.ndarray) -> tuple[float, float]:
     """Largest rotation (degrees) and translation (mm) difference between two
     :class:`~cloudpose.infer.Estimates` over the ``valid`` rows."""
+    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
     from cloudpose.geometry.rigid import rotation_error_deg
 
     if not np.any(valid):
@@ -251,6 +251,7 @@ def ship(
     Returns:
         The weights file written.
     """
+    # lazy: infer loads numba and scipy; store-pack and -unpack start without them
     from cloudpose.infer import estimate_poses, load_checkpoint
 
     if name not in SHIPPED:

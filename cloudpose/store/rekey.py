@@ -34,8 +34,13 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from cloudpose.data.keys import DataKey
+from cloudpose.data.cache import cache_key
+from cloudpose.data.dataset import data_fingerprint, dataset_root, prepare_data
+from cloudpose.data.keys import DataKey, same_data, same_data_keys
+from cloudpose.data.layout import open_dataset, real_dev_root
+from cloudpose.registry import resolve
 from cloudpose.store import tracking
+from cloudpose.store.instances import run_instance_table
 
 REKEYED_PREFIX = "rekeyed/"
 """Tag prefix that keeps a key a run had before :func:`rekey_runs` replaced it."""
@@ -56,11 +61,6 @@ def current_keys(preset: str, project_dir: Path) -> dict[str, DataKey]:
     """Today's keys of ``preset``'s data (it must exist: ``cloudpose prepare``): ``data`` (the
     fingerprint of train and test), ``test`` (the test segments), ``real`` (the packaged real
     development frames)."""
-    from cloudpose.data.cache import cache_key
-    from cloudpose.data.dataset import data_fingerprint, dataset_root
-    from cloudpose.data.layout import open_dataset, real_dev_root
-    from cloudpose.registry import resolve
-
     cfg = resolve(preset=preset).data
     return {
         "data": data_fingerprint(cfg, project_dir),
@@ -174,8 +174,6 @@ class SegmentComparison:
         """What ``same_data.toml`` needs to say so: a ``[[same]]`` entry per kind of key not
         yet listed as the same, or the key to add to the entry that lists the run's; empty when
         every key is already the same data."""
-        from cloudpose.data.keys import same_data, same_data_keys
-
         out = []
         for kind, label in (("data", "data"), ("test", "segments")):
             old, new = self.keys[kind]
@@ -201,10 +199,6 @@ def compare_test_segments(run_id: str, project_dir: Path | None = None) -> Segme
     """
     import numpy as np
     import pandas as pd
-
-    from cloudpose.data.dataset import prepare_data
-    from cloudpose.registry import resolve
-    from cloudpose.store.instances import run_instance_table
 
     project_dir = Path(project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)

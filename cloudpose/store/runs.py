@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 
 from cloudpose.data.keys import DataKey
 from cloudpose.files import atomic_text
+from cloudpose.registry import resolve
 from cloudpose.store import tracking
 
 if TYPE_CHECKING:
@@ -257,8 +258,6 @@ def _check_in_store(client, folder: Path, run_id: str) -> None:
 
 def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:
     """Whether ``fingerprint`` is the config that variant/preset/seed (on ``root``) resolves to."""
-    from cloudpose.registry import resolve
-
     try:
         own = resolve(variant, preset, seed, {"data": {"root": root}} if root else None)
     except (KeyError, ValueError):
@@ -577,6 +576,7 @@ def client_for(names: list[str], project_dir: Path | None = None):
     """The MLflow client that :func:`local_checkpoint` needs to resolve ``names``, on the store
     of ``project_dir`` (:func:`cloudpose.store.tracking.setup`); None when every name is a
     shipped network, so that no store is opened, nor created in the working folder."""
+    # lazy: pretrained loads torch and infer; tracking commands start without them
     from cloudpose.store.pretrained import is_pretrained
 
     if all(is_pretrained(n) for n in names):
@@ -589,6 +589,7 @@ def local_checkpoint(client, run: str) -> Iterator[tuple[str, Path]]:
     """:func:`resolve_run` whose downloaded checkpoint (a run whose folder is not on this
     machine) lives in a temporary folder for the block only: read it inside the block.
     ``pretrained`` (:mod:`cloudpose.store.pretrained`) gives run id None and the shipped weights."""
+    # lazy: pretrained loads torch and infer; tracking commands start without them
     from cloudpose.store.pretrained import is_pretrained, shipped
 
     if is_pretrained(run):  # the network the package ships: no MLflow run

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from cloudpose import runtime
 from cloudpose.store import tracking
 from cloudpose.store.runs import TEST_KEY
 
@@ -210,7 +211,7 @@ def _connect_error(ray, address: str | None, exc: BaseException) -> str:
 
 def _train_and_evaluate(cfg: Config, project_dir: str, group: str, threads: int) -> dict:
     """A task's body, on a worker: train and evaluate ``cfg`` (resuming what there is)."""
-    from cloudpose import runtime
+    # lazy: the pipeline loads torch; `mlflow-server` imports this module for a port check
     from cloudpose.suite import pipeline
 
     runtime.configure_threads(threads)

@@ -12,9 +12,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cloudpose import evaluate as evaluation  # by module: the sweep tests replace its functions
 from cloudpose.data import dataset
 from cloudpose.data.dataset import Prepared
 from cloudpose.store import tracking
+from cloudpose.train import loop
 from cloudpose.train.distributed import SINGLE, World
 
 if TYPE_CHECKING:
@@ -48,8 +50,6 @@ def train_run(
 ) -> TrainOutcome:
     """Prepare ``cfg``'s data (unless given) and train ``cfg`` on it (resumable); with several
     processes (``world``), rank 0 makes the data before the others read it."""
-    from cloudpose.train.loop import train
-
     project_dir = (project_dir or Path.cwd()).resolve()
     if group is not None:  # before any data is made
         tracking.check_name("group", group)
@@ -57,7 +57,7 @@ def train_run(
         data = world.main_first(
             lambda: dataset.prepare_data(cfg.data, project_dir, progress=progress and world.is_main)
         )
-    return train(
+    return loop.train(
         cfg,
         data,
         project_dir=project_dir,
@@ -79,14 +79,14 @@ def train_and_evaluate(
 ) -> RunOutcome:
     """The main job for one config: data, training, evaluation on its own test set and (with
     ``real``) on the real development frames, with and without ICP, all logged to the run."""
-    from cloudpose.evaluate import evaluate, evaluate_real
-
     project_dir = (project_dir or Path.cwd()).resolve()
     if group is not None:  # before any data is made
         tracking.check_name("group", group)
     data = data or dataset.prepare_data(cfg.data, project_dir, progress=progress)
     out = train_run(cfg, project_dir=project_dir, group=group, progress=progress, data=data)
     run = str(out.run_dir)
-    ev = evaluate(run, project_dir=project_dir, progress=progress, own_data=data)
-    on_real = evaluate_real(run, project_dir=project_dir, progress=progress) if real else None
+    ev = evaluation.evaluate(run, project_dir=project_dir, progress=progress, own_data=data)
+    on_real = (
+        evaluation.evaluate_real(run, project_dir=project_dir, progress=progress) if real else None
+    )
     return RunOutcome(out, ev, data, on_real)

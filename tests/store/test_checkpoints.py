@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from cloudpose.data.segment_set import SegmentSet
+from cloudpose.store import archive as store_archive
 from cloudpose.store import checkpoints, tracking
 from cloudpose.store.archive import pack_store, unpack_store
 from cloudpose.store.checkpoints import FLOAT16, FLOAT24, FLOAT32, FORM_KEY, PoseCheck
@@ -216,7 +217,7 @@ def store(tmp_path, monkeypatch, check):
     project; a run left RUNNING 10 hours ago; a RUNNING run whose folder's lock a live process
     holds; a run started now, RUNNING; a run whose folder is on another machine."""
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    monkeypatch.setattr(checkpoints, "PoseCheck", lambda project: check)
+    monkeypatch.setattr(store_archive, "PoseCheck", lambda project: check)  # as pack_store calls it
     root = tmp_path / "project"
     client = tracking.setup(root)
     exp = tracking.experiment_id(client, "shared", root)

@@ -49,7 +49,7 @@ def run_with_table(tmp_path, monkeypatch):
     def here(counts, classes):
         prepared = types.SimpleNamespace(test=_segments(counts, classes), data_key="dddd0000")
         monkeypatch.setattr(
-            "cloudpose.data.dataset.prepare_data", lambda *a, **k: prepared, raising=True
+            "cloudpose.store.rekey.prepare_data", lambda *a, **k: prepared, raising=True
         )
         return rekey.compare_test_segments(run, tmp_path)
 
