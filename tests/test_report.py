@@ -950,3 +950,38 @@ def test_occlusion_only_writes_the_occlusion_plots(rendered, tmp_path):
     assert sorted(p.name for p in res.files) == names
     first = (tmp_path / "occlusion.csv").read_text().splitlines()[0]
     assert f"made by `{COMMAND}`" in first and "seeds 1" in first
+
+
+def test_a_run_without_its_instance_table_is_named_and_left_out_of_the_plots(
+    rendered, tmp_path, monkeypatch
+):
+    from cloudpose.report import render_reports
+    from cloudpose.report.runs import RunRecord
+
+    root, _, _ = rendered
+    original = RunRecord.instances
+
+    def lacking(self, name="test"):  # shared-0 seed 2's table is gone
+        return None if (self.variant, self.seed) == ("shared-0", 2) else original(self, name)
+
+    monkeypatch.setattr(RunRecord, "instances", lacking)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
+    said: list[str] = []
+    with pytest.warns(UserWarning):
+        res = render_reports(
+            PRESET,
+            ["shared"],
+            project_dir=root,
+            command=COMMAND,
+            out_dir=tmp_path,
+            only_occlusion=True,
+            log_mlflow=False,
+            echo=said.append,
+        )
+    warning = [s for s in said if "lack their instance table" in s]
+    assert len(warning) == 1 and "shared-0 seed 2 (" in warning[0]
+    assert "baseline-fpfh seed 1 (" in warning[0]  # the fixture's baselines log none
+    assert "cloudpose evaluate --run" in warning[0]
+    first = (tmp_path / "occlusion.csv").read_text().splitlines()[0]
+    assert "seeds 1, 3;" in first  # the provenance names the seeds drawn, not 1-3
+    assert (tmp_path / "occlusion.png") in res.files

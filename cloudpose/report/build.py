@@ -169,12 +169,12 @@ def render_reports(
     with_baselines = runs.subset(
         ["shared-0", *(v for v in runs.variants if v.startswith("baseline-"))]
     )
+    tabled = _say_lacking_tables(runs, echo)
     if only_occlusion:
-        files = _occlusion_overall(
-            with_baselines, out_dir, Provenance.of(with_baselines, command, renderer)
-        )
+        drawn = tabled.subset(with_baselines.variants)
+        files = _occlusion_overall(drawn, out_dir, Provenance.of(drawn, command, renderer))
         for g in names:
-            sub, series = _group_series(runs, g)
+            sub, series = _group_series(tabled, g)
             if series:
                 files.append(
                     _occlusion_group(sub, g, series, out_dir, Provenance.of(sub, command, renderer))
@@ -184,7 +184,10 @@ def render_reports(
         prov = Provenance.of(base, command, renderer)
         written["overall"] += table1_overall(with_baselines).write(out_dir, prov)
         written["overall"] += table2_per_class(with_baselines).write(out_dir, prov)
-        written["overall"] += _occlusion_overall(with_baselines, out_dir, prov)
+        drawn = tabled.subset(with_baselines.variants)
+        written["overall"] += _occlusion_overall(
+            drawn, out_dir, Provenance.of(drawn, command, renderer)
+        )
     results = evaluate_claims(runs)
     claims_md, claims_df = claims_markdown(results, prov_all), claims_frame(results)
     if against is not None:
@@ -207,7 +210,7 @@ def render_reports(
         if g == segmentation.GROUP:
             written[g] = segmentation.render(runs, out_dir, command, renderer)
         else:
-            written[g] = _render_group(runs, g, out_dir, command, renderer)
+            written[g] = _render_group(runs, g, out_dir, command, renderer, tabled)
     readme = _write_index(out_dir, prov_all, preset)
     written["overall"].append(readme)
 
@@ -251,6 +254,21 @@ def _tracked(path: Path) -> bool:
     except (OSError, subprocess.SubprocessError):
         return False
     return out.returncode == 0 and bool(out.stdout.strip())
+
+
+def _say_lacking_tables(runs: RunSet, echo: Callable[[str], object]) -> RunSet:
+    """The runs with their test instance table; a one-line warning naming each run without
+    one, what the report does without it and the command that writes it again."""
+    lacking = runs.lacking_instances()
+    if lacking:
+        named = ", ".join(f"{r.variant} seed {r.seed} ({r.run_id[:8]})" for r in lacking)
+        echo(
+            f"warning: {len(lacking)} run(s) lack their instance table "
+            f"(eval/test/instances.parquet): {named}; the occlusion plots leave them out (their "
+            "provenance lists the seeds drawn), the claims of their variants use the runs' "
+            "metrics, not the instances. `cloudpose evaluate --run RUN_ID` writes it again"
+        )
+    return runs.with_instances()
 
 
 def _series(runs: RunSet, variant: str, label: str, method: str = "net"):
@@ -304,10 +322,15 @@ def _occlusion_group(sub: RunSet, g: str, series, out_dir: Path, prov: Provenanc
     )
 
 
-def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: str) -> list[Path]:
-    sub, series = _group_series(runs, g)
+def _render_group(
+    runs: RunSet, g: str, out_dir: Path, command: str, renderer: str, tabled: RunSet
+) -> list[Path]:
+    """A group's table and figures: the per-instance ones (occlusion, threshold curves,
+    rotation errors) from ``tabled``, the runs of ``runs`` with their instance tables."""
+    sub = runs.subset(get_group(g).members)
     if not sub.records:
         return []
+    drawn, series = _group_series(tabled, g)
     prov = Provenance.of(sub, command, renderer)
     files: list[Path] = []
     if g == "shared":
@@ -316,12 +339,13 @@ def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: s
         both = runs.subset(set().union(*(get_group(n).members for n in TABLE4_GROUPS)))
         files += table4_rotation(both).write(out_dir, Provenance.of(both, command, renderer))
     if series:
-        files.append(_occlusion_group(sub, g, series, out_dir, prov))
+        drawn_prov = Provenance.of(drawn, command, renderer)
+        files.append(_occlusion_group(drawn, g, series, out_dir, drawn_prov))
         files.append(
             plots.plot_threshold_curves(
                 series,
                 out_dir / f"curves_{g}.png",
-                prov,
+                drawn_prov,
                 f"Accuracy-threshold curves, group {g}, without ICP",
             )
         )
@@ -329,7 +353,7 @@ def _render_group(runs: RunSet, g: str, out_dir: Path, command: str, renderer: s
             plots.plot_rotation_histograms(
                 series,
                 out_dir / f"rot_err_{g}.png",
-                prov,
+                drawn_prov,
                 f"Rotation error, group {g}, without ICP",
             )
         )

@@ -136,6 +136,17 @@ class RunSet:
             self.preset, self.data_key, [r for r in self.records if r.variant in keep], self.ignored
         )
 
+    def lacking_instances(self) -> list[RunRecord]:
+        """The runs without their test instance table (:meth:`RunRecord.instances`)."""
+        return [r for r in self.records if r.instances() is None]
+
+    def with_instances(self) -> RunSet:
+        """The runs that have their test instance table: those a per-instance figure (the
+        occlusion plots) is drawn from, and so its provenance."""
+        lacking = {r.run_id for r in self.lacking_instances()}
+        kept = [r for r in self.records if r.run_id not in lacking]
+        return RunSet(self.preset, self.data_key, kept, self.ignored)
+
     @property
     def seeds(self) -> list[int]:
         return sorted({r.seed for r in self.records})
