@@ -52,8 +52,8 @@ RENDER_S_PER_FRAME = 1 / 2.94 + 1 / 12.9
 
 TRAIN_S_PER_POINT = 2.1e-5
 """Training seconds per (sample x input point), per-epoch validation included: shared-0 on the
-cpu preset took ~19.5 s an epoch of 3,583 segments x 256 points on a 2-core CPU (the committed
-store, reports/cpu/mlflow-store.tar.xz; 25 epochs, ~8 min)."""
+cpu preset took ~19.5 s an epoch of 3,583 segments x 256 points on a 2-core CPU (the first
+sweep's store, reports/cpu/mlflow-store.tar.xz in commit b200bde; 25 epochs, ~8 min)."""
 
 EVAL_S_PER_TEST_FRAME = 1.0
 """Seconds of evaluation (network, ICP, metrics, with and without ICP) per test frame, from

@@ -8,8 +8,9 @@ logged instance tables, as counts under 10 degrees and over 135 degrees (the oth
 near-symmetry, a half turn).
 
 Run in a project folder whose MLflow store holds the network's ``model.pt``: a store where the
-runs were trained (``make ablations PRESET=cpu SEEDS=3`` and ``make baselines``); the committed
-``reports/cpu/mlflow-store.tar.xz`` leaves the checkpoints out::
+runs were trained (``make ablations PRESET=cpu SEEDS=3`` and ``make baselines``); the cpu
+sweep's archive (``reports/cpu/mlflow-store.tar.xz`` in commit b200bde) leaves the checkpoints
+out::
 
     for s in 1 2 3; do python reports/diagnostics/near_symmetry.py --seed $s; echo; done \
         > reports/diagnostics/near_symmetry.md

@@ -1,6 +1,7 @@
 """Rotation < 10 degrees modulo symmetry under symmetry table 1 and table 2, from the stored runs.
 
-Unpacks the committed MLflow store of the cpu preset (``reports/cpu/mlflow-store.tar.xz``) into a
+Unpacks the MLflow store of the cpu preset's sweep (``reports/cpu/mlflow-store.tar.xz``, kept in
+commit b200bde: ``git show b200bde:reports/cpu/mlflow-store.tar.xz > cpu-store.tar.xz``) into a
 temporary folder and, for every logged per-instance table that holds the estimated rotations
 (columns ``net_R`` / ``icp_R``), recomputes the rotation error modulo symmetry under both
 versions of :mod:`cloudpose.geometry.symmetry` (1: ``symmetries.json``, what every stored run
@@ -26,7 +27,8 @@ its stored table-1 errors and has no table-2 figure.
 
 Run from the repository root (writes ``reports/diagnostics/symmetry_table.md``)::
 
-    python reports/diagnostics/symmetry_table.py
+    git show b200bde:reports/cpu/mlflow-store.tar.xz > /tmp/cpu-store.tar.xz
+    python reports/diagnostics/symmetry_table.py --store /tmp/cpu-store.tar.xz
 """
 
 from __future__ import annotations
@@ -530,6 +532,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=OUT, help="the Markdown file to write")
     args = ap.parse_args()
     store = args.store.resolve()
+    if not store.is_file():
+        raise SystemExit(
+            f"--store {args.store}: no such file; the cpu sweep's store is in commit b200bde: "
+            f"git show b200bde:reports/cpu/mlflow-store.tar.xz > {args.store}"
+        )
     import mlflow
 
     class_names = load_classes(resource_path("classes.txt"))
