@@ -94,10 +94,10 @@ headline-claims: ## the paper's headline claims on PRESET (e.g. PRESET=cpu-onlin
 ablation-masks: ## segmentation quality: shared-0 x SEEDS (trained on ground truth if missing) under gt and degraded-mild/medium/strong test masks, with and without ICP; table and occlusion plot
 	$(CLI) ablate-masks --preset $(PRESET) --seeds $(SEEDS) $(SWEEP_FLAGS)
 
-baselines: ## classical baselines on PRESET's test set, with and without ICP: FPFH + RANSAC (SEEDS seeds), point-pair features (deterministic: seed 1); logged runs are skipped
-	@echo "plan: baselines on the $(PRESET) test set, without and with ICP: FPFH + RANSAC seeds 1-$(SEEDS), point-pair features once; a run logged before is shown, not computed again"
-	$(if $(DRY),,for s in $$(seq 1 $(SEEDS)); do $(CLI) baseline --method fpfh --preset $(PRESET) --seed $$s || exit 1; done)
-	$(if $(DRY),,$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT)))
+baselines: ## classical baselines on PRESET's test set, with and without ICP: FPFH + RANSAC (SEEDS seeds), point-pair features (deterministic: seed 1); runs the store holds (the committed sweep's included) are skipped (FRESH=1: into ./mlflow.db)
+	@echo "plan: baselines on the $(PRESET) test set, without and with ICP: FPFH + RANSAC seeds 1-$(SEEDS), point-pair features once; a run logged before (the committed sweep's included, unless FRESH=1) is shown, not computed again"
+	$(if $(DRY),,for s in $$(seq 1 $(SEEDS)); do $(CLI) baseline --method fpfh --preset $(PRESET) --seed $$s $(if $(FRESH),--fresh) || exit 1; done)
+	$(if $(DRY),,$(CLI) baseline --method ppf --preset $(PRESET) $(if $(PPF_LIMIT),--limit $(PPF_LIMIT)) $(if $(FRESH),--fresh))
 
 occlusion-report: ## occlusion plot of shared-0 without/with ICP from existing runs only (a missing run: names it and fails; GROUP=... adds a group's variants)
 	$(CLI) occlusion-report --preset $(PRESET) --seeds $(SEEDS) $(if $(GROUP),--group $(GROUP))

@@ -172,3 +172,35 @@ def test_a_render_of_the_same_numbers_leaves_the_files_as_they_are(tmp_path):
     assert png.read_bytes() == first
     plots._save(figure("cloudpose occlusion-report", 2.0), png)
     assert png.read_bytes() != first
+
+
+@pytest.mark.parametrize("fresh", [False, True])
+def test_a_baseline_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatch, fresh):
+    import cloudpose.baselines.run
+    from cloudpose.report import committed
+
+    monkeypatch.chdir(tmp_path)
+    _committed(tmp_path, "cpu-online", [("baseline-fpfh", 1)])
+    unpacked = tmp_path / "stores" / "cpu-online"
+
+    def unpack(preset, project_dir):
+        unpacked.mkdir(parents=True, exist_ok=True)
+        (unpacked / "mlflow.db").touch()
+        return unpacked
+
+    seen = {}
+
+    def fake(method, preset, seed, **kw):  # the store the run would be looked up and logged in
+        seen["store"] = os.environ.get("MLFLOW_TRACKING_URI")
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(committed, "committed_store", unpack)
+    monkeypatch.setattr(cloudpose.baselines.run, "run_baseline", fake)
+    args = ["baseline", "--method", "fpfh", "--preset", "cpu-online", "--no-progress"]
+    res = CliRunner().invoke(app, args + (["--fresh"] if fresh else []))
+    assert "stop here" in res.output
+    if fresh:
+        assert seen["store"] is None and "store: ./mlflow.db (--fresh" in res.output
+    else:
+        assert seen["store"] == f"sqlite:///{(unpacked / 'mlflow.db').resolve()}"
+        assert "store: stores/cpu-online/mlflow.db (unpacked now" in res.output

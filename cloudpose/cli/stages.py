@@ -12,6 +12,7 @@ from cloudpose.cli.app import (
     DeviceOpt,
     DryRunOpt,
     FramesOpt,
+    FreshOpt,
     IcpFallbackOpt,
     IcpRadiusOpt,
     IcpSelectOpt,
@@ -389,15 +390,19 @@ def baseline(
     rerun: Annotated[
         bool, typer.Option(help="Compute and log a new run even if this one is logged.")
     ] = False,
+    fresh: FreshOpt = False,
     progress: ProgressOpt = True,
 ) -> None:
     """A classical baseline on a preset's test set (or --data), with and without ICP; logs to
     MLflow.
 
     A finished run of the same method, preset, seed, data, settings, split and subsample is
-    shown, not computed again (``--rerun`` computes a new one)."""
+    shown, not computed again (``--rerun`` computes a new one). As a sweep does, it reads and
+    adds to the committed sweep of a preset the checkout commits (stores/PRESET/) unless
+    MLFLOW_TRACKING_URI names a store or ``--fresh`` asks for ./mlflow.db."""
     from cloudpose.baselines.run import run_baseline
     from cloudpose.registry import parse_overrides
+    from cloudpose.report.committed import sweep_store
 
     fields = refinement("paper") | refinement(refine, icp_starts, icp_select, icp_radius)
     check_icp_options(**fields)
@@ -409,6 +414,7 @@ def baseline(
         for section in parse_overrides([f"b.{s}" for s in set_ or []]).values()
         for k, v in section.items()
     }
+    sweep_store(preset, Path.cwd(), fresh, typer.echo)
     out = run_baseline(
         method,
         preset,
