@@ -30,7 +30,6 @@ PROBES: dict[str, tuple[list[str], dict[str, str]]] = {
     # name: (command line run in the clone, environment added)
     "help": (["cloudpose", "--help"], {}),
     "ablate-plan": (["make", "ablation-shared", "DRY=1"], {}),
-    "tables-plan": (["make", "tables", "DRY=1"], {}),
     "report-empty-store": (
         ["cloudpose", "report", "--no-mlflow"],
         {"MLFLOW_TRACKING_URI": "sqlite:///{tmp}/EMPTY.db"},
@@ -44,11 +43,22 @@ PROBES: dict[str, tuple[list[str], dict[str, str]]] = {
     "real-report": (["cloudpose", "real-report"], {}),
     "ship-smoke": (["cloudpose", "ship", "--run", "shared-0/smoke/seed1", "--no-progress"], {}),
     "predict": (
-        ["cloudpose", "predict", "--depth", f"{FRAME}-depth.png", "--label",
-         f"{FRAME}-label.png", "--color", f"{FRAME}-color.png", "--checkpoint", "pretrained",
-         "--overlay", "overlay.png"],
+        [
+            "cloudpose",
+            "predict",
+            "--depth",
+            f"{FRAME}-depth.png",
+            "--label",
+            f"{FRAME}-label.png",
+            "--color",
+            f"{FRAME}-color.png",
+            "--checkpoint",
+            "pretrained",
+            "--overlay",
+            "overlay.png",
+        ],
         {},
-    ),  # fmt: skip
+    ),
     "mlflow-ui": (["cloudpose", "mlflow-ui", "--no-serve"], {}),
     "store-unpack": (
         ["cloudpose", "store-unpack", "reports/cpu-online/mlflow-store", "--into", "{tmp}/x"],
