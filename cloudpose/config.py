@@ -123,7 +123,7 @@ class ModelConfig:
             "mean" (the paper), "median" (per coordinate) or "trimmed" (the mean of the
             points nearest the per-coordinate median, :data:`cloudpose.models.pose.TRIM_KEEP`
             of them). Points of a neighbour or the background that a mask lets in drag the
-            mean sideways; the robust centres move less (docs/stress.md).
+            mean sideways; the robust centres move less (docs/real-gap.md).
         rotation_centre: what the rotation branch's centred input (``rotation_input =
             "centred"``, ``shared_layers = 0``) is centred on: "centre" (``centre``, the
             point the translation is a residual to) or "mean" (the segment mean whatever

@@ -217,8 +217,9 @@ def markdown(
         + _schedule(meta.get("icp_radius", PAPER_RADIUS))
         + ".",
         "",
-        "Each perturbation acts on the frame's mask and depth before segmentation (dilate, "
-        "erode, holes) or on the back-projected points before FPS (the others); level "
+        "Each perturbation acts on the frame's mask and depth before segmentation ("
+        + ", ".join(p.name for p in PERTURBATIONS.values() if p.stage == "pixels")
+        + ") or on the back-projected points before FPS (the others); level "
         f"{identity_level(PERTURBATIONS['dilate']):g} (x1 for points) is the unperturbed "
         "segment. Cells: ADS AUC / rotation < 10 deg modulo symmetry / translation < 1 cm / "
         "median translation error (mm).",

@@ -25,7 +25,7 @@ areas under curves to six significant digits, which a shorter mantissa changes. 
 lose digits, which no report reads; :func:`reduce` puts a table's poses on the grid, and a
 packed table unpacks to exactly the reduced one (:func:`decode`), so a store packed again
 after unpacking writes the same values. Every report renders the same tables from the reduced
-store as from the full one (docs/tracking.md).
+store as from the full one (docs/store-format.md).
 """
 
 from __future__ import annotations
