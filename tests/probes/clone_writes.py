@@ -5,7 +5,8 @@ Each probe runs in the same clone (``git clone`` of this checkout's HEAD, the pa
 from the clone, this checkout's ``.venv``); between probes the clone is reset (``git checkout``
 and ``git clean`` of what git does not ignore, so the committed store unpacked under
 ``stores/`` is kept). A path counts as named when its path relative to the clone, or its
-absolute path, appears in what the command printed. Prints one line a probe and exits 1 when a
+absolute path, or the absolute path of the folder it says it wrote into, appears in what the
+command printed. Prints one line a probe and exits 1 when a
 probe changed a file it did not name; writes nothing outside a temporary folder.
 
     python tests/probes/clone_writes.py            # the probes below (~15 min on 2 cores)
@@ -81,6 +82,14 @@ def _reset(clone: Path) -> None:
     subprocess.run(["git", "clean", "-fdq"], cwd=clone, check=True)
 
 
+def _named(clone: Path, path: str, said: str) -> bool:
+    """Whether the output names ``path`` (relative or absolute), or by its absolute path a folder
+    holding it (the folder a command says it wrote into)."""
+    printed = set(said.split())
+    folders = [clone / n for n in Path(path).parents][:-1]  # the clone itself names nothing
+    return path in said or str(clone / path) in said or any(str(f) in printed for f in folders)
+
+
 def probe(clone: Path, tmp: Path, name: str) -> tuple[int, float, list[str], list[str]]:
     """(exit status, seconds, paths changed, those of them the output does not name)."""
     argv, extra = PROBES[name]
@@ -95,7 +104,7 @@ def probe(clone: Path, tmp: Path, name: str) -> tuple[int, float, list[str], lis
     seconds = time.perf_counter() - t0
     said = done.stdout + done.stderr
     changed = sorted(_status(clone) - before)
-    unnamed = [p for p in changed if p not in said and str(clone / p) not in said]
+    unnamed = [p for p in changed if not _named(clone, p, said)]
     (tmp / f"{name}.log").write_text(f"$ {' '.join(argv)}\n{said}")
     return done.returncode, seconds, changed, unnamed
 
