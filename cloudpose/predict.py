@@ -17,14 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from cloudpose.archive.checkpoints import FORM_KEY, packed_form, unpacked_name
+from cloudpose.archive.checkpoints import load as load_stored
 from cloudpose.conventions import YCB_INTRINSICS, transform_points
 from cloudpose.data.cache import SegmentSet
 from cloudpose.data.segments import check_depth_scale, extract_segments
 from cloudpose.data.ycb import YCBVideo, read_frame
 from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
 from cloudpose.refine import DepthView, ICPSettings, depth_agreement
-from cloudpose.store.checkpoints import FORM_KEY, packed_form, unpacked_name
-from cloudpose.store.checkpoints import load as load_stored
 from cloudpose.store.pretrained import is_pretrained
 from cloudpose.store.runs import INFO, client_for, is_run_folder, local_checkpoint
 

@@ -37,17 +37,17 @@ KEPT_LAZY = {
     # - `cloudpose mlflow-server` imports suite.cluster (its port check), which imports
     #   store.runs: the pipeline or store.pretrained at their tops load torch, numba and scipy
     #   (0.4 s -> 7.7 s to start on a busy 2-core machine).
-    # - `store-pack` and `store-unpack` import store.archive -> compact -> checkpoints ->
-    #   pretrained, instances: infer and data/ at the top add numba and scipy, geometry adds
-    #   roma and sympy (1.6-1.7x the CPU time to start).
+    # - `store-pack` and `store-unpack` import archive.pack -> archive.compact ->
+    #   archive.checkpoints -> store.pretrained, store.instances: infer and data/ at the top
+    #   add numba and scipy, geometry adds roma and sympy (1.6-1.7x the CPU time to start).
     ("cloudpose/store/runs.py", "cloudpose.store.pretrained"): 2,
     ("cloudpose/suite/cluster.py", "cloudpose.suite"): 1,  # the pipeline
     ("cloudpose/store/pretrained.py", "cloudpose.infer"): 1,
     ("cloudpose/store/pretrained.py", "cloudpose.geometry.rigid"): 1,
-    ("cloudpose/store/checkpoints.py", "cloudpose.infer"): 1,
-    ("cloudpose/store/checkpoints.py", "cloudpose.data.dataset"): 1,
-    ("cloudpose/store/checkpoints.py", "cloudpose.data.layout"): 1,
-    ("cloudpose/store/checkpoints.py", "cloudpose.data.segments"): 1,
+    ("cloudpose/archive/checkpoints.py", "cloudpose.infer"): 1,
+    ("cloudpose/archive/checkpoints.py", "cloudpose.data.dataset"): 1,
+    ("cloudpose/archive/checkpoints.py", "cloudpose.data.layout"): 1,
+    ("cloudpose/archive/checkpoints.py", "cloudpose.data.segments"): 1,
     ("cloudpose/store/instances.py", "cloudpose.geometry.rotations"): 2,
 }
 

@@ -261,7 +261,7 @@ def test_predict_names_an_unknown_run_as_checkpoint(tmp_path):
 
 @pytest.mark.parametrize("form", ["float24", "float16"])
 def test_predict_recognises_a_packed_checkpoint_by_name_and_content(form, tmp_path):
-    from cloudpose.store.checkpoints import REDUCED, encode
+    from cloudpose.archive.checkpoints import REDUCED, encode
 
     ckpt = torch.load(_smoke_checkpoint(tmp_path / "model.pt"), weights_only=True)
     packed = tmp_path / f"model{REDUCED[form]}"

@@ -17,9 +17,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from cloudpose.store import checkpoints, tracking
-from cloudpose.store.archive import pack_store, unpack_store
-from cloudpose.store.compact import INDEX, METRICS_FILE, RUN_FILE, RUNS
+from cloudpose.archive import checkpoints
+from cloudpose.archive.compact import INDEX, METRICS_FILE, RUN_FILE, RUNS
+from cloudpose.archive.pack import pack_store, unpack_store
+from cloudpose.store import tracking
 from cloudpose.store.liveness import KILLED_TAG
 from cloudpose.store.runs import lock_path
 from tests.conftest import cli, one_line_error

@@ -240,7 +240,7 @@ def store_pack(
     as it stands: as a compact folder that git stores run by run (one folder per run, the
     database as text, instance tables packed, checkpoints in fewer bytes where the poses do
     not move; a repack rewrites only what changed), or as one .tar.xz."""
-    from cloudpose.store.archive import is_archive_name, pack_store
+    from cloudpose.archive.pack import is_archive_name, pack_store
 
     s = pack_store(
         Path.cwd(), out, checkpoint or [], force=force, reduce_checkpoints=not full_precision
@@ -285,7 +285,7 @@ def store_unpack(
     index and mlflow.db rebuilt; or a .tar.xz, also one packed by hand), its artifact addresses
     and run folders relative to the folder (which can then be moved or copied): then report,
     mlflow-ui and ablate work there on its runs."""
-    from cloudpose.store.archive import unpack_store
+    from cloudpose.archive.pack import unpack_store
     from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 
     n = unpack_store(archive, into)

@@ -2,17 +2,17 @@
 store lacks the preset's runs (a fresh clone).
 
 A preset whose sweep the repository commits keeps its MLflow store at ``reports/PRESET/``: the
-compact form ``mlflow-store/`` (:data:`COMPACT`, one folder per run, :mod:`cloudpose.store.compact`,
-written by ``cloudpose store-pack reports/PRESET/mlflow-store --force``), or an archive
-``mlflow-store.tar.xz`` (:data:`ARCHIVE`), read when there is no compact form. The commands
-that render from runs (``report``, ``real-report``, ``occlusion-report``) use it when the user
-named no store (``MLFLOW_TRACKING_URI`` unset) and the project's own store holds none of the
-runs they need: it is unpacked once into ``stores/PRESET/`` (ignored by git; :func:`unpack_store`
-moves it into place only when complete) and read there, so a user's own runs and the committed
-ones never mix. ``stores/PRESET/`` remembers the index of the compact form it came from
-(:data:`SOURCE`); when the committed store has changed since (a pull brought new runs), the
-command says so and reads the copy it has. To work on the committed runs with any other
-command, point at it: ``MLFLOW_TRACKING_URI=sqlite:///stores/PRESET/mlflow.db``.
+compact form ``mlflow-store/`` (:data:`COMPACT`, one folder per run,
+:mod:`cloudpose.archive.compact`, written by ``cloudpose store-pack reports/PRESET/mlflow-store
+--force``), or an archive ``mlflow-store.tar.xz`` (:data:`ARCHIVE`), read when there is no compact
+form. The commands that render from runs (``report``, ``real-report``, ``occlusion-report``) use it
+when the user named no store (``MLFLOW_TRACKING_URI`` unset) and the project's own store holds none
+of the runs they need: it is unpacked once into ``stores/PRESET/`` (ignored by git;
+:func:`unpack_store` moves it into place only when complete) and read there, so a user's own runs
+and the committed ones never mix. ``stores/PRESET/`` remembers the index of the compact form it came
+from (:data:`SOURCE`); when the committed store has changed since (a pull brought new runs), the
+command says so and reads the copy it has. To work on the committed runs with any other command,
+point at it: ``MLFLOW_TRACKING_URI=sqlite:///stores/PRESET/mlflow.db``.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+from cloudpose.archive.compact import INDEX
+from cloudpose.archive.pack import unpack_store
 from cloudpose.data.keys import same_data
 from cloudpose.store import tracking
-from cloudpose.store.archive import unpack_store
-from cloudpose.store.compact import INDEX
 from cloudpose.store.runs import _is_own
 from cloudpose.store.tracking import STORE_DB
 

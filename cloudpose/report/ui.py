@@ -62,6 +62,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from urllib.parse import quote
 
+from cloudpose.archive.pack import relative_run_dir
 from cloudpose.baselines.base import is_current
 from cloudpose.data.keys import same_data
 from cloudpose.registry import groups
@@ -69,7 +70,6 @@ from cloudpose.report.runs import load_runs
 from cloudpose.report.stats import mean_std
 from cloudpose.report.tables import BASELINE_LABELS
 from cloudpose.store import tracking
-from cloudpose.store.archive import relative_run_dir
 from cloudpose.store.headline import HEADLINE, headline
 from cloudpose.store.liveness import KILLED_TAG, dead_runs, when
 from cloudpose.store.runs import TRAINING_PREFIXES, folder_locked, is_preset_config

@@ -1,4 +1,4 @@
 """The run store: MLflow tracking (experiments, runs, tags), run records and checkpoints, the
 headline metrics a run is summarised by, the per-instance tables of evaluations (Parquet or
-CSV), the committed stores (packed as an archive or in the compact form, unpacked, rekeyed) and
-the shipped network."""
+CSV), runs rekeyed to today's data keys and the shipped network. A store packed to be committed
+(an archive or the compact form) and unpacked is :mod:`cloudpose.archive`'s."""

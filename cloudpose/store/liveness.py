@@ -9,7 +9,7 @@ once. Without such a folder to ask (a run of another machine, a run that holds n
 is dead when a later run of the same config started after its last activity, or when it logged
 nothing for :data:`STALE_AFTER_S`. The MLflow UI's preparation
 (:func:`cloudpose.report.ui.mark_dead`, through the MLflow client) and store-pack
-(:func:`cloudpose.store.archive._mark_dead`, in SQL on the packed copy) both ask
+(:func:`cloudpose.archive.pack._mark_dead`, in SQL on the packed copy) both ask
 :func:`dead_runs`, over plain values, and mark what it finds KILLED with the tag
 :data:`KILLED_TAG` saying why.
 """

@@ -7,8 +7,8 @@ import shutil
 
 import pytest
 
+from cloudpose.archive.pack import pack_store
 from cloudpose.report.committed import STORES, committed_store, use_committed_store
-from cloudpose.store.archive import pack_store
 from tests.conftest import cli
 
 
@@ -16,8 +16,8 @@ from tests.conftest import cli
 def clone_with_a_committed_store(smoke_run, tmp_path, monkeypatch):
     """A folder like a fresh clone: no store of its own, the smoke runs packed where a
     committed preset keeps them (reports/smoke/mlflow-store.tar.xz)."""
+    from cloudpose.archive.pack import unpack_store
     from cloudpose.evaluate import evaluate
-    from cloudpose.store.archive import unpack_store
 
     proj, out = smoke_run
     # a sweep of its own: the session's smoke store, unpacked (artifacts rewritten to point

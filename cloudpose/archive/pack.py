@@ -1,6 +1,6 @@
 """A project's MLflow store packed to commit beside its reports, unpacked anywhere: as one
 ``.tar.xz``, or as a folder in the compact form that git stores run by run
-(:mod:`cloudpose.store.compact`; :func:`pack_store` writes it for any name not ending in
+(:mod:`cloudpose.archive.compact`; :func:`pack_store` writes it for any name not ending in
 ``.tar.xz``, :func:`unpack_store` reads both).
 
 A project's store is its SQLite ``mlflow.db`` and its artifact folder ``mlartifacts/``
@@ -54,17 +54,17 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import NamedTuple
 
-from cloudpose.failures import disk_full, sigterm_as_interrupt
-from cloudpose.files import atomic_write, checked_members
-from cloudpose.store import tracking
-from cloudpose.store.checkpoints import PoseCheck
-from cloudpose.store.compact import (
+from cloudpose.archive.checkpoints import PoseCheck
+from cloudpose.archive.compact import (
     CHECKPOINT_SUFFIX,
     RunSource,
     check_compact,
     extract_compact,
     write_compact,
 )
+from cloudpose.failures import disk_full, sigterm_as_interrupt
+from cloudpose.files import atomic_write, checked_members
+from cloudpose.store import tracking
 from cloudpose.store.liveness import KILLED_TAG, STALE_AFTER_S, dead_runs
 from cloudpose.store.runs import INFO, TRAINING_PREFIXES, folder_locked, lock_path
 from cloudpose.store.tracking import ARTIFACT_DIR, EXPERIMENT_PREFIX, STORE_DB
@@ -116,7 +116,7 @@ class PackSummary:
     without_artifacts: tuple[str, ...] = ()
     checked: tuple[tuple[str, dict], ...] = ()
     """(run id, record) of each checkpoint whose form was checked (compact form only:
-    :mod:`cloudpose.store.checkpoints`)."""
+    :mod:`cloudpose.archive.checkpoints`)."""
     killed: tuple[tuple[str, str], ...] = ()
     """(run name, why) of each run left RUNNING by a process that is gone, packed KILLED."""
     running: tuple[tuple[str, str], ...] = ()
@@ -490,7 +490,7 @@ def store_database(project_dir: Path) -> Path:
 
 ARCHIVE_SUFFIX = ".tar.xz"
 """The ending of an archive's name; :func:`pack_store` writes any other name as a folder in
-the compact form (:mod:`cloudpose.store.compact`)."""
+the compact form (:mod:`cloudpose.archive.compact`)."""
 
 
 def is_archive_name(path: Path) -> bool:
@@ -507,7 +507,7 @@ def pack_store(
 ) -> PackSummary:
     """Pack the store of ``project_dir`` into ``out``: a ``.tar.xz`` archive written
     atomically, or under any other name a folder in the compact form
-    (:func:`cloudpose.store.compact.write_compact`: one folder per run, instance tables as
+    (:func:`cloudpose.archive.compact.write_compact`: one folder per run, instance tables as
     Parquet float32), in which only what changed is rewritten.
 
     Args:
@@ -520,7 +520,7 @@ def pack_store(
         force: replace (update, for a compact folder) ``out`` if it exists (else
             ``FileExistsError``).
         reduce_checkpoints: in a compact folder, store a kept checkpoint in fewer bytes where
-            its poses do not move (:mod:`cloudpose.store.checkpoints`); False keeps float32.
+            its poses do not move (:mod:`cloudpose.archive.checkpoints`); False keeps float32.
 
     In what it writes, every ``run_dir`` tag is relative (:func:`_relative_run_dirs`) and a run
     left RUNNING by a process that is gone is KILLED (:func:`_mark_dead`).
@@ -728,7 +728,7 @@ def unpack_store(archive: Path, into: Path) -> int:
     Args:
         archive: a ``.tar.xz`` of ``mlflow.db`` and ``mlartifacts/`` (from :func:`pack_store`,
             or packed by hand with absolute addresses of another machine), or a folder in the
-            compact form (:mod:`cloudpose.store.compact`; every file checked against its index
+            compact form (:mod:`cloudpose.archive.compact`; every file checked against its index
             before anything is written, and ``mlflow.db`` rebuilt).
         into: the folder to hold the store; it must not hold an ``mlflow.db`` yet. Each run's
             artifact folder under its ``mlartifacts/`` is replaced by the store's

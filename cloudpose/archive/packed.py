@@ -2,7 +2,7 @@
 
 An evaluation's instance table (:mod:`cloudpose.store.instances`, float32 Parquet) is ~100 kB
 for the 2,053 synthetic test instances of the default preset; a store of a hundred runs holds
-two hundred such tables. The compact form (:mod:`cloudpose.store.compact`) stores each one
+two hundred such tables. The compact form (:mod:`cloudpose.archive.compact`) stores each one
 *packed*, and unpacking writes it back as the evaluation's form:
 
 - **The data's columns once**: ``frame_id``, ``instance``, ``cls_id``, ``class``,

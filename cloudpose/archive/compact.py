@@ -1,6 +1,6 @@
 """A project's MLflow store as a folder of small files, which git stores run by run.
 
-A packed ``.tar.xz`` (:mod:`cloudpose.store.archive`) is one blob: every repack adds the whole
+A packed ``.tar.xz`` (:mod:`cloudpose.archive.pack`) is one blob: every repack adds the whole
 store to a repository's history again. The compact form keeps each run in a folder of its own
 and the database as text, so a new sweep round adds only its new runs' files (and a few lines
 of the index) and git stores nothing again of the runs it had::
@@ -11,13 +11,13 @@ of the index) and git stores nothing again of the runs it had::
     DIR/runs/RUN_ID/metrics.tsv    every logged value of every metric (key, step, timestamp,
                                    value as Python's shortest exact repr, is_nan), sorted
     DIR/runs/RUN_ID/artifacts/     the run's artifacts; instance tables packed
-                                   (:mod:`cloudpose.store.packed`), checkpoints only of the
+                                   (:mod:`cloudpose.archive.packed`), checkpoints only of the
                                    runs named, in fewer bytes where the poses do not move
-                                   (:mod:`cloudpose.store.checkpoints`)
+                                   (:mod:`cloudpose.archive.checkpoints`)
     DIR/shared/SHA.parquet         the data's columns of instance tables, one per set of rows
 
 :func:`write_compact` writes it from a packed database copy (addresses made relative by
-:func:`cloudpose.store.archive.pack_store`); a file whose content did not change keeps its
+:func:`cloudpose.archive.pack.pack_store`); a file whose content did not change keeps its
 bytes (an instance table is compared by its values, so a repack with another pyarrow leaves it
 as it is). :func:`check_compact` checks the index against the folder before anything is
 written: every file it lists there whole, every file there listed, every run listed with its
@@ -44,8 +44,9 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cloudpose.archive import checkpoints, packed
 from cloudpose.files import CorruptFileError, atomic_text, why
-from cloudpose.store import checkpoints, instances, packed
+from cloudpose.store import instances
 from cloudpose.store.tracking import ARTIFACT_DIR, STORE_DB
 
 FORMAT = "# cloudpose MLflow store, compact form 3"
@@ -57,8 +58,8 @@ FORMATS = (
     FORMAT,
 )
 """First lines of the indexes this version reads: form 1 keeps each instance table in the
-evaluation's form, form 2 packed (:mod:`cloudpose.store.packed`), form 3 also checkpoints
-(:mod:`cloudpose.store.checkpoints`: ``model.fp16.pt``, ``model.f24.pt``, which a reader of
+evaluation's form, form 2 packed (:mod:`cloudpose.archive.packed`), form 3 also checkpoints
+(:mod:`cloudpose.archive.checkpoints`: ``model.fp16.pt``, ``model.f24.pt``, which a reader of
 form 2 would not unpack)."""
 
 INDEX = "index.tsv"
@@ -90,7 +91,7 @@ class RunSource:
 class CompactSummary:
     """Files written (artifact files packed, checkpoints kept and left out), the folder's size
     in bytes, and (run id, record) of each checkpoint whose form was checked
-    (:mod:`cloudpose.store.checkpoints`)."""
+    (:mod:`cloudpose.archive.checkpoints`)."""
 
     files: int
     checkpoints_kept: int
@@ -166,7 +167,7 @@ def _stage_artifacts(
     shipped: set[str],
 ) -> None:
     """Copy a run's artifacts into ``dest``, instance tables as Parquet, kept checkpoints in
-    the form :func:`cloudpose.store.checkpoints.pack_checkpoint` chooses (with ``check``);
+    the form :func:`cloudpose.archive.checkpoints.pack_checkpoint` chooses (with ``check``);
     counts into ``counts``."""
     if not run.source.is_dir():
         return
@@ -202,7 +203,7 @@ def _stage_artifacts(
 
 
 def _pack_tables(staging: Path, run_ids: Sequence[str]) -> None:
-    """Pack every staged instance table (:mod:`cloudpose.store.packed`) in place, runs in the
+    """Pack every staged instance table (:mod:`cloudpose.archive.packed`) in place, runs in the
     order given (oldest first): the first table of each set of rows gives the shared table of
     the data's columns, written under ``shared/``."""
     shared: dict[str, tuple[object, str]] = {}
@@ -343,7 +344,7 @@ def write_compact(
     the artifacts of ``runs`` into the folder ``out``, created or brought up to date.
 
     ``check``: the pose check by which a kept checkpoint is stored in fewer bytes
-    (:func:`cloudpose.store.checkpoints.pack_checkpoint`); None keeps each as it is (but for
+    (:func:`cloudpose.archive.checkpoints.pack_checkpoint`); None keeps each as it is (but for
     one that a record beside it says was packed so).
 
     Everything is written into a hidden folder beside ``out`` first (removed whatever

@@ -1,7 +1,7 @@
 """A run's checkpoint as a compact store keeps it: in fewer bytes where its poses do not move.
 
 A float32 checkpoint of the default network is 6.5 MB, and zlib (git's) takes 8% off it. The
-compact form (:mod:`cloudpose.store.compact`) stores a kept checkpoint ``NAME.pt``:
+compact form (:mod:`cloudpose.archive.compact`) stores a kept checkpoint ``NAME.pt``:
 
 - **as it is** when its bytes are a shipped network's (``resources/pretrained/*.pt``: git
   stores the two as one blob), or when it is not a cloudpose checkpoint;

@@ -8,8 +8,8 @@ import tarfile
 import pandas as pd
 import pytest
 
+from cloudpose.archive.pack import pack_store, unpack_store
 from cloudpose.store import instances, tracking
-from cloudpose.store.archive import pack_store, unpack_store
 from tests.conftest import cli, one_line_error
 
 
@@ -183,7 +183,7 @@ def test_an_unpack_stopped_midway_leaves_no_store_and_a_rerun_unpacks(
 ):
     """Killed (Ctrl-C, SIGTERM) between extraction and the rewrite of its addresses, an unpack
     leaves no mlflow.db pointing at the source project: the rerun is not refused."""
-    from cloudpose.store import archive as store_archive
+    from cloudpose.archive import pack as store_archive
 
     archive = tmp_path / "store.tar.xz"
     pack_store(project, archive)
@@ -302,7 +302,7 @@ def test_a_pack_stopped_by_sigterm_leaves_no_temporary_file(project, tmp_path):
     code = (
         "import os, signal, tarfile\n"
         "from pathlib import Path\n"
-        "from cloudpose.store.archive import pack_store\n"
+        "from cloudpose.archive.pack import pack_store\n"
         "add = tarfile.TarFile.add\n"
         "def add_then_stop(self, *a, **k):\n"
         "    add(self, *a, **k)\n"
@@ -352,7 +352,7 @@ def test_what_a_killed_pack_or_unpack_left_is_removed_by_the_next(project, tmp_p
 def test_a_full_disk_while_packing_is_one_line(project, tmp_path, monkeypatch):
     import errno
 
-    from cloudpose.store import archive as store_archive
+    from cloudpose.archive import pack as store_archive
 
     def full(path, *args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")

@@ -9,10 +9,11 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cloudpose.archive import compact, packed
+from cloudpose.archive.compact import INDEX, METRICS_FILE, RUNS
+from cloudpose.archive.pack import pack_store, unpack_store
 from cloudpose.report.committed import COMPACT, STORES, committed_archive, use_committed_store
-from cloudpose.store import compact, instances, packed, tracking
-from cloudpose.store.archive import pack_store, unpack_store
-from cloudpose.store.compact import INDEX, METRICS_FILE, RUNS
+from cloudpose.store import instances, tracking
 from tests.conftest import cli, one_line_error
 
 ROWS = 6

@@ -7,7 +7,8 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cloudpose.store import instances, packed
+from cloudpose.archive import packed
+from cloudpose.store import instances
 
 ROWS = 40
 

@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 import torch
 
+from cloudpose.archive import checkpoints
+from cloudpose.archive import pack as store_archive
+from cloudpose.archive.checkpoints import FLOAT16, FLOAT24, FLOAT32, FORM_KEY, PoseCheck
+from cloudpose.archive.compact import INDEX, RUNS
+from cloudpose.archive.pack import pack_store, unpack_store
 from cloudpose.data.segment_set import SegmentSet
-from cloudpose.store import archive as store_archive
-from cloudpose.store import checkpoints, tracking
-from cloudpose.store.archive import pack_store, unpack_store
-from cloudpose.store.checkpoints import FLOAT16, FLOAT24, FLOAT32, FORM_KEY, PoseCheck
-from cloudpose.store.compact import INDEX, RUNS
+from cloudpose.store import tracking
 from tests.store.segments import segment_set
 
 
