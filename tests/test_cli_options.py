@@ -109,7 +109,7 @@ def test_baseline_passes_the_refinement_it_is_given(monkeypatch, args, expected)
         raise ValueError("stop here")
 
     monkeypatch.setattr(cloudpose.baselines.run, "run_baseline", fake)
-    monkeypatch.setattr("cloudpose.report.committed.sweep_store", lambda *a: "")  # its own test
+    monkeypatch.setattr("cloudpose.report.committed.sweep_store", lambda *a: "./mlflow.db")
     res = cli("baseline", "--method", "fpfh", *args, "--no-progress")
     one_line_error(res, "stop here")
     assert got == expected

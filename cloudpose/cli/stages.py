@@ -403,6 +403,7 @@ def baseline(
     from cloudpose.baselines.run import run_baseline
     from cloudpose.registry import parse_overrides
     from cloudpose.report.committed import sweep_store
+    from cloudpose.store.tracking import STORE_DB
 
     fields = refinement("paper") | refinement(refine, icp_starts, icp_select, icp_radius)
     check_icp_options(**fields)
@@ -414,7 +415,11 @@ def baseline(
         for section in parse_overrides([f"b.{s}" for s in set_ or []]).values()
         for k, v in section.items()
     }
-    sweep_store(preset, Path.cwd(), fresh, typer.echo)
+    said = []
+    store = sweep_store(preset, Path.cwd(), fresh, said.append)
+    if store != f"./{STORE_DB}" or fresh:  # named where it is not the project's own
+        for line in said:
+            typer.echo(line)
     out = run_baseline(
         method,
         preset,

@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING
 
 from cloudpose.data.keys import DataKey
 from cloudpose.data.mask_sources import mask_source_label
-from cloudpose.metrics import flatten_summary, summarize
 from cloudpose.store import tracking
 from cloudpose.store.tracking import metric_key
 
@@ -96,6 +95,8 @@ def _by_method(df: pd.DataFrame, name: str) -> Iterator[tuple[str, pd.DataFrame]
 
 def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
     """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
+    from cloudpose.metrics import flatten_summary, summarize  # lazy: loads torch
+
     out: dict[str, float] = {}
     for prefix, sub in _by_method(df, name):
         for key, value in flatten_summary(summarize(sub)).items():
@@ -107,6 +108,8 @@ def video_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
     """Pooled metrics of each video (the ``SEQ`` of ``SEQ/FRAME``), per method, as
     ``{name}/video/{SEQ}/{key}``: consecutive frames of a video show one scene, so a set of a
     few videos is a few scenes and is read per video as well as pooled."""
+    from cloudpose.metrics import summarize  # lazy: loads torch
+
     out: dict[str, float] = {}
     video = df["frame_id"].astype(str).str.split("/").str[0]
     for prefix, sub in _by_method(df, name):
