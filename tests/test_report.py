@@ -929,22 +929,28 @@ def test_claims_across_two_budgets_hold_change_or_stay_undecided():
     assert df["diff_pp_at_small"].iloc[0] == pytest.approx(2.0)
 
 
-def test_occlusion_only_writes_the_occlusion_plots(rendered, tmp_path):
+def _occlusion_only(root: Path, out_dir: Path, **kw):
+    """render_reports of the group shared's occlusion plots only, from the store at ``root``."""
     from cloudpose.report import render_reports
 
-    root, _, _ = rendered
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
         with pytest.warns(UserWarning):
-            res = render_reports(
+            return render_reports(
                 PRESET,
                 ["shared"],
                 project_dir=root,
                 command=COMMAND,
-                out_dir=tmp_path,
+                out_dir=out_dir,
                 only_occlusion=True,
                 log_mlflow=False,
+                **kw,
             )
+
+
+def test_occlusion_only_writes_the_occlusion_plots(rendered, tmp_path):
+    root, _, _ = rendered
+    res = _occlusion_only(root, tmp_path)
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["occlusion.csv", "occlusion.png", "occlusion_shared.png"]
     assert sorted(p.name for p in res.files) == names
@@ -955,7 +961,6 @@ def test_occlusion_only_writes_the_occlusion_plots(rendered, tmp_path):
 def test_a_run_without_its_instance_table_is_named_and_left_out_of_the_plots(
     rendered, tmp_path, monkeypatch
 ):
-    from cloudpose.report import render_reports
     from cloudpose.report.runs import RunRecord
 
     root, _, _ = rendered
@@ -965,19 +970,8 @@ def test_a_run_without_its_instance_table_is_named_and_left_out_of_the_plots(
         return None if (self.variant, self.seed) == ("shared-0", 2) else original(self, name)
 
     monkeypatch.setattr(RunRecord, "instances", lacking)
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
     said: list[str] = []
-    with pytest.warns(UserWarning):
-        res = render_reports(
-            PRESET,
-            ["shared"],
-            project_dir=root,
-            command=COMMAND,
-            out_dir=tmp_path,
-            only_occlusion=True,
-            log_mlflow=False,
-            echo=said.append,
-        )
+    res = _occlusion_only(root, tmp_path, echo=said.append)
     warning = [s for s in said if "lack their instance table" in s]
     assert len(warning) == 1 and "shared-0 seed 2 (" in warning[0]
     assert "baseline-fpfh seed 1 (" in warning[0]  # the fixture's baselines log none

@@ -39,6 +39,22 @@ def _committed(project: Path, preset: str, runs: list[tuple[str, int]]) -> None:
         (folder / "run.json").write_text(json.dumps(row))
 
 
+def _unpacked_here(project: Path, monkeypatch) -> Path:
+    """Where the committed cpu-online store is "unpacked": committed_store replaced by one that
+    makes an empty stores/cpu-online/mlflow.db (the real one unpacks the compact store)."""
+    from cloudpose.report import committed
+
+    unpacked = project / "stores" / "cpu-online"
+
+    def unpack(preset, project_dir):
+        unpacked.mkdir(parents=True, exist_ok=True)
+        (unpacked / "mlflow.db").touch()
+        return unpacked
+
+    monkeypatch.setattr(committed, "committed_store", unpack)
+    return unpacked
+
+
 def test_refuse_empty_names_the_store_and_the_preset(tmp_path, monkeypatch):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'EMPTY.db'}")
     with pytest.raises(NoRunsError, match=r"EMPTY\.db: no finished, evaluated run of preset 'p1'"):
@@ -115,14 +131,7 @@ def test_a_sweep_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatch):
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     _committed(tmp_path, "cpu-online", [("baseline-fpfh", 1)])
-    unpacked = tmp_path / "stores" / "cpu-online"
-
-    def unpack(preset, project_dir):
-        unpacked.mkdir(parents=True, exist_ok=True)
-        (unpacked / "mlflow.db").touch()
-        return unpacked
-
-    monkeypatch.setattr(committed, "committed_store", unpack)
+    unpacked = _unpacked_here(tmp_path, monkeypatch)
     said: list[str] = []
     shown = committed.sweep_store("cpu-online", tmp_path, False, said.append)
     assert shown == "stores/cpu-online/mlflow.db"
@@ -177,24 +186,16 @@ def test_a_render_of_the_same_numbers_leaves_the_files_as_they_are(tmp_path):
 @pytest.mark.parametrize("fresh", [False, True])
 def test_a_baseline_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatch, fresh):
     import cloudpose.baselines.run
-    from cloudpose.report import committed
 
     monkeypatch.chdir(tmp_path)
     _committed(tmp_path, "cpu-online", [("baseline-fpfh", 1)])
-    unpacked = tmp_path / "stores" / "cpu-online"
-
-    def unpack(preset, project_dir):
-        unpacked.mkdir(parents=True, exist_ok=True)
-        (unpacked / "mlflow.db").touch()
-        return unpacked
-
+    unpacked = _unpacked_here(tmp_path, monkeypatch)
     seen = {}
 
     def fake(method, preset, seed, **kw):  # the store the run would be looked up and logged in
         seen["store"] = os.environ.get("MLFLOW_TRACKING_URI")
         raise ValueError("stop here")
 
-    monkeypatch.setattr(committed, "committed_store", unpack)
     monkeypatch.setattr(cloudpose.baselines.run, "run_baseline", fake)
     args = ["baseline", "--method", "fpfh", "--preset", "cpu-online", "--no-progress"]
     res = CliRunner().invoke(app, args + (["--fresh"] if fresh else []))
