@@ -43,7 +43,6 @@ from torch import nn
 
 from benchmarks.common import describe_machine, gemm_peak, gemm_rate, summarize
 from cloudpose.geometry.rotations import rotvec_to_rotmat
-from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
 from cloudpose.models.fused import fuse_model
 from cloudpose.registry import resolve, variants
@@ -54,6 +53,7 @@ from cloudpose.runtime import (
     preferred_allocator,
     tune_glibc_malloc,
 )
+from cloudpose.train.losses import pose_loss
 
 BATCH = 128
 N_POINTS = 256

@@ -16,12 +16,10 @@ from __future__ import annotations
 
 import dataclasses
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
 from cloudpose import runtime
@@ -31,10 +29,8 @@ from cloudpose.data.keys import DataKey, same_data
 from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
-from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_ensemble
-from cloudpose.metrics import pose_errors
-from cloudpose.refine import ICPSettings, schedule_for, segment_views
+from cloudpose.methods import Network, check_ensemble, load_network, score
+from cloudpose.refine import ICPSettings, schedule_for
 from cloudpose.store import instances, runs, tracking
 from cloudpose.store.headline import headline
 from cloudpose.store.metric_names import (
@@ -50,58 +46,7 @@ from cloudpose.store.metric_names import (
     video_metrics,
     write_detail,
 )
-from cloudpose.store.pretrained import is_pretrained, shipped
-from cloudpose.store.runs import local_checkpoint
-
-
-def instance_table(
-    segs,
-    estimates: dict[str, Estimates],
-    models_by_class: dict[int, np.ndarray],
-    class_names: list[str],
-    symmetry_table: int = 1,
-) -> pd.DataFrame:
-    """Per-instance errors for each method in ``estimates`` (``net``, ``icp``); rotation errors
-    modulo symmetry by table ``symmetry_table`` (``loss.symmetry_table``)."""
-    miss = ~np.asarray(segs.valid, dtype=bool)
-    df = pd.DataFrame(
-        {
-            "frame_id": segs.frame_id,
-            "instance": segs.instance,
-            "cls_id": segs.cls_id.astype(int),
-            "class": [class_names[int(c) - 1] for c in segs.cls_id],
-            "occlusion": segs.occlusion,
-            "points": segs.count,
-            "miss": miss,
-        }
-    )
-    for method, est in estimates.items():
-        R_est = np.where(miss[:, None, None], np.eye(3), est.R)
-        t_est = np.where(miss[:, None], 0.0, est.t)
-        err = pose_errors(
-            models_by_class,
-            segs.cls_id.astype(int),
-            R_est=R_est,
-            t_est=t_est,
-            R_gt=segs.R.astype(np.float64),
-            t_gt=segs.t.astype(np.float64),
-            miss=miss,
-        )
-        for key in ("ad", "ads", "rot_err_deg", "trans_err"):
-            df[f"{method}_{key}"] = err[key]
-        # the pose itself (for the BOP results CSV): R row-major, t in metres; "" for a miss
-        df[f"{method}_R"] = _number_lists(est.R.reshape(-1, 9), miss)
-        df[f"{method}_t"] = _number_lists(est.t, miss)
-        df[f"{method}_rot_sym_err_deg"] = rotation_errors_modulo_symmetry(
-            segs.cls_id, segs.R, R_est, class_names, miss, table=symmetry_table
-        )
-    return df
-
-
-def _number_lists(rows: np.ndarray, miss: np.ndarray) -> list[str]:
-    """Each row of (M, k) numbers as one space-separated string (17 significant digits, so
-    float64 survives the CSV); "" where ``miss``."""
-    return ["" if m else " ".join(f"{v:.17g}" for v in r) for r, m in zip(rows, miss, strict=True)]
+from cloudpose.store.pretrained import is_pretrained
 
 
 def evaluate_real(run: str, **kwargs) -> EvalOutcome:
@@ -193,24 +138,6 @@ def icp_label(settings: ICPSettings, own: ICPSettings) -> str:
     return "-".join(parts) or "other"
 
 
-def load_network(client, run: str, device: str):
-    """``(run id, network, config, checkpoint in words)`` of ``run``; a checkpoint downloaded
-    from the run's artifacts is read and removed with its folder."""
-    with local_checkpoint(client, run) as (run_id, ckpt):
-        try:
-            model, cfg = load_checkpoint(ckpt, device)
-        except ValueError as exc:
-            if not runs.is_run_folder(ckpt.parent):
-                raise
-            raise ValueError(
-                f"{exc}; rerun the run's train command (cloudpose train with its variant, "
-                "preset, seed and settings): it rewrites model.pt from last.pt or the MLflow run"
-            ) from exc
-        kept = run_id is None or runs.is_run_folder(ckpt.parent)  # shipped, or in its folder
-        ckpt_label = str(ckpt) if kept else "model.pt (downloaded)"
-    return run_id, model, cfg, ckpt_label
-
-
 @dataclass(frozen=True)
 class _TestData:
     """What an evaluation scores: the segments, their dataset, and how they are named.
@@ -270,91 +197,26 @@ def _test_data(
 
 
 def _score(
-    networks: list,
+    network: Network,
     test: _TestData,
     name: str,
     icp_settings: ICPSettings | None,
-    device,
     progress: bool,
     symmetry_table: int,
 ) -> tuple[pd.DataFrame, dict[str, float]]:
-    """The per-instance table and metrics of the network on ``test``, and after ICP with
-    ``icp_settings`` (None: no ICP), with milliseconds per object. Several ``networks``
-    ((model, config) pairs, the evaluated run's first) are an ensemble
-    (:func:`cloudpose.infer.refine_ensemble`): ``net_*`` columns hold the kept network's own
-    estimate, ``ensemble_member`` its index."""
-    segs, dataset = test.segs, test.dataset
-    models_by_class = dataset.models()
-    t0 = time.monotonic()
-    nets = [estimate_poses(m, segs, c.train.n_points, device=device) for m, c in networks]
-    est = {"net": nets[0]}
-    t_net = time.monotonic() - t0
+    """The per-instance table and metrics of ``network`` (several networks: an ensemble,
+    :class:`cloudpose.methods.Network`) on ``test``, and after ICP with ``icp_settings`` (None:
+    no ICP), with milliseconds per object (:func:`cloudpose.methods.score`)."""
+    estimated = network.estimate(test.segs)
+    scored = score(
+        test.segs, estimated, test.dataset, icp_settings,
+        symmetry_table=symmetry_table, progress=progress,
+    )  # fmt: skip
+    metrics = summary_metrics(scored.table, name)
+    metrics[tracking.metric_key(name, "net_ms_per_object")] = estimated.ms_per_object
     if icp_settings is not None:
-        t0 = time.monotonic()
-        views = segment_views(dataset, segs) if icp_settings.select == "depth" else None
-        est["icp"], stats, pick = refine_ensemble(
-            segs, nets, models_by_class, icp_settings, views, progress
-        )
-        est["net"] = Estimates.kept(nets, pick)
-        t_icp = time.monotonic() - t0
-    table = instance_table(segs, est, models_by_class, dataset.classes, symmetry_table)
-    if icp_settings is not None:
-        table["icp_fitness"] = stats.fitness
-        table["icp_inlier_rmse"] = stats.inlier_rmse
-        table["icp_fallback"] = stats.fallback
-        if len(networks) > 1:
-            table["ensemble_member"] = np.where(segs.valid, pick, -1)
-    metrics = summary_metrics(table, name)
-    n_valid = max(int(np.sum(segs.valid)), 1)
-    metrics[tracking.metric_key(name, "net_ms_per_object")] = 1000 * t_net / n_valid
-    if icp_settings is not None:
-        metrics[tracking.metric_key(name, "icp_ms_per_object")] = 1000 * t_icp / n_valid
-    return table, metrics
-
-
-def check_member(cfg, other, run: str, option: str = "--ensemble") -> None:
-    """``ValueError`` unless the network of ``run`` (config ``other``) can join an ensemble with
-    the evaluated run's (``cfg``): the same data section (the segments and classes it was
-    trained and is tested on) and the same rotation modulo symmetry (its errors' table).
-    ``option`` names the command-line option that gave ``run``, for the message."""
-    mine, theirs = dataclasses.asdict(cfg.data), dataclasses.asdict(other.data)
-    fields = [f"data.{k}" for k in mine if mine[k] != theirs.get(k)]
-    if cfg.loss.symmetry_table != other.loss.symmetry_table:
-        fields.append("loss.symmetry_table")
-    if fields:
-        raise ValueError(
-            f"{option} {run}: its network differs from the first network's in "
-            f"{', '.join(fields)}; an ensemble joins networks of the same preset (other seeds "
-            "or variants)"
-        )
-
-
-def network_identity(run: str, run_id: str | None) -> str:
-    """The identity of the network ``run`` names: its MLflow run id (``run_id``), or for a
-    shipped network (no run id) its run's id and 12 hex digits of its weights' checksum (one
-    run can be shipped again, e.g. in half precision)."""
-    if run_id is not None:
-        return run_id
-    info = shipped(run).info
-    return f"{info['run_id']}:{info['sha256'][:12]}"
-
-
-def check_ensemble(names: list[str], loaded: list[tuple], option: str) -> list[str]:
-    """The identities (:func:`network_identity`) of an ensemble's networks, ``names[i]`` loaded
-    as ``loaded[i]`` (:func:`load_network`'s tuples; the first is the evaluated run).
-
-    Raises:
-        ValueError: naming ``option`` and the run, for a network that cannot join the first
-            (:func:`check_member`) or that is in the ensemble already: the same MLflow run,
-            named again, by another name, or as the network the package ships from it.
-    """
-    ids = [network_identity(n, rid) for n, (rid, *_) in zip(names, loaded, strict=True)]
-    run_ids = [i.split(":")[0] for i in ids]
-    for k in range(1, len(names)):
-        check_member(loaded[0][2], loaded[k][2], names[k], option)
-        if run_ids[k] in run_ids[:k]:
-            raise ValueError(f"{option} {names[k]}: run {run_ids[k]} is in the ensemble already")
-    return ids
+        metrics[tracking.metric_key(name, "icp_ms_per_object")] = scored.refine_ms
+    return scored.table, metrics
 
 
 def evaluate(
@@ -398,10 +260,10 @@ def evaluate(
             ``{test or the data's name}-{label}`` (:func:`mask_source_label`).
         ensemble: further runs (as ``run``) whose networks join ``run``'s: each network's
             estimate is refined by ICP and per instance the refinement with the best score
-            of ``icp.select`` is kept (:func:`~cloudpose.infer.select_refinements`; ``depth``
+            of ``icp.select`` is kept (:func:`~cloudpose.refine.select_refinements`; ``depth``
             reads the frames' depth). Logged in ``run`` as ``{name}-ensemble{N}`` (N
             networks), the members' identities in the tag ``eval/{name}/ensemble``
-            (:func:`network_identity`: run ids, and a shipped network's with its checksum).
+            (:func:`cloudpose.methods.network_identity`: run ids, and a shipped network's with its checksum).
 
     Raises:
         ValueError: no instance to evaluate; a ``name`` that :func:`check_evaluation_name`
@@ -412,11 +274,12 @@ def evaluate(
     project_dir = (project_dir or Path.cwd()).resolve()
     log = log and not is_pretrained(run)  # the shipped network has no MLflow run to log to
     client = runs.client_for([run, *(ensemble or ())], project_dir)
-    run_id, model, cfg, ckpt_label = load_network(client, run, device)
+    first = load_network(client, run, device)
+    run_id, cfg = first.run_id, first.config
     if ensemble and not icp:
         raise ValueError("--ensemble keeps one of the networks' ICP refinements; drop --no-icp")
     members = [load_network(client, other, device) for other in ensemble or ()]
-    ids = check_ensemble([run, *(ensemble or ())], [(run_id, model, cfg), *members], "--ensemble")
+    ids = check_ensemble([first, *members], "--ensemble")
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it
     masks = segmentation if segmentation not in (None, cfg.data.segmentation) else None
     test = _test_data(cfg, data, frames, name, masks, own_data, project_dir, progress)
@@ -439,12 +302,10 @@ def evaluate(
             f"run {run_id} already holds an evaluation named {name!r} of other data (key "
             f"{logged}, this data {test.data_key}); choose another --name"
         )
-    device = next(model.buffers()).device
-    networks = [(model, cfg), *((m[1], m[2]) for m in members)]
+    network = Network((first, *members))
     table, metrics = _score(
-        networks, test, name, icp_settings if icp else None, device, progress,
-        cfg.loss.symmetry_table,
-    )  # fmt: skip
+        network, test, name, icp_settings if icp else None, progress, cfg.loss.symmetry_table
+    )
     if log:
         try:
             log_evaluation(client, run_id, name, table, metrics)
@@ -460,9 +321,9 @@ def evaluate(
                 raise
             raise full from exc
     who = f"run {run_id}" if run_id is not None else f"the shipped network {run!r}"
-    source = f"{who}, checkpoint {ckpt_label}, {len(test.segs)} instances of {test.label}"
+    source = f"{who}, checkpoint {first.checkpoint}, {len(test.segs)} instances of {test.label}"
     if members:
-        source += f"; ensemble with {', '.join(m[0] or str(m[3]) for m in members)}"
+        source += f"; ensemble with {', '.join(m.run_id or m.checkpoint for m in members)}"
     return EvalOutcome(table, metrics, run_id, name, source, test.split)
 
 

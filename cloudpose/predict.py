@@ -23,8 +23,8 @@ from cloudpose.conventions import YCB_INTRINSICS, transform_points
 from cloudpose.data.cache import SegmentSet
 from cloudpose.data.segments import check_depth_scale, extract_segments
 from cloudpose.data.ycb import YCBVideo, read_frame
-from cloudpose.infer import estimate_poses, load_checkpoint, refine_poses
-from cloudpose.refine import DepthView, ICPSettings, depth_agreement
+from cloudpose.infer import estimate_poses, load_checkpoint
+from cloudpose.refine import DepthView, ICPSettings, depth_agreement, refine_poses
 from cloudpose.store.pretrained import is_pretrained
 from cloudpose.store.runs import INFO, client_for, is_run_folder, local_checkpoint
 

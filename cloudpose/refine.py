@@ -48,6 +48,11 @@ the share of model points that lie in front of the observed surface, in space th
 through (free-space violations). The depth score needs the frame's depth and intrinsics
 (:class:`DepthView`; :func:`segment_views` reads them for a segment set).
 
+Many segments at once (:func:`refine_poses`): every row of a segment set refined from its
+:class:`Estimates`, with ICP's figures per row (:class:`ICPStats`); several estimates of the
+same rows (an ensemble's networks, a combination's methods) are each refined and, per row, the
+refinement of the best score kept (:func:`refine_ensemble`, :func:`select_refinements`).
+
 Threads: the fast path runs BLAS and pykdtree on one thread while it works (``threadpoolctl``);
 a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fork/join made it
 10-30x slower whenever another process held a core.
@@ -64,6 +69,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from tqdm.auto import tqdm
 
 from cloudpose import kernels
 from cloudpose.config import MAX_RADIUS, PAPER_RADIUS, START_GROUPS
@@ -628,3 +634,162 @@ def segment_views(dataset, segs) -> list[DepthView | None]:
                 cache[fid] = DepthView(f.depth, np.asarray(f.K, dtype=np.float64))
             out.append(cache[fid])
     return out
+
+
+# --------------------------------------------------------------------------- many segments
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """Poses of every row of a segment set; rows that are misses hold NaN."""
+
+    R: np.ndarray  # (M, 3, 3)
+    t: np.ndarray  # (M, 3) metres
+
+    @classmethod
+    def kept(cls, candidates: list[Estimates], pick: np.ndarray) -> Estimates:
+        """Per row, the pose of ``candidates[pick[row]]`` (several estimates of the same rows,
+        :func:`select_refinements`)."""
+        return cls(
+            _per_row([c.R for c in candidates], pick), _per_row([c.t for c in candidates], pick)
+        )
+
+
+def _per_row(candidates: list[np.ndarray], pick: np.ndarray) -> np.ndarray:
+    """Row ``i`` of ``candidates[pick[i]]``, for arrays of the same rows."""
+    return np.stack(candidates)[pick, np.arange(len(pick))]
+
+
+def refine_poses(
+    segs,
+    est: Estimates,
+    models_by_class: dict[int, np.ndarray],
+    settings: ICPSettings | None = None,
+    progress: bool = False,
+    views=None,
+) -> tuple[Estimates, ICPStats]:
+    """ICP-refine every valid row; returns the refined poses and, per row, Open3D's fitness and
+    inlier RMSE and whether the guard kept the estimate (``settings.fallback``; NaN / False
+    for rows that are misses).
+
+    The observed cloud is the segment's cached FPS points without the fill-by-repeat copies
+    (``points[:count]``). ``views``: per row, the frame's depth
+    (:func:`cloudpose.refine.segment_views`), which ``settings.select == "depth"`` needs.
+    """
+    settings = settings or ICPSettings()
+    R, t = est.R.copy(), est.t.copy()
+    fitness = np.full(len(segs), np.nan)
+    rmse = np.full(len(segs), np.nan)
+    kept = np.zeros(len(segs), dtype=bool)
+    index = {c: ModelIndex.of(m) for c, m in models_by_class.items()}  # shared with ADS
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for i in tqdm(np.flatnonzero(segs.valid), disable=not progress, desc="ICP", unit="obj"):
+            sol = icp_refine(
+                segs.observed(i).astype(np.float64),
+                index[int(segs.cls_id[i])],
+                est.R[i],
+                est.t[i],
+                settings,
+                view=views[i] if views is not None else None,
+            )
+            R[i], t[i], fitness[i], rmse[i], kept[i] = sol
+    if caught:
+        # One line instead of one per object: far-off estimates leave ICP nothing to match.
+        warnings.warn(
+            f"ICP kept the network's pose for {len(caught)} of {int(np.sum(segs.valid))} "
+            f"objects (e.g. {caught[0].message})",
+            stacklevel=2,
+        )
+    return Estimates(R, t), ICPStats(fitness, rmse, kept)
+
+
+def refinement_scores(
+    segs,
+    refined: Estimates,
+    stats: ICPStats,
+    models_by_class: dict[int, np.ndarray],
+    select: str,
+    views=None,
+) -> np.ndarray:
+    """(M,) score of each row's refinement (:func:`refine_poses`) under ``select``: ICP's
+    fitness (``"fitness"``) or the depth score (``"depth"``,
+    :func:`cloudpose.refine.depth_score`: coverage of the segment and free-space violations
+    against ``views``, the rows' depth); -inf for a row not refined (a miss)."""
+    if select not in SELECTIONS:
+        raise ValueError(f"select: expected one of {', '.join(SELECTIONS)}, got {select!r}")
+    if select == "depth" and views is None:
+        raise ValueError('select "depth" needs the rows\' depth views (segment_views)')
+    score = np.full(len(segs), -np.inf)
+    index = {c: ModelIndex.of(m) for c, m in models_by_class.items()}
+    for i in np.flatnonzero(segs.valid):
+        fit = float(stats.fitness[i])
+        if not np.isfinite(fit):
+            continue
+        if select == "fitness":
+            score[i] = fit
+            continue
+        agree = depth_agreement(
+            segs.observed(i).astype(np.float64),
+            index[int(segs.cls_id[i])],
+            refined.R[i],
+            refined.t[i],
+            views[i],
+        )
+        score[i] = depth_score(fit, agree)
+    return score
+
+
+def select_refinements(
+    segs,
+    refined: list[Estimates],
+    stats: list[ICPStats],
+    models_by_class: dict[int, np.ndarray],
+    select: str,
+    views=None,
+) -> np.ndarray:
+    """Per row of ``segs``, which of several refinements of it to keep (an ensemble: each
+    network's estimate refined by ICP, :func:`refine_poses`): the highest
+    :func:`refinement_scores` under ``select``.
+
+    Returns:
+        (M,) int indices into ``refined``; the first on a tie and for a miss.
+    """
+    if len(refined) != len(stats) or not refined:
+        raise ValueError(
+            f"refined and stats: one of each per network, got {len(refined)} and {len(stats)}"
+        )
+    scores = [
+        refinement_scores(segs, r, st, models_by_class, select, views)
+        for r, st in zip(refined, stats, strict=True)
+    ]
+    return np.argmax(np.stack(scores), axis=0)
+
+
+def refine_ensemble(
+    segs,
+    estimates: list[Estimates],
+    models_by_class: dict[int, np.ndarray],
+    settings: ICPSettings,
+    views=None,
+    progress: bool = False,
+    choose: str | None = None,
+) -> tuple[Estimates, ICPStats, np.ndarray]:
+    """Several networks' estimates of the same rows as one: each refined by ICP
+    (:func:`refine_poses` with ``settings``), per row the refinement with the best score of
+    ``choose`` kept (default ``settings.select``, the score of the starts too;
+    :func:`select_refinements`; one network: its own, unscored).
+
+    Returns:
+        The kept refinements, their ICP figures, and (M,) the index of the network each row
+        kept (0 for a miss).
+    """
+    refined = [
+        refine_poses(segs, e, models_by_class, settings, progress, views=views) for e in estimates
+    ]
+    if len(refined) == 1:
+        return *refined[0], np.zeros(len(segs), dtype=np.int64)
+    poses, stats = [r for r, _ in refined], [st for _, st in refined]
+    pick = select_refinements(segs, poses, stats, models_by_class, choose or settings.select, views)
+    kept_stats = ICPStats(*(_per_row(list(field), pick) for field in zip(*stats, strict=True)))
+    return Estimates.kept(poses, pick), kept_stats, pick

@@ -121,3 +121,79 @@ def test_the_packages_own_modules_are_imported_at_the_top():
         per_file[path] += len(lines)
     grown = {p: (per_file[p], n) for p, n in NOT_YET.items() if per_file[p] > n}
     assert not grown, f"more imports inside functions than before (found, allowed): {grown}"
+
+
+# ------------------------------------------------------------------------ rooms and sizes
+
+MAX_TOP_LEVEL_MODULES = 12
+"""``cloudpose/*.py``: the core's modules; a new concept makes a package of its own (issue 63)."""
+MAX_FUNCTION_LINES = 120
+"""The longest a function may be, numba kernels (``@njit``: one compiled loop) aside."""
+
+
+def test_the_top_level_holds_at_most_twelve_modules():
+    top = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert len(top) <= MAX_TOP_LEVEL_MODULES, f"{len(top)} modules in cloudpose/: {top}"
+
+
+def _decorated_njit(node: ast.FunctionDef) -> bool:
+    names = []
+    for d in node.decorator_list:
+        d = d.func if isinstance(d, ast.Call) else d
+        names.append(d.attr if isinstance(d, ast.Attribute) else getattr(d, "id", ""))
+    return any(n in ("njit", "jit") for n in names)
+
+
+def test_no_function_is_over_120_lines_outside_numba_kernels():
+    long = [
+        f"{path}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+        for path, tree in _modules().items()
+        for node in ast.walk(tree)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
+        and not _decorated_njit(node)
+    ]
+    assert not long, f"functions over {MAX_FUNCTION_LINES} lines (split into named steps): {long}"
+
+
+def _imported(tree: ast.Module) -> set[str]:
+    """Every module a file imports, at the top or inside a function."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            out.add(node.module)
+    return out
+
+
+def test_the_tracking_store_sits_below_inference_and_the_archive():
+    """store/ is MLflow tracking: it imports neither the network's inference nor the packing of
+    stores for git (archive/ builds on it, not the other way)."""
+    wrong = {
+        path: sorted(
+            m
+            for m in _imported(tree)
+            if m.split(".")[:2] in (["cloudpose", "infer"], ["cloudpose", "archive"])
+        )
+        for path, tree in _modules().items()
+        if path.startswith("cloudpose/store/")
+    }
+    wrong = {k: v for k, v in wrong.items() if v}
+    assert not wrong, f"store/ importing infer or archive: {wrong}"
+
+
+def test_the_readmes_layout_names_every_module_and_package_of_the_top_level():
+    """Every ``cloudpose/*.py`` and package is named in the README's Layout, and every
+    path it names (a word ending in ``.py`` or ``/``) is in the tree."""
+    readme = (PACKAGE.parent / "README.md").read_text()
+    block = readme.split("## Layout", 1)[1].split("```")[1]
+    paths = {
+        w.removeprefix("cloudpose/")
+        for w in block.split()
+        if w.endswith((".py", "/")) and w.removeprefix("cloudpose/")
+    }
+    tree = {p.name for p in PACKAGE.glob("*.py") if p.name != "__init__.py"}
+    tree |= {f"{p.name}/" for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    assert not tree - paths, f"README's Layout does not name: {sorted(tree - paths)}"
+    assert not paths - tree, f"README's Layout names what cloudpose/ lacks: {sorted(paths - tree)}"

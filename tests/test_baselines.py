@@ -108,8 +108,8 @@ def test_settings_are_data_with_a_why():
 def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project, tmp_path):
     """`cloudpose baseline` on the smoke preset: a finished MLflow run in cloudpose-baselines
     with the instance table and the same metrics as a network's evaluation."""
-    from cloudpose.baselines.run import run_baseline, subsample
     from cloudpose.store import instances, tracking
+    from cloudpose.studies.baseline_runs import run_baseline, subsample
 
     proj, _ = smoke_project
     out = run_baseline("fpfh", "smoke", 1, project_dir=proj, limit=8, progress=False)
@@ -139,8 +139,8 @@ def test_fpfh_on_the_smoke_test_set_is_logged_like_a_variant(smoke_project, tmp_
 
 
 def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
-    from cloudpose.baselines.run import run_baseline
     from cloudpose.store import tracking
+    from cloudpose.studies.baseline_runs import run_baseline
 
     proj, _ = smoke_project
     out = run_baseline(
@@ -166,8 +166,8 @@ def test_tuning_runs_on_the_validation_frames_with_overrides(smoke_project):
 
 def test_another_icp_radius_is_a_run_of_its_own_that_reports_leave_out(smoke_project):
     from cloudpose.baselines.base import is_current
-    from cloudpose.baselines.run import run_baseline
     from cloudpose.store import tracking
+    from cloudpose.studies.baseline_runs import run_baseline
 
     proj, _ = smoke_project
     kw = dict(project_dir=proj, limit=4, split="val", progress=False)
@@ -189,7 +189,7 @@ def test_another_icp_radius_is_a_run_of_its_own_that_reports_leave_out(smoke_pro
 
 
 def test_a_baseline_on_the_real_development_frames_reports_each_video(smoke_project):
-    from cloudpose.baselines.run import run_baseline
+    from cloudpose.studies.baseline_runs import run_baseline
 
     proj, _ = smoke_project
     out = run_baseline(
@@ -205,10 +205,12 @@ def test_a_baseline_on_the_real_development_frames_reports_each_video(smoke_proj
 def test_a_stopped_run_resumes_where_it_stopped_with_the_same_poses(smoke_project, monkeypatch):
     """Stopped after 3 segments (the saved estimates are kept), the next call estimates only
     the rest and gives the same table as a run that went through; the file goes once logged."""
-    from cloudpose.baselines import fpfh, run
+    from cloudpose import methods
+    from cloudpose.baselines import fpfh
+    from cloudpose.studies import baseline_runs as run
 
     proj, _ = smoke_project
-    monkeypatch.setattr(run, "SAVE_EVERY_S", 0.0)
+    monkeypatch.setattr(methods, "SAVE_EVERY_S", 0.0)
     straight = run.run_baseline(
         "fpfh", "smoke", 2, project_dir=proj, limit=6, icp=False, progress=False, log=False
     )

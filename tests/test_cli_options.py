@@ -100,7 +100,7 @@ def test_icp_overrides_take_the_recipe_then_each_option():
     ],
 )
 def test_baseline_passes_the_refinement_it_is_given(monkeypatch, args, expected):
-    import cloudpose.baselines.run
+    import cloudpose.studies.baseline_runs
 
     got = {}
 
@@ -108,7 +108,7 @@ def test_baseline_passes_the_refinement_it_is_given(monkeypatch, args, expected)
         got.update(starts=kw["icp_starts"], select=kw["icp_select"], radius=kw["icp_radius"])
         raise ValueError("stop here")
 
-    monkeypatch.setattr(cloudpose.baselines.run, "run_baseline", fake)
+    monkeypatch.setattr(cloudpose.studies.baseline_runs, "run_baseline", fake)
     monkeypatch.setattr("cloudpose.report.committed.sweep_store", lambda *a: "./mlflow.db")
     res = cli("baseline", "--method", "fpfh", *args, "--no-progress")
     one_line_error(res, "stop here")
@@ -116,7 +116,7 @@ def test_baseline_passes_the_refinement_it_is_given(monkeypatch, args, expected)
 
 
 def test_compare_refines_beside_the_paper_with_the_products_refinement(monkeypatch):
-    import cloudpose.compare
+    import cloudpose.studies.compare
 
     got = {}
 
@@ -124,7 +124,7 @@ def test_compare_refines_beside_the_paper_with_the_products_refinement(monkeypat
         got.update(starts=kw["starts"], select=kw["select"], radius=kw["radius"])
         raise ValueError("stop here")
 
-    monkeypatch.setattr(cloudpose.compare, "run_compare", fake)
+    monkeypatch.setattr(cloudpose.studies.compare, "run_compare", fake)
     one_line_error(cli("compare", "--no-progress"), "stop here")
     assert got == REFINEMENTS[PRODUCT_REFINEMENT]
     one_line_error(cli("compare", "--refine", "paper", "--icp-starts", "12"), "stop here")

@@ -18,7 +18,7 @@ QUICK = ["--icp-starts", "1", "--icp-select", "fitness", "--icp-radius", "0.05"]
 
 
 def test_ray_split_separates_depth_from_a_sideways_centre():
-    from cloudpose.compare import ray_split
+    from cloudpose.studies.compare import ray_split
 
     t_gt = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 2.0]])
     err = np.array([[0.0, 0.0, -0.01], [0.0, 0.02, 0.0], [0.003, 0.004, 0.012]])
@@ -29,8 +29,8 @@ def test_ray_split_separates_depth_from_a_sideways_centre():
 
 
 def test_refinements_are_the_papers_and_the_recipe():
-    from cloudpose.compare import refinements
     from cloudpose.refine import ICPSettings
+    from cloudpose.studies.compare import refinements
 
     paper, wide = refinements(24, "depth", 0.18)
     assert paper.settings == ICPSettings() and paper.name == "icp"
@@ -48,7 +48,7 @@ def test_the_plan_counts_each_network_of_an_ensemble():
     """The refinements' time in the plan grows with the networks refined, the methods' not."""
     import re
 
-    from cloudpose.compare import CONTROL, ICP_SECONDS, NETWORK, plan, refinements
+    from cloudpose.studies.compare import CONTROL, ICP_SECONDS, NETWORK, plan, refinements
 
     class Segs:
         valid = np.ones(1000, dtype=bool)
@@ -117,10 +117,10 @@ def test_report_holds_every_method_and_stage(compared):
 def test_figures_are_evaluates_and_the_baselines(compared):
     """The network after the paper's ICP is ``evaluate``'s, FPFH + RANSAC's estimate and its
     refinement are ``baseline``'s, on the same frames."""
-    from cloudpose.baselines.run import run_baseline
     from cloudpose.evaluate import evaluate
     from cloudpose.infer import load_checkpoint
     from cloudpose.store.pretrained import shipped
+    from cloudpose.studies.baseline_runs import run_baseline
 
     proj, out, _ = compared
     ours = evaluate("pretrained", data=str(REAL), frames="all", project_dir=proj, log=False,
@@ -142,8 +142,8 @@ def test_figures_are_evaluates_and_the_baselines(compared):
 
 
 def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
-    import cloudpose.baselines.run as baselines_run
-    import cloudpose.compare as compare
+    import cloudpose.methods as methods
+    import cloudpose.studies.compare as compare
 
     proj, out, _ = compared
     before = (out / "compare.csv").read_text()
@@ -152,7 +152,7 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
         raise AssertionError("computed again")
 
     monkeypatch.setattr(compare, "_refine", fail)
-    monkeypatch.setattr(baselines_run, "estimate_all", fail)
+    monkeypatch.setattr(methods, "estimate_all", fail)
     monkeypatch.chdir(proj)
     done = compare.run_compare(out, data=REAL, frames="all", methods=["fpfh", "none"], starts=1,
                                select="fitness", radius=0.05, progress=False)  # fmt: skip
@@ -163,7 +163,7 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
     assert len(done.tables) == 6
     # another folder on the same frames computes its own tables, and reuses FPFH's estimates
     monkeypatch.undo()
-    monkeypatch.setattr(baselines_run, "estimate_all", fail)
+    monkeypatch.setattr(methods, "estimate_all", fail)
     monkeypatch.chdir(proj)
     other = compare.run_compare(proj / "other", data=REAL, frames="all", methods=["fpfh"],
                                 starts=1, select="fitness", radius=0.05, progress=False)  # fmt: skip
@@ -175,7 +175,7 @@ def test_a_second_call_reads_what_the_first_computed(compared, monkeypatch):
 def test_unreadable_timings_are_computed_again(compared, tmp_path, monkeypatch, capsys):
     import shutil
 
-    import cloudpose.compare as compare
+    import cloudpose.studies.compare as compare
 
     proj, out, _ = compared
     copy = tmp_path / "copy"
@@ -224,23 +224,22 @@ def test_bad_options_are_one_line(args, needles):
 def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path, monkeypatch):
     """Two copies of the shipped network as an ensemble: estimates cached per member, and the
     refinement kept per object is the one network's own."""
-    import cloudpose.compare as compare
     import cloudpose.infer as infer
+    import cloudpose.studies.compare as compare
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import open_dataset
-    from cloudpose.infer import load_checkpoint
+    from cloudpose.methods import LoadedNetwork, Network
     from cloudpose.store.pretrained import shipped
 
     proj, out, _ = compared
-    model, cfg = load_checkpoint(shipped().path)
+    net = LoadedNetwork.from_checkpoint(shipped().path)
+    cfg = net.config
     dataset = open_dataset(REAL)
     segs = folder_segments(dataset, "all", cfg.data, proj, progress=False)
-    pair = compare._network(
-        segs, [(None, model, cfg, "a"), (None, model, cfg, "b")], tmp_path / "n.npz"
-    )
+    pair = compare._network(segs, Network((net, net)), tmp_path / "n.npz")
     assert len(pair.estimates) == 2 and pair.label == "network (2 networks)"
     monkeypatch.setattr(infer, "estimate_poses", lambda *a, **k: pytest.fail("estimated again"))
-    again = compare._network(segs, [(None, model, cfg, "a")] * 2, tmp_path / "n.npz")
+    again = compare._network(segs, Network((net, net)), tmp_path / "n.npz")
     np.testing.assert_array_equal(again.estimates[1].R, pair.estimates[1].R)  # read back
     paper = compare.refinements(1, "fitness", 0.01)[0]
     table, _ = compare._refine(
@@ -251,7 +250,7 @@ def test_an_ensemble_of_one_network_twice_is_that_network(compared, tmp_path, mo
 
 
 class _Segments:
-    """What :func:`cloudpose.infer.no_estimate` reads of a segment set: its length, validity and
+    """What :func:`cloudpose.methods.no_estimate` reads of a segment set: its length, validity and
     observed points."""
 
     def __init__(self, points: np.ndarray, valid: np.ndarray):
@@ -265,7 +264,7 @@ class _Segments:
 
 
 def test_the_control_is_the_identity_at_each_segments_mean():
-    from cloudpose.infer import no_estimate
+    from cloudpose.methods import no_estimate
 
     points = np.random.default_rng(0).normal(size=(3, 8, 3))
     est = no_estimate(_Segments(points, np.array([True, False, True])))
@@ -277,10 +276,11 @@ def test_the_control_is_the_identity_at_each_segments_mean():
 def test_a_method_that_cannot_register_a_segment_scores_it_as_a_miss(compared):
     """A segment the method gave no pose for: a miss for that method only, every error
     infinite, along and across the ray too; the other rows are refined as usual."""
-    import cloudpose.compare as compare
+    import cloudpose.studies.compare as compare
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import open_dataset
-    from cloudpose.infer import load_checkpoint, no_estimate
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.methods import Estimated, no_estimate
     from cloudpose.store.pretrained import shipped
 
     proj, out, _ = compared
@@ -289,7 +289,7 @@ def test_a_method_that_cannot_register_a_segment_scores_it_as_a_miss(compared):
     segs = folder_segments(dataset, "all", cfg.data, proj, progress=False)
     ok = np.ones(len(segs), dtype=bool)
     ok[1] = False
-    stub = compare.Contender("stub", "a stub", [no_estimate(segs)], ok, 0.0)
+    stub = Estimated("stub", "a stub", (no_estimate(segs),), ok, 0.0)
     paper = compare.refinements(1, "fitness", 0.01)[0]
     table, _ = compare._refine(
         stub, segs, dataset, dataset.models(), paper, cfg.loss.symmetry_table
@@ -329,8 +329,8 @@ def test_the_commands_defaults_are_the_recipe():
     import typer.main
 
     from cloudpose.cli import app
-    from cloudpose.compare import RECIPE
     from cloudpose.config import PRODUCT_REFINEMENT, REFINEMENTS
+    from cloudpose.studies.compare import RECIPE
 
     command = typer.main.get_command(app).commands["compare"]
     defaults = {p.name: p.default for p in command.params}
@@ -346,12 +346,12 @@ def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared,
     method."""
     import shutil
 
-    import cloudpose.baselines.run as baselines_run
+    import cloudpose.methods as methods
 
     proj, out, _ = compared
     copy = tmp_path / "copy"
     shutil.copytree(out, copy)
-    monkeypatch.setattr(baselines_run, "estimate_all", lambda *a, **k: pytest.fail("estimated"))
+    monkeypatch.setattr(methods, "estimate_all", lambda *a, **k: pytest.fail("estimated"))
     monkeypatch.chdir(proj)
     args = ["--data", str(REAL), "--frames", "all", "--method", "fpfh", "--method", "none"]
     res = cli("compare", *args, "--combine", "fpfh+network", *QUICK, "--out", str(copy),
@@ -380,8 +380,9 @@ def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared,
 
 
 def test_combinations_fill_a_members_miss_and_refuse_what_the_call_lacks():
-    from cloudpose.compare import Contender, _combined, combination
-    from cloudpose.infer import Estimates
+    from cloudpose.methods import Estimated, combine
+    from cloudpose.refine import Estimates
+    from cloudpose.studies.compare import combination
 
     names = ["network", "fpfh", "none"]
     assert combination("none+network", names) == ("network", "none")
@@ -391,9 +392,9 @@ def test_combinations_fill_a_members_miss_and_refuse_what_the_call_lacks():
     n = 3
     a = Estimates(np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)))
     b = Estimates(-np.tile(np.eye(3), (n, 1, 1)), np.ones((n, 3)))
-    first = Contender("fpfh", "F", [a], np.array([True, False, False]), 2.0)
-    second = Contender("ppf", "P", [b], np.array([False, True, False]), 3.0)
-    both = _combined(("fpfh", "ppf"), [first, second])
+    first = Estimated("fpfh", "F", (a,), np.array([True, False, False]), 2.0)
+    second = Estimated("ppf", "P", (b,), np.array([False, True, False]), 3.0)
+    both = combine(("fpfh", "ppf"), [first, second])
     assert both.ok.tolist() == [True, True, False] and both.ms_per_object == 5.0
     assert both.label == "F or P, by the depth" and both.parts == ("fpfh", "ppf")
     np.testing.assert_array_equal(both.estimates[0].t[1], b.t[1])  # fpfh's miss: ppf's estimate
@@ -405,11 +406,12 @@ def test_a_combination_chooses_by_the_depth_and_refines_by_the_refinements_own_s
 ):
     """The starts of each estimate are scored as the refinement says (here ICP's fitness); only
     the choice among the combination's methods is the depth's."""
-    import cloudpose.compare as compare
-    import cloudpose.infer as infer
+    import cloudpose.refine as refinement
+    import cloudpose.studies.compare as compare
     from cloudpose.data.dataset import folder_segments
     from cloudpose.data.layout import open_dataset
-    from cloudpose.infer import load_checkpoint, no_estimate
+    from cloudpose.infer import load_checkpoint
+    from cloudpose.methods import Estimated, combine, no_estimate
     from cloudpose.store.pretrained import shipped
 
     proj, _, _ = compared
@@ -417,10 +419,10 @@ def test_a_combination_chooses_by_the_depth_and_refines_by_the_refinements_own_s
     dataset = open_dataset(REAL)
     segs = folder_segments(dataset, "all", cfg.data, proj, progress=False)
     ok = np.ones(len(segs), dtype=bool)
-    members = [compare.Contender(m, m, [no_estimate(segs)], ok, 0.0) for m in ("a", "b")]
-    both = compare._combined(("a", "b"), members)
+    members = [Estimated(m, m, (no_estimate(segs),), ok, 0.0) for m in ("a", "b")]
+    both = combine(("a", "b"), members)
     seen = {"starts": set(), "choice": []}
-    refine, select = infer.refine_poses, infer.select_refinements
+    refine, select = refinement.refine_poses, refinement.select_refinements
 
     def refine_spy(segs, est, models, settings, *args, **kwargs):
         seen["starts"].add(settings.select)
@@ -430,8 +432,8 @@ def test_a_combination_chooses_by_the_depth_and_refines_by_the_refinements_own_s
         seen["choice"].append(how)
         return select(segs, poses, stats, models, how, views)
 
-    monkeypatch.setattr(infer, "refine_poses", refine_spy)
-    monkeypatch.setattr(infer, "select_refinements", select_spy)
+    monkeypatch.setattr(refinement, "refine_poses", refine_spy)
+    monkeypatch.setattr(refinement, "select_refinements", select_spy)
     ref = compare.refinements(12, "fitness", 0.05)[1]
     compare._refine(both, segs, dataset, dataset.models(), ref, cfg.loss.symmetry_table)
     assert seen == {"starts": {"fitness"}, "choice": ["depth"]}

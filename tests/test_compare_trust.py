@@ -111,7 +111,7 @@ def _saved(path, n, **change) -> None:
     ids=["lacks-arrays", "all-zero", "not-finite", "other-count"],
 )
 def test_a_baseline_cache_that_cannot_serve_is_named_and_computed_again(change, said, tmp_path):
-    from cloudpose.baselines.run import EstimateProgress, estimate_all
+    from cloudpose.methods import EstimateProgress, estimate_all
 
     path = tmp_path / "fpfh.npz"
     _saved(path, 4, **change)
@@ -133,9 +133,13 @@ def test_the_plan_counts_ppfs_detector_training_and_shows_it_as_it_goes(tmp_path
     """Each model PPF needs costs a detector's training before its first estimate: the plan
     counts it (and names it) for the models of the estimates left, and the training shows a
     bar of its own."""
-    from cloudpose.baselines.run import EstimateProgress, estimate_all
-    from cloudpose.compare import plan
-    from cloudpose.stress import SECONDS_PER_INSTANCE, SECONDS_PER_MODEL
+    from cloudpose.methods import (
+        SECONDS_PER_INSTANCE,
+        SECONDS_PER_MODEL,
+        EstimateProgress,
+        estimate_all,
+    )
+    from cloudpose.studies.compare import plan
 
     segs = _Segments(10, classes=[1, 1, 2, 2, 3, 3, 4, 4, 4, 4])
     state = EstimateProgress(tmp_path / "ppf.npz", 10)
@@ -156,13 +160,15 @@ def test_the_plan_counts_ppfs_detector_training_and_shows_it_as_it_goes(tmp_path
 
 
 def test_the_stress_plan_counts_a_baselines_models_once_per_source(tmp_path):
-    from cloudpose import stress as st
+    from cloudpose.methods import SECONDS_PER_MODEL
+    from cloudpose.studies import perturbations as pt
+    from cloudpose.studies import stress as st
 
-    perts = [st.PERTURBATIONS["dilate"]]
-    methods = [st.Method("ppf", limit=3)]
+    perts = [pt.PERTURBATIONS["dilate"]]
+    methods = [st.SweepMethod("ppf", limit=3)]
     bare = st.make_plan(tmp_path, {"real": 10}, perts, methods).seconds
     trained = st.make_plan(tmp_path, {"real": 10}, perts, methods, {"real": 5}).seconds
-    assert trained - bare == pytest.approx(3 * st.SECONDS_PER_MODEL["ppf"])  # 3 of 5 at most
+    assert trained - bare == pytest.approx(3 * SECONDS_PER_MODEL["ppf"])  # 3 of 5 at most
 
 
 # --------------------------------------------------------------------------- a comparison's folder
@@ -172,7 +178,7 @@ def test_the_stress_plan_counts_a_baselines_models_once_per_source(tmp_path):
 def folder(tmp_path_factory):
     """(project, comparison folder, its tables, the comparison) of the shipped network and the
     control on the one real frame, each after two refinements."""
-    from cloudpose.compare import run_compare
+    from cloudpose.studies.compare import run_compare
 
     proj = tmp_path_factory.mktemp("trust")
     done = run_compare(proj / "cmp", data=REAL, frames="all", methods=["none"], project_dir=proj,
@@ -182,8 +188,8 @@ def folder(tmp_path_factory):
 
 def _again(folder, tmp_path, monkeypatch):
     """A copy of the folder, and a call on it that counts what it refines and estimates."""
-    import cloudpose.compare as compare
     import cloudpose.infer as infer
+    import cloudpose.studies.compare as compare
 
     proj, out, *_ = folder
     copy = tmp_path / "copy"
@@ -219,7 +225,7 @@ def _one_warning(caught, path, *needles) -> str:
 
 
 def _compare(out, proj, method, progress=False):
-    from cloudpose.compare import run_compare
+    from cloudpose.studies.compare import run_compare
 
     return run_compare(out, data=REAL, frames="all", methods=[method], project_dir=proj,
                        progress=progress, **QUICK)  # fmt: skip

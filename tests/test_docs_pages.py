@@ -151,4 +151,4 @@ def test_the_checks_catch_what_they_guard_against():
     assert _anchors(there) == {"a-wider-first-radius---icp-radius-018", "two", "two-1"}
     assert TABLE_ROW.findall(page) == ["run"]
     assert {n for code in _code(page) for n in COMMAND.findall(code)} == {"nosuch", "run"}
-    assert COMMAND.findall("`python -m cloudpose.cli train` `cloudpose/stress.py`") == []
+    assert COMMAND.findall("`python -m cloudpose.cli train` `cloudpose/studies/stress.py`") == []

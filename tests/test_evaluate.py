@@ -243,14 +243,18 @@ def test_an_ensemble_refuses_a_network_twice_by_any_name():
     """The shipped network and the MLflow run it came from are one network: named together, or
     one of them twice, they are refused, and the option that named the second is in the
     message; another run of the same preset joins, and a network of other data does not."""
-    from cloudpose.evaluate import check_ensemble
     from cloudpose.infer import load_checkpoint
+    from cloudpose.methods import LoadedNetwork, check_ensemble
     from cloudpose.store.pretrained import PRETRAINED, shipped
 
     model, cfg = load_checkpoint(shipped().path)
     run_id = shipped().info["run_id"]
+
+    def nets(names, loaded):
+        return [LoadedNetwork(n, rid, m, c, "") for n, (rid, m, c) in zip(names, loaded, strict=True)]
+
     ids = check_ensemble(
-        [PRETRAINED, "other"], [(None, model, cfg), ("f" * 32, model, cfg)], "--run"
+        nets([PRETRAINED, "other"], [(None, model, cfg), ("f" * 32, model, cfg)]), "--run"
     )
     assert ids[0] == f"{run_id}:{shipped().info['sha256'][:12]}" and ids[1] == "f" * 32
     pairs = {  # the shipped network, then its run; the run, then the shipped network
@@ -259,9 +263,9 @@ def test_an_ensemble_refuses_a_network_twice_by_any_name():
     }
     for option, (names, loaded) in pairs.items():
         with pytest.raises(ValueError, match=rf"^{option} {names[1]}: run {run_id} is in the en"):
-            check_ensemble(names, loaded, option)
+            check_ensemble(nets(names, loaded), option)
     other = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, n_fps=2 * cfg.data.n_fps))
     with pytest.raises(ValueError, match=r"^--run second: .* differs .* in data\.n_fps"):
         check_ensemble(
-            [PRETRAINED, "second"], [(None, model, cfg), ("f" * 32, model, other)], "--run"
+            nets([PRETRAINED, "second"], [(None, model, cfg), ("f" * 32, model, other)]), "--run"
         )

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from cloudpose.geometry.rotations import rotvec_to_rotmat
-from cloudpose.losses import pose_loss
 from cloudpose.models import PointLayerMaxPool, build_model
 from cloudpose.models.fused import (
     FusedPointLayerMaxPool,
@@ -17,6 +16,7 @@ from cloudpose.models.fused import (
     unfuse_model,
 )
 from cloudpose.registry import resolve
+from cloudpose.train.losses import pose_loss
 
 
 def _randomise_bn(m: PointLayerMaxPool | FusedPointLayerMaxPool, seed: int) -> None:

@@ -11,11 +11,11 @@ import torch
 
 from cloudpose.geometry import random_rotmat
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
-from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
 from cloudpose.models.folded import fold_for_inference
 from cloudpose.models.fused import fuse_model
 from cloudpose.registry import resolve
+from cloudpose.train.losses import pose_loss
 
 pytestmark = pytest.mark.gpu
 

@@ -8,15 +8,10 @@ import torch
 
 from cloudpose.data.segment_set import SegmentSet
 from cloudpose.data.synth.surfaces import load_packaged_models
-from cloudpose.infer import (
-    Estimates,
-    estimate_poses,
-    forward_in_batches,
-    load_checkpoint,
-    refine_poses,
-)
+from cloudpose.infer import estimate_poses, forward_in_batches, load_checkpoint
 from cloudpose.models import build_model
 from cloudpose.models.folded import FoldedPoseNet
+from cloudpose.refine import Estimates, refine_poses
 from cloudpose.registry import resolve
 
 

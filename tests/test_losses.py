@@ -10,7 +10,13 @@ import torch
 
 from cloudpose.config import LossConfig
 from cloudpose.geometry import random_rotmat, rotmat_to_rotvec, rotvec_to_rotmat
-from cloudpose.losses import LossTerms, geodesic_loss, pose_loss, rotvec_l2_loss, translation_loss
+from cloudpose.train.losses import (
+    LossTerms,
+    geodesic_loss,
+    pose_loss,
+    rotvec_l2_loss,
+    translation_loss,
+)
 
 
 def rot_z(theta: float, dtype: torch.dtype = torch.float64) -> torch.Tensor:

@@ -14,7 +14,6 @@ from torch import nn
 from cloudpose.config import ModelConfig
 from cloudpose.conventions import resource_path
 from cloudpose.geometry import rotvec_to_rotmat
-from cloudpose.losses import pose_loss
 from cloudpose.models import (
     BaseNet,
     PointLayer,
@@ -28,6 +27,7 @@ from cloudpose.models import (
     variant_table,
 )
 from cloudpose.registry import get_variant, groups_of, resolve, variants
+from cloudpose.train.losses import pose_loss
 
 VARIANTS = list(variants())
 K = 21  # YCB-Video classes

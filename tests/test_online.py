@@ -497,7 +497,7 @@ def test_correlated_readings_keep_the_amount_of_noise_and_the_edges():
     frames' ~0.4, where independent noise gives ~0); readings on the step (flying pixels among
     them) and every ray are kept; sigma 0 changes nothing; the same draws give the same points."""
     from cloudpose.data.synth.sensor import NoiseModel, _noisy, correlate_readings
-    from cloudpose.stress import depth_correlation
+    from cloudpose.studies.perturbations import depth_correlation
 
     K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
     clean = np.zeros((480, 640))

@@ -463,7 +463,7 @@ def test_refine_poses_applies_the_guard_and_reports_each_object():
     """The per-object figures that evaluate logs (fitness, inlier RMSE, fallback) and the pose
     kept where the guard trips."""
     from cloudpose.data.cache import SegmentSet
-    from cloudpose.infer import Estimates, refine_poses
+    from cloudpose.refine import Estimates, refine_poses
 
     obs, model, R0, t0, _ = diverging_case()
     segs = SegmentSet.__new__(SegmentSet)
@@ -583,8 +583,7 @@ def _box_scene():
 def test_select_refinements_keeps_the_best_score_per_row():
     """Fitness: the higher per row, the first on a tie, 0 for a miss; depth: of two poses that
     explain the segment alike, the one whose model does not stick out into seen free space."""
-    from cloudpose.infer import Estimates, select_refinements
-    from cloudpose.refine import ICPStats
+    from cloudpose.refine import Estimates, ICPStats, select_refinements
 
     model, face, view, right, nearer = _box_scene()
     rows = _rows(np.stack([face, face, face]), [True, True, False])

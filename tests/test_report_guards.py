@@ -185,7 +185,7 @@ def test_a_render_of_the_same_numbers_leaves_the_files_as_they_are(tmp_path):
 
 @pytest.mark.parametrize("fresh", [False, True])
 def test_a_baseline_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatch, fresh):
-    import cloudpose.baselines.run
+    import cloudpose.studies.baseline_runs
 
     monkeypatch.chdir(tmp_path)
     _committed(tmp_path, "cpu-online", [("baseline-fpfh", 1)])
@@ -196,7 +196,7 @@ def test_a_baseline_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatc
         seen["store"] = os.environ.get("MLFLOW_TRACKING_URI")
         raise ValueError("stop here")
 
-    monkeypatch.setattr(cloudpose.baselines.run, "run_baseline", fake)
+    monkeypatch.setattr(cloudpose.studies.baseline_runs, "run_baseline", fake)
     args = ["baseline", "--method", "fpfh", "--preset", "cpu-online", "--no-progress"]
     res = CliRunner().invoke(app, args + (["--fresh"] if fresh else []))
     assert "stop here" in res.output

@@ -291,13 +291,13 @@ def test_a_same_size_shipped_file_with_another_checksum_names_the_checksum(packa
 @pytest.fixture
 def no_work(monkeypatch):
     """Rendering or evaluating anything fails the test: the options are checked first."""
-    import cloudpose.showcase
+    import cloudpose.studies.showcase
 
     def work(*args, **kwargs):
         raise AssertionError("work started before the options were checked")
 
     for name in ("synthesize", "run_compare", "predict", "shipped"):
-        monkeypatch.setattr(cloudpose.showcase, name, work)
+        monkeypatch.setattr(cloudpose.studies.showcase, name, work)
 
 
 def test_showcase_refuses_a_negative_frame_count_before_any_work(no_work, tmp_path):

@@ -1,4 +1,4 @@
-"""Stress curves (cloudpose.stress): each perturbation does what it says, level 0 is the identity,
+"""Stress curves (cloudpose.studies.stress): each perturbation does what it says, level 0 is the identity,
 and the command runs end to end on a tiny subset."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cloudpose import stress as st
+from cloudpose.studies import perturbations as pt
+from cloudpose.studies import stress as st
 from tests.conftest import DATA, cli
 
 
@@ -26,17 +27,17 @@ def test_erosion_removes_the_boundary_band_and_dilation_adds_one():
     mask = np.zeros((40, 40), dtype=bool)
     mask[10:30, 10:30] = True
     for k in (1, 2, 4):
-        eroded = st.erode_mask(mask, k)
+        eroded = pt.erode_mask(mask, k)
         assert eroded.sum() == (20 - 2 * k) ** 2  # a square loses k pixels on every side
         assert not (eroded & ~mask).any()
-        dilated = st.dilate_mask(mask, k)
+        dilated = pt.dilate_mask(mask, k)
         assert (dilated & mask).sum() == mask.sum()
         assert dilated[10 - k, 20] and not dilated[10 - k - 1, 20]  # k pixels out, no more
     point = np.zeros((11, 11), dtype=bool)
     point[5, 5] = True
-    assert st.dilate_mask(point, 2).sum() == 13  # the disk of radius 2
-    assert np.array_equal(st.erode_mask(mask, 0), mask)
-    assert np.array_equal(st.dilate_mask(mask, 0), mask)
+    assert pt.dilate_mask(point, 2).sum() == 13  # the disk of radius 2
+    assert np.array_equal(pt.erode_mask(mask, 0), mask)
+    assert np.array_equal(pt.dilate_mask(mask, 0), mask)
 
 
 def test_shift_moves_the_mask_k_pixels_the_same_way_at_every_level():
@@ -45,18 +46,18 @@ def test_shift_moves_the_mask_k_pixels_the_same_way_at_every_level():
     centre = np.argwhere(mask).mean(axis=0)
     moves = {}
     for k in (0, 1, 2, 4, 6):
-        shifted = st.shift_mask(mask, k, np.random.default_rng(3))  # one instance's stream
+        shifted = pt.shift_mask(mask, k, np.random.default_rng(3))  # one instance's stream
         assert shifted.sum() == mask.sum()  # moved whole, nothing cut at the image border
         moves[k] = np.argwhere(shifted).mean(axis=0) - centre
         assert np.linalg.norm(moves[k]) == pytest.approx(k, abs=0.75)  # whole pixels
-    assert np.array_equal(st.shift_mask(mask, 0, np.random.default_rng(3)), mask)
+    assert np.array_equal(pt.shift_mask(mask, 0, np.random.default_rng(3)), mask)
     direction = moves[6] / 6
     for k in (2, 4):
         assert np.linalg.norm(moves[k] / k - direction) < 0.3
     edge = np.zeros((10, 10), dtype=bool)
     edge[:, :2] = True  # pushed out of the image on one side it loses pixels, never wraps
     for seed in range(8):
-        out = st.shift_mask(edge, 3, np.random.default_rng(seed))
+        out = pt.shift_mask(edge, 3, np.random.default_rng(seed))
         assert out.sum() <= edge.sum() and not out[:, 6:].any()
 
 
@@ -64,10 +65,10 @@ def test_holes_drop_about_the_share_inside_the_mask_only():
     depth = np.full((60, 60), 0.8)
     mask = np.zeros((60, 60), dtype=bool)
     mask[10:50, 10:50] = True
-    same = st.drop_depth_blobs(depth, mask, 0.0, np.random.default_rng(0))
+    same = pt.drop_depth_blobs(depth, mask, 0.0, np.random.default_rng(0))
     assert np.array_equal(same, depth)
     for share in (0.1, 0.35, 0.7):
-        out = st.drop_depth_blobs(depth, mask, share, np.random.default_rng(0))
+        out = pt.drop_depth_blobs(depth, mask, share, np.random.default_rng(0))
         gone = (out == 0) & mask
         assert np.array_equal(out[~mask], depth[~mask])  # nothing outside the mask
         assert share <= gone.sum() / mask.sum() <= share + 0.15  # up to one last blob more
@@ -76,38 +77,38 @@ def test_holes_drop_about_the_share_inside_the_mask_only():
 def test_depth_noise_and_bias_move_points_along_their_rays():
     p = _cloud()
     rng = np.random.default_rng(1)
-    for q in (st.depth_noise(p, 4.0, rng), st.depth_bias(p, 20.0)):
+    for q in (pt.depth_noise(p, 4.0, rng), pt.depth_bias(p, 20.0)):
         cross = np.linalg.norm(np.cross(p / np.linalg.norm(p, axis=1, keepdims=True), q), axis=1)
         assert cross.max() < 1e-12  # same ray
-    dz = st.depth_noise(p, 4.0, np.random.default_rng(2))[:, 2] - p[:, 2]
+    dz = pt.depth_noise(p, 4.0, np.random.default_rng(2))[:, 2] - p[:, 2]
     assert 3.5e-3 < dz.std() < 4.5e-3
-    np.testing.assert_allclose(st.depth_bias(p, 20.0)[:, 2], p[:, 2] * 1.02)
-    np.testing.assert_array_equal(st.depth_noise(p, 0.0, rng), p)
-    np.testing.assert_array_equal(st.depth_bias(p, 0.0), p)
+    np.testing.assert_allclose(pt.depth_bias(p, 20.0)[:, 2], p[:, 2] * 1.02)
+    np.testing.assert_array_equal(pt.depth_noise(p, 0.0, rng), p)
+    np.testing.assert_array_equal(pt.depth_bias(p, 0.0), p)
 
 
 @pytest.mark.parametrize("share", [0.1, 0.35, 0.7])
 def test_cut_plane_removes_the_share_on_one_side(share):
     p = _cloud()
-    kept = st.cut_plane(p, share, np.random.default_rng(3))
+    kept = pt.cut_plane(p, share, np.random.default_rng(3))
     n = np.random.default_rng(3).standard_normal(3)  # the plane's normal: the stream's first draw
     n /= np.linalg.norm(n)
     assert len(kept) == int(np.ceil(len(p) * (1 - share)))
     gone = np.array([not (row == kept).all(axis=1).any() for row in p])
     assert (kept @ n).max() <= (p[gone] @ n).min()  # all removed points beyond the plane
-    np.testing.assert_array_equal(st.cut_plane(p, 0.0, np.random.default_rng(3)), p)
+    np.testing.assert_array_equal(pt.cut_plane(p, 0.0, np.random.default_rng(3)), p)
 
 
 @pytest.mark.parametrize("shift_mm", [2.0, 8.0])
 def test_lateral_shift_moves_the_centroid_across_the_ray(shift_mm):
     p = _cloud(2000)
-    kept = st.lateral_shift(p, shift_mm, np.random.default_rng(4))
+    kept = pt.lateral_shift(p, shift_mm, np.random.default_rng(4))
     move = kept.mean(axis=0) - p.mean(axis=0)
     ray = p.mean(axis=0) / np.linalg.norm(p.mean(axis=0))
     across = np.linalg.norm(move - (move @ ray) * ray)
     assert shift_mm / 1000 <= across < shift_mm / 1000 + 1e-3
     assert len(kept) < len(p)
-    np.testing.assert_array_equal(st.lateral_shift(p, 0.0, np.random.default_rng(4)), p)
+    np.testing.assert_array_equal(pt.lateral_shift(p, 0.0, np.random.default_rng(4)), p)
 
 
 def test_lateral_shift_beyond_reach_keeps_the_least_share_without_a_warning():
@@ -118,20 +119,20 @@ def test_lateral_shift_beyond_reach_keeps_the_least_share_without_a_warning():
     p = _cloud(500)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        kept = st.lateral_shift(p, 1e6, np.random.default_rng(4))
-    assert len(kept) == int(np.ceil(st.MIN_KEEP * len(p)))
+        kept = pt.lateral_shift(p, 1e6, np.random.default_rng(4))
+    assert len(kept) == int(np.ceil(pt.MIN_KEEP * len(p)))
 
 
 def test_resampling_scales_the_count_on_the_same_surface():
     p = _cloud(400)
     rng = np.random.default_rng(5)
-    assert len(st.resample_points(p, 0.25, rng)) == 100
-    more = st.resample_points(p, 2.0, rng)
+    assert len(pt.resample_points(p, 0.25, rng)) == 100
+    more = pt.resample_points(p, 2.0, rng)
     assert len(more) == 800
     np.testing.assert_array_equal(more[:400], p)
     # the added points are midpoints of neighbours: within the patch, near its surface
     assert np.abs(more[400:, :2]).max() <= 0.05
-    np.testing.assert_array_equal(st.resample_points(p, 1.0, rng), p)
+    np.testing.assert_array_equal(pt.resample_points(p, 1.0, rng), p)
 
 
 def _real_fixture():
@@ -141,7 +142,7 @@ def _real_fixture():
     fid = "0000/000001"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return ds, st.FrameData(ds.frame(fid), 0, None)
+        return ds, pt.FrameData(ds.frame(fid), 0, None)
 
 
 def test_identity_level_is_the_project_segment():
@@ -156,15 +157,15 @@ def test_identity_level_is_the_project_segment():
     f = fd.frame
     full = backproject(f.depth, f.label == f.cls_ids[0], f.K).astype(np.float32)
     full_set = {tuple(r) for r in full}
-    for name, p in st.PERTURBATIONS.items():
-        seg, _ = st.perturbed_segment(
-            fd, 0, p, st.identity_level(p), seed=1, source="real", n_fps=256
+    for name, p in pt.PERTURBATIONS.items():
+        seg, _ = pt.perturbed_segment(
+            fd, 0, p, pt.identity_level(p), seed=1, source="real", n_fps=256
         )
         assert seg.count == ref[0].count, name
         k = min(seg.count, 256)
         assert {tuple(r) for r in seg.points[:k]} <= full_set, name
     twice = [
-        st.perturbed_segment(fd, 0, st.PERTURBATIONS["cut"], 0.35, seed=1, source="real")[0]
+        pt.perturbed_segment(fd, 0, pt.PERTURBATIONS["cut"], 0.35, seed=1, source="real")[0]
         for _ in range(2)
     ]
     np.testing.assert_array_equal(twice[0].points, twice[1].points)
@@ -173,19 +174,19 @@ def test_identity_level_is_the_project_segment():
 
 def test_pixel_statistics_follow_the_pixels():
     _, fd = _real_fixture()
-    p = st.PERTURBATIONS
-    _, px0 = st.perturbed_segment(fd, 0, p["holes"], 0.0, seed=1, source="real")
-    _, px1 = st.perturbed_segment(fd, 0, p["holes"], 0.35, seed=1, source="real")
+    p = pt.PERTURBATIONS
+    _, px0 = pt.perturbed_segment(fd, 0, p["holes"], 0.0, seed=1, source="real")
+    _, px1 = pt.perturbed_segment(fd, 0, p["holes"], 0.35, seed=1, source="real")
     assert px1["no_depth"] >= px0["no_depth"] + 0.3
-    _, pd_ = st.perturbed_segment(fd, 0, p["dilate"], 4, seed=1, source="real")
-    _, pe = st.perturbed_segment(fd, 0, p["erode"], 4, seed=1, source="real")
+    _, pd_ = pt.perturbed_segment(fd, 0, p["dilate"], 4, seed=1, source="real")
+    _, pe = pt.perturbed_segment(fd, 0, p["erode"], 4, seed=1, source="real")
     assert pe["mask_px"] < px0["mask_px"] < pd_["mask_px"]
     # a shifted mask keeps its size (less what leaves the image) and moves the segment
-    seg_s, ps = st.perturbed_segment(fd, 0, p["shift"], 4, seed=1, source="real")
-    seg_0, p_0 = st.perturbed_segment(fd, 0, p["shift"], 0, seed=1, source="real")
+    seg_s, ps = pt.perturbed_segment(fd, 0, p["shift"], 4, seed=1, source="real")
+    seg_0, p_0 = pt.perturbed_segment(fd, 0, p["shift"], 0, seed=1, source="real")
     assert ps["mask_px"] <= p_0["mask_px"] == px0["mask_px"]
     # smoothing keeps the mask and raises the depth error's correlation
-    _, p_smooth = st.perturbed_segment(fd, 0, p["smooth"], 2, seed=1, source="real")
+    _, p_smooth = pt.perturbed_segment(fd, 0, p["smooth"], 2, seed=1, source="real")
     assert p_smooth["mask_px"] == px0["mask_px"]
     assert p_smooth["depth_corr"] > px0["depth_corr"]
     moved = seg_s.points[: seg_s.count].mean(axis=0) - seg_0.points[: seg_0.count].mean(axis=0)
@@ -201,7 +202,7 @@ def test_smoothing_stays_on_the_mask_and_makes_the_noise_correlated():
     plane = 0.9 + 0.001 * np.broadcast_to(np.arange(80), (80, 80))
     depth[mask] = (plane + 0.002 * rng.standard_normal((80, 80)))[mask]
     depth[40, 40] = 0.0  # a missing reading stays missing
-    out = st.smooth_depth(depth, mask, 1.5)
+    out = pt.smooth_depth(depth, mask, 1.5)
     assert np.array_equal(out[~mask], depth[~mask]) and out[40, 40] == 0.0
     inner = np.zeros_like(mask)
     inner[20:60, 20:60] = True
@@ -211,14 +212,14 @@ def test_smoothing_stays_on_the_mask_and_makes_the_noise_correlated():
     assert noise(out) == pytest.approx(noise(depth) / np.sqrt(4 * np.pi * 1.5**2), rel=0.25)
     # the tilt is kept away from the edge: the average of a plane is the plane
     assert np.abs((out - plane)[inner]).mean() < 0.4 * np.abs((depth - plane)[inner]).mean()
-    assert np.array_equal(st.smooth_depth(depth, mask, 0), depth)
-    before, after = st.depth_correlation(depth, mask), st.depth_correlation(out, mask)
+    assert np.array_equal(pt.smooth_depth(depth, mask, 0), depth)
+    before, after = pt.depth_correlation(depth, mask), pt.depth_correlation(out, mask)
     assert abs(before) < 0.1 < 0.3 < after
-    assert np.isnan(st.depth_correlation(depth, np.zeros_like(mask)))
+    assert np.isnan(pt.depth_correlation(depth, np.zeros_like(mask)))
 
 
 def test_real_level_interpolates_the_synthetic_curve():
-    p = st.PERTURBATIONS["noise"]
+    p = pt.PERTURBATIONS["noise"]
     stats = pd.DataFrame(
         [{"source": "real", "perturbation": "noise", "level": 0.0, "noise": 3.0}]
         + [
@@ -233,11 +234,11 @@ def test_real_level_interpolates_the_synthetic_curve():
 
 
 def test_conditions_hold_the_identity_once():
-    conds = st.conditions(list(st.PERTURBATIONS.values()))
-    identities = [c for c in conds if c[1] == st.identity_level(c[0])]
+    conds = st.conditions(list(pt.PERTURBATIONS.values()))
+    identities = [c for c in conds if c[1] == pt.identity_level(c[0])]
     assert len(identities) == 1
-    n_levels = sum(len(p.levels) for p in st.PERTURBATIONS.values())
-    assert len(conds) == n_levels - len(st.PERTURBATIONS) + 1
+    n_levels = sum(len(p.levels) for p in pt.PERTURBATIONS.values())
+    assert len(conds) == n_levels - len(pt.PERTURBATIONS) + 1
 
 
 def _sweep_results(root):
@@ -246,7 +247,7 @@ def _sweep_results(root):
     meta = {"preset": "smoke", "seed": 1, "sources": {"real": "", "synth": ""}, "methods": {}}
     (root / "sweep.json").parent.mkdir(parents=True)
     (root / "sweep.json").write_text(__import__("json").dumps(meta))
-    stats = {k: [0.0, 0.0] for k in st.STATISTICS}
+    stats = {k: [0.0, 0.0] for k in pt.STATISTICS}
     ident = {"frame_id": ["0000/000001", "0000/000002"], "instance": [0, 0]}
     synth = pd.DataFrame({**ident, **stats, "off_model": [0.01, 0.02]})
     real = pd.DataFrame({**ident, **stats, "off_model": [0.30, 0.40]})
@@ -388,7 +389,7 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     args = [
         "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1", "--instances", "2",
         "--fpfh-instances", "1", "--ppf-instances", "0", "--synth-frames", "1",
-        "--only", "cut", "--icp-selection", "2", "--results", str(results),
+        "--only", "cut", "--results", str(results),
         "--out", str(tmp_path / "rep"), "--no-progress",
     ]  # fmt: skip
     res = cli(*args)
@@ -404,8 +405,6 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     assert "conditions left" not in again.output  # nothing left to compute
     md = (tmp_path / "rep" / "stress.md").read_text()
     assert "Where the real frames sit" in md and "### cut" in md
-    assert "starts24-depth" in md  # the ICP selection comparison, both sources
-    assert len(list(results.glob("icp_select/*/*/net-seed1.csv"))) == 2 * 5
     assert (tmp_path / "rep" / "stress.png").stat().st_size > 0
     summary = pd.read_csv(tmp_path / "rep" / "stress.csv")
     assert set(summary.method) >= {"net-seed1", "fpfh", "network"}
@@ -477,3 +476,27 @@ def test_an_ensemble_of_one_network_twice_is_that_network(smoke_project, tmp_pat
     res = cli(*args, "--ensemble")
     words = " ".join(res.output.replace("│", " ").split())  # the usage box wraps to the terminal
     assert res.exit_code == 2 and "1 given, at least 2 needed" in words, res.output
+
+
+def test_a_sweeps_start_selection_results_are_still_reported(tmp_path):
+    """The retired start-selection study's tables, where a sweep folder holds them (the
+    committed cpu-online sweep does), are one section of the report: a row per source and
+    network, a cell per setting."""
+    from cloudpose.report.stress import ICP_SELECTIONS, icp_selection_markdown
+
+    assert icp_selection_markdown(tmp_path) == ""
+    table = pd.DataFrame({
+        "frame_id": ["0000/000001"] * 2, "instance": [1, 2], "cls_id": [1, 2], "icp_ad": [0.001, 0.002],
+        "icp_ads": [0.001, 0.002], "icp_rot_err_deg": [2.0, 20.0],
+        "icp_rot_sym_err_deg": [2.0, 20.0], "icp_trans_err": [0.004, 0.02], "seconds": [0.5, 0.5],
+    })  # fmt: skip
+    for setting in ICP_SELECTIONS[:2]:
+        path = tmp_path / "icp_select" / "real" / setting / "net-seed1.csv"
+        path.parent.mkdir(parents=True)
+        table.to_csv(path, index=False)
+    md = icp_selection_markdown(tmp_path)
+    row = next(line for line in md.splitlines() if line.startswith("| real | net-seed1 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2] == "2"
+    assert "/ 50% / 50% / 12.0 (250 ms)" in cells[3] and cells[4] == cells[3]
+    assert cells[5:] == ["", "", ""]  # the settings without a table

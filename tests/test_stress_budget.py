@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cloudpose.stress import result_path
+from cloudpose.studies.stress import result_path
 from tests.conftest import diagnostic_script
 
 

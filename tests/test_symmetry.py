@@ -222,7 +222,7 @@ def test_unknown_class_has_no_symmetry():
 
 def test_closest_ground_truth_and_symmetric_l2_loss():
     from cloudpose.geometry.rotations import rotmat_to_rotvec
-    from cloudpose.losses import pose_loss
+    from cloudpose.train.losses import pose_loss
 
     syms = symmetries_for(NAMES)
     table = SymmetryTensors(syms)

@@ -121,7 +121,7 @@ def test_markdown_names_runs_and_intervals(synthesis):
 def _sweep(folder: Path, checkpoint: str, trans_m: dict[float, float]) -> Path:
     """A `cloudpose stress` results folder: the network of ``checkpoint`` under dilation, every
     instance's translation off by ``trans_m[level]``."""
-    from cloudpose.stress import result_path
+    from cloudpose.studies.stress import result_path
 
     folder.mkdir(parents=True)
     meta = {

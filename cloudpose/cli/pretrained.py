@@ -32,7 +32,7 @@ def showcase(
     packaged real frames and the first synthetic test frames of its preset: each estimate, after
     the paper's ICP and after --refine; an overlay of one real frame. Trains nothing, logs
     nothing."""
-    from cloudpose.showcase import format_table, run_showcase
+    from cloudpose.studies.showcase import format_table, run_showcase
 
     shown = run_showcase(out, synthetic_frames, baseline, progress=progress, refine=refine)
     typer.echo(shown.described)

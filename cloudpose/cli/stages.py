@@ -400,10 +400,10 @@ def baseline(
     shown, not computed again (``--rerun`` computes a new one). As a sweep does, it reads and
     adds to the committed sweep of a preset the checkout commits (stores/PRESET/) unless
     MLFLOW_TRACKING_URI names a store or ``--fresh`` asks for ./mlflow.db."""
-    from cloudpose.baselines.run import run_baseline
     from cloudpose.registry import parse_overrides
     from cloudpose.report.committed import sweep_store
     from cloudpose.store.tracking import STORE_DB
+    from cloudpose.studies.baseline_runs import run_baseline
 
     fields = refinement("paper") | refinement(refine, icp_starts, icp_select, icp_radius)
     check_icp_options(**fields)
@@ -511,8 +511,8 @@ def compare(
     segments of one set of frames, every estimate refined by the same ICPs (the paper's and a
     wider one), side by side: pooled, per video and per object pose, the network's difference
     to each paired over object poses (compare.md, compare.png). Resumable; logs nothing."""
-    from cloudpose.compare import run_compare
     from cloudpose.report.compare import render
+    from cloudpose.studies.compare import run_compare
 
     fields = refinement(refine, icp_starts, icp_select, icp_radius)
     check_icp_options(**fields)

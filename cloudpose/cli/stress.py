@@ -1,4 +1,4 @@
-"""``cloudpose stress``: the stress curves of :mod:`cloudpose.stress`, computed (resumable) and
+"""``cloudpose stress``: the stress curves of :mod:`cloudpose.studies.stress`, computed (resumable) and
 rendered into reports/PRESET/stress.md."""
 
 from __future__ import annotations
@@ -119,11 +119,12 @@ def stress(
     dilated / eroded, depth holes, noise, bias, a cut plane, point count, one side missing), the
     network with and without ICP against FPFH + RANSAC and point-pair features at each step;
     resumable, the plan and its time printed first."""
-    from cloudpose import stress as st
     from cloudpose.registry import resolve
     from cloudpose.report.build import default_out_dir
     from cloudpose.report.stress import render_stress_report
     from cloudpose.store.tracking import check_name
+    from cloudpose.studies import perturbations as pt
+    from cloudpose.studies import stress as st
 
     check_name("--preset", preset)
     icp_radius = PAPER_RADIUS if icp_radius is None else icp_radius
@@ -153,7 +154,7 @@ def stress(
             results,
             resolve("shared-0", preset, seed),
             methods,
-            sources=tuple(source or st.SOURCES),
+            sources=tuple(source or pt.SOURCES),
             only=tuple(only or ()),
             instances=instances,
             synth_frames=synth_frames,
@@ -205,10 +206,10 @@ def _all_methods(
     ensemble: bool = False,
 ) -> list:
     """The networks named (and, with ``ensemble``, all of them as one) and the baselines not
-    left out (a limit of 0), as :class:`cloudpose.stress.Method`; BadParameter when there is
+    left out (a limit of 0), as :class:`cloudpose.studies.stress.SweepMethod`; BadParameter when there is
     none, ``ppf_levels`` is not ``all`` or ``ends``, or an ensemble has fewer than two
     networks."""
-    from cloudpose import stress as st
+    from cloudpose.studies import stress as st
 
     methods = _network_methods(checkpoints, runs, project)
     if ensemble:
@@ -216,11 +217,11 @@ def _all_methods(
             raise typer.BadParameter(
                 f"--ensemble joins the networks given: {len(methods)} given, at least 2 needed"
             )
-        methods.append(st.Method("ensemble", members=tuple(m.checkpoint for m in methods)))
+        methods.append(st.SweepMethod("ensemble", members=tuple(m.checkpoint for m in methods)))
     if ppf_levels not in ("all", "ends"):
         raise typer.BadParameter(f"--ppf-levels {ppf_levels!r}: expected all or ends")
     methods += [
-        st.Method(name, limit=limit, ends_only=ends)
+        st.SweepMethod(name, limit=limit, ends_only=ends)
         for name, limit, ends in (
             ("fpfh", fpfh_instances, False),
             ("ppf", ppf_instances, ppf_levels == "ends"),
@@ -233,23 +234,24 @@ def _all_methods(
 
 
 def _sweep(results: Path, cfg, methods: list, *, icp_selection: int, dry_run: bool, **kw) -> None:
-    """The stress sweep (:func:`cloudpose.stress.run_sweep`), then, unless ``dry_run``, the
+    """The stress sweep (:func:`cloudpose.studies.stress.run_sweep`), then, unless ``dry_run``, the
     comparison of ICP start selections on ``icp_selection`` instances per source (0: none)."""
-    from cloudpose import stress as st
+    from cloudpose.studies import stress as st
 
+    if icp_selection:
+        raise typer.BadParameter(
+            "the start-selection study is retired: `cloudpose compare --icp-select` answers it",
+            param_hint="--icp-selection",
+        )
     st.run_sweep(results, cfg, methods, echo=typer.echo, dry_run=dry_run, **kw)
-    if icp_selection and not dry_run:
-        kw.pop("only")
-        kw["instances"] = icp_selection
-        st.run_icp_selection(results, cfg, methods, echo=typer.echo, **kw)
 
 
 def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):
-    """One :class:`cloudpose.stress.Method` per checkpoint, named ``net-seed{S}`` by the seed in
+    """One :class:`cloudpose.studies.stress.SweepMethod` per checkpoint, named ``net-seed{S}`` by the seed in
     its config (``net-seed{S}-{k}`` where two share a seed); none without any (a call that
     adds a baseline to a sweep's results)."""
     from cloudpose.infer import load_checkpoint
-    from cloudpose.stress import Method
+    from cloudpose.studies.stress import SweepMethod
 
     paths = list(checkpoints)
     if runs:
@@ -258,11 +260,11 @@ def _network_methods(checkpoints: list[Path], runs: list[str], project: Path):
 
         client = client_for(runs, project)
         paths += [shipped(r).path if is_pretrained(r) else resolve_run(client, r)[1] for r in runs]
-    out: list[Method] = []
+    out: list[SweepMethod] = []
     for path in paths:
         _, cfg = load_checkpoint(path, "cpu")
         name = f"net-seed{cfg.seed}"
         if any(m.name == name for m in out):
             name += f"-{len(out)}"
-        out.append(Method(name, Path(path)))
+        out.append(SweepMethod(name, Path(path)))
     return out

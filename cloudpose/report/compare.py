@@ -1,4 +1,4 @@
-"""The report of ``cloudpose compare`` (:mod:`cloudpose.compare`): ``compare.md``, its summary
+"""The report of ``cloudpose compare`` (:mod:`cloudpose.studies.compare`): ``compare.md``, its summary
 ``compare.csv``, the paired differences ``compare_paired.csv`` and the figure ``compare.png``,
 from the comparison's instance tables only.
 
@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.compare import MACHINE, NETWORK, MethodComparison, table_problem
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.metrics import summarize
 from cloudpose.metrics.summaries import voc_ap_auc
 from cloudpose.report.real import object_pose, versus_baseline, video_of
+from cloudpose.studies.compare import MACHINE, NETWORK, MethodComparison, table_problem
 
 STAGE_ESTIMATE = "estimate"
 METRICS = {
@@ -244,7 +244,7 @@ def render(comparison: MethodComparison, command: str) -> tuple[Path, Path]:
     """Write ``compare.md`` (naming ``command``, the command line that made it),
     ``compare.csv``, ``compare_paired.csv`` and ``compare.png`` into the comparison's folder;
     the report's and the figure's paths; ``ValueError`` naming a table that lacks a column
-    the report reads (:func:`cloudpose.compare.table_problem`)."""
+    the report reads (:func:`cloudpose.studies.compare.table_problem`)."""
     out_dir, tables = comparison.out_dir, comparison.tables
     contenders, refs = comparison.contenders, comparison.refinements
     icp_ms, described, source = comparison.timing, comparison.described, comparison.source
@@ -279,7 +279,7 @@ def render(comparison: MethodComparison, command: str) -> tuple[Path, Path]:
     lines = [
         "# Like for like: the network against classical registration",
         "",
-        f"Made by `{command}` (cloudpose/compare.py). Data: {described}; "
+        f"Made by `{command}` (cloudpose/studies/compare.py). Data: {described}; "
         f"{videos.nunique()} video(s), {poses.nunique()} object poses "
         f"({misses} instance(s) without a usable segment point: a miss for every method). "
         f"Network: {source}. Every method estimates the pose of the same segments once; each "

@@ -130,7 +130,7 @@ def video_of(frame_id: pd.Series) -> pd.Series:
 
 def table_metrics(table: pd.DataFrame) -> dict[tuple[str, str, str], float]:
     """``(method column prefix, video or "pooled", metric) -> value`` (0..1) of an instance
-    table of :func:`cloudpose.evaluate.instance_table` (``net_*``, ``icp_*`` columns)."""
+    table of :func:`cloudpose.methods.instance_table` (``net_*``, ``icp_*`` columns)."""
     out: dict[tuple[str, str, str], float] = {}
     name = "x"
     metrics = {**summary_metrics(table, name), **video_metrics(table, name)}

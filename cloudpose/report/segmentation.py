@@ -96,7 +96,7 @@ def instance_figures(table: pd.DataFrame, method: str) -> dict[str, float]:
     """The table's figures of one method, as fractions (NaN where the table lacks a column).
 
     Args:
-        table: per-instance table (:func:`cloudpose.evaluate.instance_table`); errors in
+        table: per-instance table (:func:`cloudpose.methods.instance_table`); errors in
             metres and degrees, inf for misses.
         method: "net" or "icp".
 

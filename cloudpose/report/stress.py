@@ -1,4 +1,4 @@
-"""The stress report (``cloudpose stress``, :mod:`cloudpose.stress`): ``stress.md``, ``stress.csv``
+"""The stress report (``cloudpose stress``, :mod:`cloudpose.studies.stress`): ``stress.md``, ``stress.csv``
 and two figures (``stress.png``: ADS AUC; ``stress_translation.png``: median translation error)
 per perturbation level, real development frames and synthetic test frames side by side, the
 real frames' own level marked, drawn from a sweep's result folder only.
@@ -18,17 +18,8 @@ import pandas as pd
 
 from cloudpose.config import PAPER_RADIUS
 from cloudpose.refine import schedule_for
-from cloudpose.stress import (
-    ICP_SELECTIONS,
-    PERTURBATIONS,
-    STATISTICS,
-    collect,
-    collect_icp_selection,
-    collect_stats,
-    identity_level,
-    real_level,
-    result_path,
-)
+from cloudpose.studies.perturbations import PERTURBATIONS, STATISTICS, identity_level
+from cloudpose.studies.stress import collect, collect_stats, real_level, result_path, summary_of
 
 NETWORK = "network"
 """Label of the mean over the sweep's checkpoints (``net-*`` methods)."""
@@ -203,7 +194,7 @@ def markdown(
     out = [
         f"# Stress curves: preset {meta['preset']}",
         "",
-        f"Made by `{command}` from the sweep's results (cloudpose/stress.py, seed "
+        f"Made by `{command}` from the sweep's results (cloudpose/studies/stress.py, seed "
         f"{meta['seed']}). Sources: "
         + "; ".join(f"**{s}**: {d}" for s, d in meta["sources"].items())
         + f". Methods: {methods}; `{NETWORK}` is their checkpoints' mean"
@@ -252,7 +243,7 @@ def _levels_section(levels: dict, how: dict) -> list[str]:
         "## Where the real frames sit",
         "",
         "The real segments' statistic against the synthetic ones' at each level "
-        "(cloudpose.stress.real_level); the level is marked on the figures.",
+        "(cloudpose.studies.stress.real_level); the level is marked on the figures.",
         "",
         "| perturbation | real frames' level | how |",
         "|---|---:|---|",
@@ -451,13 +442,41 @@ def _more_perturbed(stat: str, percentile: float) -> float:
     return percentile
 
 
+ICP_SELECTIONS = ("starts1", "starts24-fitness", "starts24-depth", "starts60-fitness",
+                  "starts60-depth")  # fmt: skip
+"""The ICP settings of a sweep's comparison of start selections (``OUT/icp_select/``, one
+table per source, setting and network): the run's own (one start), and 24 / 60 starts scored
+by fitness alone or by the depth. The study that computed them (``cloudpose stress
+--icp-selection``) is retired, answered since by ``cloudpose compare --icp-select``; its
+results, where a sweep folder holds them (the committed ``cpu-online`` sweep does), are still
+reported."""
+
+
+def collect_icp_selection(out_dir: Path) -> pd.DataFrame:
+    """One row per (source, setting, network) of a sweep's start-selection results: the
+    summary after ICP (:func:`cloudpose.studies.stress.summary_of`) and the instance count."""
+    rows = []
+    for path in sorted((out_dir / "icp_select").glob("*/*/*.csv")):
+        table = pd.read_csv(path)
+        rows.append(
+            {
+                "source": path.parent.parent.name,
+                "setting": path.parent.name,
+                "method": path.stem,
+                **summary_of(table, "icp"),
+                "seconds_per_instance": float(table["seconds"].iloc[0]) / max(len(table), 1),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 def icp_selection_markdown(run_dir: Path) -> str:
-    """The section comparing how ICP starts are chosen (:func:`cloudpose.stress.run_icp_selection`),
-    or "" without its results."""
+    """The section comparing how ICP starts are chosen (:data:`ICP_SELECTIONS`), or "" without
+    its results."""
     df = collect_icp_selection(run_dir)
     if df.empty:
         return ""
-    order = [name for name, _ in ICP_SELECTIONS]
+    order = list(ICP_SELECTIONS)
     out = [
         "## Choosing among ICP starts: fitness or agreement with the depth",
         "",
@@ -491,7 +510,7 @@ def icp_selection_markdown(run_dir: Path) -> str:
 
 def render_stress_report(run_dir: Path, out_dir: Path, command: str, extra: str = "") -> list[Path]:
     """``stress.md``, ``stress.csv``, ``stress.png`` and ``stress_translation.png`` in
-    ``out_dir`` from the sweep in ``run_dir`` (:func:`cloudpose.stress.run_sweep`);
+    ``out_dir`` from the sweep in ``run_dir`` (:func:`cloudpose.studies.stress.run_sweep`);
     ``extra`` is appended to the text (a further section in markdown)."""
     meta = json.loads((run_dir / "sweep.json").read_text())
     summary = with_network_mean(collect(run_dir))

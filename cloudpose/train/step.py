@@ -13,8 +13,8 @@ import torch
 
 from cloudpose.config import LossConfig
 from cloudpose.geometry.symmetry import SymmetryTensors
-from cloudpose.losses import pose_loss
 from cloudpose.train.distributed import SINGLE, World
+from cloudpose.train.losses import pose_loss
 
 
 class Batch(NamedTuple):

@@ -17,8 +17,8 @@ import torch
 from cloudpose.config import Config
 from cloudpose.geometry.symmetry import SymmetryTensors, rotation_errors_modulo_symmetry
 from cloudpose.infer import forward_in_batches
-from cloudpose.losses import pose_loss
 from cloudpose.metrics import adds_distance, rotation_error_deg, voc_ap_auc
+from cloudpose.train.losses import pose_loss
 
 if TYPE_CHECKING:
     from cloudpose.data.batches import Batchable

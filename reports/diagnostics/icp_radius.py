@@ -31,9 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from cloudpose.config import PAPER_RADIUS
-from cloudpose.evaluate import instance_table
-from cloudpose.infer import no_estimate, refine_poses
-from cloudpose.refine import ICPSettings, schedule_for
+from cloudpose.methods import instance_table, no_estimate
+from cloudpose.refine import ICPSettings, refine_poses, schedule_for
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
 
@@ -63,7 +62,7 @@ def refined(
     """The run's estimates refined from one start with each first radius: ``{radius: instance
     table}`` (``net_*``: the estimate, ``icp_*``: the refinement) and ICP's milliseconds per
     object at each radius. ``control``: no estimate instead (identity rotation at the segment
-    mean, :func:`cloudpose.infer.no_estimate`) on the same segments."""
+    mean, :func:`cloudpose.methods.no_estimate`) on the same segments."""
     table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()
     est = no_estimate(segs) if control else poses(table, "net")

@@ -32,13 +32,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose.baselines.run import split_segments
-from cloudpose.evaluate import instance_table
-from cloudpose.infer import Estimates, refine_poses
-from cloudpose.refine import ICPSettings
+from cloudpose.methods import instance_table
+from cloudpose.refine import Estimates, ICPSettings, refine_poses
 from cloudpose.registry import resolve
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import instances, tracking
+from cloudpose.studies.baseline_runs import split_segments
 
 KEY = ["frame_id", "instance"]
 

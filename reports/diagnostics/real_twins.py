@@ -33,7 +33,7 @@ the offset of the real readings from the model posed at the ground truth (transl
 ICP): whether the annotation and the depth disagree.
 
 The network table's ``depth corr`` is the median over instances of
-:func:`cloudpose.stress.depth_correlation` of each condition's depth in the instance's mask
+:func:`cloudpose.studies.stress.depth_correlation` of each condition's depth in the instance's mask
 (real frames ~0.4, independent per-pixel noise ~0).
 
 Segments, network, ICP and errors are the package's own (:func:`extract_segments`,
@@ -73,11 +73,12 @@ from cloudpose.data.layout import open_dataset
 from cloudpose.data.segments import backproject, extract_segments
 from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, correlate_readings
-from cloudpose.evaluate import instance_table
-from cloudpose.infer import Estimates, estimate_poses, load_checkpoint, refine_poses
+from cloudpose.infer import estimate_poses, load_checkpoint
+from cloudpose.methods import instance_table
 from cloudpose.metrics.summaries import voc_ap_auc
+from cloudpose.refine import Estimates, refine_poses
 from cloudpose.store.tracking import shown_path
-from cloudpose.stress import depth_correlation, erode_mask
+from cloudpose.studies.perturbations import depth_correlation, erode_mask
 
 CONDITIONS = (
     "real",

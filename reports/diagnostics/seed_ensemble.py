@@ -29,9 +29,15 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.config import PAPER_RADIUS
-from cloudpose.evaluate import instance_table
-from cloudpose.infer import Estimates, no_estimate, refine_poses, refinement_scores
-from cloudpose.refine import ICPSettings, schedule_for, segment_views
+from cloudpose.methods import instance_table, no_estimate
+from cloudpose.refine import (
+    Estimates,
+    ICPSettings,
+    refine_poses,
+    refinement_scores,
+    schedule_for,
+    segment_views,
+)
 from cloudpose.report.real import METRICS, table_metrics, versus_baseline
 from cloudpose.store import tracking
 
@@ -62,9 +68,9 @@ def hypotheses(
     """One run's estimates refined by ICP on the segments its evaluation used (one start, or
     ``starts`` turned starts kept by the depth, ``icp.starts`` / ``icp.select = depth``; from
     the first radius ``radius``, :func:`cloudpose.refine.schedule_for`), each refinement's
-    fitness and depth score (:func:`cloudpose.infer.refinement_scores`; not with ``scores``
+    fitness and depth score (:func:`cloudpose.refine.refinement_scores`; not with ``scores``
     off, for a table alone), and the instance table of the refined poses. ``control``: the
-    run's segments with no estimate instead of its own (:func:`cloudpose.infer.no_estimate`),
+    run's segments with no estimate instead of its own (:func:`cloudpose.methods.no_estimate`),
     refined the same way."""
     table, segs, dataset, sym = logged_segments(client, name, split, segments)
     models = dataset.models()

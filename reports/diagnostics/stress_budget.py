@@ -35,8 +35,8 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.files import atomic_write
-from cloudpose.stress import (
-    PERTURBATIONS,
+from cloudpose.studies.perturbations import PERTURBATIONS
+from cloudpose.studies.stress import (
     collect_stats,
     level_result_path,
     real_level,
@@ -109,7 +109,7 @@ def paired(nets: dict[str, Path], baseline: Path, perturbation: str, method: str
 
 def real_levels(baseline: Path, perturbations: list[str]) -> dict[str, float]:
     """Where the real development frames sit on each perturbation's axis
-    (:func:`cloudpose.stress.real_level` from the baseline sweep's segment statistics)."""
+    (:func:`cloudpose.studies.stress.real_level` from the baseline sweep's segment statistics)."""
     stats = collect_stats(baseline)
     return {p: float(real_level(PERTURBATIONS[p], stats)[0]) for p in perturbations}
 
@@ -122,7 +122,7 @@ def markdown(df: pd.DataFrame, levels: dict[str, float], command: str) -> str:
         f"Made by `{command}`. Every method on the same instances ({', '.join(map(str, n))} "
         "per source, FPFH + RANSAC's subsample of the stress sweep): read the differences, "
         "not the decimals. Cells: without ICP / with ICP (each method's own ICP). The real "
-        "development frames' level on each axis is `cloudpose.stress.real_level`'s.",
+        "development frames' level on each axis is `cloudpose.studies.stress.real_level`'s.",
         "",
     ]
     for pert, part in df.groupby("perturbation", sort=False):

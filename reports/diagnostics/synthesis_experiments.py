@@ -45,7 +45,7 @@ from cloudpose.report.real import object_pose
 from cloudpose.report.runs import TEST_KEY, RunRecord, _record
 from cloudpose.report.stats import auc_of_rows, share_below
 from cloudpose.store import tracking
-from cloudpose.stress import collect
+from cloudpose.studies.stress import collect
 
 AXES = frozenset(
     {

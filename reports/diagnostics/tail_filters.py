@@ -41,15 +41,13 @@ from scipy.spatial import cKDTree
 
 from cloudpose.data.segment_set import SegmentSet
 from cloudpose.files import atomic_text
-from cloudpose.stress import (
-    Method,
+from cloudpose.studies.perturbations import (
     instance_rngs,
     open_source,
-    run_method,
     sampled_segment,
     segment_points,
-    summary_of,
 )
+from cloudpose.studies.stress import SweepMethod, run_method, summary_of
 
 FILTERS = ("none", "oracle", "components", "statistical")
 ORACLE_MM = 20.0
@@ -96,7 +94,7 @@ def statistical(points: np.ndarray) -> np.ndarray:
 
 def cut(fd, i: int, how: str, *, trees, source: str, seed: int, n_fps: int = 1024):
     """Instance ``i`` of a frame cut as the project cuts it, filtered by ``how`` before FPS
-    (the FPS stream of :func:`cloudpose.stress.instance_rngs`: the same for every filter)."""
+    (the FPS stream of :func:`cloudpose.studies.stress.instance_rngs`: the same for every filter)."""
     f = fd.frame
     c = int(f.cls_ids[i])
     _, frng = instance_rngs(seed, source, fd.index, i)
@@ -144,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in args.run:
         path = resolve_run(client, r)[1]
         _, cfg = load_checkpoint(path, "cpu")
-        methods.append(Method(f"net-seed{cfg.seed}", Path(path)))
+        methods.append(SweepMethod(f"net-seed{cfg.seed}", Path(path)))
     filters = args.filter or list(FILTERS)
     rows, cache = [], {}
     for name, limit in (("real", None), ("synth", args.synth_instances)):

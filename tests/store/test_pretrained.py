@@ -157,7 +157,7 @@ def test_evaluate_the_shipped_network_logs_nothing(smoke_data, tmp_path):
 
 @pytest.mark.slow
 def test_showcase_prints_the_network_beside_fpfh_and_draws_a_real_frame(tmp_path):
-    from cloudpose.showcase import COLUMNS, format_table, run_showcase
+    from cloudpose.studies.showcase import COLUMNS, format_table, run_showcase
 
     shown = run_showcase(tmp_path / "out", synthetic_frames=2, progress=False)
     t = shown.table

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from cloudpose.config import LossConfig, ModelConfig
-from cloudpose.losses import pose_loss
 from cloudpose.models import build_model
+from cloudpose.train.losses import pose_loss
 from cloudpose.train.step import Batch, StepLoss, train_step
 
 TINY = ModelConfig(

@@ -3,7 +3,7 @@
 The shipped network (:mod:`cloudpose.store.pretrained`) and FPFH + RANSAC on the same segments,
 each estimate as it is, after the paper's ICP and after the product's refinement
 (:data:`cloudpose.config.PRODUCT_REFINEMENT`): one comparison
-(:func:`cloudpose.compare.run_compare`) on the 61 packaged real development frames and one on
+(:func:`cloudpose.studies.compare.run_compare`) on the 61 packaged real development frames and one on
 the first ``synthetic_frames`` test frames of the network's preset (frame i of a synthetic split
 depends on the scene seed, the split and i alone, so these are the preset's own first test
 frames), in ``out_dir``. Plus an overlay picture of one real frame, posed as ``cloudpose
@@ -20,7 +20,6 @@ from pathlib import Path
 
 import pandas as pd
 
-from cloudpose.compare import NETWORK, run_compare
 from cloudpose.config import PRODUCT_REFINEMENT, describe_refinement, refinement
 from cloudpose.data.layout import real_dev_root
 from cloudpose.data.synth.write import synthesize
@@ -30,6 +29,7 @@ from cloudpose.refine import settings_overrides
 from cloudpose.registry import BASELINES_FILE
 from cloudpose.report.compare import rows as compare_rows
 from cloudpose.store.pretrained import PRETRAINED, shipped
+from cloudpose.studies.compare import NETWORK, run_compare
 
 COLUMNS = {
     "ads_auc": "ADS AUC",

@@ -11,7 +11,7 @@ computing it again, as ``cloudpose ablate`` skips finished variants; ``rerun=Tru
 logs a new one, and the reports take the newest per seed.
 
 A long run (point-pair features take about a second per segment) loses nothing when it is
-stopped: the estimates are saved as they are computed (at most :data:`SAVE_EVERY_S` apart,
+stopped: the estimates are saved as they are computed (at most :data:`cloudpose.methods.SAVE_EVERY_S` apart,
 and at once on Ctrl-C or SIGTERM) to
 ``runs/baseline-{method}/{preset}/seed{S}-{data}-{settings}[/{split}-{limit}]/progress.npz``,
 and the next call with the same data, settings, split and subsample continues from them. The
@@ -28,33 +28,23 @@ name, ``eval/{name}/split`` = the frame list in words, run name
 
 from __future__ import annotations
 
-import time
-import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
-from tqdm.auto import tqdm
 
-from cloudpose.baselines import load_settings, make
-from cloudpose.baselines.base import (
-    BaselineSettings,
-    NotRegistered,
-    not_poses,
-    settings_fingerprint,
-)
+from cloudpose.baselines import load_settings
+from cloudpose.baselines.base import BaselineSettings, settings_fingerprint
 from cloudpose.config import PAPER_RADIUS, ICPConfig
 from cloudpose.data.cache import SegmentSet, segments_for
 from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
-from cloudpose.evaluate import instance_table, log_evaluation
-from cloudpose.failures import sigterm_as_interrupt
-from cloudpose.files import CorruptFileError, atomic_write, read_npz
-from cloudpose.infer import Estimates, refine_poses
-from cloudpose.refine import ICPSettings, segment_views
+from cloudpose.evaluate import log_evaluation
+from cloudpose.methods import Baseline, Estimated, EstimateProgress, score
+from cloudpose.refine import ICPSettings
 from cloudpose.registry import DEFAULT_PRESET, resolve
 from cloudpose.store import instances, runs, tracking
 from cloudpose.store.metric_names import data_evaluation_name, summary_metrics, video_metrics
@@ -62,9 +52,6 @@ from cloudpose.store.runs import run_folder
 from cloudpose.train.loop import split_frames
 
 GROUP = "baselines"
-SAVE_EVERY_S = 1.0
-"""Seconds between two saves of a run's estimates: what a ``kill -9`` can lose at most (an
-interrupt saves them all)."""
 SPLITS = ("test", "val", "real")
 """Where a baseline is evaluated: the preset's test set, its validation frames (where settings
 are tuned), or the packaged real development frames (:func:`cloudpose.data.layout.real_dev_root`,
@@ -155,75 +142,6 @@ class BaselineCall:
         )
 
 
-class EstimateProgress:
-    """Per-instance estimates of one baseline run, saved atomically as they are computed.
-
-    ``done[i]`` says instance ``i`` was attempted; ``ok[i]`` that it was registered (then
-    ``R[i]``, ``t[i]`` hold its pose); ``calls`` is the estimator's random-draw count, restored
-    on resuming. A saved file that cannot serve (unreadable, lacking an array, of another
-    instance count, or holding a registered pose that is no pose, :func:`not_poses`) is a cache:
-    a one-line warning names it and its estimates are computed again.
-    """
-
-    FIELDS = ("R", "t", "done", "ok", "seconds", "calls")
-
-    def __init__(self, path: Path, n: int) -> None:
-        self.path = path
-        self.R = np.tile(np.eye(3), (n, 1, 1))
-        self.t = np.zeros((n, 3))
-        self.done = np.zeros(n, dtype=bool)
-        self.ok = np.zeros(n, dtype=bool)
-        self.seconds = 0.0
-        self.calls = 0
-        self._saved_at = time.monotonic()
-        if path.is_file():
-            saved = self._read(n)
-            if saved is not None:
-                self.R, self.t = saved["R"].astype(np.float64), saved["t"].astype(np.float64)
-                self.done, self.ok = saved["done"].astype(bool), saved["ok"].astype(bool)
-                self.seconds = float(saved["seconds"])
-                self.calls = int(saved["calls"])
-
-    def _read(self, n: int) -> dict[str, np.ndarray] | None:
-        """The arrays of :attr:`path` if they can serve ``n`` instances, else None (warned)."""
-        try:
-            saved = read_npz(self.path, self.FIELDS, "a baseline's estimates")
-            shapes = {"R": (n, 3, 3), "t": (n, 3), "done": (n,), "ok": (n,), "seconds": (),
-                      "calls": ()}  # fmt: skip
-            wrong = [f"{k} {saved[k].shape}, not {v}" for k, v in shapes.items()
-                     if saved[k].shape != v]  # fmt: skip
-            if wrong:
-                raise CorruptFileError(
-                    self.path, f"a baseline's estimates of other shapes ({'; '.join(wrong)})"
-                )
-            kept = np.flatnonzero(saved["done"].astype(bool) & saved["ok"].astype(bool))
-            bad = kept[not_poses(saved["R"][kept], saved["t"][kept])]
-            if len(bad):
-                raise CorruptFileError(
-                    self.path,
-                    f"a baseline's estimates with {len(bad)} registered pose(s) that are no "
-                    f"pose (instance {bad[0]}: a rotation that is not one, or a value not finite)",
-                )
-        except CorruptFileError as exc:
-            warnings.warn(f"{exc}; its estimates are computed again", stacklevel=3)
-            return None
-        return saved
-
-    def save(self, force: bool = False) -> None:
-        """Write the estimates (atomically), unless ``force`` is False and they were written
-        less than :data:`SAVE_EVERY_S` ago."""
-        if not force and time.monotonic() - self._saved_at < SAVE_EVERY_S:
-            return
-        arrays = dict(
-            R=self.R, t=self.t, done=self.done, ok=self.ok, seconds=self.seconds, calls=self.calls
-        )
-        atomic_write(self.path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
-        self._saved_at = time.monotonic()
-
-    def remove(self) -> None:
-        self.path.unlink(missing_ok=True)
-
-
 def split_segments(cfg, split: str, project_dir: Path, progress: bool = True):
     """``(prepared, dataset, segments)`` of one of :data:`SPLITS` for a run config ``cfg``:
     the preset's prepared data (its data key identifies the run's data whatever the split), the
@@ -275,81 +193,19 @@ def _pool(
     return _Pool(dataset, segments, segments.data_key, name, describe_split(dataset, frames))
 
 
-def estimate_all(
-    estimator, models: dict, segs: SegmentSet, state: EstimateProgress, method: str, progress: bool
-) -> float:
-    """Run ``estimator`` on every valid segment that ``state`` has not done yet, saving as it
-    goes; an interrupt (Ctrl-C, or SIGTERM, taken as one) or an error saves every estimate
-    made before it, says where, and is raised again, so that the same call resumes. Returns
-    the seconds spent preparing the estimator's per-model state (PPF's detector training,
-    shown as a bar of its own; kept off each segment's clock: a one-off cost per run, logged
-    as ``prepare_s``)."""
-    todo = np.flatnonzero(np.asarray(segs.valid, dtype=bool))
-    left = todo[~state.done[todo]]
-    if len(left) < len(todo):
-        print(f"{method}: resuming from {state.path} ({len(todo) - len(left)} of {len(todo)} done)")
-    classes = sorted(set(np.asarray(segs.cls_id)[left].tolist()) & set(models))
-    with sigterm_as_interrupt():
-        t0 = time.perf_counter()
-        shown = progress and bool(classes)
-        for c in tqdm(classes, disable=not shown, desc=f"{method} models", unit="model"):
-            estimator.prepare([c])
-        prepare_s = time.perf_counter() - t0
-        bar = tqdm(
-            left,
-            initial=len(todo) - len(left),
-            total=len(todo),
-            disable=not progress,
-            desc=method,
-            unit="obj",
-        )
-        try:
-            for i in bar:
-                t0 = time.perf_counter()
-                try:
-                    pose = estimator.estimate(segs.observed(i), int(segs.cls_id[i]))
-                except NotRegistered:
-                    pose = None
-                state.seconds += time.perf_counter() - t0
-                if pose is not None:
-                    state.R[i], state.t[i] = pose.R, pose.t
-                state.ok[i] = pose is not None
-                state.done[i] = True
-                state.calls = estimator.calls  # the draws of the estimates done, not of one cut
-                state.save()
-        except BaseException as exc:
-            state.save(force=True)
-            if isinstance(exc, KeyboardInterrupt):
-                done = int(state.done[todo].sum())
-                print(
-                    f"{method}: stopped at {done} of {len(todo)} estimates, kept in "
-                    f"{state.path}; the same call resumes from them",
-                    flush=True,
-                )
-            raise
-        state.save(force=True)
-    return prepare_s
-
-
 def _metrics(
-    table: pd.DataFrame,
-    split: str,
-    seconds: float,
-    prepare_s: float,
-    icp_s: float | None,
-    n_valid: int,
-    failures: int,
+    table: pd.DataFrame, split: str, estimated: Estimated, icp_ms: float | None, failures: int
 ) -> dict[str, float]:
     """The run's metrics: the table's summaries (per video too on the real frames), the
-    milliseconds per object of the method and of ICP (``icp_s`` None: no ICP), the
+    milliseconds per object of the method and of ICP (``icp_ms`` None: no ICP), the
     preparation seconds and the failures."""
     metrics = summary_metrics(table, split)
     if split == "real":
         metrics.update(video_metrics(table, split))
-    metrics[f"{split}/net_ms_per_object"] = 1000 * seconds / max(n_valid, 1)
-    metrics[f"{split}/prepare_s"] = prepare_s
-    if icp_s is not None:
-        metrics[f"{split}/icp_ms_per_object"] = 1000 * icp_s / max(n_valid, 1)
+    metrics[f"{split}/net_ms_per_object"] = estimated.ms_per_object
+    metrics[f"{split}/prepare_s"] = estimated.prepare_seconds
+    if icp_ms is not None:
+        metrics[f"{split}/icp_ms_per_object"] = icp_ms
     metrics[f"{split}/failures"] = float(failures)
     return metrics
 
@@ -440,27 +296,17 @@ def run_baseline(
         done = call.finished(icp)
         if done is not None:
             return done
-    estimator = make(method, models, settings, seed=seed)
     state = EstimateProgress(call.progress_path(), len(segs))
-    estimator.calls = state.calls
-    prepare_s = estimate_all(estimator, models, segs, state, method, progress)
-    ok = np.asarray(segs.valid, dtype=bool) & state.ok
+    estimated = Baseline(method, models, seed, settings, progress).estimate(segs, state)
     n_valid = int(np.sum(segs.valid))
-    failures = n_valid - int(ok.sum())
-    segs.valid = ok  # a segment the method could not register is a miss
-    est = {"net": Estimates(state.R, state.t)}
-    icp_s = None
-    if icp:
-        t0 = time.perf_counter()
-        views = segment_views(pool.dataset, segs) if icp_settings.select == "depth" else None
-        est["icp"], _ = refine_poses(
-            segs, est["net"], models, icp_settings, progress=progress, views=views
-        )
-        icp_s = time.perf_counter() - t0
-    table = instance_table(
-        segs, est, models, pool.dataset.classes, symmetry_table=cfg.loss.symmetry_table
-    )
-    metrics = _metrics(table, split, state.seconds, prepare_s, icp_s, n_valid, failures)
+    failures = n_valid - int(np.sum(np.asarray(segs.valid, dtype=bool) & estimated.ok))
+    scored = score(
+        segs, estimated, pool.dataset, icp_settings if icp else None,
+        symmetry_table=cfg.loss.symmetry_table, models=models, progress=progress,
+    )  # fmt: skip
+    table = scored.table
+    icp_ms = scored.refine_ms if icp else None
+    metrics = _metrics(table, split, estimated, icp_ms, failures)
     record = BaselineRecord(call, settings, table, metrics, _data_params(cfg, data), pool.described)
     run_id = _log(record) if log else None
     state.remove()

@@ -16,7 +16,7 @@ seen many times; :func:`cloudpose.report.real.versus_baseline`).
 Nothing is logged to MLflow. The output folder holds ``compare.json`` (what was compared: data
 key, frames, the networks' MLflow run ids, the baselines' seed), ``estimates/network.npz`` (the
 networks' poses), ``tables/METHOD-REFINEMENT.csv`` (the instance tables of
-:func:`cloudpose.evaluate.instance_table`, with the translation error split along and across
+:func:`cloudpose.methods.instance_table`, with the translation error split along and across
 the viewing ray), and the report ``compare.md`` with its figure ``compare.png``; a folder
 holding another comparison is refused, never mixed. The classical methods' estimates, which do
 not depend on the networks, are kept for every comparison of the project on the same segments
@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,28 +40,39 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cloudpose import baselines, infer, runtime  # by module: the tests replace their functions
-from cloudpose.baselines import run as baselines_run
+from cloudpose import baselines, refine, runtime  # by module: the tests replace their functions
 from cloudpose.baselines.base import not_poses, settings_fingerprint
-from cloudpose.baselines.run import EstimateProgress
 from cloudpose.data.dataset import folder_segments
 from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
-from cloudpose.evaluate import check_ensemble, icp_label, instance_table, load_network
+from cloudpose.evaluate import icp_label
 from cloudpose.failures import sigterm_as_interrupt
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json, read_npz, why
-from cloudpose.refine import ICPSettings, schedule_for, segment_views
+from cloudpose.methods import (
+    BASELINE_LABELS,
+    COMBINED,
+    CONTROL,
+    NETWORK,
+    SECONDS_PER_INSTANCE,
+    SECONDS_PER_MODEL,
+    Baseline,
+    Estimated,
+    EstimateProgress,
+    Network,
+    NoEstimate,
+    check_ensemble,
+    combine,
+    combined_label,
+    load_network,
+    no_estimate,
+    score,
+)
+from cloudpose.refine import Estimates, ICPSettings, schedule_for
 from cloudpose.store.metric_names import data_evaluation_name
 from cloudpose.store.pretrained import PRETRAINED, shipped
 from cloudpose.store.runs import client_for
-from cloudpose.stress import SECONDS_PER_INSTANCE, SECONDS_PER_MODEL
 
-NETWORK = "network"
-BASELINES = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
-CONTROL = "none"
-"""The control beside the methods: no estimate, the identity rotation at the segment's mean,
-refined alike (what a refinement finds on its own; a wide one from many starts is a search of
-its own)."""
-METHODS = {**BASELINES, CONTROL: "no estimate"}
+BASELINES = BASELINE_LABELS
+METHODS = {**BASELINES, CONTROL: NoEstimate.label}
 RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 """The refinement compared beside the paper's by default: 24 starts kept by their agreement with
 the depth, from an 18 cm first radius (docs/ensemble.md, "A wider first radius")."""
@@ -109,30 +119,6 @@ def refinements(starts: int, select: str, radius: float, networks: int = 1) -> l
     return out
 
 
-@dataclass
-class Contender:
-    """A method of the comparison and its poses of every segment.
-
-    Attributes:
-        name: :data:`NETWORK`, a baseline (``fpfh``, ``ppf``) or the control (``none``).
-        label: in words.
-        estimates: one :class:`cloudpose.infer.Estimates` per network of an ensemble (one for
-            a baseline); a segment a baseline could not register is a miss (``ok`` False).
-            Empty where every table of the method was in the folder already.
-        ok: per segment, whether the method gave a pose (read from a table: whether it is
-            not a miss).
-        ms_per_object: the method's milliseconds per object.
-        parts: a combination's methods (:func:`combination`); empty for one method.
-    """
-
-    name: str
-    label: str
-    estimates: list
-    ok: np.ndarray
-    ms_per_object: float
-    parts: tuple[str, ...] = ()
-
-
 @dataclass(frozen=True)
 class MethodComparison:
     """A finished comparison (:func:`cloudpose.report.compare.render` writes its report).
@@ -151,7 +137,7 @@ class MethodComparison:
 
     out_dir: Path
     tables: dict[tuple[str, str], pd.DataFrame]
-    contenders: list[Contender]
+    contenders: list[Estimated]
     refinements: list[Refinement]
     timing: dict
     described: str
@@ -271,26 +257,19 @@ def _timings(path: Path) -> dict:
         return {}
 
 
-def _network_label(n: int) -> str:
-    return NETWORK + (f" ({n} networks)" if n > 1 else "")
-
-
-def _network(segs, loaded: list, path: Path) -> Contender:
-    """The network (``loaded``: :func:`cloudpose.evaluate.load_network` of each run; more than
-    one an ensemble) on ``segs``; its estimates cached at ``path`` (:func:`_cached_network`)."""
-    label = _network_label(len(loaded))
-    ok = np.ones(len(segs), dtype=bool)
-    cached = _cached_network(path, len(loaded), segs) if path.is_file() else None
+def _network(segs, network: Network, path: Path) -> Estimated:
+    """``network`` (:class:`cloudpose.methods.Network`; more than one an ensemble) on
+    ``segs``; its estimates cached at ``path`` (:func:`_cached_network`)."""
+    cached = _cached_network(path, len(network.members), segs) if path.is_file() else None
     if cached is not None:
-        ests = [infer.Estimates(R, t) for R, t in zip(cached["R"], cached["t"], strict=True)]
-        return Contender(NETWORK, label, ests, ok, float(cached["ms"]))
-    t0 = time.perf_counter()
-    ests = [infer.estimate_poses(m, segs, c.train.n_points, device=next(m.buffers()).device)
-            for _, m, c, _ in loaded]  # fmt: skip
-    ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
-    arrays = {"R": np.stack([e.R for e in ests]), "t": np.stack([e.t for e in ests]), "ms": ms}
+        ests = tuple(Estimates(R, t) for R, t in zip(cached["R"], cached["t"], strict=True))
+        ok = np.ones(len(segs), dtype=bool)
+        return Estimated(NETWORK, network.label, ests, ok, float(cached["ms"]))
+    done = network.estimate(segs)
+    arrays = {"R": np.stack([e.R for e in done.estimates]),
+              "t": np.stack([e.t for e in done.estimates]), "ms": done.ms_per_object}  # fmt: skip
     atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
-    return Contender(NETWORK, label, ests, ok, ms)
+    return done
 
 
 def _cached_network(path: Path, networks: int, segs) -> dict[str, np.ndarray] | None:
@@ -331,29 +310,6 @@ def baseline_estimates_path(project_dir: Path, method: str, seed: int, data_key:
     )
 
 
-def _baseline(method: str, segs, models: dict, seed: int, state, progress: bool) -> Contender:
-    """Baseline ``method`` (``baselines.toml``'s settings) on ``segs``, resumable from ``state``
-    (:class:`cloudpose.baselines.run.EstimateProgress`: its estimates so far, saved as they
-    are computed and on an interrupt)."""
-    valid = np.asarray(segs.valid, dtype=bool)
-    if not state.done[valid].all():
-        estimator = baselines.make(method, models, baselines.load_settings(method), seed=seed)
-        estimator.calls = state.calls
-        baselines_run.estimate_all(estimator, models, segs, state, method, progress)
-    ms = 1000 * state.seconds / max(int(valid.sum()), 1)
-    return Contender(method, BASELINES[method], [infer.Estimates(state.R, state.t)], state.ok, ms)
-
-
-def _control(segs) -> Contender:
-    """The control (:data:`CONTROL`, :func:`cloudpose.infer.no_estimate`)."""
-    ok = np.ones(len(segs), dtype=bool)
-    return Contender(CONTROL, METHODS[CONTROL], [infer.no_estimate(segs)], ok, 0.0)
-
-
-COMBINED = "+"
-"""Joins the methods of a combination (``--combine network+fpfh``)."""
-
-
 def combination(text: str, names: list[str]) -> tuple[str, ...]:
     """The methods of ``--combine`` ``text`` (``network+fpfh``), in the order of ``names`` (the
     network and the methods of the call); ``ValueError`` naming the option unless it names two
@@ -367,39 +323,17 @@ def combination(text: str, names: list[str]) -> tuple[str, ...]:
     return tuple(n for n in names if n in parts)
 
 
-def _combined(parts: tuple[str, ...], members: list[Contender]) -> Contender:
-    """The combination of ``members`` (the contenders of ``parts``): every estimate of each, a
-    member's miss filled with another member's estimate of that segment (a miss only where
-    every member misses); its time, theirs together."""
-    ok = np.logical_or.reduce([c.ok for c in members])
-    estimates = []
-    for c in members:
-        for e in c.estimates:
-            R, t, left = e.R.copy(), e.t.copy(), ~c.ok
-            for other in members:
-                fill = left & other.ok
-                R[fill], t[fill] = other.estimates[0].R[fill], other.estimates[0].t[fill]
-                left &= ~fill
-            estimates.append(infer.Estimates(R, t))
-    ms = sum(c.ms_per_object for c in members)
-    return Contender(COMBINED.join(parts), _combined_label(members), estimates, ok, ms, parts)
-
-
-def _combined_label(members: list[Contender]) -> str:
-    return " or ".join(c.label for c in members) + ", by the depth"
-
-
 def _from_tables(
     first: pd.DataFrame, name: str, label: str, timing: dict, parts: tuple[str, ...] = ()
-) -> Contender:
+) -> Estimated:
     """A method whose every table is kept: no estimates, its misses (and empty segments) read
     from its ``first`` table, its time from ``timing``."""
     ok = ~first["miss"].to_numpy(dtype=bool)
-    return Contender(name, label, [], ok, timing[f"{name}-estimate"], parts)
+    return Estimated(name, label, (), ok, timing[f"{name}-estimate"], parts=parts)
 
 
 def _refine(
-    contender: Contender,
+    contender: Estimated,
     segs,
     dataset,
     models: dict,
@@ -408,34 +342,21 @@ def _refine(
     progress: bool = False,
 ):
     """``(instance table, ICP milliseconds per object)`` of ``contender`` after ``refinement``
-    against ``models`` (``dataset.models()``): ``net_*`` its estimate (an ensemble: the network
-    whose refinement was kept), ``icp_*`` the refined pose, ``*_trans_along`` /
-    ``*_trans_across`` (:func:`ray_split`). A combination (``contender.parts``) refines each
-    estimate as its methods do and keeps, per object, the refinement that agrees best with the
-    depth (:func:`cloudpose.refine.depth_score`)."""
-    import warnings
-
-    segs = segs.subset(np.arange(len(segs)))
-    segs.valid = np.asarray(segs.valid, dtype=bool) & contender.ok
-    settings = refinement.settings
-    choose = "depth" if contender.parts else None
-    t0 = time.perf_counter()
-    views = segment_views(dataset, segs) if "depth" in (settings.select, choose) else None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Open3D on a degenerate segment; its pose is still scored
-        icp, _, pick = infer.refine_ensemble(
-            segs, contender.estimates, models, settings, views, progress, choose
-        )
-    ms = 1000 * (time.perf_counter() - t0) / max(int(np.sum(segs.valid)), 1)
-    est = {"net": infer.Estimates.kept(contender.estimates, pick), "icp": icp}
-    table = instance_table(segs, est, models, dataset.classes, symmetry_table)
+    (:func:`cloudpose.methods.score`) against ``models`` (``dataset.models()``), with the
+    translation error split along and across the viewing ray (``*_trans_along`` /
+    ``*_trans_across``, :func:`ray_split`)."""
+    scored = score(
+        segs, contender, dataset, refinement.settings,
+        symmetry_table=symmetry_table, models=models, progress=progress, quiet=True,
+    )  # fmt: skip
+    table = scored.table
     t_gt = np.asarray(segs.t, float)
-    miss = ~np.asarray(segs.valid, dtype=bool)
-    for stage, e in est.items():
+    miss = table["miss"].to_numpy(dtype=bool)
+    for stage, e in scored.poses.items():
         along, across = ray_split(np.nan_to_num(e.t), t_gt)
         table[f"{stage}_trans_along"] = np.where(miss, np.inf, along)
         table[f"{stage}_trans_across"] = np.where(miss, np.inf, across)
-    return table, ms
+    return table, scored.refine_ms
 
 
 ICP_SECONDS = 1.2e-4
@@ -451,9 +372,9 @@ def plan(
 ) -> str:
     """What a call will compute and about how long it takes, before it starts: for each
     classical method whose refinements are to compute, the estimates left (``states``:
-    method -> :class:`cloudpose.baselines.run.EstimateProgress`;
-    :data:`cloudpose.stress.SECONDS_PER_INSTANCE`) and the one-off preparation of the models
-    they need (:data:`cloudpose.stress.SECONDS_PER_MODEL`: PPF's detector training, named
+    method -> :class:`cloudpose.studies.baseline_runs.EstimateProgress`;
+    :data:`cloudpose.studies.stress.SECONDS_PER_INSTANCE`) and the one-off preparation of the models
+    they need (:data:`cloudpose.studies.stress.SECONDS_PER_MODEL`: PPF's detector training, named
     where :data:`PREPARATION` has words for it), and the refinements ``todo`` per method
     (:data:`ICP_SECONDS`, once for each of the method's ``estimates``: an ensemble's networks,
     a combination's methods; default one)."""
@@ -489,9 +410,9 @@ def _warm_up(segs, models: dict, refs: list[Refinement]) -> None:
     if len(first) == 0:
         return
     one = segs.subset(first)
-    start = infer.no_estimate(one)
+    start = no_estimate(one)
     for ref in refs:
-        infer.refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
+        refine.refine_poses(one, start, models, dataclasses.replace(ref.settings, select="fitness"))
 
 
 def _described(run: str, run_id: str | None) -> str:
@@ -526,7 +447,7 @@ def run_compare(
             packaged real development frames.
         frames: its frame list (default ``all`` of the packaged frames, else ``keyframe``).
         runs: the network: a run (name, id or folder) or ``pretrained``; more than one is an
-            ensemble (:func:`cloudpose.infer.refine_ensemble`). Default: the shipped network.
+            ensemble (:func:`cloudpose.refine.refine_ensemble`). Default: the shipped network.
         methods: methods beside it (:data:`METHODS`; default FPFH + RANSAC, point-pair
             features and the control of no estimate, :data:`CONTROL`).
         combine: combinations of the network and ``methods``, each ``A+B[+C]``
@@ -555,9 +476,9 @@ def run_compare(
     frames = frames or ("all" if data is None else "keyframe")
     dataset = open_dataset(root)
     client = client_for(runs, project_dir)
-    loaded = [load_network(client, r, device) for r in runs]
-    cfg = loaded[0][2]
-    ids = check_ensemble(runs, loaded, "--run")
+    network = Network(tuple(load_network(client, r, device) for r in runs))
+    cfg = network.members[0].config
+    ids = check_ensemble(list(network.members), "--run")
     runtime.configure_threads(cfg.train.threads)
     segs = folder_segments(dataset, frames, cfg.data, project_dir, progress)
     if len(segs) == 0:
@@ -587,7 +508,7 @@ def run_compare(
                             len(segs))
         for m in methods if m != CONTROL and (todo[m] or m in needed)
     }  # fmt: skip
-    counts = {NETWORK: len(loaded)}
+    counts = {NETWORK: len(network.members)}
     counts |= {
         c: sum(counts.get(m, 1) for m in parts) for parts, c in zip(combos, combined, strict=True)
     }
@@ -596,26 +517,9 @@ def run_compare(
     with sigterm_as_interrupt():  # a kill stops as Ctrl-C does: what is done is kept
         if any(todo.values()):
             _warm_up(segs, models, refs)
-        contenders: list[Contender] = []
-        for m in names:
-            if not todo[m] and m not in needed:  # every table is there: no estimate is needed
-                label = _network_label(len(loaded)) if m == NETWORK else METHODS[m]
-                contenders.append(_from_tables(kept[(m, refs[0].name)], m, label, timing))
-            elif m == NETWORK:
-                contenders.append(_network(segs, loaded, out_dir / "estimates" / "network.npz"))
-            elif m == CONTROL:
-                contenders.append(_control(segs))
-            else:
-                contenders.append(_baseline(m, segs, models, seed, states[m], progress))
-        by_name = {c.name: c for c in contenders}
-        for parts, m in zip(combos, combined, strict=True):
-            members = [by_name[p] for p in parts]
-            if not todo[m]:
-                label = _combined_label(members)
-                first = kept[(m, refs[0].name)]
-                contenders.append(_from_tables(first, m, label, timing, parts))
-            else:
-                contenders.append(_combined(parts, members))
+        estimating = _Estimating(segs, models, seed, states, progress, out_dir)
+        contenders = _contenders(network, names, combos, todo, needed, kept, refs, timing,
+                                 estimating)  # fmt: skip
         tables: dict[tuple[str, str], pd.DataFrame] = {}
         for c in contenders:
             for ref in refs:
@@ -626,12 +530,58 @@ def run_compare(
                     c, segs, dataset, models, ref, cfg.loss.symmetry_table, out_dir, timing,
                     progress,
                 )  # fmt: skip
-    source = "; ".join(_described(r, rid) for r, (rid, *_) in zip(runs, loaded, strict=True))
+    source = "; ".join(_described(n.name, n.run_id) for n in network.members)
     return MethodComparison(out_dir, tables, contenders, refs, timing, described, source)
 
 
+@dataclass(frozen=True)
+class _Estimating:
+    """What a method's estimate of the comparison's segments needs: the segments, their
+    models, the baselines' seed and kept estimates (method -> :class:`EstimateProgress`),
+    whether to show progress, and the folder (the networks' estimates are kept there)."""
+
+    segs: object
+    models: dict
+    seed: int
+    states: dict
+    progress: bool
+    out_dir: Path
+
+
+def _contenders(
+    network: Network, names: list[str], combos: list[tuple[str, ...]], todo: dict,
+    needed: set, kept: dict, refs: list[Refinement], timing: dict, at: _Estimating,
+) -> list[Estimated]:  # fmt: skip
+    """Each method of ``names`` and each combination of ``combos`` with its estimates: read
+    from the folder's tables where every one of its refinements is kept (``todo`` empty, and
+    not ``needed`` by a combination left to compute), else estimated
+    (:mod:`cloudpose.methods`)."""
+    out: list[Estimated] = []
+    for m in names:
+        if not todo[m] and m not in needed:  # every table is there: no estimate is needed
+            label = network.label if m == NETWORK else METHODS[m]
+            out.append(_from_tables(kept[(m, refs[0].name)], m, label, timing))
+        elif m == NETWORK:
+            out.append(_network(at.segs, network, at.out_dir / "estimates" / "network.npz"))
+        elif m == CONTROL:
+            out.append(NoEstimate().estimate(at.segs))
+        else:
+            baseline = Baseline(m, at.models, at.seed, progress=at.progress)
+            out.append(baseline.estimate(at.segs, at.states[m]))
+    by_name = {c.name: c for c in out}
+    for parts in combos:
+        members = [by_name[p] for p in parts]
+        m = COMBINED.join(parts)
+        if not todo[m]:
+            first = kept[(m, refs[0].name)]
+            out.append(_from_tables(first, m, combined_label(members), timing, parts))
+        else:
+            out.append(combine(parts, members))
+    return out
+
+
 def _write_table(
-    c: Contender, segs, dataset, models: dict, ref: Refinement, symmetry_table: int,
+    c: Estimated, segs, dataset, models: dict, ref: Refinement, symmetry_table: int,
     out_dir: Path, timing: dict, progress: bool,
 ) -> pd.DataFrame:  # fmt: skip
     """:func:`_refine` ``c`` by ``ref`` into ``out_dir/tables/METHOD-REFINEMENT.csv``, then
