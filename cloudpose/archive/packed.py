@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloudpose.store import instances
 from cloudpose.store.instances import QUATERNIONS_KEY
 
 PACKED_KEY = "cloudpose.packed"
@@ -413,34 +414,10 @@ def decode(packed, shared=None):
 
 
 def write(table, path) -> None:
-    """Write a packed (or shared) table as Parquet: byte stream split for float and integer
-    list columns and the float ones, dictionaries for the rest, brotli; no statistics."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    split = []
-    for f in table.schema:
-        t = f.type
-        if pa.types.is_fixed_size_list(t) or pa.types.is_list(t):
-            split.append(f"{f.name}.list.element")
-        elif pa.types.is_floating(t):
-            split.append(f.name)
-    leaves = {s.split(".list.element")[0] for s in split}
-    meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
-    table = table.replace_schema_metadata(None)
-    with pq.ParquetWriter(
-        str(path),
-        table.schema,
-        compression=_COMPRESSION[0],
-        compression_level=_COMPRESSION[1],
-        use_dictionary=[n for n in table.column_names if n not in leaves],
-        use_byte_stream_split=split,
-        write_statistics=False,
-        store_schema=False,
-    ) as writer:
-        writer.write_table(table)
-        if meta:
-            writer.add_key_value_metadata(meta)
+    """Write a packed (or shared) table as Parquet: the store's writer
+    (:func:`cloudpose.store.instances.write_arrow`: byte stream split for float and list
+    columns, the integer lists too, dictionaries for the rest; no statistics), brotli."""
+    instances.write_arrow(table, path, compression=_COMPRESSION)
 
 
 def read(path):

@@ -143,10 +143,7 @@ def render_reports(
     if readme is not None and not readme.is_file():
         raise ValueError(f"--readme {readme}: no such file")
     client = client or tracking.setup(project_dir)
-    names = [*groups(), segmentation.GROUP] if group_names is None else list(group_names)
-    for g in names:
-        if g != segmentation.GROUP:
-            get_group(g)  # unknown names raise with the valid list
+    names = _group_names(group_names)
     command = command or tracking.command_line()
     renderer = tracking.git_commit()
     runs = load_runs(preset, data_key=data_key, client=client)
@@ -162,34 +159,81 @@ def render_reports(
         data_key=runs.data_key,
     )
     out_dir.mkdir(parents=True, exist_ok=True)
-    prov_all = Provenance.of(runs, command, renderer)
-    written: dict[str, list[Path]] = {"overall": []}
-
-    base = runs.subset(["shared-0"])
-    with_baselines = runs.subset(
-        ["shared-0", *(v for v in runs.variants if v.startswith("baseline-"))]
-    )
     tabled = _say_lacking_tables(runs, echo)
     if only_occlusion:
-        drawn = tabled.subset(with_baselines.variants)
-        files = _occlusion_overall(drawn, out_dir, Provenance.of(drawn, command, renderer))
-        for g in names:
-            sub, series = _group_series(tabled, g)
-            if series:
-                files.append(
-                    _occlusion_group(sub, g, series, out_dir, Provenance.of(sub, command, renderer))
-                )
-        return ReportResult(out_dir, sorted(files), runs, [], {})
-    if base.records:
-        prov = Provenance.of(base, command, renderer)
-        written["overall"] += table1_overall(with_baselines).write(out_dir, prov)
-        written["overall"] += table2_per_class(with_baselines).write(out_dir, prov)
-        drawn = tabled.subset(with_baselines.variants)
-        written["overall"] += _occlusion_overall(
-            drawn, out_dir, Provenance.of(drawn, command, renderer)
-        )
+        files = _render_occlusion_only(runs, tabled, names, out_dir, command, renderer)
+        return ReportResult(out_dir, files, runs, [], {})
+    prov_all = Provenance.of(runs, command, renderer)
+    written = {"overall": _render_overall(runs, tabled, out_dir, command, renderer)}
+    results, claim_files = _render_claims(runs, preset, against, client, out_dir, prov_all)
+    written["overall"] += claim_files
+    if readme is not None:
+        update_verdicts_block(readme, preset, results, prov_all)
+    for g in names:
+        if g == segmentation.GROUP:
+            written[g] = segmentation.render(runs, out_dir, command, renderer)
+        else:
+            written[g] = _render_group(runs, g, out_dir, command, renderer, tabled)
+    written["overall"].append(_write_index(out_dir, prov_all, preset))
+    mlflow_runs = {}
+    if log_mlflow:
+        mlflow_runs = _log_report_runs(client, names, preset, written, prov_all, project_dir)
+    files = sorted({p for ps in written.values() for p in ps})
+    return ReportResult(out_dir, files, runs, results, mlflow_runs)
+
+
+def _group_names(group_names: list[str] | None) -> list[str]:
+    """The groups to render: ``group_names``, or every ablation group and ``masks``; an unknown
+    name raises with the valid list."""
+    names = [*groups(), segmentation.GROUP] if group_names is None else list(group_names)
+    for g in names:
+        if g != segmentation.GROUP:
+            get_group(g)
+    return names
+
+
+def _with_baselines(runs: RunSet) -> RunSet:
+    """shared-0's runs and the baselines' (Tables I and II, the overall occlusion plot)."""
+    return runs.subset(["shared-0", *(v for v in runs.variants if v.startswith("baseline-"))])
+
+
+def _render_occlusion_only(
+    runs: RunSet, tabled: RunSet, names: list[str], out_dir: Path, command: str, renderer: str
+) -> list[Path]:
+    """``only_occlusion``: the overall occlusion plot and each group's, nothing else."""
+    drawn = tabled.subset(_with_baselines(runs).variants)
+    files = _occlusion_overall(drawn, out_dir, Provenance.of(drawn, command, renderer))
+    for g in names:
+        sub, series = _group_series(tabled, g)
+        if series:
+            files.append(
+                _occlusion_group(sub, g, series, out_dir, Provenance.of(sub, command, renderer))
+            )
+    return sorted(files)
+
+
+def _render_overall(
+    runs: RunSet, tabled: RunSet, out_dir: Path, command: str, renderer: str
+) -> list[Path]:
+    """Tables I and II and the overall occlusion plot, once shared-0 has runs (else none)."""
+    base = runs.subset(["shared-0"])
+    if not base.records:
+        return []
+    with_baselines = _with_baselines(runs)
+    prov = Provenance.of(base, command, renderer)
+    files = table1_overall(with_baselines).write(out_dir, prov)
+    files += table2_per_class(with_baselines).write(out_dir, prov)
+    drawn = tabled.subset(with_baselines.variants)
+    return files + _occlusion_overall(drawn, out_dir, Provenance.of(drawn, command, renderer))
+
+
+def _render_claims(
+    runs: RunSet, preset: str, against: str | None, client, out_dir: Path, prov: Provenance
+) -> tuple[list[ClaimResult], list[Path]]:
+    """``claims.md`` and ``claims.csv`` (with preset ``against``'s verdicts beside, across the
+    two budgets, where one is named): the claims' results and the two files."""
     results = evaluate_claims(runs)
-    claims_md, claims_df = claims_markdown(results, prov_all), claims_frame(results)
+    claims_md, claims_df = claims_markdown(results, prov), claims_frame(results)
     if against is not None:
         rows = across_budgets(
             results, evaluate_claims(load_runs(against, client=client)), (preset, against)
@@ -200,29 +244,26 @@ def render_reports(
             budgets_frame(rows, against), on=["claim", "metric"], how="outer", sort=False
         )
     write_text(out_dir / "claims.md", claims_md)
-    claims_csv = f"# {prov_all.line()}\n" + claims_df.to_csv(index=False, float_format="%.3f")
+    claims_csv = f"# {prov.line()}\n" + claims_df.to_csv(index=False, float_format="%.3f")
     write_text(out_dir / "claims.csv", claims_csv)
-    written["overall"] += [out_dir / "claims.md", out_dir / "claims.csv"]
-    if readme is not None:
-        update_verdicts_block(readme, preset, results, prov_all)
+    return results, [out_dir / "claims.md", out_dir / "claims.csv"]
 
-    for g in names:
-        if g == segmentation.GROUP:
-            written[g] = segmentation.render(runs, out_dir, command, renderer)
-        else:
-            written[g] = _render_group(runs, g, out_dir, command, renderer, tabled)
-    readme = _write_index(out_dir, prov_all, preset)
-    written["overall"].append(readme)
 
-    mlflow_runs = {}
-    if log_mlflow:
-        for g in names:
-            if written[g]:
-                mlflow_runs[g] = log_report_run(
-                    client, g, preset, written[g] + written["overall"], prov_all, project_dir
-                )
-    files = sorted({p for ps in written.values() for p in ps})
-    return ReportResult(out_dir, files, runs, results, mlflow_runs)
+def _log_report_runs(
+    client,
+    names: list[str],
+    preset: str,
+    written: dict[str, list[Path]],
+    prov: Provenance,
+    project_dir: Path,
+) -> dict[str, str]:
+    """Each group's files and the overall ones as its ``report/{group}/{preset}`` run
+    (:func:`log_report_run`), for each group that wrote any: group -> run id."""
+    return {
+        g: log_report_run(client, g, preset, written[g] + written["overall"], prov, project_dir)
+        for g in names
+        if written[g]
+    }
 
 
 def default_out_dir(project_dir: Path, preset: str) -> Path:

@@ -26,7 +26,7 @@ from cloudpose.archive.compact import INDEX
 from cloudpose.archive.pack import unpack_store
 from cloudpose.data.keys import same_data
 from cloudpose.store import tracking
-from cloudpose.store.runs import _is_own
+from cloudpose.store.runs import is_preset_fingerprint
 from cloudpose.store.tracking import STORE_DB
 
 COMPACT = "mlflow-store"
@@ -227,7 +227,7 @@ def committed_pairs(
         if tags.get("kind") == "baseline":
             if tags.get("split", "test") != split:
                 continue
-        elif not _is_own(
+        elif not is_preset_fingerprint(
             variant, preset, int(seed), params.get("data.root", ""), tags.get("config")
         ):
             continue

@@ -22,6 +22,7 @@ import pandas as pd
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.metrics import summarize
 from cloudpose.metrics.summaries import voc_ap_auc
+from cloudpose.report.formats import write_png
 from cloudpose.report.real import object_pose, versus_baseline, video_of
 from cloudpose.studies.compare import MACHINE, NETWORK, MethodComparison, table_problem
 
@@ -235,9 +236,7 @@ def figure(tables: dict, contenders, refs, poses: pd.Series, path: Path) -> Path
     fig.legend(handles, labels, loc="upper center", ncol=len(refs), fontsize=8, frameon=False)
     axes[0].set_title("per object pose, after each refinement", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.03 * len(contenders)))
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), suffix=".png")
-    plt.close(fig)
-    return path
+    return write_png(fig, path, 110)
 
 
 def render(comparison: MethodComparison, command: str) -> tuple[Path, Path]:

@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 from matplotlib.ticker import MaxNLocator
 
-from cloudpose.report.plots import _save  # also selects the Agg backend
+from cloudpose.report.plots import finish  # also selects the Agg backend
 from cloudpose.report.runs import metric_history
 from cloudpose.store.runs import resolve_run_id
 
@@ -162,18 +162,9 @@ def plot_curves(
     # room for the footer: ~190 characters per line at this size and font
     width_chars = 190 * len(metrics) / 2
     lines = 1 + int(len(command) / width_chars) + 1 + int(len(ids) / width_chars)
-    fig.tight_layout(rect=(0, min(0.3, 0.025 * lines + 0.015), 1, 1))
-    fig.text(
-        0.01,
-        0.005,
-        f"made by {command}\n{ids}",
-        fontsize=6,
-        color="0.35",
-        ha="left",
-        va="bottom",
-        wrap=True,
+    return finish(
+        fig, path, f"made by {command}\n{ids}", (0, min(0.3, 0.025 * lines + 0.015), 1, 1)
     )
-    return _save(fig, path)
 
 
 def curves_csv(

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from cloudpose.files import atomic_text
+from cloudpose.files import atomic_text, atomic_write
 from cloudpose.report.runs import RunSet
 
 _COMMAND = re.compile(r"made by `[^`]*`", re.IGNORECASE)
@@ -37,6 +37,19 @@ def write_text(path: Path, text: str) -> Path:
     except (OSError, UnicodeDecodeError):
         pass  # unreadable: written anew
     return atomic_text(path, text)
+
+
+def write_png(fig, path: Path, dpi: int, metadata: dict | None = None) -> Path:
+    """Write a matplotlib figure as a PNG at ``dpi`` (atomically, its folder made; ``metadata``
+    its text chunks, None: matplotlib's), then close it: the last step of every report figure
+    (:func:`cloudpose.report.plots.finish` writes the ones with a provenance footer)."""
+    import matplotlib.pyplot as plt  # loaded already by whoever drew ``fig``
+
+    atomic_write(
+        path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png", metadata=metadata), ".png"
+    )
+    plt.close(fig)
+    return Path(path)
 
 
 @dataclass(frozen=True)

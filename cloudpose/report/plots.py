@@ -29,9 +29,8 @@ import pandas as pd
 from matplotlib.ticker import MaxNLocator
 from PIL import Image
 
-from cloudpose.files import atomic_write
 from cloudpose.metrics import accuracy_curve, occlusion_bin_index, occlusion_bins
-from cloudpose.report.formats import Provenance
+from cloudpose.report.formats import Provenance, write_png
 
 OCCLUSION_EDGES = np.linspace(0.0, 1.0, 11)
 """Edges of the 10%-wide occlusion bins, as fractions."""
@@ -55,22 +54,35 @@ class Series:
     method: str = "net"
 
 
+FOOTER_RECT = (0, 0.04, 1, 1)
+"""Where a figure's axes go (:func:`finish`): the bottom 4% left to its footer."""
+
+_FOOTER = {"fontsize": 6, "color": "0.35", "ha": "left", "va": "bottom", "wrap": True}
+
+
+def finish(fig, path: Path, footer: Provenance | str, rect=FOOTER_RECT) -> Path:
+    """The last steps of every report figure: lay ``fig`` out in ``rect`` (figure fractions),
+    put ``footer`` under it and write it (:func:`_save`, which closes it).
+
+    Args:
+        footer: the runs' provenance, shown without the commit that rendered it and compared
+            without its command (:func:`_footer`); or a text, shown and compared as it is.
+    """
+    fig.tight_layout(rect=rect)
+    if isinstance(footer, Provenance):
+        _footer(fig, footer)
+    else:
+        fig.text(0.01, 0.005, footer, **_FOOTER)
+    return _save(fig, path)
+
+
 def _footer(fig, prov: Provenance) -> None:
     """The runs' provenance under a figure, without the commit that rendered it: a figure
     rendered again from the same runs is the same file, byte for byte, so a re-render adds
     nothing to the repository where only the renderer moved (the tables beside it say which
     code rendered them)."""
     line = replace(prov, renderer="").line().replace("`", "")
-    fig._cloudpose_footer = fig.text(  # read back by _save
-        0.01,
-        0.005,
-        line,
-        fontsize=6,
-        color="0.35",
-        ha="left",
-        va="bottom",
-        wrap=True,
-    )
+    fig._cloudpose_footer = fig.text(0.01, 0.005, line, **_FOOTER)  # read back by _save
 
 
 def occlusion_accuracy(table: pd.DataFrame, method: str = "net") -> tuple[np.ndarray, np.ndarray]:
@@ -162,9 +174,7 @@ def plot_occlusion(series: Sequence[Series], path: Path, prov: Provenance, title
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     else:
         ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    _footer(fig, prov)
-    return _save(fig, path)
+    return finish(fig, path, prov)
 
 
 def accuracy_curves(tables: Sequence[pd.DataFrame], column: str, thresholds_m: np.ndarray):
@@ -200,9 +210,7 @@ def plot_threshold_curves(
     axes[0].set_ylabel("accuracy (% of instances below threshold)")
     axes[1].legend(fontsize=8, loc="lower right")
     fig.suptitle(title + " (mean over seeds; band: min–max)")
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    _footer(fig, prov)
-    return _save(fig, path)
+    return finish(fig, path, prov)
 
 
 def plot_training_curves(
@@ -246,9 +254,7 @@ def plot_training_curves(
     axes[1].set_title("validation ADS AUC (without ICP)")
     axes[1].legend(fontsize=8, loc="lower right")
     fig.suptitle(title + " (mean over seeds; band: ± 1 std)")
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    _footer(fig, prov)
-    return _save(fig, path)
+    return finish(fig, path, prov)
 
 
 def plot_rotation_histograms(
@@ -294,10 +300,11 @@ def plot_rotation_histograms(
         ax.set_xlabel("rotation error (degrees)")
     axes[0, 0].set_xlim(0, 180)
     fig.suptitle(title + " (pooled over seeds; red lines at 10°, 15°, 20°)")
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    _footer(fig, prov)
-    return _save(fig, path)
+    return finish(fig, path, prov)
 
+
+DPI = 120
+"""Resolution of the report's figures (dots per inch)."""
 
 CONTENT_KEY = "cloudpose-content"
 """PNG text chunk of a figure: the digest of what it shows, the command in its footer left out."""
@@ -311,7 +318,7 @@ def _content_digest(fig) -> str:
         footer.set_text(re.sub(r"^made by [^;]*;", "made by;", shown))
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, dpi=120, format="png", metadata={"Software": None})
+        fig.savefig(buf, dpi=DPI, format="png", metadata={"Software": None})
     finally:
         if footer is not None:
             footer.set_text(shown)
@@ -322,7 +329,6 @@ def _save(fig, path: Path) -> Path:
     """Write ``fig`` as a PNG (atomically), leaving a file that shows the same already but
     for the command in its footer (:func:`cloudpose.report.formats.write_text` for figures)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     digest = _content_digest(fig)
     try:
         with Image.open(path) as old:
@@ -331,12 +337,7 @@ def _save(fig, path: Path) -> Path:
                 return path
     except (OSError, ValueError, AttributeError):
         pass  # none, or not a PNG of ours: written anew
-    metadata = {CONTENT_KEY: digest}
-    atomic_write(
-        path, lambda tmp: fig.savefig(tmp, dpi=120, format="png", metadata=metadata), ".png"
-    )
-    plt.close(fig)
-    return path
+    return write_png(fig, path, DPI, {CONTENT_KEY: digest})
 
 
 def occlusion_histogram(segments, path: str | Path | None = None, title: str = "") -> np.ndarray:
@@ -366,7 +367,5 @@ def occlusion_histogram(segments, path: str | Path | None = None, title: str = "
         ax.set_ylabel("instances")
         ax.set_title(title or f"occlusion factors of {int(counts.sum())} instances", fontsize=9)
         fig.tight_layout()
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
+        write_png(fig, path, DPI)
     return counts

@@ -18,6 +18,7 @@ import pandas as pd
 
 from cloudpose.config import PAPER_RADIUS
 from cloudpose.refine import schedule_for
+from cloudpose.report.formats import write_png
 from cloudpose.studies.perturbations import PERTURBATIONS, STATISTICS, identity_level
 from cloudpose.studies.stress import collect, collect_stats, real_level, result_path, summary_of
 
@@ -165,10 +166,7 @@ def plot_metric(summary, levels, col, path: Path, ylabel: str, footer: str, scal
     fig.legend(handles, labels, loc="upper center", ncol=len(labels), fontsize=8)
     fig.text(0.01, 0.003, footer, fontsize=6, color="0.35")
     fig.tight_layout(rect=(0, 0.02, 1, 0.97))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return write_png(fig, path, 90)
 
 
 def _schedule(radius: float) -> str:

@@ -217,10 +217,14 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
     return write_arrow(table, path)
 
 
-def write_arrow(table, path: str | Path) -> Path:
-    """Write an instance table already in Arrow form (quaternion columns named in its schema
-    metadata, :data:`QUATERNIONS_KEY`) as Parquet: byte stream split for every float and float
-    list column, dictionaries for the others, zstd; no statistics, no stored schema."""
+def write_arrow(table, path: str | Path, *, compression: tuple[str, int] = _COMPRESSION) -> Path:
+    """Write an Arrow table as the store's Parquet: byte stream split for every float column
+    and every list column (whatever its values), dictionaries for the others, ``compression``
+    (codec, level; default zstd 9); no statistics, no stored schema, the schema's metadata as
+    the file's key-value metadata. The one Parquet writer of the store: an instance table
+    (quaternion columns named in its metadata, :data:`QUATERNIONS_KEY`) and the compact store's
+    packed tables (:func:`cloudpose.archive.packed.write`, brotli) alike. The same table gives
+    the same bytes (with one pyarrow version)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -230,18 +234,17 @@ def write_arrow(table, path: str | Path) -> Path:
     def is_list(t) -> bool:
         return pa.types.is_fixed_size_list(t) or pa.types.is_list(t)
 
-    floats = [f.name for f in table.schema if pa.types.is_floating(f.type) or is_list(f.type)]
+    split = [f for f in table.schema if pa.types.is_floating(f.type) or is_list(f.type)]
+    not_split = [n for n in table.column_names if n not in {f.name for f in split}]
     with pq.ParquetWriter(
         str(path),
         table.schema,
-        compression=_COMPRESSION[0],
-        compression_level=_COMPRESSION[1],
-        use_dictionary=[n for n in table.column_names if n not in floats],
+        compression=compression[0],
+        compression_level=compression[1],
+        use_dictionary=not_split,
         # a list column's values are its leaf, NAME.list.element
         use_byte_stream_split=[
-            f"{f.name}.list.element" if is_list(f.type) else f.name
-            for f in table.schema
-            if f.name in floats
+            f"{f.name}.list.element" if is_list(f.type) else f.name for f in split
         ],
         write_statistics=False,
         store_schema=False,

@@ -59,6 +59,7 @@ __all__ = [
     "fetch_artifact",
     "finished_run",
     "is_preset_config",
+    "is_preset_fingerprint",
     "local_checkpoint",
     "lock_path",
     "open_training_run",
@@ -98,7 +99,9 @@ def display_name(cfg: Config) -> str:
     name = run_name(cfg.variant, cfg.preset, cfg.seed)
     return (
         name
-        if _is_own(cfg.variant, cfg.preset, cfg.seed, cfg.data.root, cfg.fingerprint())
+        if is_preset_fingerprint(
+            cfg.variant, cfg.preset, cfg.seed, cfg.data.root, cfg.fingerprint()
+        )
         else f"{name}+{cfg.fingerprint()[:8]}"
     )
 
@@ -256,8 +259,14 @@ def _check_in_store(client, folder: Path, run_id: str) -> None:
         ) from None
 
 
-def _is_own(variant: str, preset: str, seed: int, root: str, fingerprint: str | None) -> bool:
-    """Whether ``fingerprint`` is the config that variant/preset/seed (on ``root``) resolves to."""
+def is_preset_fingerprint(
+    variant: str, preset: str, seed: int, root: str, fingerprint: str | None
+) -> bool:
+    """Whether ``fingerprint`` (a run's ``config`` tag) is the config that variant/preset/seed
+    resolves to today on dataset root ``root`` ("": the preset's own): the preset's own config,
+    no override. False for a name that no longer resolves. The rule of :func:`display_name`,
+    :func:`is_preset_config` and the committed store's runs
+    (:func:`cloudpose.report.committed.committed_pairs`)."""
     try:
         own = resolve(variant, preset, seed, {"data": {"root": root}} if root else None)
     except (KeyError, ValueError):
@@ -373,7 +382,7 @@ def is_preset_config(run) -> bool:
     except (KeyError, ValueError):
         return False
     root = run.data.params.get("data.root", "")
-    return _is_own(variant, preset, seed, root, tags.get("config"))
+    return is_preset_fingerprint(variant, preset, seed, root, tags.get("config"))
 
 
 def describe_run(run) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -9,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from cloudpose.archive import packed
 from cloudpose.store import instances
+from tests.conftest import REPO
 
 ROWS = 40
 
@@ -133,3 +136,41 @@ def test_a_packed_table_without_its_shared_table_is_refused(tmp_path):
     table = packed.encode(reduced, shared, packed.shared_name(shared))
     with pytest.raises(ValueError, match="shared table"):
         packed.decode(table, None)
+
+
+COMMITTED = REPO / "reports" / "cpu-online" / "mlflow-store"
+"""A compact store the checkout commits: its index names each file's SHA-256."""
+
+PINNED = (
+    "runs/006414627bb14b2290376ce815f98a01/artifacts/eval/real/instances.parquet",
+    "027515160ab4c1b47c279526c42fecc72019fafa4f44749c501e12de8c3e36ae",
+)
+"""A committed packed table and the SHA-256 of its evaluation's form (decoded, written by
+``instances.write_arrow``) as the evaluation's own writer wrote it before the compact store's
+writer and it became one (issue 63)."""
+
+
+def _sha256(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_the_one_parquet_writer_writes_the_committed_tables_to_their_bytes(tmp_path):
+    """The store's one Parquet writer (``instances.write_arrow``; ``packed.write`` is it with
+    brotli) writes a committed packed table read back to the bytes the store's index names, and
+    the evaluation's form of one to the bytes it had (:data:`PINNED`): a change of the writer's
+    settings (compression, which columns are split or dictionaries, the metadata) shows here.
+    With another pyarrow than constraints.txt names the bytes may differ: pin them again only
+    for a pyarrow change, and say so."""
+    rows = [line.split("\t") for line in (COMMITTED / "index.tsv").read_text().splitlines()[1:]]
+    listed = {rel: sha for rel, _, sha in rows}
+    tables = [rel for rel in listed if rel.endswith(".parquet")]
+    shared = [rel for rel in tables if rel.startswith(f"{packed.SHARED}/")]
+    assert shared and PINNED[0] in listed, "the committed store lost the tables this test reads"
+    for rel in [*shared, PINNED[0], *[r for r in tables if r not in shared][:2]]:
+        packed.write(packed.read(COMMITTED / rel), tmp_path / "again.parquet")
+        assert _sha256(tmp_path / "again.parquet") == listed[rel], rel
+    table = packed.read(COMMITTED / PINNED[0])
+    layout = packed.layout_of(table)
+    base = packed.read(COMMITTED / layout.shared) if layout.from_shared else None
+    instances.write_arrow(packed.decode(table, base), tmp_path / "instances.parquet")
+    assert _sha256(tmp_path / "instances.parquet") == PINNED[1]

@@ -49,6 +49,13 @@ def test_config_matching_by_tag_and_by_params():
     assert runs.run_has_config(_run(untagged, tracking.flat_params(cfg.flat())), cfg)
     assert not runs.run_has_config(_run(untagged, {"train.lr": "1"}), cfg)
     assert not runs.is_preset_config(_run({"variant": "nope", "preset": "smoke", "seed": "1"}))
+    # the rule itself, as the committed store's run.json rows ask it (tags and params only)
+    assert runs.is_preset_fingerprint("l2", "smoke", 1, "", cfg.fingerprint())
+    assert not runs.is_preset_fingerprint("l2", "smoke", 1, "", "0" * 16)
+    assert not runs.is_preset_fingerprint("l2", "smoke", 1, "", None)
+    assert not runs.is_preset_fingerprint("nope", "smoke", 1, "", cfg.fingerprint())
+    on_root = resolve("l2", "smoke", 1, {"data": {"root": "/ycb"}})
+    assert runs.is_preset_fingerprint("l2", "smoke", 1, "/ycb", on_root.fingerprint())
 
 
 def test_resolve_run_id_errors(tmp_path):
