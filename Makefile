@@ -83,7 +83,7 @@ ablations: ablation-shared ablation-rotation ablation-loss ablation-symmetry ## 
 
 MAX_SEEDS ?= 10
 ablations-resolve: ## every group x SEEDS, then more seeds (up to MAX_SEEDS) for the variants of each undecided claim; then the reports
-	for g in shared rotation loss symmetry; do $(CLI) ablate --group $$g --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) --until-resolved --max-seeds $(MAX_SEEDS) $(SWEEP_FLAGS) || exit 1; done
+	for g in shared rotation loss symmetry; do $(CLI) ablate --group $$g --preset $(PRESET) --seeds $(SEEDS) --executor $(EXECUTOR) --until-resolved $(MAX_SEEDS) $(SWEEP_FLAGS) || exit 1; done
 
 AGAINST ?= cpu-online
 headline-claims: ## the paper's headline claims on PRESET (e.g. PRESET=cpu-online-4x): shared-0, shared-all, quaternion, l2, geodesic-plain x SEEDS (finished runs skipped), then claims.md with AGAINST's verdicts beside

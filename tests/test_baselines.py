@@ -263,7 +263,7 @@ def test_a_baseline_on_a_users_data_is_logged_under_the_datas_identity(layout, t
         root, limit = tmp_path / "ycbv", 2
         export_bop(Path(__file__).parent / "data" / "ycb_real", root, "all", progress=False)
     args = ["baseline", "--method", "fpfh", "--preset", "smoke", "--data", str(root)]
-    args += ["--frames", "all", "--limit", str(limit), "--no-icp", "--no-progress"]
+    args += ["--frames", "all", "--limit", str(limit), "--refine", "none", "--no-progress"]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     key = cache_key(root, "all", resolve("shared-0", "smoke").data, Path.cwd() / "data" / "cache")

@@ -182,7 +182,7 @@ def test_a_run_name_resolves_to_the_presets_own_config(project):
     # the name train prints (with +CONFIG) names that run, for --run as for the library
     printed, run_id = re.search(r"^run (\S+) \(MLflow run (\w+),", res.output, re.M).groups()
     assert printed.startswith(name + "+") and resolve_run_id(client, printed) == run_id
-    res = cli("evaluate", "--run", printed, "--no-icp", "--no-progress")
+    res = cli("evaluate", "--run", printed, "--refine", "none", "--no-progress")
     assert res.exit_code == 0 and f"run {run_id}" in res.output, res.output
     names = {r.info.run_name for r in tracking.find_runs(client, variant="shared-0", seed=1)}
     assert name in names and any(n.startswith(name + "+") for n in names)  # never one name
@@ -279,8 +279,8 @@ def test_evaluation_names_that_collide_are_refused(name, needles):
     "command", [["evaluate", "--run", "any"], ["baseline", "--method", "fpfh"]]
 )
 def test_icp_starts_outside_the_rotation_groups_are_refused(command):
-    res = cli(*command, "--icp-starts", "6")
-    one_line_error(res, "--icp-starts 6: expected one of 1, 12, 24, 60")
+    res = cli(*command, "--refine", "starts=6")
+    one_line_error(res, "--refine starts=6: expected one of 1, 12, 24, 60")
     assert list(Path.cwd().iterdir()) == []
 
 
@@ -288,8 +288,8 @@ def test_icp_starts_outside_the_rotation_groups_are_refused(command):
     "command", [["evaluate", "--run", "any"], ["baseline", "--method", "fpfh"]]
 )
 def test_an_icp_radius_outside_the_schedules_range_is_refused(command):
-    res = cli(*command, "--icp-radius", "0.002")
-    one_line_error(res, "ICP radius 0.002 m: expected from the paper's 0.01 to 0.5 m")
+    res = cli(*command, "--refine", "radius=0.002")
+    one_line_error(res, "--refine radius=0.002: ICP radius 0.002 m: expected from the paper's 0.01")
     assert list(Path.cwd().iterdir()) == []
 
 
@@ -343,10 +343,10 @@ def test_an_output_folder_that_is_a_file_is_refused_before_any_work(command, tmp
         ["predict", "--depth", "d.png", "--label", "l.png", "--checkpoint", "pretrained"],
     ],
 )
-def test_icp_options_beside_no_icp_are_refused(command):
-    """An ICP setting that --no-icp would ignore is an error naming both, before any work."""
-    res = cli(*command, "--no-icp", "--icp-starts", "24", "--icp-radius", "0.18")
-    one_line_error(res, "--icp-starts --icp-radius with --no-icp")
+def test_icp_fields_beside_no_icp_are_refused(command):
+    """An ICP field that --refine none would ignore is an error naming both, before any work."""
+    res = cli(*command, "--refine", "none,starts=24,radius=0.18")
+    one_line_error(res, "--refine none,starts=24,radius=0.18: none is no ICP")
 
 
 def test_a_service_that_cannot_be_reached_is_one_line(monkeypatch):
@@ -424,5 +424,5 @@ def test_a_report_preset_that_is_a_path_is_refused():
     "command", [["evaluate", "--run", "pretrained"], ["baseline", "--method", "fpfh"]]
 )
 def test_an_unknown_icp_selection_is_one_line_listing_the_known(command):
-    res = cli(*command, "--icp-select", "closest")
-    one_line_error(res, "--icp-select 'closest'", "fitness, depth")
+    res = cli(*command, "--refine", "select=closest")
+    one_line_error(res, "--refine select=closest", "fitness, depth")

@@ -14,7 +14,7 @@ import pytest
 from tests.conftest import DATA, cli, one_line_error
 
 REAL = DATA / "ycb_real"  # one real annotated frame
-QUICK = ["--icp-starts", "1", "--icp-select", "fitness", "--icp-radius", "0.05"]
+QUICK = ["--refine", "starts=1,select=fitness,radius=0.05"]
 
 
 def test_ray_split_separates_depth_from_a_sideways_centre():
@@ -212,8 +212,8 @@ def test_a_folder_of_another_comparison_is_refused(compared, monkeypatch):
     ("args", "needles"),
     [
         (["--method", "sift"], ["--method 'sift'", "fpfh"]),
-        (["--icp-starts", "5"], ["--icp-starts 5"]),
-        (["--icp-radius", "2"], ["--icp-radius 2.0", "0.5 m"]),
+        (["--refine", "starts=5"], ["--refine starts=5"]),
+        (["--refine", "radius=2"], ["--refine radius=2", "0.5 m"]),
         (["--run", "pretrained", "--run", "pretrained"], ["each at most once"]),
     ],
 )
@@ -329,13 +329,14 @@ def test_the_commands_defaults_are_the_recipe():
     import typer.main
 
     from cloudpose.cli import app
+    from cloudpose.cli.app import parse_refine
     from cloudpose.config import PRODUCT_REFINEMENT, REFINEMENTS
     from cloudpose.studies.compare import RECIPE
 
     command = typer.main.get_command(app).commands["compare"]
     defaults = {p.name: p.default for p in command.params}
-    assert defaults["refine"] == PRODUCT_REFINEMENT and REFINEMENTS[PRODUCT_REFINEMENT] == RECIPE
-    assert {k: defaults[f"icp_{k}"] for k in RECIPE} == dict.fromkeys(RECIPE)  # the recipe's
+    assert defaults["refine"] is None and REFINEMENTS[PRODUCT_REFINEMENT] == RECIPE
+    assert parse_refine("compare", None).fields == RECIPE  # --refine not given: the recipe
 
 
 def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared, tmp_path,
@@ -359,7 +360,7 @@ def test_a_combination_keeps_one_of_its_methods_refinements_per_object(compared,
     assert res.exit_code == 0, res.output
     assert "fpfh estimates: kept; 2 refinement(s) to compute" in res.output.splitlines()[0]
     # 12 starts kept by ICP's fitness: each member refined as on its own, the depth choosing
-    many = ["--icp-starts", "12", "--icp-select", "fitness", "--icp-radius", "0.05"]
+    many = ["--refine", "starts=12,select=fitness,radius=0.05"]
     res = cli("compare", *args, "--combine", "fpfh+network", *many, "--out", str(copy),
               "--no-progress")  # fmt: skip
     assert res.exit_code == 0, res.output

@@ -413,15 +413,20 @@ def test_same_data_takes_a_run_by_name_as_the_other_commands_do(store, monkeypat
 @pytest.mark.parametrize(
     ("args", "needle"),
     [
-        (["--instances", "-5"], "--instances -5: expected a positive number"),
-        (["--instances", "0"], "--instances 0"),
-        (["--fpfh-instances", "-1"], "--fpfh-instances -1"),
-        (["--ppf-instances", "-2"], "--ppf-instances -2"),
-        (["--synth-frames", "0"], "--synth-frames 0"),
-        (["--icp-selection", "-3"], "--icp-selection -3"),
+        (["--sample", "instances=-5"], "--sample instances=-5: expected a positive number"),
+        (["--sample", "instances=0"], "--sample instances=0"),
+        (["--sample", "quick,fpfh-instances=-1"], "--sample fpfh-instances=-1"),
+        (["--sample", "ppf-instances=-2"], "--sample ppf-instances=-2"),
+        (["--sample", "synth-frames=0"], "--sample synth-frames=0"),
+        (["--sample", "seed=x"], "--sample seed=x: expected a whole number"),
+        (["--sample", "ppf-levels=some"], "--sample ppf-levels=some: expected all or ends"),
+        (["--sample", "frames=3"], "--sample frames=3: expected a key of instances"),
+        (["--only", "cut", "--only", "reel"], "--only reel: expected sources (real, synth)"),
+        (["--steps", "render"], "--steps 'render': expected sweep, report"),
+        (["--steps", "none"], "--steps none: nothing to do without --pack"),
     ],
 )
-def test_stress_names_the_count_option_it_refuses(args, needle, tmp_path):
+def test_stress_names_the_setting_it_refuses(args, needle, tmp_path):
     res = cli("stress", "--run", "pretrained", *args, "--results", str(tmp_path / "r"),
               "--dry-run", "--no-progress")  # fmt: skip
     line = one_line_error(res, needle)

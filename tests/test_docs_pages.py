@@ -3,9 +3,10 @@
 Each page is at most 10,000 bytes (a longer one is a lab notebook or two topics: cut the history,
 split the page); the index ``docs/README.md`` links every other page; ``docs/commands.md`` has a
 table row for every command the CLI registers, and no page names a ``cloudpose NAME`` in its code
-that the CLI does not register; every relative link of a page leads to a file (and a
-``#heading`` to a heading of it). Reads the pages and the typer app
-only: nothing runs, nothing is written.
+that the CLI does not register, nor an option (``cloudpose NAME ... --option``; the README and
+the Makefile's recipes too) that NAME does not take; every relative link of a page leads to a
+file (and a ``#heading`` to a heading of it). Reads the pages and the typer app only: nothing
+runs, nothing is written.
 """
 
 from __future__ import annotations
@@ -118,6 +119,49 @@ def test_a_page_names_no_command_that_does_not_exist(name):
     )
 
 
+CALL = re.compile(r"(?<![\w./-])cloudpose ([a-z][a-z0-9-]*)([^|;&`#\n]*)")
+OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*")
+
+
+def _options_quoted(text: str) -> set[tuple[str, str]]:
+    """(command, option) for every ``--option`` that follows ``cloudpose COMMAND`` on one line
+    of the page's code (a fenced line continued by a backslash joins the next)."""
+    quoted = set()
+    for code in _code(text):
+        for line in code.replace("\\\n", " ").splitlines():
+            for name, rest in CALL.findall(line):
+                quoted |= {(name, option) for option in OPTION.findall(rest)}
+    return quoted
+
+
+def _options_of(name: str) -> set[str]:
+    command = get_command(app).commands[name]
+    names = {o for p in command.params for o in [*p.opts, *getattr(p, "secondary_opts", [])]}
+    return names | {"--help"}
+
+
+@pytest.mark.parametrize("name", [*PAGES, "../README.md"])
+def test_a_page_quotes_only_options_its_commands_take(name):
+    """``cloudpose COMMAND ... --option`` in the code of a page (and of the README): an option
+    of COMMAND, so no page keeps an option the CLI renamed or removed."""
+    stale = sorted(
+        f"cloudpose {command} {option}"
+        for command, option in _options_quoted(_text(DOCS / name))
+        if command in _registered() and option not in _options_of(command)
+    )
+    assert not stale, f"docs/{name} quotes options the CLI does not take: " + ", ".join(stale)
+
+
+def test_the_makefile_passes_only_options_its_commands_take():
+    recipes = (ROOT / "Makefile").read_text().replace("$(CLI) ", "cloudpose ")
+    stale = sorted(
+        f"cloudpose {command} {option}"
+        for command, option in _options_quoted(f"```\n{recipes}\n```")
+        if command in _registered() and option not in _options_of(command)
+    )
+    assert not stale, "the Makefile passes options the CLI does not take: " + ", ".join(stale)
+
+
 @pytest.mark.parametrize("name", PAGES)
 def test_every_relative_link_resolves(name):
     page = DOCS / name
@@ -152,3 +196,9 @@ def test_the_checks_catch_what_they_guard_against():
     assert TABLE_ROW.findall(page) == ["run"]
     assert {n for code in _code(page) for n in COMMAND.findall(code)} == {"nosuch", "run"}
     assert COMMAND.findall("`python -m cloudpose.cli train` `cloudpose/studies/stress.py`") == []
+    quoted = "`cloudpose run --preset smoke | tee x --y`\n```sh\ncloudpose ablate --group g \\\n  --seeds 2\n```\n"
+    assert _options_quoted(quoted) == {
+        ("run", "--preset"),
+        ("ablate", "--group"),
+        ("ablate", "--seeds"),
+    }

@@ -251,7 +251,9 @@ def test_an_ensemble_refuses_a_network_twice_by_any_name():
     run_id = shipped().info["run_id"]
 
     def nets(names, loaded):
-        return [LoadedNetwork(n, rid, m, c, "") for n, (rid, m, c) in zip(names, loaded, strict=True)]
+        return [
+            LoadedNetwork(n, rid, m, c, "") for n, (rid, m, c) in zip(names, loaded, strict=True)
+        ]
 
     ids = check_ensemble(
         nets([PRETRAINED, "other"], [(None, model, cfg), ("f" * 32, model, cfg)]), "--run"

@@ -22,6 +22,7 @@ from cloudpose.archive.compact import INDEX, METRICS_FILE, RUN_FILE, RUNS
 from cloudpose.archive.pack import pack_store, unpack_store
 from cloudpose.store import tracking
 from cloudpose.store.liveness import KILLED_TAG
+from cloudpose.store.rekey import rekey_runs
 from cloudpose.store.runs import lock_path
 from tests.conftest import cli, one_line_error
 
@@ -268,12 +269,15 @@ def test_unpacking_over_an_artifact_folder_replaces_each_runs_artifacts(project,
     assert _tree(other) == {"kept.txt": b"another run's\n"}  # not a run of the store: left
 
 
-# -- 6. store-rekey without the data ----------------------------------------------------------
+# -- 6. rekeying without the data -------------------------------------------------------------
 
 
-def test_store_rekey_without_the_data_says_why_it_needs_it(tmp_path, monkeypatch):
+def test_rekeying_without_the_data_says_why_it_needs_it(tmp_path, monkeypatch):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     monkeypatch.chdir(tmp_path)
-    res = cli("store-rekey", "--preset", "smoke", "--old", "0123456789", "--dry-run")
-    one_line_error(res, "today's keys", "cloudpose prepare --preset smoke", "not found")
+    with pytest.raises(FileNotFoundError) as info:
+        rekey_runs("smoke", ["0123456789"], tmp_path, dry_run=True)
+    said = " ".join(str(info.value).split())
+    for needle in ("today's keys", "cloudpose prepare --preset smoke", "not found"):
+        assert needle in said, said
     assert list(tmp_path.iterdir()) == []

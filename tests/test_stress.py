@@ -387,10 +387,10 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     result file, a resumed call that computes nothing, the report and its figures."""
     results = tmp_path / "res"
     args = [
-        "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1", "--instances", "2",
-        "--fpfh-instances", "1", "--ppf-instances", "0", "--synth-frames", "1",
-        "--only", "cut", "--results", str(results),
-        "--out", str(tmp_path / "rep"), "--no-progress",
+        "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1",
+        "--sample", "instances=2,fpfh-instances=1,ppf-instances=0,synth-frames=1",
+        "--only", "cut", "--results", str(results), "--out", str(tmp_path / "rep"),
+        "--no-progress",
     ]  # fmt: skip
     res = cli(*args)
     assert res.exit_code == 0, res.output
@@ -410,35 +410,35 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
     assert set(summary.method) >= {"net-seed1", "fpfh", "network"}
     packed = tmp_path / "stress-results.tar.xz"
     rendered = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "rep").iterdir()}
-    res = cli(*args, "--report-only", "--no-report", "--pack", str(packed))
+    res = cli(*args, "--steps", "none", "--pack", str(packed))
     assert res.exit_code == 0 and "packed" in res.output, res.output
-    # --no-report: the archive only, the report left as it was
+    # --steps none: the archive only, the report left as it was
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "rep").iterdir()} == rendered
-    res = cli("stress", "--preset", "smoke", "--report-only", "--results", str(packed),
+    res = cli("stress", "--preset", "smoke", "--steps", "report", "--results", str(packed),
               "--out", str(tmp_path / "again"))  # fmt: skip
     assert res.exit_code == 0, res.output
     again = (tmp_path / "again" / "stress.csv").read_text()
     assert again == (tmp_path / "rep" / "stress.csv").read_text()
     res = cli("stress", "--preset", "smoke", "--run", "x", "--results", str(packed))
-    assert res.exit_code != 0 and "--report-only" in res.output
+    assert res.exit_code != 0 and "--steps report" in res.output
     assert "the paper's schedule from a 1 cm radius" in md
-    res = cli(*args, "--icp-radius", "0.05")  # these results are the paper's schedule's
+    res = cli(*args, "--refine", "radius=0.05")  # these results are the paper's schedule's
     words = " ".join(res.output.split())
     assert res.exit_code != 0 and "from a first radius of 0.01 m, not 0.05" in words, words
 
 
 @pytest.mark.slow
 def test_a_sweep_from_a_wider_icp_radius_refines_every_method_from_it(smoke_project, tmp_path):
-    """``--icp-radius``: sweep.json keeps it, each method's ICP starts there (a refinement
+    """``--refine radius=R``: sweep.json keeps it, each method's ICP starts there (a refinement
     differs from the paper's schedule's on the same estimates), and the report says so."""
     args = [
-        "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1", "--instances", "3",
-        "--fpfh-instances", "3", "--ppf-instances", "0", "--synth-frames", "1",
-        "--only", "cut", "--source", "real", "--icp-selection", "0", "--no-progress",
+        "stress", "--preset", "smoke", "--run", "shared-0/smoke/seed1",
+        "--sample", "instances=3,fpfh-instances=3,ppf-instances=0,synth-frames=1",
+        "--only", "cut", "--only", "real", "--no-progress",
     ]  # fmt: skip
     tables = {}
     for radius in ("0.01", "0.08"):
-        res = cli(*args, "--icp-radius", radius, "--results", str(tmp_path / radius),
+        res = cli(*args, "--refine", f"radius={radius}", "--results", str(tmp_path / radius),
                   "--out", str(tmp_path / f"rep{radius}"))  # fmt: skip
         assert res.exit_code == 0, res.output
         assert json.loads((tmp_path / radius / "sweep.json").read_text())["icp_radius"] == float(
@@ -462,11 +462,12 @@ def test_an_ensemble_of_one_network_twice_is_that_network(smoke_project, tmp_pat
     ckpt = str(out.run_dir / "model.pt")
     results = tmp_path / "res"
     args = [
-        "stress", "--preset", "smoke", "--checkpoint", ckpt, "--instances", "3",
-        "--fpfh-instances", "0", "--ppf-instances", "0", "--synth-frames", "1", "--only", "cut",
-        "--source", "real", "--results", str(results), "--no-report", "--no-progress",
+        "stress", "--preset", "smoke", "--run", ckpt,
+        "--sample", "instances=3,fpfh-instances=0,ppf-instances=0,synth-frames=1",
+        "--only", "cut", "--only", "real", "--results", str(results), "--steps", "sweep",
+        "--no-progress",
     ]  # fmt: skip
-    res = cli(*args, "--checkpoint", ckpt, "--ensemble")
+    res = cli(*args, "--run", ckpt, "--ensemble")
     assert res.exit_code == 0, res.output
     for level in ("0.1", "0.7"):
         folder = results / "results" / "real" / "cut" / level

@@ -119,7 +119,7 @@ def test_baseline_on_data_10x_off_stops_in_one_line(bop_ok, tmp_path, monkeypatc
     monkeypatch.delenv(UNIT_CHECK_OFF, raising=False)
     root = _bop_with_scale(bop_ok, tmp_path / "bop", 1.0)
     args = ["baseline", "--method", "fpfh", "--preset", "smoke", "--data", str(root)]
-    res = cli(*args, "--frames", "all", "--no-icp", "--no-progress")
+    res = cli(*args, "--frames", "all", "--refine", "none", "--no-progress")
     one_line_error(res, "10 times too large", "depth_scale")
 
 
@@ -142,5 +142,5 @@ def test_evaluate_on_data_10x_off_stops_in_one_line(smoke_project, ycb_mm, monke
     args = ["evaluate", "--run", out.run_id, "--data", str(ycb_mm), "--frames", "all"]
     one_line_error(cli(*args, "--no-progress"), "10 times too small", "factor_depth")
     monkeypatch.setenv(UNIT_CHECK_OFF, "1")
-    res = cli(*args, "--no-progress", "--no-icp")
+    res = cli(*args, "--no-progress", "--refine", "none")
     assert res.exit_code == 0, res.output

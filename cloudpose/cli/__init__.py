@@ -24,7 +24,7 @@ PANELS = {
                               "symmetries"),
     "Studies beside the paper": ("compare", "baseline", "stress", "showcase"),
     "Stores and tracking": ("mlflow-ui", "mlflow-server", "store-pack", "store-unpack",
-                            "store-rekey", "same-data", "ship"),
+                            "same-data", "ship"),
 }  # fmt: skip
 """The panels ``cloudpose --help`` groups the commands in; every command is in one."""
 _ORDER = [name for names in PANELS.values() for name in names]

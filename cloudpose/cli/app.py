@@ -254,106 +254,205 @@ SetOpt = Annotated[
 ]
 
 
-RefineOpt = Annotated[
-    str | None,
-    typer.Option(
+# --- the refinement: one option, --refine, declared here for every command that refines ------
+
+REFINE_RECIPES = {
+    "paper": "the paper's ICP from the estimate, first radius 1 cm",
+    "wide": "ICP from 24 starts, the one that agrees best with the frame's depth kept, first "
+    "radius 18 cm: the best measured on real frames, docs/ensemble.md",
+    "none": "no ICP",
+}
+"""The recipes ``--refine`` names: paper and wide are :data:`cloudpose.config.REFINEMENTS`."""
+
+REFINE_FIELDS = {
+    "starts": "starts=1|12|24|60 (ICP also from the estimate turned by each element of a "
+    "rotation group, the best kept; 1: the estimate alone)",
+    "select": "select=fitness|depth (how the starts are scored: ICP's fitness, or agreement "
+    "with the frame's depth: coverage and free-space violations)",
+    "radius": "radius=METRES (ICP's first correspondence distance, 0.01 the paper's; a wider "
+    "one adds iterations at the same shrink down to the paper's last radius)",
+    "fallback": "fallback=yes|no (keep the network's pose where ICP's fitness is below "
+    "icp.fallback_min_fitness)",
+}
+"""The fields a ``--refine`` part FIELD=VALUE replaces, as its help describes each."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineTakes:
+    """What one command's ``--refine`` takes: its recipes and fields, the recipe it refines with
+    where none is named (None: the run's own ICP), and that default in words."""
+
+    recipes: tuple[str, ...]
+    fields: tuple[str, ...]
+    default: str | None
+    default_words: str
+
+
+REFINE_TAKES = {
+    "evaluate": RefineTakes(
+        ("paper", "wide", "none"), ("starts", "select", "radius", "fallback"), None,
+        "the run's own ICP (the paper's, as in the ablation tables); another refinement is "
+        "logged under a name of its own",
+    ),
+    "baseline": RefineTakes(
+        ("paper", "wide", "none"), ("starts", "select", "radius"), "paper",
+        "paper (as in the tables); another refinement is logged under a name of its own",
+    ),
+    "predict": RefineTakes(
+        ("paper", "wide", "none"), ("starts", "select", "radius"), "wide", "wide"
+    ),
+    "compare": RefineTakes(
+        ("paper", "wide"), ("starts", "select", "radius"), "wide",
+        "wide (every estimate also gets the paper's ICP)",
+    ),
+    "showcase": RefineTakes(
+        ("paper", "wide"), (), "wide", "wide (every estimate also gets the paper's ICP)"
+    ),
+    "stress": RefineTakes(("paper",), ("radius",), "paper", "paper (every method refined alike)"),
+}  # fmt: skip
+"""The commands that refine, and what the ``--refine`` of each takes."""
+
+
+def _one_of(names) -> str:
+    names = list(names)
+    return " or ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else names[0]
+
+
+def _refine_help(takes: RefineTakes) -> str:
+    """The help of a command's ``--refine``: one text for every command, listing what it takes."""
+    recipes = ", ".join(f"{r} ({REFINE_RECIPES[r]})" for r in takes.recipes)
+    text = f"How the poses are refined, a recipe: {recipes}"
+    if takes.fields:
+        example = "wide,radius=0.05" if "wide" in takes.recipes else "radius=0.18"
+        fields = "; ".join(REFINE_FIELDS[f] for f in takes.fields)
+        text += (
+            "; and, comma-separated, FIELD=VALUE parts, each replacing one field of the recipe "
+            f"(of the default where none is named), e.g. {example}: {fields}"
+        )
+    return f"{text}. Default: {takes.default_words}."
+
+
+def refine_option(command: str):
+    """``--refine`` as ``command`` declares it (``Annotated[str | None, refine_option(...)]``,
+    default None): the same name, type and help wording in every command that refines."""
+    takes = REFINE_TAKES[command]
+    return typer.Option(
         "--refine",
-        help="The refinement: paper (the paper's ICP from the estimate, first radius 1 cm) or "
-        "wide (ICP from 24 starts, the one that agrees best with the frame's depth kept, first "
-        "radius 18 cm: the best measured on real frames, docs/ensemble.md); --icp-starts, "
-        "--icp-select and --icp-radius replace one field of it.",
-    ),
-]
-IcpStartsOpt = Annotated[
-    int | None,
-    typer.Option(
-        "--icp-starts",
-        help="ICP from the estimate turned by each element of a rotation group (12, 24 or 60 "
-        "starts), the best kept; 1: the estimate alone.",
-    ),
-]
-IcpSelectOpt = Annotated[
-    str | None,
-    typer.Option(
-        "--icp-select",
-        help="How the starts are scored: fitness (ICP's) or depth (agreement with the frame's "
-        "depth: coverage and free-space violations).",
-    ),
-]
-IcpRadiusOpt = Annotated[
-    float | None,
-    typer.Option(
-        "--icp-radius",
-        help="ICP's first correspondence distance, metres (0.01: the paper's); a wider one adds "
-        "iterations at the same shrink down to the paper's last radius.",
-    ),
-]
-IcpFallbackOpt = Annotated[
-    bool | None,
-    typer.Option(
-        "--icp-fallback/--no-icp-fallback",
-        help="Keep the network's pose where ICP's fitness is below icp.fallback_min_fitness.",
-    ),
-]
+        metavar="RECIPE[,FIELD=VALUE]" if takes.fields else "RECIPE",
+        show_default=False,
+        help=_refine_help(takes),
+    )
 
 
-def check_icp_options(
-    starts: int | None = None, select: str | None = None, radius: float | None = None
-) -> None:
-    """``ValueError`` naming the option unless ``--icp-starts`` is a start group's size,
-    ``--icp-select`` a known score and ``--icp-radius`` a first radius a schedule can start
-    from (:func:`cloudpose.refine.schedule_for`; None: not given), before any work."""
-    from cloudpose.config import START_GROUPS
+@dataclasses.dataclass(frozen=True)
+class RefineChoice:
+    """A command's ``--refine``, read (:func:`parse_refine`).
+
+    Attributes:
+        icp: False for ``none``.
+        recipe: the recipe named, else the command's default (None: the run's own).
+        fields: ``starts``, ``select`` and ``radius`` of the recipe, each field given replacing
+            the recipe's; only the fields given where the default is the run's own ICP.
+        fallback: ``fallback=`` (None: not given).
+    """
+
+    icp: bool
+    recipe: str | None
+    fields: dict
+    fallback: bool | None = None
+
+    def overrides(self) -> dict:
+        """The fields of the ICP settings it changes (the radius as its schedule); none without
+        ICP."""
+        from cloudpose.refine import settings_overrides
+
+        if not self.icp:
+            return {}
+        out = settings_overrides(self.fields)
+        if self.fallback is not None:
+            out["fallback"] = self.fallback
+        return out
+
+
+def spec_parts(option: str, spec: str) -> tuple[list[str], dict[str, str]]:
+    """The words and the KEY=VALUE parts of a comma-separated option value (``wide,radius=0.05``:
+    ``["wide"], {"radius": "0.05"}``); a key's ``_`` read as ``-``; ``ValueError`` for a key
+    given twice."""
+    words: list[str] = []
+    given: dict[str, str] = {}
+    for part in (p.strip() for p in spec.split(",")):
+        key, eq, value = part.partition("=")
+        if not eq:
+            if part:
+                words.append(part)
+            continue
+        key = key.strip().replace("_", "-")
+        if key in given:
+            raise ValueError(f"{option} {spec!r}: {key} given twice")
+        given[key] = value.strip()
+    return words, given
+
+
+_YES, _NO = ("yes", "true", "on", "1"), ("no", "false", "off", "0")
+
+
+def parse_refine(command: str, spec: str | None) -> RefineChoice:
+    """``command``'s ``--refine`` (:data:`REFINE_TAKES`; None: not given), each part checked
+    before any work: ``ValueError`` naming ``--refine`` and the part for a recipe or field the
+    command does not take, two recipes, a field beside ``none`` (which would ignore it), or a
+    value outside its range (starts a start group's size, select a known score, radius one a
+    schedule can start from)."""
+    from cloudpose.config import START_GROUPS, refinement
     from cloudpose.refine import SELECTIONS, schedule_for
 
-    if starts is not None and starts not in START_GROUPS:
+    takes = REFINE_TAKES[command]
+    words, given = spec_parts("--refine", spec or "")
+    for word in words:
+        if word not in takes.recipes:
+            one = "one of " if len(takes.recipes) > 1 else ""
+            raise ValueError(f"--refine {word!r}: expected {one}{', '.join(takes.recipes)}")
+    if len(words) > 1:
+        raise ValueError(f"--refine {spec!r}: one recipe at most ({_one_of(takes.recipes)})")
+    recipe = words[0] if words else takes.default
+    for key in given:
+        if key not in takes.fields:
+            sets = f"sets {_one_of(takes.fields)}" if takes.fields else "names a recipe only"
+            raise ValueError(f"--refine {key}={given[key]}: {command}'s --refine {sets}")
+    if recipe == "none" and given:
+        parts = ",".join(f"{k}={v}" for k, v in given.items())
         raise ValueError(
-            f"--icp-starts {starts}: expected one of {', '.join(map(str, START_GROUPS))}"
+            f"--refine {spec}: none is no ICP, for {parts} to set; drop one or the other"
         )
-    if select is not None and select not in SELECTIONS:
-        raise ValueError(f"--icp-select {select!r}: expected one of {', '.join(SELECTIONS)}")
-    if radius is not None:
-        try:
-            schedule_for(radius)
-        except ValueError as exc:
-            raise ValueError(f"--icp-radius {radius}: {exc}") from exc
-
-
-def icp_overrides(
-    fallback: bool | None = None,
-    starts: int | None = None,
-    select: str | None = None,
-    radius: float | None = None,
-    icp: bool = True,
-    refine: str | None = None,
-) -> dict:
-    """The fields of :class:`cloudpose.refine.ICPSettings` that ``--refine`` (a named recipe,
-    :data:`cloudpose.refine.REFINEMENTS`), ``--icp-fallback``, ``--icp-starts``,
-    ``--icp-select`` and ``--icp-radius`` change (None: not given; each ``--icp-*`` replaces
-    one field of the recipe), after :func:`check_icp_options`; ``ValueError`` for any of them
-    beside ``--no-icp`` (``icp`` False), which would ignore it."""
-    from cloudpose.config import refinement
-    from cloudpose.refine import settings_overrides
-
-    given = [
-        f"--{k}"
-        for k, v in (("refine", refine), ("icp-fallback", fallback), ("icp-starts", starts),
-                     ("icp-select", select), ("icp-radius", radius))
-        if v is not None
-    ]  # fmt: skip
-    if not icp and given:
-        raise ValueError(f"{' '.join(given)} with --no-icp: no ICP to set; drop one or the other")
-    fields = refinement(refine, starts, select, radius)
-    check_icp_options(fields.get("starts"), fields.get("select"), fields.get("radius"))
-    overrides = settings_overrides(fields)
-    if fallback is not None:
-        overrides["fallback"] = fallback
-    return overrides
+    value: dict = {}
+    for key, text in given.items():
+        part = f"--refine {key}={text}"
+        if key == "fallback":
+            if text.lower() not in _YES + _NO:
+                raise ValueError(f"{part}: expected yes or no")
+            value[key] = text.lower() in _YES
+        elif key == "select":
+            if text not in SELECTIONS:
+                raise ValueError(f"{part}: expected one of {', '.join(SELECTIONS)}")
+            value[key] = text
+        elif key == "starts":
+            if not text.isdigit() or int(text) not in START_GROUPS:
+                raise ValueError(f"{part}: expected one of {', '.join(map(str, START_GROUPS))}")
+            value[key] = int(text)
+        else:  # radius
+            try:
+                value[key] = float(text)
+                schedule_for(value[key])
+            except ValueError as exc:
+                why = exc if key in value else "expected metres, e.g. 0.18"
+                raise ValueError(f"{part}: {why}") from None
+    base = takes.default if recipe == "none" else recipe
+    fields = refinement(base, value.get("starts"), value.get("select"), value.get("radius"))
+    return RefineChoice(recipe != "none", recipe, fields, value.get("fallback"))
 
 
 def refinement_of(overrides: dict, cfg_icp=None) -> str:
-    """The refinement ``overrides`` (:func:`icp_overrides`) make of ``cfg_icp`` (an ``icp``
-    config section; None: the defaults), in words (:func:`cloudpose.refine.describe_refinement`)."""
+    """The refinement ``overrides`` (:meth:`RefineChoice.overrides`) make of ``cfg_icp`` (an
+    ``icp`` config section; None: the defaults), in words, e.g. ``wide: ICP from 24 starts, ...``."""
     from cloudpose.config import describe_refinement
     from cloudpose.refine import ICPSettings
 

@@ -52,7 +52,10 @@ def symmetries(
     table_version: Annotated[
         int,
         typer.Option(
-            "--table", help="Table version (a run's loss.symmetry_table): 1 or 2 (package doc)."
+            "--table",
+            help="Table version (a run's loss.symmetry_table): 1 (turns about the model axes "
+            "only; the committed cpu results used it) or 2 (also about the points' principal "
+            "axes and centroid; the current one).",
         ),
     ] = 2,
 ) -> None:

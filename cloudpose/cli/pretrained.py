@@ -7,8 +7,7 @@ from typing import Annotated
 
 import typer
 
-from cloudpose.cli.app import ProgressOpt, RefineOpt, app, recorded_command
-from cloudpose.config import PRODUCT_REFINEMENT
+from cloudpose.cli.app import ProgressOpt, app, parse_refine, recorded_command, refine_option
 
 
 @app.command()
@@ -25,7 +24,7 @@ def showcase(
     baseline: Annotated[
         str, typer.Option(help="Classical method beside it ('' for none).")
     ] = "fpfh",
-    refine: RefineOpt = PRODUCT_REFINEMENT,
+    refine: Annotated[str | None, refine_option("showcase")] = None,
     progress: ProgressOpt = True,
 ) -> None:
     """The shipped network (`pretrained`) and FPFH + RANSAC on the same segments of the 61
@@ -34,10 +33,11 @@ def showcase(
     nothing."""
     from cloudpose.studies.showcase import format_table, run_showcase
 
-    shown = run_showcase(out, synthetic_frames, baseline, progress=progress, refine=refine)
+    recipe = parse_refine("showcase", refine).recipe
+    shown = run_showcase(out, synthetic_frames, baseline, progress=progress, refine=recipe)
     typer.echo(shown.described)
     typer.echo(format_table(shown.table))
-    typer.echo(f"overlay of a real frame, the network's poses refined ({refine}): {shown.overlay}")
+    typer.echo(f"overlay of a real frame, the network's poses refined ({recipe}): {shown.overlay}")
 
 
 @app.command()

@@ -290,25 +290,3 @@ def store_unpack(
 
     n = unpack_store(archive, into)
     typer.echo(f"{into / STORE_DB}: {n} runs; artifacts under {into / ARTIFACT_DIR}")
-
-
-@app.command("store-rekey")
-def store_rekey(
-    old: Annotated[
-        list[str],
-        typer.Option(help="An earlier key of the preset's data (a run's `data` tag; repeatable)."),
-    ],
-    preset: Annotated[str, typer.Option(help="The preset whose runs to rekey.")] = "cpu-online",
-    dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the changes only.")] = False,
-) -> None:
-    """Give the runs of PRESET made on data keyed OLD (a key of an earlier definition) today's
-    keys of that data, so that the runner and the reports find them; each old key stays as a
-    tag rekeyed/.... Check first that OLD is the same data (`cloudpose same-data --run ID`)."""
-    from cloudpose.store.rekey import rekey_runs
-
-    changes = rekey_runs(preset, old, Path.cwd(), dry_run=dry_run)
-    for c in changes:
-        typer.echo(f"{c.run_name} ({c.run_id[:8]}): {c.tag} {c.old} -> {c.new}")
-    runs = len({c.run_id for c in changes})
-    verb = "would change" if dry_run else "changed"
-    typer.echo(f"{verb} {len(changes)} tag(s) of {runs} run(s) of preset {preset}")

@@ -13,24 +13,18 @@ from cloudpose.cli.app import (
     DryRunOpt,
     FramesOpt,
     FreshOpt,
-    IcpFallbackOpt,
-    IcpRadiusOpt,
-    IcpSelectOpt,
-    IcpStartsOpt,
     PresetOpt,
     ProgressOpt,
-    RefineOpt,
     SeedOpt,
     SetOpt,
     VariantOpt,
     app,
-    check_icp_options,
     config_of,
-    icp_overrides,
+    parse_refine,
     recorded_command,
+    refine_option,
     refinement_of,
 )
-from cloudpose.config import PRODUCT_REFINEMENT, refinement
 from cloudpose.registry import DEFAULT_PRESET
 
 
@@ -83,12 +77,7 @@ def evaluate(
         str | None, typer.Option(help="Dataset root to test on, YCB-Video or BOP ycbv layout.")
     ] = None,
     frames: FramesOpt = "keyframe",
-    icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
-    refine: RefineOpt = None,
-    icp_fallback: IcpFallbackOpt = None,
-    icp_starts: IcpStartsOpt = None,
-    icp_select: IcpSelectOpt = None,
-    icp_radius: IcpRadiusOpt = None,
+    refine: Annotated[str | None, refine_option("evaluate")] = None,
     real: Annotated[
         bool,
         typer.Option(
@@ -100,11 +89,10 @@ def evaluate(
         typer.Option(
             help="Another run whose network joins --run's (repeatable; the same preset, e.g. "
             "other seeds): each estimate refined by ICP, per object the refinement with the "
-            "best --icp-select score kept (depth: agreement with the frame's depth). Logged "
-            "in --run as {name}-ensembleN."
+            "best score of --refine's select kept (depth: agreement with the frame's depth). "
+            "Logged in --run as {name}-ensembleN."
         ),
     ] = None,
-    show_instances: Annotated[bool, typer.Option(help="Print every instance's errors.")] = False,
     name: Annotated[
         str | None,
         typer.Option(help="Metric prefix (default: test, or the --data folder's identity)."),
@@ -123,8 +111,8 @@ def evaluate(
     bop_csv: Annotated[
         Path | None,
         typer.Option(
-            help="Also write the poses (after ICP, or the network's with --no-icp) as a BOP "
-            "results CSV for bop_toolkit."
+            help="Also write the poses (after ICP, or the network's with --refine none) as a "
+            "BOP results CSV for bop_toolkit."
         ),
     ] = None,
     force: Annotated[
@@ -134,8 +122,9 @@ def evaluate(
 ) -> None:
     """Evaluate a trained run, with and without ICP; logs the table and metrics to MLflow.
 
-    ICP is the run's own (the paper's, as the ablation tables) unless --refine or an --icp-*
-    option says otherwise; another refinement is logged under a name of its own."""
+    ICP is the run's own (the paper's, as the ablation tables) unless --refine says otherwise;
+    another refinement is logged under a name of its own. Every instance's errors are in the
+    run's artifacts, eval/NAME/instances.parquet."""
     from cloudpose.data.bop import check_results_destination, write_evaluation_csv
     from cloudpose.evaluate import evaluate as evaluate_fn
 
@@ -143,11 +132,19 @@ def evaluate(
         check_results_destination(bop_csv, force)
     from cloudpose.evaluate import evaluate_real
 
-    overrides = icp_overrides(icp_fallback, icp_starts, icp_select, icp_radius, icp, refine)
+    refined = parse_refine("evaluate", refine)
+    if ensemble and not refined.icp:
+        raise ValueError(
+            "--ensemble keeps one of the networks' ICP refinements; --refine none has none"
+        )
     if real and (data is not None or name is not None):
         raise ValueError("--real names its own data and metric prefix; drop --data and --name")
     kwargs = dict(
-        icp=icp, icp_overrides=overrides, progress=progress, device=device, ensemble=ensemble
+        icp=refined.icp,
+        icp_overrides=refined.overrides(),
+        progress=progress,
+        device=device,
+        ensemble=ensemble,
     )
     if real:
         out = evaluate_real(run, segmentation=segmentation, **kwargs)
@@ -162,10 +159,8 @@ def evaluate(
     )
     typer.echo(f"evaluated {out.source}; {where}")
     _print_summary(out.metrics)
-    if show_instances:
-        typer.echo(out.table.to_string(index=False, float_format=lambda x: f"{x:.4f}"))
     if bop_csv is not None:
-        n, method = write_evaluation_csv(out, bop_csv, icp)
+        n, method = write_evaluation_csv(out, bop_csv, refined.icp)
         typer.echo(f"{bop_csv}: {n} poses ({method}) in the BOP results format")
 
 
@@ -236,11 +231,7 @@ def predict(
         str | None, typer.Option(help="fx,fy,cx,cy when there is no meta (default: YCB-Video).")
     ] = None,
     depth_factor: Annotated[float, typer.Option(help="Depth units per metre.")] = 10000.0,
-    icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Refine with ICP.")] = True,
-    refine: RefineOpt = PRODUCT_REFINEMENT,
-    icp_starts: IcpStartsOpt = None,
-    icp_select: IcpSelectOpt = None,
-    icp_radius: IcpRadiusOpt = None,
+    refine: Annotated[str | None, refine_option("predict")] = None,
     overlay: Annotated[
         str,
         typer.Option(
@@ -256,7 +247,8 @@ def predict(
     observed surface) and the objects not posed, write an overlay picture and name it."""
     from cloudpose.predict import predict as predict_fn
 
-    overrides = icp_overrides(None, icp_starts, icp_select, icp_radius, icp, refine)
+    refined = parse_refine("predict", refine)
+    overrides = refined.overrides()
     result = predict_fn(
         depth,
         label,
@@ -265,15 +257,15 @@ def predict(
         meta=meta,
         intrinsics=intrinsics,
         depth_factor=depth_factor,
-        icp=icp,
+        icp=refined.icp,
         icp_overrides=overrides,
         overlay=overlay,
         device=device,
     )
-    if icp and result.poses:
+    if refined.icp and result.poses:
         typer.echo(
             f"refinement: {refinement_of(overrides)}"
-            + ("; --refine paper: the paper's ICP" if refine != "paper" else "")
+            + ("; --refine paper: the paper's ICP" if refined.recipe != "paper" else "")
         )
     for p in result.poses:
         typer.echo(p.describe())
@@ -382,11 +374,7 @@ def baseline(
         list[str] | None,
         typer.Option("--set", help="Replace a setting of baselines.toml, key=value (repeatable)."),
     ] = None,
-    icp: Annotated[bool, typer.Option("--icp/--no-icp", help="Also evaluate after ICP.")] = True,
-    refine: RefineOpt = None,
-    icp_starts: IcpStartsOpt = None,
-    icp_select: IcpSelectOpt = None,
-    icp_radius: IcpRadiusOpt = None,
+    refine: Annotated[str | None, refine_option("baseline")] = None,
     rerun: Annotated[
         bool, typer.Option(help="Compute and log a new run even if this one is logged.")
     ] = False,
@@ -397,19 +385,16 @@ def baseline(
     MLflow.
 
     A finished run of the same method, preset, seed, data, settings, split and subsample is
-    shown, not computed again (``--rerun`` computes a new one). As a sweep does, it reads and
+    shown, not computed again (--rerun computes a new one). As a sweep does, it reads and
     adds to the committed sweep of a preset the checkout commits (stores/PRESET/) unless
-    MLFLOW_TRACKING_URI names a store or ``--fresh`` asks for ./mlflow.db."""
+    MLFLOW_TRACKING_URI names a store or --fresh asks for ./mlflow.db."""
     from cloudpose.registry import parse_overrides
     from cloudpose.report.committed import sweep_store
     from cloudpose.store.tracking import STORE_DB
     from cloudpose.studies.baseline_runs import run_baseline
 
-    fields = refinement("paper") | refinement(refine, icp_starts, icp_select, icp_radius)
-    check_icp_options(**fields)
-    if not icp and (refine, icp_starts, icp_select, icp_radius) != (None,) * 4:
-        raise ValueError("--refine / --icp-* with --no-icp: no ICP to set; drop one or the other")
-
+    refined = parse_refine("baseline", refine)
+    fields = refined.fields
     overrides = {
         k: v
         for section in parse_overrides([f"b.{s}" for s in set_ or []]).values()
@@ -429,7 +414,7 @@ def baseline(
         data=data,
         frames=frames,
         overrides=overrides,
-        icp=icp,
+        icp=refined.icp,
         progress=progress,
         rerun=rerun,
         icp_radius=fields["radius"],
@@ -472,8 +457,8 @@ def compare(
         list[str] | None,
         typer.Option(
             help="The network: a run (name variant/preset/seedS, id or folder) or pretrained "
-            "(the default); repeated, an ensemble (per object the refinement --icp-select "
-            "scores best kept)."
+            "(the default); repeated, an ensemble (per object the refinement that the select "
+            "of --refine scores best kept)."
         ),
     ] = None,
     method: Annotated[
@@ -492,10 +477,7 @@ def compare(
         ),
     ] = None,
     seed: Annotated[int, typer.Option(help="The classical methods' random seed.")] = 1,
-    refine: RefineOpt = PRODUCT_REFINEMENT,
-    icp_starts: IcpStartsOpt = None,
-    icp_select: IcpSelectOpt = None,
-    icp_radius: IcpRadiusOpt = None,
+    refine: Annotated[str | None, refine_option("compare")] = None,
     out: Annotated[
         Path | None,
         typer.Option(
@@ -514,8 +496,7 @@ def compare(
     from cloudpose.report.compare import render
     from cloudpose.studies.compare import run_compare
 
-    fields = refinement(refine, icp_starts, icp_select, icp_radius)
-    check_icp_options(**fields)
+    fields = parse_refine("compare", refine).fields
     done = run_compare(
         out,
         data=data,

@@ -17,6 +17,7 @@ from cloudpose.cli.app import (
     app,
     group_names,
     recorded_command,
+    spec_parts,
 )
 from cloudpose.registry import DEFAULT_PRESET
 
@@ -32,31 +33,29 @@ def ablate(
     progress: ProgressOpt = True,
     set_: SetOpt = None,
     executor: Annotated[
-        str, typer.Option(help="local (here, one run after another) or ray (a task per run).")
+        str,
+        typer.Option(
+            metavar="local|ray[,KEY=VALUE]",
+            help="Where the runs train: local (here, one run after another) or ray (a Ray task "
+            "per run), then Ray's settings, comma-separated: address=HOST:PORT (the cluster; "
+            "default $RAY_ADDRESS, else Ray on this machine), cpus-per-run=N (CPUs and threads "
+            "of each run; default 1), gpus-per-run=N (default 0), connect-timeout=S (seconds "
+            "to wait for the address to answer; default 30), e.g. ray,address=HEAD:6379 or "
+            "ray,cpus-per-run=8.",
+        ),
     ] = "local",
-    address: Annotated[
-        str | None,
-        typer.Option(help="Ray cluster address; default $RAY_ADDRESS, else Ray on this machine."),
-    ] = None,
-    cpus_per_run: Annotated[float, typer.Option(help="Ray: CPUs (and threads) per run.")] = 1.0,
-    gpus_per_run: Annotated[float, typer.Option(help="Ray: GPUs per run.")] = 0.0,
-    connect_timeout: Annotated[
-        float, typer.Option(help="Ray: seconds to wait for --address to answer.")
-    ] = 30.0,
     dry_run: DryRunOpt = False,
     out: OutOpt = None,
     fresh: FreshOpt = False,
     until_resolved: Annotated[
-        bool,
+        int | None,
         typer.Option(
             "--until-resolved",
+            metavar="MAX_SEEDS",
             help="Then add seeds to the variants of the group's undecided claims until each "
-            "is decided or at --max-seeds (claims.md names the rule).",
+            "is decided or has MAX_SEEDS seeds (claims.md names the rule, whose cap is 10).",
         ),
-    ] = False,
-    max_seeds: Annotated[
-        int, typer.Option(help="With --until-resolved: the cap on seeds per variant.")
-    ] = 10,
+    ] = None,
     only: Annotated[
         list[str] | None,
         typer.Option(
@@ -75,6 +74,9 @@ def ablate(
     from cloudpose.suite.plan import plan_group
 
     overrides = parse_overrides(set_) or None
+    executor, ray_settings = parse_executor(executor)
+    if until_resolved is not None and until_resolved < seeds:
+        raise typer.BadParameter(f"--until-resolved {until_resolved} is below --seeds {seeds}")
     sweep_store(preset, Path.cwd(), fresh, typer.echo)
     try:
         plan = plan_group(
@@ -85,9 +87,7 @@ def ablate(
     typer.echo(plan.text())
     if dry_run:
         return
-    ray = RayOptions(address, cpus_per_run, gpus_per_run, connect_timeout_s=connect_timeout)
-    if until_resolved and max_seeds < seeds:
-        raise typer.BadParameter(f"--max-seeds {max_seeds} is below --seeds {seeds}")
+    ray = RayOptions(**ray_settings)
     res = run_group(
         group,
         preset,
@@ -99,18 +99,18 @@ def ablate(
         executor=executor,
         ray=ray,
         out_dir=out,
-        report=not until_resolved,
+        report=until_resolved is None,
         only=only,
         other_data=fresh,
     )
-    if until_resolved:
+    if until_resolved is not None:
         from cloudpose.report import render_reports
 
         resolve_claims(
             group,
             preset,
             Path.cwd(),
-            max_seeds=max_seeds,
+            max_seeds=until_resolved,
             overrides=overrides,
             progress=progress,
             keep_going=keep_going,
@@ -126,6 +126,41 @@ def ablate(
         + ", ".join(f"{n} {s}" for s, n in counts.items())
         + f"; reports in {res.report.out_dir}; log {res.log}"
     )
+
+
+RAY_SETTINGS = {
+    "address": "address",
+    "cpus-per-run": "cpus_per_run",
+    "gpus-per-run": "gpus_per_run",
+    "connect-timeout": "connect_timeout_s",
+}
+"""``--executor ray``'s settings -> the fields of the cluster options they set."""
+
+
+def parse_executor(spec: str) -> tuple[str, dict]:
+    """``--executor`` as (executor, its Ray settings by field name); ``ValueError`` naming the
+    part for another executor, another setting, a setting that is not a number, or a setting
+    beside ``local``, which would ignore it."""
+    from cloudpose.suite.cluster import EXECUTORS
+
+    words, given = spec_parts("--executor", spec)
+    if len(words) != 1 or words[0] not in EXECUTORS:
+        raise ValueError(f"--executor {spec!r}: expected one of {', '.join(EXECUTORS)}")
+    settings: dict = {}
+    for key, text in given.items():
+        part = f"--executor {words[0]},{key}={text}"
+        if words[0] != "ray":
+            raise ValueError(f"{part}: a Ray setting; the {words[0]} executor takes none")
+        if key not in RAY_SETTINGS:
+            raise ValueError(f"{part}: expected a setting of {', '.join(RAY_SETTINGS)}")
+        if key == "address":
+            settings["address"] = text
+            continue
+        try:
+            settings[RAY_SETTINGS[key]] = float(text)
+        except ValueError:
+            raise ValueError(f"{part}: expected a number") from None
+    return words[0], settings
 
 
 @app.command("ablate-masks")

@@ -1,15 +1,18 @@
-"""Runs of data keyed by an earlier definition are found again after ``store-rekey``."""
+"""Runs of data keyed by an earlier definition are found again after :func:`rekey_runs` (the
+one-off migration of the store to today's keys; no command of the CLI since)."""
 
 from __future__ import annotations
 
 import shutil
 
+import pytest
+
 from cloudpose.data.dataset import prepare_data
 from cloudpose.registry import resolve
 from cloudpose.store import tracking
-from cloudpose.store.rekey import current_keys
+from cloudpose.store.rekey import current_keys, rekey_runs
 from cloudpose.store.runs import TEST_KEY, finished_run
-from tests.conftest import cli, make_project
+from tests.conftest import make_project
 
 
 def _run(client, exp, name, tags, metrics=()):
@@ -43,13 +46,11 @@ def test_rekeyed_runs_are_found_under_todays_keys(tmp_path, smoke_data, empty_st
     other = _run(client, exp, "shared-0/smoke/seed1", {**base, "data": "fedcba9876543210"})
     assert finished_run(client, cfg, keys["data"]) is None
 
-    res = cli("store-rekey", "--preset", "smoke", "--old", "01234567", "--dry-run")
-    assert res.exit_code == 0, res.output
-    assert "would change 3 tag(s) of 1 run(s)" in res.output
+    would = rekey_runs("smoke", ["01234567"], proj, dry_run=True)
+    assert len(would) == 3 and {c.run_id for c in would} == {moved}
     assert client.get_run(moved).data.tags["data"] == "0123456789abcdef"
 
-    res = cli("store-rekey", "--preset", "smoke", "--old", "01234567")
-    assert res.exit_code == 0, res.output
+    assert rekey_runs("smoke", ["01234567"], proj) == would
     tags = client.get_run(moved).data.tags
     assert tags["data"] == keys["data"] and tags["rekeyed/data"] == "0123456789abcdef"
     assert tags["eval/test/data"] == keys["test"] and tags["rekeyed/eval/test/data"] == "a" * 20
@@ -59,13 +60,10 @@ def test_rekeyed_runs_are_found_under_todays_keys(tmp_path, smoke_data, empty_st
     assert finished_run(client, cfg, keys["data"]).info.run_id == moved
     # a run rekeyed while it ran logs its evaluations later, keyed by the old definition
     client.set_tag(moved, "eval/real/data", "d" * 20)
-    res = cli("store-rekey", "--preset", "smoke", "--old", "01234567")
-    assert "changed 1 tag(s) of 1 run(s)" in res.output, res.output
+    assert [c.tag for c in rekey_runs("smoke", ["01234567"], proj)] == ["eval/real/data"]
     tags = client.get_run(moved).data.tags
     assert tags["eval/real/data"] == keys["real"] and tags["rekeyed/eval/real/data"] == "b" * 20
     # again: nothing left to change; today's key is refused as an old one
-    assert (
-        "changed 0 tag(s) of 0 run(s)"
-        in cli("store-rekey", "--preset", "smoke", "--old", "01234567").output
-    )
-    assert cli("store-rekey", "--preset", "smoke", "--old", keys["data"][:8]).exit_code != 0
+    assert rekey_runs("smoke", ["01234567"], proj) == []
+    with pytest.raises(ValueError, match="today's key of the smoke data"):
+        rekey_runs("smoke", [keys["data"][:8]], proj)

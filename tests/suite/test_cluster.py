@@ -73,7 +73,7 @@ def test_ray_executor_says_when_nothing_answers_at_the_address():
 
     (port,) = free_ports(1)
     cmd = ["ablate", "--group", "rotation", "--preset", "smoke", "--seeds", "1"]
-    cmd += ["--executor", "ray", "--address", f"127.0.0.1:{port}", "--connect-timeout", "1"]
+    cmd += ["--executor", f"ray,address=127.0.0.1:{port},connect-timeout=1"]
     t0 = time.monotonic()
     res = CliRunner().invoke(app, cmd)
     assert res.exit_code == 2, res.output
@@ -199,7 +199,7 @@ def test_sweep_on_ray_survives_a_killed_node(loopback, smoke_data, tmp_path, mon
     proj = make_project(tmp_path / "proj", smoke_data, monkeypatch)
     env = {**os.environ, "MLFLOW_TRACKING_URI": url, "CLOUDPOSE_NO_TCMALLOC": "1"}
     sweep = [str(VENV_BIN / "cloudpose"), "ablate", "--group", "rotation", "--preset", "smoke"]
-    sweep += ["--seeds", "2", "--executor", "ray", "--address", f"127.0.0.1:{gcs}"]
+    sweep += ["--seeds", "2", "--executor", f"ray,address=127.0.0.1:{gcs}"]
     log = tmp_path / "driver.log"
     with log.open("w") as out:
         driver = subprocess.Popen(
