@@ -47,9 +47,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from cloudpose.archive.ship import HALF_TOLERANCE_DEG, pose_difference
 from cloudpose.conventions import resource_path
 from cloudpose.files import CorruptFileError, why
-from cloudpose.store.pretrained import HALF_TOLERANCE_DEG, pose_difference
 
 FLOAT16 = "float16"
 FLOAT24 = "float24"

@@ -69,18 +69,18 @@ def ship(
     this folder's MLflow store. Names the run's preset and metrics first; a network the name
     answers to there already (the package's own, by default) is replaced only with --force,
     and its files are then removed."""
+    from cloudpose.archive.ship import check_replace
+    from cloudpose.archive.ship import ship as write
     from cloudpose.data.keys import DataKey
     from cloudpose.infer import load_checkpoint
     from cloudpose.store import tracking
     from cloudpose.store.pretrained import (
         SHIPPED,
-        check_replace,
         describe_record,
         describe_run,
         file_stem,
         shipped_folder,
     )
-    from cloudpose.store.pretrained import ship as write
     from cloudpose.store.runs import display_name, local_checkpoint
 
     if name not in SHIPPED:

@@ -10,17 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from cloudpose.archive.ship import half_state, pose_difference, ship
 from cloudpose.conventions import resource_path
 from cloudpose.data.layout import real_dev_root
-from cloudpose.store.pretrained import (
-    PRETRAINED,
-    SHIPPED,
-    half_state,
-    is_pretrained,
-    pose_difference,
-    ship,
-    shipped,
-)
+from cloudpose.store.pretrained import PRETRAINED, SHIPPED, is_pretrained, shipped
 from tests.store.segments import segment_set
 
 
