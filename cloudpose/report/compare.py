@@ -13,20 +13,24 @@ pose, each method after each refinement.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from cloudpose.files import atomic_text, atomic_write
-from cloudpose.metrics import summarize
 from cloudpose.metrics.summaries import voc_ap_auc
 from cloudpose.report.formats import write_png
 from cloudpose.report.real import object_pose, versus_baseline, video_of
-from cloudpose.studies.compare import MACHINE, NETWORK, MethodComparison, table_problem
+from cloudpose.studies.compare import (
+    MACHINE,
+    NETWORK,
+    STAGE_ESTIMATE,
+    MethodComparison,
+    rows,
+    table_problem,
+)
 
-STAGE_ESTIMATE = "estimate"
 METRICS = {
     "ads_auc": "ADS AUC",
     "rot_sym_lt_10deg": "rot < 10° mod sym",
@@ -59,36 +63,6 @@ def _stages(refs) -> list[tuple[str, str, str]]:
     """``(stage, table's refinement, column prefix)`` of every stage: the estimate (read from
     the paper's refinement's table), then each refinement."""
     return [(STAGE_ESTIMATE, refs[0].name, "net")] + [(r.name, r.name, "icp") for r in refs]
-
-
-def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
-    """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
-    rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
-    its parts along and across the viewing ray (mm)."""
-    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
-    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
-    pooled = summarize(sub, by_class=False)["pooled"]
-    out = {k: float(pooled[k]) for k in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")}
-    for key, col in (("trans_median_mm", "trans_err"), ("along_median_mm", "trans_along"),
-                     ("across_median_mm", "trans_across")):  # fmt: skip
-        values = table[f"{stage}_{col}"] if col != "trans_err" else sub[col]
-        out[key] = 1000 * float(np.median(values)) if len(values) else math.nan
-    return out
-
-
-def rows(tables: dict, contenders, refs) -> pd.DataFrame:
-    """One row per method and stage (its estimate, then after each refinement): ``method``,
-    ``stage``, ``label`` and :func:`summary`'s figures; the estimate's figures are read from
-    the paper's refinement's table (an ensemble: the network whose refinement it kept)."""
-    out = []
-    for c in contenders:
-        first = tables[(c.name, refs[0].name)]
-        out.append({"method": c.name, "stage": STAGE_ESTIMATE, "label": c.label,
-                    **summary(first, "net")})  # fmt: skip
-        for ref in refs:
-            out.append({"method": c.name, "stage": ref.name, "label": f"{c.label} {ref.label}",
-                        **summary(tables[(c.name, ref.name)], "icp")})  # fmt: skip
-    return pd.DataFrame(out)
 
 
 def pooled_markdown(pooled: pd.DataFrame) -> list[str]:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,12 +67,15 @@ from cloudpose.methods import (
     no_estimate,
     score,
 )
+from cloudpose.metrics import summarize
 from cloudpose.refine import Estimates, ICPSettings, schedule_for
 from cloudpose.store.metric_names import data_evaluation_name
 from cloudpose.store.pretrained import PRETRAINED, shipped
 from cloudpose.store.runs import client_for
 
 BASELINES = BASELINE_LABELS
+STAGE_ESTIMATE = "estimate"
+"""The stage of a method's own estimate, before any refinement, in the pooled rows."""
 METHODS = {**BASELINES, CONTROL: NoEstimate.label}
 RECIPE = {"starts": 24, "select": "depth", "radius": 0.18}
 """The refinement compared beside the paper's by default: 24 starts kept by their agreement with
@@ -598,3 +602,33 @@ def _write_table(
     timing[CHECKSUMS] = {**_checksums(timing), key: _sha256(path)}
     atomic_text(out_dir / "tables" / "icp_ms.json", json.dumps(timing, indent=2) + "\n")
     return table
+
+
+def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
+    """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
+    rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
+    its parts along and across the viewing ray (mm)."""
+    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
+    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
+    pooled = summarize(sub, by_class=False)["pooled"]
+    out = {k: float(pooled[k]) for k in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")}
+    for key, col in (("trans_median_mm", "trans_err"), ("along_median_mm", "trans_along"),
+                     ("across_median_mm", "trans_across")):  # fmt: skip
+        values = table[f"{stage}_{col}"] if col != "trans_err" else sub[col]
+        out[key] = 1000 * float(np.median(values)) if len(values) else math.nan
+    return out
+
+
+def rows(tables: dict, contenders, refs) -> pd.DataFrame:
+    """One row per method and stage (its estimate, then after each refinement): ``method``,
+    ``stage``, ``label`` and :func:`summary`'s figures; the estimate's figures are read from
+    the paper's refinement's table (an ensemble: the network whose refinement it kept)."""
+    out = []
+    for c in contenders:
+        first = tables[(c.name, refs[0].name)]
+        out.append({"method": c.name, "stage": STAGE_ESTIMATE, "label": c.label,
+                    **summary(first, "net")})  # fmt: skip
+        for ref in refs:
+            out.append({"method": c.name, "stage": ref.name, "label": f"{c.label} {ref.label}",
+                        **summary(tables[(c.name, ref.name)], "icp")})  # fmt: skip
+    return pd.DataFrame(out)

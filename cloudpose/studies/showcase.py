@@ -27,9 +27,9 @@ from cloudpose.infer import load_checkpoint
 from cloudpose.predict import predict
 from cloudpose.refine import settings_overrides
 from cloudpose.registry import BASELINES_FILE
-from cloudpose.report.compare import rows as compare_rows
 from cloudpose.store.pretrained import PRETRAINED, shipped
 from cloudpose.studies.compare import NETWORK, run_compare
+from cloudpose.studies.compare import rows as pooled_rows
 
 COLUMNS = {
     "ads_auc": "ADS AUC",
@@ -119,7 +119,7 @@ def run_showcase(
             **fields,
         )
         counts.append(f"{label}: {len(done.tables[(NETWORK, done.refinements[0].name)])} instances")
-        pooled = compare_rows(done.tables, done.contenders, done.refinements)
+        pooled = pooled_rows(done.tables, done.contenders, done.refinements)
         for r in pooled.to_dict("records"):
             method = r["label"].replace(NETWORK, f"{NETWORK} ({cfg.variant})", 1)
             rows.append(
