@@ -107,6 +107,17 @@ def _instances(rng: np.random.Generator) -> pd.DataFrame:
     return df
 
 
+def _stray_run(client, exp: str, data: str, commit: str, config: str | None, finished=True):
+    """A shared-0 seed-1 run with test ADS AUC 0 that the report must leave out: on ``data``,
+    of ``config`` (None: no tag), left RUNNING unless ``finished``."""
+    tags = {"variant": "shared-0", "preset": PRESET, "seed": "1", "data": data}
+    tags |= {"git_commit": commit} | ({"config": config} if config is not None else {})
+    run = client.create_run(exp, tags=tags)
+    client.log_metric(run.info.run_id, "test/ads_auc", 0.0)
+    if finished:
+        client.set_terminated(run.info.run_id, "FINISHED")
+
+
 def _make_store(root: Path) -> dict:
     """Synthetic runs of every variant of every group; returns what was logged."""
     from mlflow.entities import Metric, Param
@@ -219,44 +230,12 @@ def _make_store(root: Path) -> dict:
             logged["metrics"][("baseline-fpfh", seed)] = ms
     # a run on other data and an unfinished run: both must stay out of the report
     exp = tracking.experiment_id(client, "shared", root)
-    other = client.create_run(
-        exp,
-        tags={
-            "variant": "shared-0",
-            "preset": PRESET,
-            "seed": "1",
-            "data": "0therdata00",
-            "git_commit": "zzz",
-            "config": resolve("shared-0", PRESET, 1).fingerprint(),
-        },
-    )
-    client.log_metric(other.info.run_id, "test/ads_auc", 0.0)
-    client.set_terminated(other.info.run_id, "FINISHED")
-    running = client.create_run(
-        exp,
-        tags={
-            "variant": "shared-0",
-            "preset": PRESET,
-            "seed": "1",
-            "data": DATA,
-            "git_commit": "yyy",
-        },
-    )
-    client.log_metric(running.info.run_id, "test/ads_auc", 0.0)
+    own = resolve("shared-0", PRESET, 1).fingerprint()
+    _stray_run(client, exp, "0therdata00", "zzz", own)
+    _stray_run(client, exp, DATA, "yyy", None, finished=False)
     # a finished run of the same name, data and preset, trained with an override (the newest)
-    over = client.create_run(
-        exp,
-        tags={
-            "variant": "shared-0",
-            "preset": PRESET,
-            "seed": "1",
-            "data": DATA,
-            "git_commit": "xxx",
-            "config": resolve("shared-0", PRESET, 1, {"train": {"epochs": 1}}).fingerprint(),
-        },
-    )
-    client.log_metric(over.info.run_id, "test/ads_auc", 0.0)
-    client.set_terminated(over.info.run_id, "FINISHED")
+    edited = resolve("shared-0", PRESET, 1, {"train": {"epochs": 1}}).fingerprint()
+    _stray_run(client, exp, DATA, "xxx", edited)
     return logged
 
 

@@ -49,7 +49,7 @@ import tempfile
 import time
 import warnings
 import zlib
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import NamedTuple
@@ -493,6 +493,20 @@ ARCHIVE_SUFFIX = ".tar.xz"
 the compact form (:mod:`cloudpose.archive.compact`)."""
 
 
+@contextlib.contextmanager
+def _full_disk_named(path: Path, then: str) -> Iterator[None]:
+    """Within the block, an ``OSError`` of a full disk is raised as the one-line
+    :class:`~cloudpose.failures.DiskFullError` naming ``path`` and what to do ``then``
+    (:func:`~cloudpose.failures.disk_full`); any other as it is."""
+    try:
+        yield
+    except OSError as exc:
+        full = disk_full(exc, path, then=then)
+        if full is None:
+            raise
+        raise full from exc
+
+
 def is_archive_name(path: Path) -> bool:
     """Whether ``path`` names a ``.tar.xz`` archive (else a compact store's folder)."""
     return Path(path).name.endswith(ARCHIVE_SUFFIX)
@@ -563,13 +577,8 @@ def pack_store(
         if compact:
             sources = [RunSource(r.run_id, r.source, r.run_id in keep) for r in plan]
             check = PoseCheck(project) if reduce_checkpoints else None
-            try:
+            with _full_disk_named(out, f"pack again (cloudpose store-pack {out} --force)"):
                 c = write_compact(copy, sources, out, check)
-            except OSError as exc:
-                full = disk_full(exc, out, then=f"pack again (cloudpose store-pack {out} --force)")
-                if full is None:
-                    raise
-                raise full from exc
             return PackSummary(
                 runs,
                 c.files,
@@ -601,13 +610,8 @@ def pack_store(
                         tar.add(f, arcname=f"{r.member}/{f.relative_to(r.source).as_posix()}")
                         files += 1
 
-        try:
+        with _full_disk_named(out, f"pack again (cloudpose store-pack {out})"):
             atomic_write(out, write, suffix=".tar.xz")
-        except OSError as exc:
-            full = disk_full(exc, out, then=f"pack again (cloudpose store-pack {out})")
-            if full is None:
-                raise
-            raise full from exc
     return PackSummary(
         runs, files, kept, left, out.stat().st_size, without, killed=killed, running=running
     )
@@ -751,30 +755,26 @@ def unpack_store(archive: Path, into: Path) -> int:
     staging = None
     with sigterm_as_interrupt():
         try:
-            try:
-                with contextlib.ExitStack() as stack:
+            with _full_disk_named(into, "unpack again"):
+                try:
+                    with contextlib.ExitStack() as stack:
+                        if folder:
+                            entries = check_compact(archive)
+                        else:
+                            tar = stack.enter_context(tarfile.open(archive, "r:*"))
+                            members = _checked_members(archive, tar, str(into / UNPACK_PREFIX))
+                        into.mkdir(parents=True, exist_ok=True)
+                        _remove_stale(into, f"{UNPACK_PREFIX}*", UNPACK_PREFIX)
+                        prefix = f"{UNPACK_PREFIX}{os.getpid()}-"
+                        staging = Path(tempfile.mkdtemp(prefix=prefix, dir=into))
+                        if folder:
+                            extract_compact(archive, entries, staging)
+                        else:
+                            tar.extractall(staging, members=members, filter="data")
+                except _ARCHIVE_ERRORS as exc:
                     if folder:
-                        entries = check_compact(archive)
-                    else:
-                        tar = stack.enter_context(tarfile.open(archive, "r:*"))
-                        members = _checked_members(archive, tar, str(into / UNPACK_PREFIX))
-                    into.mkdir(parents=True, exist_ok=True)
-                    _remove_stale(into, f"{UNPACK_PREFIX}*", UNPACK_PREFIX)
-                    prefix = f"{UNPACK_PREFIX}{os.getpid()}-"
-                    staging = Path(tempfile.mkdtemp(prefix=prefix, dir=into))
-                    if folder:
-                        extract_compact(archive, entries, staging)
-                    else:
-                        tar.extractall(staging, members=members, filter="data")
-            except _ARCHIVE_ERRORS as exc:
-                if folder:
-                    raise
-                raise _unreadable(archive, exc) from exc
-            except OSError as exc:
-                full = disk_full(exc, into, then="unpack again")
-                if full is None:
-                    raise
-                raise full from exc
+                        raise
+                    raise _unreadable(archive, exc) from exc
             try:
                 n = _rewrite(staging / STORE_DB, _portable)
                 _relative_run_dirs(staging / STORE_DB)

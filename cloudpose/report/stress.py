@@ -63,24 +63,24 @@ def with_network_mean(summary: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([summary, mean], ignore_index=True)
 
 
-def _value(summary, source, pert, level, method, stage, col) -> float:
-    row = summary[
+def _curve(summary, source, pert, method, stage) -> pd.DataFrame:
+    """The rows of one curve: ``method`` at ``stage`` on ``source`` under ``pert``."""
+    return summary[
         (summary.source == source)
         & (summary.perturbation == pert)
-        & np.isclose(summary.level, level)
         & (summary.method == method)
         & (summary.stage == stage)
     ]
+
+
+def _value(summary, source, pert, level, method, stage, col) -> float:
+    curve = _curve(summary, source, pert, method, stage)
+    row = curve[np.isclose(curve.level, level)]
     return float(row[col].iloc[0]) if len(row) else np.nan
 
 
 def _interp(summary, source, pert, level, method, stage, col) -> float:
-    sub = summary[
-        (summary.source == source)
-        & (summary.perturbation == pert)
-        & (summary.method == method)
-        & (summary.stage == stage)
-    ].sort_values("level")
+    sub = _curve(summary, source, pert, method, stage).sort_values("level")
     if sub.empty or not np.isfinite(level):
         return np.nan
     return float(np.interp(level, sub.level, sub[col]))
@@ -144,12 +144,7 @@ def plot_metric(summary, levels, col, path: Path, ylabel: str, footer: str, scal
         for j, source in enumerate(sources):
             ax = axes[k // 2, (k % 2) * len(sources) + j]
             for method, stage, label, colour, style in CURVES:
-                sub = summary[
-                    (summary.source == source)
-                    & (summary.perturbation == name)
-                    & (summary.method == method)
-                    & (summary.stage == stage)
-                ].sort_values("level")
+                sub = _curve(summary, source, name, method, stage).sort_values("level")
                 if len(sub):
                     ax.plot(sub.level, scale * sub[col], style, color=colour, marker=".",
                             label=label)  # fmt: skip

@@ -362,3 +362,29 @@ def test_a_full_disk_while_packing_is_one_line(project, tmp_path, monkeypatch):
     archive = tmp_path / "s.tar.xz"
     line = one_line_error(cli("store-pack", str(archive)), str(archive), "no space left")
     assert "free there" in line and not archive.exists()
+
+
+def test_a_full_disk_while_packing_or_unpacking_a_compact_store_names_it(project, tmp_path):
+    """Packing into a compact folder and unpacking one say a full disk as the archive does:
+    the folder and what to do once space is free."""
+    import errno
+
+    from cloudpose.archive import pack as store_archive
+    from cloudpose.failures import DiskFullError
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    folder = tmp_path / "compact"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(store_archive, "write_compact", full)
+        with pytest.raises(DiskFullError, match=r"writing .*compact.*store-pack .* --force"):
+            pack_store(project, folder)
+    pack_store(project, folder)
+    into = tmp_path / "into"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(store_archive, "extract_compact", full)
+        with pytest.raises(DiskFullError, match=r"writing .*into.*unpack again"):
+            unpack_store(folder, into)
+    assert not into.exists()  # nothing left where the unpack failed
+    assert unpack_store(folder, into) == 2
