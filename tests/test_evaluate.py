@@ -235,7 +235,7 @@ def test_an_ensemble_keeps_one_members_refinement_per_object(tmp_path, smoke_dat
         evaluate_real(a.run_id, ensemble=[a.run_id], log=False, **kw)
     with pytest.raises(ValueError, match=r"differs from the first network's in data\."):
         evaluate_real(a.run_id, ensemble=["pretrained"], log=False, **kw)
-    with pytest.raises(ValueError, match="drop --no-icp"):
+    with pytest.raises(ValueError, match="drop --refine none"):
         evaluate_real(a.run_id, ensemble=[b.run_id], icp=False, log=False, **kw)
 
 

@@ -558,6 +558,6 @@ def results_folder(path: Path) -> Iterator[Path]:
         except (tarfile.TarError, EOFError, lzma.LZMAError) as exc:
             raise ValueError(
                 f"{path}: not a readable archive of stress results ({type(exc).__name__}: "
-                f"{exc}); pack it again (cloudpose stress --report-only --pack)"
+                f"{exc}); pack it again (cloudpose stress --steps none --pack)"
             ) from exc
         yield Path(tmp)

@@ -151,7 +151,7 @@ def check_cluster(options: RayOptions) -> None:
                 raise ValueError(
                     f"no Ray cluster answers at {address} ({reason}; waited {timeout:g} s): "
                     f"start one there with `ray start --head --port {target[1]}`, or check "
-                    "--address / RAY_ADDRESS (--connect-timeout waits longer)"
+                    "--executor ray,address= / RAY_ADDRESS (connect-timeout= waits longer)"
                 ) from None
             time.sleep(1.0)
 

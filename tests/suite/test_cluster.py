@@ -79,8 +79,8 @@ def test_ray_executor_says_when_nothing_answers_at_the_address():
     assert res.exit_code == 2, res.output
     assert res.stderr.splitlines() == [
         f"error: no Ray cluster answers at 127.0.0.1:{port} (Connection refused; waited 1 s): "
-        f"start one there with `ray start --head --port {port}`, or check --address / "
-        "RAY_ADDRESS (--connect-timeout waits longer)"
+        f"start one there with `ray start --head --port {port}`, or check --executor ray,address= / "
+        "RAY_ADDRESS (connect-timeout= waits longer)"
     ]
     assert time.monotonic() - t0 < 15
     assert not Path("data").exists()  # refused before any data was made
