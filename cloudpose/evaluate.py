@@ -277,7 +277,9 @@ def evaluate(
     first = load_network(client, run, device)
     run_id, cfg = first.run_id, first.config
     if ensemble and not icp:
-        raise ValueError("--ensemble keeps one of the networks' ICP refinements; drop --refine none")
+        raise ValueError(
+            "--ensemble keeps one of the networks' ICP refinements; drop --refine none"
+        )
     members = [load_network(client, other, device) for other in ensemble or ()]
     ids = check_ensemble([first, *members], "--ensemble")
     runtime.configure_threads(cfg.train.threads)  # the run's own: the numbers depend on it

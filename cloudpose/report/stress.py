@@ -440,7 +440,7 @@ ICP_SELECTIONS = ("starts1", "starts24-fitness", "starts24-depth", "starts60-fit
 """The ICP settings of a sweep's comparison of start selections (``OUT/icp_select/``, one
 table per source, setting and network): the run's own (one start), and 24 / 60 starts scored
 by fitness alone or by the depth. The study that computed them (``cloudpose stress
---icp-selection``) is retired, answered since by ``cloudpose compare --icp-select``; its
+--icp-selection``) is retired, answered since by ``cloudpose compare --refine select=``; its
 results, where a sweep folder holds them (the committed ``cpu-online`` sweep does), are still
 reported."""
 

@@ -244,7 +244,7 @@ def run_baseline(
 
     ``icp_radius``, ``icp_starts``, ``icp_select``: ICP's first correspondence distance
     (:func:`cloudpose.refine.schedule_for`; the paper's 0.01 m by default), its starts and
-    how they are scored, as ``cloudpose evaluate --icp-radius / --icp-starts / --icp-select``
+    how they are scored, as ``cloudpose evaluate --refine radius=,starts=,select=``
     refine a network's estimate. Other values than the paper's (0.01, 1, fitness) are
     settings of the run (``icp_*`` beside the method's, in its fingerprint), so it is a run
     of its own, which the reports, made with the paper's ICP, leave out.

@@ -2,16 +2,15 @@
 registrations on the same segments, every estimate refined by the same ICP.
 
 A user with real frames (their own YCB-Video test videos, a BOP ycbv folder; by default the 61
-packaged development frames) asks one question: on these frames, how does the network compare
-with FPFH + RANSAC and point-pair features? Answering it by hand takes an evaluation, two
-baseline runs and their refinements, and a table put together from their logs, where a
-mismatch (another frame list, another refinement for one method) goes unseen. Here every method
-estimates the pose of the same segments once, and each estimate is refined by each of the same
-ICP schedules (:func:`refinements`: the paper's, and the recipe of ``--icp-starts``,
-``--icp-select``, ``--icp-radius``); the report puts the results side by side, pooled, per
-video and per object pose, with the network's difference to each method paired over the object
-poses (an object stands still in a video while the camera moves, so its instances are one pose
-seen many times; :func:`cloudpose.report.real.versus_baseline`).
+packaged development frames) asks one question: on these frames, how does the network compare with
+FPFH + RANSAC and point-pair features? Answering it by hand takes an evaluation, two baseline runs
+and their refinements, and a table put together from their logs, where a mismatch (another frame
+list, another refinement for one method) goes unseen. Here every method estimates the pose of the
+same segments once, and each estimate is refined by each of the same ICP schedules
+(:func:`refinements`: the paper's, and the recipe ``--refine`` names); the report puts the results
+side by side, pooled, per video and per object pose, with the network's difference to each method
+paired over the object poses (an object stands still in a video while the camera moves, so its
+instances are one pose seen many times; :func:`cloudpose.report.real.versus_baseline`).
 
 Nothing is logged to MLflow. The output folder holds ``compare.json`` (what was compared: data
 key, frames, the networks' MLflow run ids, the baselines' seed), ``estimates/network.npz`` (the
@@ -376,9 +375,9 @@ def plan(
 ) -> str:
     """What a call will compute and about how long it takes, before it starts: for each
     classical method whose refinements are to compute, the estimates left (``states``:
-    method -> :class:`cloudpose.studies.baseline_runs.EstimateProgress`;
-    :data:`cloudpose.studies.stress.SECONDS_PER_INSTANCE`) and the one-off preparation of the models
-    they need (:data:`cloudpose.studies.stress.SECONDS_PER_MODEL`: PPF's detector training, named
+    method -> :class:`cloudpose.methods.EstimateProgress`;
+    :data:`cloudpose.methods.SECONDS_PER_INSTANCE`) and the one-off preparation of the models
+    they need (:data:`cloudpose.methods.SECONDS_PER_MODEL`: PPF's detector training, named
     where :data:`PREPARATION` has words for it), and the refinements ``todo`` per method
     (:data:`ICP_SECONDS`, once for each of the method's ``estimates``: an ensemble's networks,
     a combination's methods; default one)."""
