@@ -1,5 +1,10 @@
-"""How a command stops other than on bad input: a full disk, and SIGTERM.
+"""How a command stops other than on bad input: a file-system error, a full disk, and SIGTERM.
 
+- A file-system error the operating system raises about a path (no permission, a file where
+  a folder is expected, an immutable file, a read-only file system, ...) is one line
+  (:func:`file_system_message`): the path, what the system said, what it means and, where the
+  user gave that path, the option (or argument) to give another. The CLI's one handler prints
+  it as ``error: ...``, exit 2, in every command.
 - A full disk is one line naming the file that could not be written, the space it needed
   (where known) and the space left there (:class:`DiskFullError`, made from the ``OSError``
   with ``errno.ENOSPC`` of a write, or SQLite's "database or disk is full", by
@@ -21,7 +26,15 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["DiskFullError", "disk_full", "free_bytes", "is_disk_full", "sigterm_as_interrupt"]
+__all__ = [
+    "DiskFullError",
+    "disk_full",
+    "file_system_message",
+    "free_bytes",
+    "is_disk_full",
+    "is_file_system_error",
+    "sigterm_as_interrupt",
+]
 
 
 class DiskFullError(OSError):
@@ -87,6 +100,46 @@ def disk_full(
         return None
     filename = getattr(exc, "filename", None)
     return DiskFullError(filename or path, needed, then)
+
+
+_MEANS = {
+    errno.EACCES: "no permission: check the folder's owner and mode",
+    errno.EPERM: "not permitted: an immutable or read-only file or folder",
+    errno.EROFS: "a read-only file system",
+    errno.ENOTDIR: "a part of the path is a file, not a folder",
+    errno.EISDIR: "a folder where a file was expected",
+    errno.ENOSPC: "no space left on the device: free some",
+    errno.EDQUOT: "the disk quota is full: free some",
+    errno.ENOENT: "no such file or folder",
+    errno.EEXIST: "it exists already",
+}
+"""What each class of file-system error means, in the words of a one-line message."""
+
+
+def is_file_system_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is an error the operating system raised about a file (an ``OSError``
+    with an errno), not a message of the suite's own (``FileNotFoundError("...")``, a
+    :class:`DiskFullError`) nor a connection's."""
+    return (
+        isinstance(exc, OSError)
+        and not isinstance(exc, (DiskFullError, ConnectionError))
+        and exc.errno is not None
+    )
+
+
+def file_system_message(exc: OSError, option: str | None = None) -> str:
+    """One line for a file-system error: ``PATH: what the system said (what it means; choose
+    another OPTION)``. ``option``: the option or argument the user gave the path by (``--out``,
+    ``OUT``), None when the path is none the user gave. ``EEXIST`` on a file is a file where
+    a folder is expected (``mkdir`` of a path through a file)."""
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    where = " -> ".join(paths) or "a file this command writes"
+    said = exc.strerror or type(exc).__name__
+    means = _MEANS.get(exc.errno or 0)
+    if exc.errno == errno.EEXIST and paths and Path(paths[0]).is_file():
+        means = "a file, not a folder, where a folder is expected"
+    parts = [m for m in (means, f"choose another {option}" if option else None) if m]
+    return f"{where}: {said}" + (f" ({'; '.join(parts)})" if parts else "")
 
 
 def _raise_interrupt(signum, frame) -> None:

@@ -199,6 +199,8 @@ def predict(
             ``depth_factor`` says (:func:`cloudpose.data.segments.check_depth_scale`).
     """
     overlay = None if overlay is None else overlay_path(overlay)
+    if overlay is not None:  # a folder that cannot be made is said before any work
+        overlay.parent.mkdir(parents=True, exist_ok=True)
     model, cfg = load_model_for(checkpoint, device)
     K = None if meta is not None else parse_intrinsics(intrinsics)
     frame = read_frame(

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cloudpose.cli import app
-from cloudpose.cli.app import file_system_message
+from cloudpose.failures import file_system_message
 from cloudpose.report.committed import (
     NoRunsError,
     committed_pairs,

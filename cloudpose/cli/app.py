@@ -7,7 +7,6 @@ imports them in the order ``--help`` lists them).
 from __future__ import annotations
 
 import dataclasses
-import errno
 from pathlib import Path
 from typing import Annotated
 
@@ -27,7 +26,7 @@ class _Commands(TyperGroup):
     """
 
     def invoke(self, ctx: click.Context):
-        from cloudpose.failures import DiskFullError
+        from cloudpose.failures import file_system_message, is_file_system_error
         from cloudpose.store.tracking import StoreError
 
         try:
@@ -41,23 +40,17 @@ class _Commands(TyperGroup):
                 raise
             typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
             raise typer.Exit(2) from None
-        except (
-            ValueError,
-            FileNotFoundError,
-            FileExistsError,
-            ConnectionError,
-            StoreError,
-            DiskFullError,
-        ) as exc:
+        except (ValueError, OSError, StoreError) as exc:
+            # OSError: the library's FileNotFoundError / FileExistsError / DiskFullError /
+            # ConnectionError messages, and the system's file-system errors (the path, what it
+            # means and the option the user gave it by)
             if _DEBUG:
                 raise
-            message = " ".join(str(exc).split()) or type(exc).__name__
+            if is_file_system_error(exc):
+                message = file_system_message(exc, _option_of(exc, type(ctx)))
+            else:
+                message = " ".join(str(exc).split()) or type(exc).__name__
             typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
-            raise typer.Exit(2) from None
-        except OSError as exc:  # permissions, not a folder, read-only, ...: the path and why
-            if _DEBUG:
-                raise
-            typer.secho(f"error: {file_system_message(exc)}", fg=typer.colors.RED, err=True)
             raise typer.Exit(2) from None
 
     def get_command(self, ctx: click.Context, cmd_name: str):
@@ -71,24 +64,52 @@ class _Commands(TyperGroup):
         return super().format_help(ctx, formatter)
 
 
-_FS_ADVICE = {
-    errno.EACCES: "no permission: check the folder's owner and mode, or choose another --out",
-    errno.EPERM: "not permitted (an immutable or read-only file?): choose another --out",
-    errno.EROFS: "a read-only file system: choose another --out",
-    errno.ENOTDIR: "a part of the path is a file, not a folder: choose another --out",
-    errno.EISDIR: "a folder where a file was expected",
-    errno.ENOSPC: "no space left on the device: free some or write elsewhere",
-    errno.EEXIST: "it exists already",
-}
+def _option_of(exc: OSError, context: type) -> str | None:
+    """The option (or argument) of the failed command that gave the path ``exc`` is about:
+    the one whose value is that path, a folder holding it, a path through it (a file where
+    its folder should be) or a file beside it whose name holds its name (a temporary file
+    written before the rename); the most specific one; None when no value names it.
+    ``context``: the class of the command's context (typer's own click's), found in the
+    traceback's frames."""
+    import os
+
+    failed = [
+        Path(os.path.abspath(os.fsdecode(p)))
+        for p in (exc.filename, exc.filename2)
+        if isinstance(p, (str, bytes, os.PathLike))
+    ]
+    ctx = next(
+        (
+            v
+            for f in _traceback_frames(exc)
+            for v in f.f_locals.values()
+            if isinstance(v, context) and v.parent is not None
+        ),
+        None,
+    )
+    if ctx is None or not failed:
+        return None
+    best: tuple[int, str] | None = None
+    for param in ctx.command.params:
+        value = ctx.params.get(param.name or "")
+        for given in value if isinstance(value, (list, tuple)) else [value]:
+            if not isinstance(given, (str, os.PathLike)) or not str(given):
+                continue
+            g = Path(os.path.abspath(given))
+            if any(
+                f == g or g in f.parents or f in g.parents or (f.parent == g.parent and g.name in f.name)
+                for f in failed
+            ) and (best is None or len(str(g)) > best[0]):
+                best = (len(str(g)), _param_name(param))
+    return best[1] if best else None
 
 
-def file_system_message(exc: OSError) -> str:
-    """One line for a file-system error: the path(s), what the system said and what to do."""
-    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
-    where = " -> ".join(paths) or "a file this command writes"
-    said = exc.strerror or type(exc).__name__
-    advice = _FS_ADVICE.get(exc.errno or 0)
-    return f"{where}: {said}" + (f" ({advice})" if advice else "")
+def _param_name(param) -> str:
+    """How the user writes ``param``: its long option (``--out``), or an argument's name as
+    ``--help`` shows it in capitals (``OUT``)."""
+    if param.param_type_name == "option":
+        return next((o for o in param.opts if o.startswith("--")), param.opts[0])
+    return (param.name or "argument").upper()
 
 
 def _corrupt_types() -> tuple[type[BaseException], ...]:
