@@ -205,3 +205,80 @@ def test_a_baseline_reuses_the_committed_store_unless_fresh(tmp_path, monkeypatc
     else:
         assert seen["store"] == f"sqlite:///{(unpacked / 'mlflow.db').resolve()}"
         assert "store: stores/cpu-online/mlflow.db (unpacked now" in res.output
+
+
+def _stress_results(folder: Path, names: list[str]) -> Path:
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text("{}\n" if name.endswith(".json") else "x\n")
+    return folder
+
+
+STRESS_FILES = ["sweep.json", "results/real/bias/10/fpfh.csv", "results/real/bias/20/fpfh.csv"]
+
+
+@pytest.fixture
+def committed_stress(tmp_path) -> Path:
+    """A project whose reports/cpu-online keeps a stress report's packed results (3 files)."""
+    import tarfile
+
+    project = tmp_path / "project"
+    committed = project / "reports" / "cpu-online"
+    committed.mkdir(parents=True)
+    src = _stress_results(tmp_path / "src", STRESS_FILES)
+    with tarfile.open(committed / "stress-results.tar.xz", "w:xz") as tar:
+        for name in STRESS_FILES:
+            tar.add(src / name, arcname=name)
+    return project
+
+
+@pytest.mark.parametrize(
+    ("names", "where", "said"),
+    [
+        (STRESS_FILES[:2], "runs/reports/cpu-online", "count 3 result files; these 2 lack 1"),
+        (STRESS_FILES, "reports/cpu-online", None),
+        ([*STRESS_FILES, "results/real/cut/1/fpfh.csv"], "reports/cpu-online", "and 1 more"),
+    ],
+)
+def test_a_stress_report_of_fewer_results_renders_beside_the_committed_one(
+    committed_stress, tmp_path, monkeypatch, names, where, said
+):
+    """`cloudpose stress --steps report` of results lacking some of those the committed report
+    was rendered from (reports/PRESET/stress-results.tar.xz) writes into runs/reports/PRESET,
+    saying so with the counts; results holding them all render over it."""
+    from cloudpose.report import stress as report_stress
+
+    rendered: list[Path] = []
+    monkeypatch.setattr(
+        report_stress, "render_stress_report", lambda run, out, **kw: rendered.append(out) or []
+    )
+    monkeypatch.chdir(committed_stress)
+    results = _stress_results(tmp_path / "mine", names)
+    res = CliRunner().invoke(app, ["stress", "--steps", "report", "--results", str(results)])
+    assert res.exit_code == 0, res.output
+    assert rendered == [committed_stress / where]
+    if said is None:
+        assert res.output.strip() == ""
+    else:
+        assert said in res.output and len(res.output.strip().splitlines()) == 1
+
+
+def test_a_stress_report_named_by_out_over_committed_results_says_the_counts_first(
+    committed_stress, tmp_path, monkeypatch
+):
+    from cloudpose.report import stress as report_stress
+
+    rendered: list[Path] = []
+    monkeypatch.setattr(
+        report_stress, "render_stress_report", lambda run, out, **kw: rendered.append(out) or []
+    )
+    monkeypatch.chdir(committed_stress)
+    results = _stress_results(tmp_path / "mine", STRESS_FILES[:1])
+    out = committed_stress / "reports" / "cpu-online"
+    res = CliRunner().invoke(
+        app, ["stress", "--steps", "report", "--results", str(results), "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    assert rendered == [out]
+    assert res.output.startswith("warning: replacing reports/cpu-online/ by --out: ")
+    assert "count 3 result files; these 1 lack 2" in res.output

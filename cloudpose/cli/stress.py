@@ -143,9 +143,8 @@ def stress(
         )  # fmt: skip
     if dry_run:
         return
-    if "report" in todo:
-        out = out or _default_out(project, preset)
-    _pack_and_render(ctx, results, pack, out if "report" in todo else None)
+    target = (out or _default_out(project, preset)) if "report" in todo else None
+    _pack_and_render(ctx, preset, results, pack, target, out)
 
 
 def parse_steps(spec: str, pack: Path | None) -> set[str]:
@@ -210,10 +209,13 @@ def _default_out(project: Path, preset: str) -> Path:
     return default_out_dir(project, preset)
 
 
-def _pack_and_render(ctx, results: Path, pack: Path | None, out: Path | None) -> None:
+def _pack_and_render(
+    ctx, preset: str, results: Path, pack: Path | None, out: Path | None, given: Path | None
+) -> None:
     """Pack the results (``--pack``), then render the report from them into ``out`` (None: no
-    report)."""
-    from cloudpose.report.stress import render_stress_report
+    report; ``given``: the --out the user gave), or beside it when ``out`` keeps committed
+    results these lack (:func:`cloudpose.report.stress.report_folder`)."""
+    from cloudpose.report.stress import render_stress_report, report_folder
     from cloudpose.studies import stress as st
 
     with st.results_folder(results) as folder:
@@ -221,6 +223,7 @@ def _pack_and_render(ctx, results: Path, pack: Path | None, out: Path | None) ->
             n = st.pack_results(folder, pack)
             typer.echo(f"packed {n} result files into {pack} ({pack.stat().st_size / 1e6:.2f} MB)")
         if out is not None:
+            out = report_folder(preset, Path.cwd(), given, out, folder, typer.echo)
             files = render_stress_report(folder, out, command=recorded_command(ctx))
             typer.echo(" ".join(str(f) for f in files))
 

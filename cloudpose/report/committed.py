@@ -263,24 +263,56 @@ def report_folder(
     if not _same_folder(target, committed_dir):
         return target
     theirs = committed_pairs(preset, project_dir, variants=variants, split=split, data_key=data_key)
-    if not theirs or theirs <= pairs:
-        if theirs and pairs - theirs:
+    return guarded_folder(
+        preset, project_dir, target, out_dir is not None, theirs, pairs, "runs", echo
+    )
+
+
+def guarded_folder(
+    preset: str,
+    project_dir: Path,
+    target: Path,
+    named: bool,
+    theirs: set | None,
+    ours: set,
+    unit: str,
+    echo: Callable[[str], object],
+) -> Path:
+    """Where results of ``ours`` may be rendered into ``target``, a folder of committed results
+    rendered from ``theirs`` (None: it commits none); ``unit``: what their members are, as the
+    counts say them (``runs``, ``result files``).
+
+    Over the committed results only when ``ours`` includes every member of ``theirs`` (more
+    members said in one line); results lacking some render into ``runs/reports/PRESET``
+    instead, said in one line with the counts before and after, unless the user ``named``
+    the folder (``--out``): then it is written as asked, the counts said first."""
+    shown = _shown(target, project_dir)
+    if not theirs or theirs <= ours:
+        if theirs and ours - theirs:
             echo(
-                f"rendering over reports/{preset}/: its {len(theirs)} committed runs and "
-                f"{len(pairs - theirs)} more"
+                f"rendering over {shown}/: its {len(theirs)} committed {unit} and "
+                f"{len(ours - theirs)} more"
             )
         return target
-    lacking = len(theirs - pairs)
+    lacking = len(theirs - ours)
     counts = (
-        f"the committed reports count {len(theirs)} runs, this store's {len(pairs)} "
-        f"lack {lacking} of them"
+        f"the committed results in {shown}/ count {len(theirs)} {unit}; these "
+        f"{len(ours)} lack {lacking} of them"
     )
-    if out_dir is not None:
-        echo(f"warning: replacing reports/{preset}/ by --out: {counts}")
+    if named:
+        echo(f"warning: replacing {shown}/ by --out: {counts}")
         return target
     own = Path(project_dir) / "runs" / "reports" / preset
     echo(
-        f"{counts}: rendering into {own.relative_to(project_dir)}/ and leaving reports/{preset}/ "
-        f"as committed (--out reports/{preset} to replace them)"
+        f"{counts}: rendering into {own.relative_to(project_dir)}/ and leaving {shown}/ as "
+        f"committed (--out {shown} to replace them)"
     )
     return own
+
+
+def _shown(folder: Path, project_dir: Path) -> str:
+    """``folder`` relative to the project where it lies in it, else as it is."""
+    try:
+        return Path(folder).resolve().relative_to(Path(project_dir).resolve()).as_posix()
+    except ValueError:
+        return str(folder)

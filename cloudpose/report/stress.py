@@ -7,6 +7,7 @@ real frames' own level marked, drawn from a sweep's result folder only.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import matplotlib
@@ -17,10 +18,23 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.config import PAPER_RADIUS
+from cloudpose.report.committed import guarded_folder
 from cloudpose.refine import schedule_for
 from cloudpose.report.formats import write_png
 from cloudpose.studies.perturbations import PERTURBATIONS, STATISTICS, identity_level
-from cloudpose.studies.stress import collect, collect_stats, real_level, result_path, summary_of
+from cloudpose.studies.stress import (
+    collect,
+    collect_stats,
+    real_level,
+    result_files,
+    result_path,
+    summary_of,
+)
+
+PACKED_RESULTS = "stress-results.tar.xz"
+"""The results a committed stress report was rendered from, packed beside it (``stress
+--pack``): a folder holding it is rendered over only by results that hold each of its files
+(:func:`report_folder`)."""
 
 NETWORK = "network"
 """Label of the mean over the sweep's checkpoints (``net-*`` methods)."""
@@ -499,6 +513,31 @@ def icp_selection_markdown(run_dir: Path) -> str:
         n = int(g["count"].iloc[0])
         out.append(f"| {source} | {method} | {n} | " + " | ".join(cells) + " |")
     return "\n".join(out)
+
+
+def report_folder(
+    preset: str,
+    project_dir: Path,
+    out_dir: Path | None,
+    default: Path,
+    run_dir: Path,
+    echo: Callable[[str], object],
+) -> Path:
+    """Where the stress report of the sweep in ``run_dir`` may be written: ``out_dir``, else
+    ``default``; a folder that keeps the results its report was rendered from
+    (:data:`PACKED_RESULTS`) is rendered over only by results holding each of those files,
+    else into ``runs/reports/PRESET`` (:func:`cloudpose.report.committed.guarded_folder`)."""
+    import tarfile
+
+    target = Path(out_dir) if out_dir is not None else Path(default)
+    packed = target / PACKED_RESULTS
+    if not packed.is_file():
+        return target
+    with tarfile.open(packed, "r:*") as tar:
+        theirs = {m.name for m in tar.getmembers() if m.isfile()}
+    ours = {f.relative_to(run_dir).as_posix() for f in result_files(run_dir)}
+    named = out_dir is not None
+    return guarded_folder(preset, project_dir, target, named, theirs, ours, "result files", echo)
 
 
 def render_stress_report(run_dir: Path, out_dir: Path, command: str, extra: str = "") -> list[Path]:

@@ -498,6 +498,17 @@ RESULT_PARTS = ("sweep.json", "results", "icp_select")
 frames' cache under ``synth/`` is rebuilt from the preset)."""
 
 
+def result_files(run_dir: Path) -> list[Path]:
+    """The sweep's result files (:data:`RESULT_PARTS`) in ``run_dir``, sorted."""
+    run_dir = Path(run_dir)
+    return sorted(
+        f
+        for part in RESULT_PARTS
+        for f in ([run_dir / part] if part.endswith(".json") else (run_dir / part).rglob("*"))
+        if f.is_file()
+    )
+
+
 def pack_results(run_dir: Path, archive: Path) -> int:
     """The sweep's result files (:data:`RESULT_PARTS`) in ``run_dir`` into the ``.tar.xz``
     ``archive``, written atomically and byte-identical for identical files (sorted members, no
@@ -508,12 +519,7 @@ def pack_results(run_dir: Path, archive: Path) -> int:
     run_dir, archive = Path(run_dir), Path(archive)
     if not (run_dir / "sweep.json").is_file():
         raise FileNotFoundError(f"{run_dir}: no sweep.json (not the results of `cloudpose stress`)")
-    files = sorted(
-        f
-        for part in RESULT_PARTS
-        for f in ([run_dir / part] if part.endswith(".json") else (run_dir / part).rglob("*"))
-        if f.is_file()
-    )
+    files = result_files(run_dir)
 
     def plain(info: tarfile.TarInfo) -> tarfile.TarInfo:
         info.mtime, info.uid, info.gid, info.uname, info.gname = 0, 0, 0, "", ""
