@@ -97,7 +97,10 @@ def _option_of(exc: OSError, context: type) -> str | None:
                 continue
             g = Path(os.path.abspath(given))
             if any(
-                f == g or g in f.parents or f in g.parents or (f.parent == g.parent and g.name in f.name)
+                f == g
+                or g in f.parents
+                or f in g.parents
+                or (f.parent == g.parent and g.name in f.name)
                 for f in failed
             ) and (best is None or len(str(g)) > best[0]):
                 best = (len(str(g)), _param_name(param))

@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 
 from cloudpose.config import PAPER_RADIUS
-from cloudpose.report.committed import guarded_folder
 from cloudpose.refine import schedule_for
+from cloudpose.report.committed import guarded_folder
 from cloudpose.report.formats import write_png
 from cloudpose.studies.perturbations import PERTURBATIONS, STATISTICS, identity_level
 from cloudpose.studies.stress import (
