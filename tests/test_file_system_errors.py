@@ -136,3 +136,25 @@ def test_a_folder_the_system_refuses_names_the_option(code, words, tmp_path, mon
     monkeypatch.setattr(Path, "mkdir", refused)
     res = cli("store-unpack", str(_archive(tmp_path / "s.tar.xz")), "--into", f"{locked}/x")
     one_line_error(res, str(locked / "x"), "--into", words)
+
+
+def test_a_temporary_file_beside_the_out_argument_names_it(tmp_path, monkeypatch, empty_store):
+    """store-pack writes OUT.tar.xz through a temporary file beside it: the system's refusal of
+    that file (chattr +i on the folder) names OUT, the argument the user gave."""
+    import tarfile
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(empty_store, tmp_path / "mlflow.db")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    opened = tarfile.open
+
+    def refused(name=None, mode="r", *a, **k):
+        if name is not None and Path(name).parent == locked:
+            raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), str(name))
+        return opened(name, mode, *a, **k)
+
+    monkeypatch.setattr(tarfile, "open", refused)
+    res = cli("store-pack", str(locked / "st.tar.xz"))
+    one_line_error(res, str(locked / ".st.tar.xz."), "not permitted", "choose another OUT")

@@ -60,6 +60,18 @@ PROBES: dict[str, tuple[list[str], dict[str, str]]] = {
         ],
         {},
     ),
+    "stress-report": (
+        [
+            "cloudpose",
+            "stress",
+            "--steps",
+            "report",
+            "--results",
+            "reports/cpu-online/stress-results.tar.xz",
+            "--no-progress",
+        ],
+        {},
+    ),
     "mlflow-ui": (["cloudpose", "mlflow-ui", "--no-serve"], {}),
     "store-unpack": (
         ["cloudpose", "store-unpack", "reports/cpu-online/mlflow-store", "--into", "{tmp}/x"],
