@@ -67,8 +67,8 @@ class _Commands(TyperGroup):
 def _option_of(exc: OSError, context: type) -> str | None:
     """The option (or argument) of the failed command that gave the path ``exc`` is about:
     the one whose value is that path, a folder holding it, a path through it (a file where
-    its folder should be) or a file beside it whose name holds its name (a temporary file
-    written before the rename); the most specific one; None when no value names it.
+    its folder should be) or a hidden file beside it named after it (``.NAME.*``, a temporary
+    file written before the rename); the most specific one; None when no value names it.
     ``context``: the class of the command's context (typer's own click's), found in the
     traceback's frames."""
     import os
@@ -99,8 +99,8 @@ def _option_of(exc: OSError, context: type) -> str | None:
             if any(
                 f == g
                 or g in f.parents
-                or f in g.parents
-                or (f.parent == g.parent and g.name in f.name)
+                or (f in g.parents and not f.is_dir())
+                or (f.parent == g.parent and f.name.startswith(f".{g.name}."))
                 for f in failed
             ) and (best is None or len(str(g)) > best[0]):
                 best = (len(str(g)), _param_name(param))
