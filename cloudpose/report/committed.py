@@ -255,7 +255,8 @@ def report_folder(
 
     Into the preset's committed reports (``reports/PRESET``, which commits a store) only when
     its runs include every committed run's (variant, seed): a smaller sweep of a user's renders
-    into ``runs/reports/PRESET`` instead, said in one line with the counts. An ``out_dir`` the
+    into ``runs/reports/PRESET`` instead, said in one line with the counts, as does a sweep on other
+    data than every committed run's (``data_key``: it includes none of them). An ``out_dir`` the
     user named is written as asked, with the same counts said first when it replaces committed
     reports with fewer runs."""
     committed_dir = Path(project_dir) / "reports" / preset
@@ -263,18 +264,29 @@ def report_folder(
     if not _same_folder(target, committed_dir):
         return target
     theirs = committed_pairs(preset, project_dir, variants=variants, split=split, data_key=data_key)
-    if not theirs or theirs <= pairs:
+    # runs on other data than every committed run's include none of them
+    other_data = (
+        not theirs
+        and data_key is not None
+        and bool(committed_pairs(preset, project_dir, variants=variants, split=split))
+    )
+    if not other_data and (not theirs or theirs <= pairs):
         if theirs and pairs - theirs:
             echo(
                 f"rendering over reports/{preset}/: its {len(theirs)} committed runs and "
                 f"{len(pairs - theirs)} more"
             )
         return target
-    lacking = len(theirs - pairs)
-    counts = (
-        f"the committed reports count {len(theirs)} runs, this store's {len(pairs)} "
-        f"lack {lacking} of them"
-    )
+    if other_data:
+        counts = (
+            f"the committed reports are of other data than this store's {len(pairs)} runs "
+            f"(data {data_key})"
+        )
+    else:
+        counts = (
+            f"the committed reports count {len(theirs)} runs, this store's {len(pairs)} "
+            f"lack {len(theirs - pairs)} of them"
+        )
     if out_dir is not None:
         echo(f"warning: replacing reports/{preset}/ by --out: {counts}")
         return target
