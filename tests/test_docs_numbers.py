@@ -6,7 +6,8 @@ A page is read in blocks (paragraphs, tables, list items); a block that quotes a
 must link the report it comes from, in the block or in the caption just before it, and each
 figure must be one of that report's (as it prints it). A mean with its spread (``91.3 ± 0.2``,
 ``+-`` too) must be one the report prints together, an interval (``+1.9 [+1.7, +2.2]``) one row
-of it, and a whole number in a table cell (seeds, steps) one the report holds. A verdict table
+of it, and a whole number in a table cell (seeds, steps), or one with its unit in a block that
+quotes results (``264 instances``, ``~106 ms``), one the report holds. A verdict table
 that ``cloudpose report --readme`` renders between ``<!-- verdicts PRESET -->`` markers comes
 from that preset's ``claims.md``, and the verdict counts the pages write out are counted from
 the claims they link. A figure that drifts from its source, or one quoted without a source,
@@ -56,6 +57,13 @@ SPREAD = re.compile(r"(?<![\w.])(\d+\.\d+) ?(?:±|\+-) ?(\d+\.\d+)")
 
 INTERVAL = re.compile(r"(?<![\w.])([+-]?\d+\.\d+) \[([+-]?\d+\.\d+), ([+-]?\d+\.\d+)\]")
 """A difference with its interval, ``+1.9 [+1.7, +2.2]``."""
+
+COUNTED = re.compile(
+    r"(?<![\w.,\-/])(~?)(\d{1,3}(?:,\d{3})+|\d+)(?![\d,.]\d) ?(ms|instances|frames|object poses)\b"
+)
+"""A whole number with what it counts or measures (``~106 ms``, ``264 instances``), checked in a
+block that quotes results: with ``~`` any figure of the source that starts with it (106.6) holds
+it; the source may print it without the thousands comma."""
 
 WHOLE = re.compile(r"\d{1,3}(?:,\d{3})+|\d+")
 """A whole number as a table cell prints it (10, 4,096)."""
@@ -178,6 +186,12 @@ def _compound_missing(block: str, sources: list[Path]) -> list[str]:
         for d, lo, hi in INTERVAL.findall(block)
         if not any(d in line and f"[{lo}, {hi}]" in line for line in lines)
     ]
+    text = "\n".join(lines)
+    for about, number, unit in COUNTED.findall(block):
+        digits = ",?".join(number.replace(",", ""))  # 2,053 as the source prints it, or 2053
+        after = r"(?:\.\d+)?" if about else ""
+        if not re.search(rf"(?<![\w.,]){digits}{after}(?![\w]|[.,]\d)", text):
+            out.append(f"{about}{number} {unit}")
     for cell in _cells(block):
         if WHOLE.fullmatch(cell):
             alone = re.compile(rf"(?<![\w.,]){re.escape(cell)}(?![\w]|[.,]\d)")
@@ -205,7 +219,8 @@ def test_the_checker_catches_a_drifted_figure_and_one_without_a_source(tmp_path)
         "| b | y [+99.9] |\n<!-- /verdicts cpu-online -->\n\nAfter the block: 0.8.\n\n"
         "[Its rows](table.md): 91.3 +- 0.3 (each figure there, not together), +1.9 [+1.7, +2.2]\n"
         "and +1.9 [+1.7, +1.2] (ends from two rows).\n\nFrom [it](table.md):\n\n"
-        "| seeds | points | steps |\n|---:|---:|---:|\n| 10 | 1,024 | 4,096 |\n| 3 | 1 | 024 |\n"
+        "| seeds | points | steps |\n|---:|---:|---:|\n| 10 | 1,024 | 4,096 |\n| 3 | 1 | 024 |\n\n"
+        "[It](table.md): 90.0 ± 0.3 at ~91 ms and 1024 frames, not 12 instances nor ~92 ms.\n"
     )
     assert problems(page) == [
         "page.md:3: ['91.4', '91.4 ± 0.2'] not in table.md",
@@ -214,6 +229,7 @@ def test_the_checker_catches_a_drifted_figure_and_one_without_a_source(tmp_path)
         "page.md:19: ['0.8'] quoted without a linked report",
         "page.md:21: ['91.3 ± 0.3', '+1.9 [+1.7, +1.2]'] not in table.md",
         "page.md:26: ['4,096', '1', '024'] not in table.md",  # 1 and 024 are parts of 1,024
+        "page.md:31: ['12 instances', '~92 ms'] not in table.md",
     ]
     assert FIGURE.findall("v2.13.0, 91.3 ± 0.2, shared-1.42x, 0.18 m, 127.0.0.1") == [
         "91.3",
