@@ -7,8 +7,10 @@ runs of the default preset, made here in seconds: no training), and checks that 
 of the clone lists only files the command named in its output (a file, or a folder it said it
 wrote into). A user's store that lacks the committed runs, or holds runs of other data, renders
 beside the committed reports (``runs/reports/PRESET``, which git ignores), leaving the tracked
-ones as they are. The command runs in this process with this checkout's code; the clone is
-reset between tests. Writes nothing outside temporary folders.
+ones as they are; ``make ablation-shared DRY=1`` plans from the committed sweep and writes
+nothing git lists. The command runs in this process with this checkout's code (the line ``make``
+would run, read with ``make -n``); the clone is reset between tests. Writes nothing outside
+temporary folders.
 
 ``tests/probes/clone_writes.py`` runs the long ones (``make occlusion-report`` on the committed
 sweep, ``cloudpose report``, ``predict``, ``ship``) the same way, ~15 min.
@@ -16,6 +18,7 @@ sweep, ``cloudpose report``, ``predict``, ``ship``) the same way, ~15 min.
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -239,3 +242,37 @@ def test_the_check_names_a_file_the_command_did_not(tmp_path):
     said = f"wrote {tmp_path / 'out'}\nreports/x/a.csv"
     changed = ["out/a.png", "reports/x/a.csv", "reports/x/b.md", "README.md"]
     assert _unnamed(tmp_path, changed, said) == ["reports/x/b.md", "README.md"]
+
+
+def _make_line(clone: Path, *target: str) -> list[str]:
+    """The one CLI call ``make TARGET`` runs (``make -n``), without the ``cloudpose``."""
+    if shutil.which("make") is None:
+        pytest.skip("needs make")
+    out = _stdout(["make", "-n", *target, "CLI=cloudpose"], clone)
+    calls = [line.split() for line in out.splitlines() if line.startswith("cloudpose ")]
+    assert len(calls) == 1, out
+    return calls[0][1:]
+
+
+def _stdout(argv: list[str], cwd: Path) -> str:
+    return subprocess.run(
+        argv, cwd=cwd, capture_output=True, text=True, check=True, timeout=60
+    ).stdout
+
+
+@pytest.mark.slow
+def test_the_ablation_plan_of_a_fresh_clone_reuses_the_committed_sweep(clean_clone, monkeypatch):
+    """``make ablation-shared DRY=1`` on a fresh clone: the committed store unpacked (into
+    ``stores/``, ignored), every run of the plan found finished there, nothing written that git
+    lists."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    args = _make_line(clean_clone, "ablation-shared", "DRY=1")
+    assert "--dry-run" in args, args
+    try:
+        res = cli(*args)
+    finally:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)  # the command set it for its process
+    assert res.exit_code == 0, res.output
+    assert res.output.startswith(f"store: stores/{PRESET}/mlflow.db (unpacked now from"), res.output
+    assert "finished before (skipped), 0 to train" in res.output, res.output
+    assert _changed(clean_clone) == []

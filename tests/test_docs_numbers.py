@@ -369,3 +369,17 @@ def test_the_verdict_counts_written_out_are_those_of_the_claims():
     assert with_paper == sum(counts.values())
     rows = re.search(r"The (\d+) rows not resolved", text)
     assert rows and int(rows.group(1)) == unresolved
+
+
+def test_the_results_page_stays_short_and_lists_its_sections():
+    """reports/README.md: at most ~15 KB, its "Contents" linking every section, each link a
+    heading of the page (issue 62)."""
+    from tests.test_docs_pages import _anchors, _slug
+
+    text = (ROOT / "reports" / "README.md").read_text(encoding="utf-8")
+    assert len(text.encode()) <= 15 * 1024
+    contents = text.split("Contents:", 1)[1].split("\n## ", 1)[0]
+    linked = set(re.findall(r"\]\(#([^)]+)\)", contents))
+    sections = {_slug(h) for h in re.findall(r"^## (.+)$", text, re.M)}
+    assert sections <= linked, f"not in the contents: {sorted(sections - linked)}"
+    assert linked <= _anchors(text), f"contents link no heading: {sorted(linked - _anchors(text))}"
