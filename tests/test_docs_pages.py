@@ -202,3 +202,37 @@ def test_the_checks_catch_what_they_guard_against():
         ("ablate", "--group"),
         ("ablate", "--seeds"),
     }
+
+
+GLOSSARY_TERMS = (
+    "AD",
+    "ADS",
+    "AD AUC, ADS AUC",
+    "ADS < 1 cm",
+    "rot. < 10°",
+    "mod sym",
+    "pp",
+    "supported",
+    "holds / changes / undecided",
+    "reuse N",
+    "bleeding masks",
+    "first radius",
+    "18 cm first radius",
+    "turned starts",
+    "by the depth",
+    "wide refinement",
+    "ensemble",
+    "development frames",
+    "rendered twins",
+    "no estimate",
+)
+"""The terms the front pages use that a reader cannot guess (issue 62)."""
+
+
+def test_the_glossary_defines_each_term_and_the_front_pages_link_it():
+    glossary = _text(DOCS / "glossary.md")
+    undefined = [t for t in GLOSSARY_TERMS if f"**{t}**" not in glossary]
+    assert not undefined, f"docs/glossary.md defines no **{undefined[0]}**"
+    readme = _text(ROOT / "README.md")
+    assert readme.count("](docs/glossary.md)") == 1, "the README links the glossary once"
+    assert "](../docs/glossary.md)" in _text(ROOT / "reports" / "README.md")

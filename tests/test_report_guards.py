@@ -89,6 +89,28 @@ def test_a_smaller_sweep_renders_beside_the_committed_reports(tmp_path):
     assert report_folder("p1", tmp_path, other, committed, fewer, said.append) == other
 
 
+def test_a_sweep_on_other_data_renders_beside_the_committed_reports(tmp_path):
+    """Committed runs of data ``aaaa`` only: a store's runs of data ``bbbb``, however many,
+    include none of them (before, the empty set of committed runs on ``bbbb`` let them render
+    over the committed reports without a word)."""
+    _committed(tmp_path, "p1", [("baseline-fpfh", 1)])
+    row = tmp_path / "reports" / "p1" / "mlflow-store" / "runs" / "run0" / "run.json"
+    run = json.loads(row.read_text())
+    run["tags"]["data"] = "aaaa"
+    row.write_text(json.dumps(run))
+    said: list[str] = []
+    committed = tmp_path / "reports" / "p1"
+    mine = {("baseline-fpfh", s) for s in (1, 2, 3)}
+    assert report_folder("p1", tmp_path, None, committed, mine, said.append, data_key="bbbb") == (
+        tmp_path / "runs" / "reports" / "p1"
+    )
+    assert "of other data than this store's 3 runs (data bbbb)" in said[-1]
+    # on the committed runs' data, the superset renders over them as before
+    assert report_folder("p1", tmp_path, None, committed, mine, said.append, data_key="aaaa") == (
+        committed
+    )
+
+
 @pytest.mark.parametrize("command", [["report", "--no-mlflow"], ["real-report"]])
 def test_report_commands_refuse_an_empty_store(tmp_path, monkeypatch, command):
     monkeypatch.chdir(tmp_path)

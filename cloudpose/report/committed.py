@@ -255,7 +255,8 @@ def report_folder(
 
     Into the preset's committed reports (``reports/PRESET``, which commits a store) only when
     its runs include every committed run's (variant, seed): a smaller sweep of a user's renders
-    into ``runs/reports/PRESET`` instead, said in one line with the counts. An ``out_dir`` the
+    into ``runs/reports/PRESET`` instead, said in one line with the counts, as does a sweep on other
+    data than every committed run's (``data_key``: it includes none of them). An ``out_dir`` the
     user named is written as asked, with the same counts said first when it replaces committed
     reports with fewer runs."""
     committed_dir = Path(project_dir) / "reports" / preset
@@ -263,8 +264,20 @@ def report_folder(
     if not _same_folder(target, committed_dir):
         return target
     theirs = committed_pairs(preset, project_dir, variants=variants, split=split, data_key=data_key)
+    # runs on other data than every committed run's include none of them
+    other_data = (
+        not theirs
+        and data_key is not None
+        and bool(committed_pairs(preset, project_dir, variants=variants, split=split))
+    )
+    why = (
+        f"the committed reports are of other data than this store's {len(pairs)} runs "
+        f"(data {data_key})"
+        if other_data
+        else None
+    )
     return guarded_folder(
-        preset, project_dir, target, out_dir is not None, theirs, pairs, "runs", echo
+        preset, project_dir, target, out_dir is not None, theirs, pairs, "runs", echo, why=why
     )
 
 
@@ -277,27 +290,29 @@ def guarded_folder(
     ours: set,
     unit: str,
     echo: Callable[[str], object],
+    *,
+    why: str | None = None,
 ) -> Path:
     """Where results of ``ours`` may be rendered into ``target``, a folder of committed results
     rendered from ``theirs`` (None: it commits none); ``unit``: what their members are, as the
     counts say them (``runs``, ``result files``).
 
     Over the committed results only when ``ours`` includes every member of ``theirs`` (more
-    members said in one line); results lacking some render into ``runs/reports/PRESET``
-    instead, said in one line with the counts before and after, unless the user ``named``
-    the folder (``--out``): then it is written as asked, the counts said first."""
+    members said in one line); results lacking some, or results that ``why`` says cannot stand
+    for the committed ones (other data), render into ``runs/reports/PRESET`` instead, said in
+    one line with the counts before and after (or ``why``), unless the user ``named`` the
+    folder (``--out``): then it is written as asked, the counts said first."""
     shown = _shown(target, project_dir)
-    if not theirs or theirs <= ours:
+    if why is None and (not theirs or theirs <= ours):
         if theirs and ours - theirs:
             echo(
                 f"rendering over {shown}/: its {len(theirs)} committed {unit} and "
                 f"{len(ours - theirs)} more"
             )
         return target
-    lacking = len(theirs - ours)
-    counts = (
+    counts = why or (
         f"the committed results in {shown}/ count {len(theirs)} {unit}; these "
-        f"{len(ours)} lack {lacking} of them"
+        f"{len(ours)} lack {len(theirs - ours)} of them"
     )
     if named:
         echo(f"warning: replacing {shown}/ by --out: {counts}")
