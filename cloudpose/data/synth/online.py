@@ -107,7 +107,7 @@ from cloudpose.data.synth.sensor import (
     object_ring,
     smooth_readings,
 )
-from cloudpose.data.synth.store import ChunkStore, OnlineSettings
+from cloudpose.data.synth.chunks import ChunkStore, OnlineSettings
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -833,7 +833,7 @@ class OnlineChunks(torch.utils.data.Dataset):
         seed: the run's seed.
         chunk_size: segments per chunk.
         n_chunks: chunks in the run.
-        store: a :class:`~cloudpose.data.synth.store.ChunkStore` root: a chunk stored there is
+        store: a :class:`~cloudpose.data.synth.chunks.ChunkStore` root: a chunk stored there is
             read instead of made, and a chunk made is stored (None: neither).
     """
 
@@ -902,7 +902,7 @@ class OnlineStream:
         workers: synthesis processes (0: in the training process); while the stream is open,
             this process trains with ``torch.get_num_threads() - workers`` threads (at least 1).
         spacing: steps between two uses of a segment (D).
-        store: root of a :class:`~cloudpose.data.synth.store.ChunkStore` to read chunks from
+        store: root of a :class:`~cloudpose.data.synth.chunks.ChunkStore` to read chunks from
             and keep them in (speed only: the same batches; None: synthesize every chunk).
     """
 
@@ -975,7 +975,7 @@ def store_chunks(
 ) -> int:
     """Make and keep the chunks ``0 .. n_chunks - 1`` of ``seed`` that ``store`` lacks, in
     ``workers`` processes (default: every core), so that runs of this seed read them
-    (:mod:`cloudpose.data.synth.store`). Returns how many were made."""
+    (:mod:`cloudpose.data.synth.chunks`). Returns how many were made."""
     from tqdm.auto import tqdm
 
     chunks = OnlineChunks(settings, seed, chunk_size, n_chunks, store)
