@@ -12,7 +12,7 @@ Measured in one run, on the same cores, at the default preset's settings
   rendered-frame route to the same segments, one process);
 - the on-line training loop end to end: steps/s of ``OnlineStream`` with one synthesis worker
   feeding the same training step, i.e. what a run of the preset gets here, and the same loop
-  reading every chunk from the chunk store (:mod:`cloudpose.data.synth.store`), i.e. what every
+  reading every chunk from the chunk store (:mod:`cloudpose.data.synth.chunks`), i.e. what every
   later run of the seed gets;
 - where a scene's time goes: milliseconds per stage of ``OnlineSynth`` (scene sampling, the
   objects' windows, the ray cast or z-buffer, the background ring, the sensor, the segment
@@ -75,8 +75,8 @@ NEWEST = VERSIONS[-1]
 
 
 def _synthesis_rate(batches: int) -> dict:
+    from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.data.synth.online import OnlineSynth
-    from cloudpose.data.synth.store import OnlineSettings
 
     synth = OnlineSynth(OnlineSettings(VERSION, n_points=N_POINTS, online_version=ONLINE_VERSION))
     synth.batch(0, 10_000, BATCH)  # warm-up: surfaces, kernels
@@ -160,8 +160,8 @@ def _versions_rate(batches: int) -> dict:
     """Segments/s of on-line synthesis versions 1, 2 and 3 in this process (one thread each),
     batch by batch alternately, and how far versions 2 and 3's segments agree with version
     1's."""
+    from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.data.synth.online import OnlineSynth
-    from cloudpose.data.synth.store import OnlineSettings
 
     synths = {
         v: OnlineSynth(OnlineSettings(VERSION, n_points=N_POINTS, online_version=v), nthreads=1)
@@ -218,8 +218,8 @@ def _workers_rate(version: int, chunks: int, workers: int = 2) -> dict:
     machine's cores: a DataLoader over the chunks of a seed, as ``cloudpose prepare`` and the
     synthesis workers of a run make them; timed from the first chunk back (the processes
     started, surfaces and kernels loaded) to the last."""
+    from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.data.synth.online import OnlineChunks, _worker_init
-    from cloudpose.data.synth.store import OnlineSettings
 
     settings = OnlineSettings(VERSION, n_points=N_POINTS, online_version=version)
     data = OnlineChunks(settings, 7, BATCH, chunks + workers)
@@ -350,8 +350,8 @@ def _scene_stages_v3(synth, scene, rng: np.random.Generator, parts: dict) -> Non
 def _scene_parts(scenes: int) -> dict:
     """Milliseconds a scene spends in each stage of ``OnlineSynth``, on-line versions 1, 2 and
     3 on the same scenes, alternating (one process, one thread, warm)."""
+    from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.data.synth.online import OnlineSynth
-    from cloudpose.data.synth.store import OnlineSettings
 
     synths = {
         v: OnlineSynth(OnlineSettings(VERSION, n_points=N_POINTS, online_version=v), nthreads=1)
@@ -404,8 +404,8 @@ def _stream_rate(steps: int) -> dict:
     the runs of a seed after its first get)."""
     import tempfile
 
+    from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.data.synth.online import OnlineStream
-    from cloudpose.data.synth.store import OnlineSettings
 
     step = make_step("shared-0", "fused", BATCH, N_POINTS)
     settings = OnlineSettings(VERSION, n_points=N_POINTS, online_version=ONLINE_VERSION)

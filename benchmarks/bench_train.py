@@ -165,8 +165,8 @@ def bf16_accuracy(
     """
     import numpy as np
 
+    from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.data.synth.online import OnlineSynth
-    from cloudpose.data.synth.store import OnlineSettings
     from cloudpose.geometry.rotations import rotmat_geodesic_distance
 
     cfg = resolve("shared-0", "cpu")

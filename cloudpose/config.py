@@ -69,7 +69,7 @@ VERSION_3_SETTINGS = {
 }
 """The ``DataConfig`` fields only on-line synthesis version 3 has -> (largest value, unit of
 the error message). Each is 0 by default, and a field at 0 is left out of a chunk store's key
-(:func:`cloudpose.data.synth.store.store_settings`), so keys made before it existed stay."""
+(:func:`cloudpose.data.synth.chunks.store_settings`), so keys made before it existed stay."""
 
 
 BLEED_BRANCHES = ("both", "translation")

@@ -257,7 +257,7 @@ def _chunk(n=N, k=K, seed=0):
 
 @pytest.fixture
 def store(tmp_path):
-    from cloudpose.data.synth.store import ChunkStore, OnlineSettings
+    from cloudpose.data.synth.chunks import ChunkStore, OnlineSettings
 
     return ChunkStore(tmp_path / "online", OnlineSettings(n_points=K), N)
 

@@ -13,9 +13,9 @@ import torch
 from cloudpose.conventions import YCB_INTRINSICS
 from cloudpose.data.dataset import prepare_data
 from cloudpose.data.segments import extract_segments
+from cloudpose.data.synth.chunks import OnlineSettings
 from cloudpose.data.synth.frames import generate_frame
 from cloudpose.data.synth.online import OnlineStream, OnlineSynth
-from cloudpose.data.synth.store import OnlineSettings
 from cloudpose.data.ycb import Frame
 from cloudpose.registry import resolve
 from cloudpose.suite.pipeline import train_run

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from cloudpose.data.synth import store as store_module
+from cloudpose.data.synth import chunks as chunks_module
+from cloudpose.data.synth.chunks import ChunkStore, OnlineSettings, store_settings
 from cloudpose.data.synth.online import (
     OnlineChunks,
     OnlineStream,
     OnlineSynth,
     store_chunks,
 )
-from cloudpose.data.synth.store import ChunkStore, OnlineSettings, store_settings
 from cloudpose.registry import resolve
 from cloudpose.store import tracking
 from cloudpose.suite.pipeline import train_run
@@ -73,7 +73,7 @@ def test_the_key_covers_what_a_chunk_depends_on(tmp_path, monkeypatch):
         )
     assert ChunkStore(tmp_path, KW, 8).key != base
     # the synthesis code: another source digest is another folder
-    monkeypatch.setattr(store_module, "code_digest", lambda: "0" * 32)
+    monkeypatch.setattr(chunks_module, "code_digest", lambda: "0" * 32)
     assert ChunkStore(tmp_path, KW, 4).key != base
     assert store_settings(KW, 4)["code"] == "0" * 32
 
@@ -84,7 +84,7 @@ def test_code_digest_follows_the_code_not_its_prose(tmp_path):
 
     def digest(text: str) -> str:
         f.write_text(text)
-        return store_module._digest_files([f], tmp_path, code=True)
+        return chunks_module._digest_files([f], tmp_path, code=True)
 
     base = digest('"""Module."""\n\ndef g(x):\n    """Twice x."""\n    return 2 * x\n')
     # prose: docstrings, comments, blank lines, formatting
@@ -94,11 +94,11 @@ def test_code_digest_follows_the_code_not_its_prose(tmp_path):
     assert digest("def g(x):\n    return 2 * x\n") == base
     assert digest("def g(x):\n    return 3 * x\n") != base  # code
     assert digest('def g(x):\n    return "2 * x"\n') != base  # a string that is not a docstring
-    assert len(store_module.code_digest()) == 32
-    sources = store_module._synthesis_sources(Path(store_module.__file__).resolve().parents[2])
+    assert len(chunks_module.code_digest()) == 32
+    sources = chunks_module._synthesis_sources(Path(chunks_module.__file__).resolve().parents[2])
     names = {p.name for p in sources}
     assert {"online.py", "sensor.py", "render.py", "segments.py"} <= names
-    assert "store.py" not in names
+    assert "chunks.py" not in names
 
 
 def test_an_unreadable_chunk_is_made_again(tmp_path):
@@ -167,7 +167,7 @@ def test_a_run_that_reads_the_store_trains_the_same_numbers(tmp_path, smoke_data
     project_b = make_project(tmp_path / "b", smoke_data, monkeypatch)
     reading = train_run(cfg, project_dir=project_b)
     params = tracking.setup(project_b).get_run(reading.run_id).data.params
-    assert params["data.online_code"] == store_module.code_digest()  # what made its segments
+    assert params["data.online_code"] == chunks_module.code_digest()  # what made its segments
     assert filling.metrics == plain.metrics
     assert reading.metrics == plain.metrics
     w = [torch.load(r.checkpoint, weights_only=True)["model"] for r in (plain, reading)]

@@ -253,6 +253,29 @@ def test_umeyama_matches_scipy_align_vectors():
     np.testing.assert_array_equal(umeyama_from_moments(np.zeros((4, 4))), np.eye(4))
 
 
+def test_the_compiled_umeyama_is_the_numpy_one_on_every_branch():
+    """kernels/icp.py's ``_umeyama_moments`` is geometry/rigid.py's ``umeyama_from_moments``
+    compiled (issue 63: one Umeyama or a tested twin): the same transform on each branch, no
+    pairs, one or two pairs (a translation), a rotation and a mirror image (the weakest
+    direction flipped)."""
+    from cloudpose.kernels.icp import _umeyama_moments
+
+    rng = np.random.default_rng(9)
+    src = rng.normal(scale=0.05, size=(40, 3))
+    turned = src @ Rotation.random(random_state=rng).as_matrix().T + 0.01
+    mirrored = src * np.array([1, 1, -1]) + 0.02
+    cases = {"none": (src[:0], src[:0]), "one": (src[:1], turned[:1])}
+    cases |= {"two": (src[:2], turned[:2]), "rotation": (src, turned)}
+    cases |= {"mirror": (src, mirrored)}
+    for name, (a, b) in cases.items():
+        S = correspondence_moments(a, b)
+        T = umeyama_from_moments(S)
+        np.testing.assert_allclose(_umeyama_moments(S), T, rtol=0, atol=1e-12, err_msg=name)
+    S = correspondence_moments(src, mirrored)
+    assert np.linalg.det(umeyama_from_moments(S)[:3, :3]) == pytest.approx(1.0)
+    assert np.linalg.det(_umeyama_moments(S)[:3, :3]) == pytest.approx(1.0)
+
+
 @pytest.mark.parametrize("graph", ["delaunay", "lists"])
 @pytest.mark.parametrize("name", MODELS)
 def test_compiled_loop_equals_the_pykdtree_loop(name, graph, monkeypatch):

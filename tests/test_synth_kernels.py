@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from cloudpose.data.segments import farthest_point_sampling_reference
+from cloudpose.data.synth.chunks import OnlineSettings
 from cloudpose.data.synth.online import WINDOW_PAD, OnlineSynth
 from cloudpose.data.synth.sensor import (
     correlated_uniform,
@@ -15,7 +16,6 @@ from cloudpose.data.synth.sensor import (
     edge_distance,
     edge_distance_compiled,
 )
-from cloudpose.data.synth.store import OnlineSettings
 from cloudpose.kernels.backend import disabled, enabled
 
 pytestmark = pytest.mark.skipif(not enabled(), reason="numba kernels off")

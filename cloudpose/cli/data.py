@@ -215,8 +215,8 @@ def same_data(
 def _store_seeds(
     cfg: Config, class_names: list[str], seeds: int, workers: int | None, progress: bool
 ):
+    from cloudpose.data.synth.chunks import ChunkStore
     from cloudpose.data.synth.online import store_chunks
-    from cloudpose.data.synth.store import ChunkStore
     from cloudpose.train.loop import ONLINE_STORE_ENV, online_chunks, online_store_root
 
     if cfg.data.train_source != "online":

@@ -37,11 +37,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloudpose.config import DataConfig
 from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import Dataset, as_dataset, open_dataset
 from cloudpose.data.mask_sources import get_mask_source
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, Segment, SegmentWarning, extract_segments
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import CorruptFileError, atomic_text, read_json, read_npz, why
 
@@ -248,8 +250,6 @@ def _extract(args: tuple[str, dict]) -> tuple[list[Segment], int]:
             alone = ds.alone_pixels(fid)
             if alone is None:
                 if "renderer" not in _worker:
-                    from cloudpose.data.synth.render import Renderer
-
                     # copies: the reader's arrays are read-only, Open3D wants writeable ones
                     _worker["renderer"] = Renderer(
                         {c: p.copy() for c, p in ds.models().items()},
@@ -409,7 +409,6 @@ def segments_for(
         workers: processes (default all cores).
         progress: progress bar.
     """
-    from cloudpose.config import DataConfig
 
     cfg = cfg or DataConfig()
     cache_dir = Path(cache_dir) if cache_dir else Path.cwd() / "data" / "cache"

@@ -22,9 +22,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloudpose.config import DataConfig
 from cloudpose.data.cache import SegmentSet, cache_key, load_segments, segments_for
 from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import Dataset, as_dataset, open_dataset
+from cloudpose.data.synth import synthesize
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -81,8 +83,6 @@ def prepare_data(
     project_dir = Path(project_dir or Path.cwd())
     root, cache_dir = _dataset_root(cfg, project_dir)
     if cfg.root == "":
-        from cloudpose.data.synth import synthesize
-
         synthesize(
             root,
             cfg.train_frames,
@@ -117,7 +117,6 @@ def synthetic_root(cfg: DataConfig, project_dir: str | Path | None = None) -> Pa
     Generator version 1 has no suffix, every later version its own (``-v2``): frames of two
     versions never share a folder.
     """
-    from cloudpose.config import DataConfig
 
     base = DataConfig()
     name = f"synth-seed{cfg.synth_seed}"

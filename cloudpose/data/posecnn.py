@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cloudpose.conventions import resource_path
+from cloudpose.data.ycb import _read_lines
 
 if TYPE_CHECKING:
     from cloudpose.data.ycb import Frame
@@ -47,8 +48,6 @@ class PoseCNNMasks:
     """
 
     def __init__(self, folder: str | Path) -> None:
-        from cloudpose.data.ycb import _read_lines
-
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise FileNotFoundError(

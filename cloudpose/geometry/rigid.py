@@ -3,9 +3,10 @@ between two rotations.
 
 One numpy implementation, written on the correspondences' homogeneous moment matrix so that
 ICP can accumulate the moments in one pass; ``umeyama_rigid`` forms the moments of two point
-lists and calls it. The compiled ICP loop has the same code in numba
-(``cloudpose.kernels.icp._umeyama_moments``); tests compare both with scipy's
-``Rotation.align_vectors``.
+lists and calls it. The compiled ICP loop has its twin in numba
+(``cloudpose.kernels.icp._umeyama_moments``, kept apart: the numpy ICP twin in refine.py and
+the compiled loop each keep their own rounding); tests compare both with scipy's
+``Rotation.align_vectors`` and with each other on every branch (tests/test_refine.py).
 """
 
 from __future__ import annotations

@@ -1,14 +1,21 @@
 """Exact farthest point sampling: a k-d tree's buckets let a pick skip the points it cannot
-get closer to."""
+get closer to.
+
+Also the two steps the other FPS kernels share with it (``segment_cut.grid_fps``,
+``scene_pass.fps_soa``): :func:`scan_bucket`, one bucket's points brought up to date with a new
+sample, and :func:`grid_buckets`, points bucketed by a 2-D grid over their x and y.
+"""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from cloudpose.kernels.backend import enabled, njit
 from cloudpose.kernels.kdtree import _box_d2, build_kdtree
 
-__all__ = ["farthest_order", "fps_order"]
+__all__ = ["farthest_order", "fps_order", "grid_buckets", "scan_bucket"]
 
 
 def farthest_order(points: np.ndarray, k: int, start: int) -> np.ndarray:
@@ -30,6 +37,68 @@ def farthest_order(points: np.ndarray, k: int, start: int) -> np.ndarray:
 
     # fps_sampling honours start_idx exactly (the bucket/kd variants in 1.0.2 do not)
     return np.asarray(fpsample.fps_sampling(points, k, start_idx=start), dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def scan_bucket(Q, near, index, a, b, px, py, pz):  # pragma: no cover - compiled
+    """The points ``Q[a:b]`` (float32, stored order) brought up to date with the sample
+    ``(px, py, pz)`` (float32): each one's squared distance to its nearest sample ``near``
+    lowered where the new one is nearer, in float32 (the numpy loop's expression).
+
+    Returns:
+        The largest of them and its stored position (ties to the highest original index,
+        ``index[j]``); ``b > a``.
+    """
+    best_v = np.float32(-1.0)
+    best = a
+    for j in range(a, b):
+        dx = Q[j, 0] - px
+        dy = Q[j, 1] - py
+        dz = Q[j, 2] - pz
+        d = dx * dx + dy * dy + dz * dz
+        v = near[j]
+        if d < v:
+            v = d
+            near[j] = d
+        if v > best_v or (v == best_v and index[j] > index[best]):
+            best_v = v
+            best = j
+    return best_v, best
+
+
+@njit(cache=True)
+def grid_buckets(X, Y, per_cell):  # pragma: no cover - compiled
+    """Points ``(X, Y)`` (N,) bucketed by a g x g grid over their bounds, g = sqrt(N /
+    per_cell) (at least 1): a counting sort by cell, row-major.
+
+    Returns:
+        cells (g * g), (cells + 1,) int64 offsets (cell c's points are stored at
+        ``[offsets[c], offsets[c + 1])``) and (N,) int64 the original index of each stored
+        point (ascending within a cell).
+    """
+    n = X.shape[0]
+    g = max(1, int(math.sqrt(n / per_cell)))
+    x0, x1, y0, y1 = np.inf, -np.inf, np.inf, -np.inf
+    for i in range(n):
+        x0, x1 = min(x0, np.float64(X[i])), max(x1, np.float64(X[i]))
+        y0, y1 = min(y0, np.float64(Y[i])), max(y1, np.float64(Y[i]))
+    sx = g / (x1 - x0) if x1 > x0 else 0.0
+    sy = g / (y1 - y0) if y1 > y0 else 0.0
+    cells = g * g
+    cell = np.empty(n, np.int64)
+    counts = np.zeros(cells + 1, np.int64)
+    for i in range(n):
+        cx = min(int((X[i] - x0) * sx), g - 1)
+        cy = min(int((Y[i] - y0) * sy), g - 1)
+        cell[i] = cy * g + cx
+        counts[cell[i] + 1] += 1
+    cstart = np.cumsum(counts)
+    fill = cstart[:-1].copy()
+    index = np.empty(n, np.int64)
+    for i in range(n):
+        index[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    return cells, cstart, index
 
 
 @njit(cache=True)
@@ -60,7 +129,6 @@ def _fps_kernel(P, index, box, left, right, start, end, k, first):
         sx, sy, sz = P[cur, 0], P[cur, 1], P[cur, 2]
         xs, ys, zs = np.float64(sx), np.float64(sy), np.float64(sz)
         n_visit = 0
-        sp = 0
         stack[0] = 0
         sp = 1
         while sp > 0:
@@ -77,22 +145,9 @@ def _fps_kernel(P, index, box, left, right, start, end, k, first):
                 stack[sp + 1] = right[node]
                 sp += 2
                 continue
-            best_v = np.float32(-1.0)
-            best = start[node]
-            for i in range(start[node], end[node]):
-                dx = P[i, 0] - sx
-                dy = P[i, 1] - sy
-                dz = P[i, 2] - sz
-                d = dx * dx + dy * dy + dz * dz  # float32, the numpy loop's expression
-                v = near[i]
-                if d < v:
-                    v = d
-                    near[i] = d
-                if v > best_v or (v == best_v and index[i] > index[best]):
-                    best_v = v
-                    best = i
-            node_max[node] = best_v
-            node_arg[node] = best
+            node_max[node], node_arg[node] = scan_bucket(
+                P, near, index, start[node], end[node], sx, sy, sz
+            )
         for t in range(n_visit - 1, -1, -1):  # children before parents
             node = visit[t]
             a, b = left[node], right[node]

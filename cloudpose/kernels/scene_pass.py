@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
+from cloudpose.kernels.fps import grid_buckets
 from cloudpose.kernels.sensor import incidence_terms
 
 __all__ = [
@@ -646,31 +647,12 @@ def fps_soa(X, Y, Z, k, start, per_cell=64):  # pragma: no cover - compiled
         (the same float32 squared distances, ties to the highest index).
     """
     n = X.shape[0]
-    g = max(1, int(math.sqrt(n / per_cell)))
-    x0, x1, y0, y1 = np.inf, -np.inf, np.inf, -np.inf
-    for i in range(n):
-        x0, x1 = min(x0, np.float64(X[i])), max(x1, np.float64(X[i]))
-        y0, y1 = min(y0, np.float64(Y[i])), max(y1, np.float64(Y[i]))
-    sx = g / (x1 - x0) if x1 > x0 else 0.0
-    sy = g / (y1 - y0) if y1 > y0 else 0.0
-    cells = g * g
-    cell = np.empty(n, np.int64)
-    counts = np.zeros(cells + 1, np.int64)
-    for i in range(n):
-        cx = min(int((X[i] - x0) * sx), g - 1)
-        cy = min(int((Y[i] - y0) * sy), g - 1)
-        cell[i] = cy * g + cx
-        counts[cell[i] + 1] += 1
-    cstart = np.cumsum(counts)
-    fill = cstart[:-1].copy()
-    index = np.empty(n, np.int64)
+    cells, cstart, index = grid_buckets(X, Y, per_cell)
     QX = np.empty(n, np.float32)
     QY = np.empty(n, np.float32)
     QZ = np.empty(n, np.float32)
-    for i in range(n):
-        j = fill[cell[i]]
-        fill[cell[i]] += 1
-        index[j] = i
+    for j in range(n):
+        i = index[j]
         QX[j], QY[j], QZ[j] = X[i], Y[i], Z[i]
     bx0, by0, bz0 = np.full(cells, np.inf), np.full(cells, np.inf), np.full(cells, np.inf)
     bx1, by1, bz1 = np.full(cells, np.inf), np.full(cells, np.inf), np.full(cells, np.inf)

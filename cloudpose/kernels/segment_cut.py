@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from cloudpose.kernels.backend import njit
+from cloudpose.kernels.fps import grid_buckets, scan_bucket
 from cloudpose.kernels.kdtree import _box_d2
 
 __all__ = ["gather_instances", "grid_fps"]
@@ -65,31 +66,10 @@ def grid_fps(P, k, start, per_cell=64):  # pragma: no cover - compiled
         (k,) int64 indices into ``P`` (1 <= k <= N).
     """
     n = P.shape[0]
-    g = max(1, int(math.sqrt(n / per_cell)))
-    x0, x1, y0, y1 = np.inf, -np.inf, np.inf, -np.inf
-    for i in range(n):
-        x0 = min(x0, np.float64(P[i, 0]))
-        x1 = max(x1, np.float64(P[i, 0]))
-        y0 = min(y0, np.float64(P[i, 1]))
-        y1 = max(y1, np.float64(P[i, 1]))
-    sx = g / (x1 - x0) if x1 > x0 else 0.0
-    sy = g / (y1 - y0) if y1 > y0 else 0.0
-    cells = g * g
-    cell = np.empty(n, np.int64)
-    counts = np.zeros(cells + 1, np.int64)
-    for i in range(n):
-        cx = min(int((P[i, 0] - x0) * sx), g - 1)
-        cy = min(int((P[i, 1] - y0) * sy), g - 1)
-        cell[i] = cy * g + cx
-        counts[cell[i] + 1] += 1
-    cstart = np.cumsum(counts)
-    fill = cstart[:-1].copy()
-    index = np.empty(n, np.int64)  # original index, ascending within a cell
+    cells, cstart, index = grid_buckets(P[:, 0], P[:, 1], per_cell)
     Q = np.empty((n, 3), np.float32)
-    for i in range(n):
-        j = fill[cell[i]]
-        fill[cell[i]] += 1
-        index[j] = i
+    for j in range(n):
+        i = index[j]
         Q[j, 0], Q[j, 1], Q[j, 2] = P[i, 0], P[i, 1], P[i, 2]
     box = np.empty((cells, 6))
     cmax = np.full(cells, np.inf, np.float32)  # largest nearest-sample distance^2 in the cell
@@ -116,22 +96,8 @@ def grid_fps(P, k, start, per_cell=64):  # pragma: no cover - compiled
             # (margin 1e-6 >> float32 rounding of a squared distance; as fps_order)
             if _box_d2(box, c, xs, ys, zs) * (1.0 - 1e-6) > cmax[c]:
                 continue
-            best_v = np.float32(-1.0)
-            best = -1
-            for j in range(cstart[c], cstart[c + 1]):
-                dx = Q[j, 0] - px
-                dy = Q[j, 1] - py
-                dz = Q[j, 2] - pz
-                d = dx * dx + dy * dy + dz * dz  # float32, the numpy loop's expression
-                v = near[j]
-                if d < v:
-                    v = d
-                    near[j] = d
-                if v > best_v or (v == best_v and index[j] > best):
-                    best_v = v
-                    best = index[j]
-            cmax[c] = best_v
-            carg[c] = best
+            cmax[c], best = scan_bucket(Q, near, index, cstart[c], cstart[c + 1], px, py, pz)
+            carg[c] = index[best]
         best_v = np.float32(-1.0)
         cur = -1
         for c in range(cells):

@@ -49,6 +49,7 @@ from cloudpose.metrics.summaries import (
     occlusion_bin_index,
     occlusion_bins,
     per_class_table,
+    stage_summary,
     summarize,
     voc_ap_auc,
 )
@@ -68,6 +69,7 @@ __all__ = [
     "per_class_table",
     "pose_errors",
     "rotation_error_deg",
+    "stage_summary",
     "summarize",
     "translation_error",
     "voc_ap_auc",

@@ -196,6 +196,34 @@ def flatten_summary(summary: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
+STAGE_ERRORS = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
+"""The error columns of a stage of an instance table (``net_ad``, ``icp_ad``, ...)."""
+
+STAGE_MEDIANS = {
+    "trans_median_mm": "trans_err",
+    "along_median_mm": "trans_along",
+    "across_median_mm": "trans_across",
+}
+"""Median translation figures (mm) of :func:`stage_summary`: key -> the stage's column (the
+parts along and across the viewing ray are the comparison's, ``studies.compare.ray_split``)."""
+
+
+def stage_summary(
+    table: pd.DataFrame, stage: str, medians: tuple[str, ...] = ("trans_median_mm",)
+) -> dict[str, float]:
+    """Pooled figures of one stage (``net``: the method's estimate, ``icp``: after ICP) of an
+    instance table whose columns are ``{stage}_{error}``: :func:`summarize`'s pooled figures
+    (fractions, and ``count``) and the median of each of ``medians``
+    (:data:`STAGE_MEDIANS`, mm; NaN for no instances). What the comparison and the stress
+    sweep each pick their columns from."""
+    sub = table.rename(columns={f"{stage}_{k}": k for k in STAGE_ERRORS})
+    out = dict(summarize(sub, by_class=False)["pooled"])
+    for key in medians:
+        values = table[f"{stage}_{STAGE_MEDIANS[key]}"]
+        out[key] = 1000 * float(np.median(values)) if len(values) else float("nan")
+    return out
+
+
 def occlusion_bin_index(occlusion: np.ndarray, width: float = 0.1) -> tuple[np.ndarray, int]:
     """Bin of each occlusion factor: [0, w), [w, 2w), ..., the last closed at 1.
 

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,7 +65,7 @@ from cloudpose.methods import (
     no_estimate,
     score,
 )
-from cloudpose.metrics import summarize
+from cloudpose.metrics import stage_summary
 from cloudpose.refine import Estimates, ICPSettings, schedule_for
 from cloudpose.store.metric_names import data_evaluation_name
 from cloudpose.store.pretrained import PRETRAINED, shipped
@@ -603,19 +602,16 @@ def _write_table(
     return table
 
 
+SUMMARY_FRACTIONS = ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")
+SUMMARY_MEDIANS = ("trans_median_mm", "along_median_mm", "across_median_mm")
+
+
 def summary(table: pd.DataFrame, stage: str) -> dict[str, float]:
     """Pooled figures of one stage (``net`` or ``icp``) of an instance table: ADS AUC, AD AUC,
     rotation < 10 deg modulo symmetry, translation < 1 cm (fractions), median translation and
-    its parts along and across the viewing ray (mm)."""
-    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
-    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
-    pooled = summarize(sub, by_class=False)["pooled"]
-    out = {k: float(pooled[k]) for k in ("ads_auc", "ad_auc", "rot_sym_lt_10deg", "trans_lt_1cm")}
-    for key, col in (("trans_median_mm", "trans_err"), ("along_median_mm", "trans_along"),
-                     ("across_median_mm", "trans_across")):  # fmt: skip
-        values = table[f"{stage}_{col}"] if col != "trans_err" else sub[col]
-        out[key] = 1000 * float(np.median(values)) if len(values) else math.nan
-    return out
+    its parts along and across the viewing ray (mm) (:func:`cloudpose.metrics.stage_summary`)."""
+    out = stage_summary(table, stage, medians=SUMMARY_MEDIANS)
+    return {k: float(out[k]) for k in SUMMARY_FRACTIONS + SUMMARY_MEDIANS}
 
 
 def rows(tables: dict, contenders, refs) -> pd.DataFrame:

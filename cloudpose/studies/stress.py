@@ -43,7 +43,7 @@ from cloudpose.methods import (
     Network,
     score,
 )
-from cloudpose.metrics import summarize
+from cloudpose.metrics import stage_summary
 from cloudpose.refine import ICPSettings, schedule_for
 from cloudpose.registry import DEFAULT_PRESET, resolve
 from cloudpose.studies.perturbations import (
@@ -363,17 +363,10 @@ SUMMARY_COLUMNS = ("ads_auc", "rot_sym_lt_10deg", "trans_lt_1cm", "trans_median_
 
 def summary_of(table: pd.DataFrame, stage: str) -> dict[str, float]:
     """:data:`SUMMARY_COLUMNS` of one method's result table at ``stage`` (``net``: its own
-    estimate, ``icp``: after ICP), pooled over its instances."""
-    cols = ("ad", "ads", "rot_err_deg", "rot_sym_err_deg", "trans_err")
-    sub = table.rename(columns={f"{stage}_{k}": k for k in cols})
-    pooled = summarize(sub, by_class=False)["pooled"]
-    return {
-        "ads_auc": pooled["ads_auc"],
-        "rot_sym_lt_10deg": pooled["rot_sym_lt_10deg"],
-        "trans_lt_1cm": pooled["trans_lt_1cm"],
-        "trans_median_mm": 1000 * float(np.median(sub["trans_err"])),
-        "count": float(len(sub)),
-    }
+    estimate, ``icp``: after ICP), pooled over its instances, and their ``count``
+    (:func:`cloudpose.metrics.stage_summary`)."""
+    out = stage_summary(table, stage)
+    return {k: out[k] for k in (*SUMMARY_COLUMNS, "count")}
 
 
 def _learned(method: dict) -> bool:

@@ -60,8 +60,8 @@ from cloudpose.config import Config
 from cloudpose.data.batches import Batchable, split_forms
 from cloudpose.data.dataset import Prepared
 from cloudpose.data.keys import DataKey
+from cloudpose.data.synth.chunks import STORE_DIR, OnlineSettings, code_digest
 from cloudpose.data.synth.online import REUSE_SPACING, OnlineChunks, OnlineStream
-from cloudpose.data.synth.store import STORE_DIR, OnlineSettings, code_digest
 from cloudpose.failures import DiskFullError, disk_full, sigterm_as_interrupt
 from cloudpose.files import atomic_write
 from cloudpose.geometry.symmetry import SymmetryTensors, symmetries_for
@@ -104,7 +104,7 @@ def split_frames(frame_ids: np.ndarray, val_fraction: float) -> np.ndarray:
 
 ONLINE_STORE_ENV = "CLOUDPOSE_ONLINE_STORE"
 """Environment variable: ``0`` keeps on-line runs from reading or writing the project's chunk
-store (:mod:`cloudpose.data.synth.store`); a path puts the store there. Unset: the project's
+store (:mod:`cloudpose.data.synth.chunks`); a path puts the store there. Unset: the project's
 ``data/cache/online``."""
 
 

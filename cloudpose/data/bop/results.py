@@ -12,6 +12,7 @@ from cloudpose.data.bop.format import (
     bop_ids,
     model_origin,
 )
+from cloudpose.data.synth.surfaces import load_packaged_models
 from cloudpose.files import atomic_text
 
 
@@ -46,7 +47,6 @@ def write_results_csv(
         ValueError: the table has no poses for ``method`` (an evaluation of an older version,
             or ``icp`` of an evaluation made without ICP).
     """
-    from cloudpose.data.synth.surfaces import load_packaged_models
 
     cols = [f"{method}_R", f"{method}_t"]
     missing = [c for c in ("frame_id", "cls_id", "miss", *cols) if c not in table]

@@ -22,6 +22,7 @@ from cloudpose.data.bop.format import (
 )
 from cloudpose.data.segment_set import SegmentSet, check_units, unit_stats
 from cloudpose.data.segments import ALONE_SURFACE_VERSION, SegmentWarning, extract_segments
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
@@ -246,7 +247,6 @@ def export_bop(
     splits = _export_splits(src, frames, train)
     models = src.models()
     check_export_units(src, [fid for _, ids in splits for fid in ids], models)
-    from cloudpose.data.synth.render import Renderer
 
     # the surfaces that render a real frame's occlusion counts, so both layouts give one factor
     renderer = Renderer(

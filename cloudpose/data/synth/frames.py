@@ -9,6 +9,7 @@ import numpy as np
 
 from cloudpose.config import GENERATOR_VERSION, check_synth_version
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.resting import resting_poses
 from cloudpose.data.synth.scenes import (
     MIN_VISIBLE_PIXELS,
@@ -21,6 +22,7 @@ from cloudpose.data.synth.scenes import (
     uniform_rotations,
 )
 from cloudpose.data.synth.sensor import add_sensor_noise, add_sensor_noise_v2, background_depth
+from cloudpose.data.synth.surfaces import load_packaged_models
 
 SPLIT_CODES = {"train": 0, "test": 1}
 SEQ_OFFSET = {"train": 0, "test": 1000}
@@ -66,9 +68,6 @@ class _Generator:
     resting poses); build it with :func:`_generator` (one per process and version)."""
 
     def __init__(self, version: int = GENERATOR_VERSION) -> None:
-        from cloudpose.data.synth.render import Renderer
-        from cloudpose.data.synth.surfaces import load_packaged_models
-
         self.version = check_synth_version(version)
         self.models = load_packaged_models()
         self.renderer = Renderer(self.models, surface_version=self.version)

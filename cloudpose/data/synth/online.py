@@ -82,7 +82,14 @@ import numpy as np
 import torch
 
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
-from cloudpose.data.segments import SegmentWarning, extract_segments
+from cloudpose.data.segments import (
+    Segment,
+    SegmentWarning,
+    extract_segments,
+    farthest_point_sampling,
+    instance_streams,
+)
+from cloudpose.data.synth.chunks import ChunkStore, OnlineSettings
 from cloudpose.data.synth.frames import _generator
 from cloudpose.data.synth.scenes import (
     MAX_RANGE,
@@ -107,7 +114,18 @@ from cloudpose.data.synth.sensor import (
     object_ring,
     smooth_readings,
 )
-from cloudpose.data.synth.store import ChunkStore, OnlineSettings
+from cloudpose.data.ycb import Frame
+from cloudpose.kernels.backend import enabled
+from cloudpose.kernels.scene_pass import (
+    DRAW_WORDS,
+    fps_soa,
+    normal_draws,
+    raster_scene,
+    ring_pixels,
+    ziggurat_tables,
+)
+from cloudpose.kernels.scene_pass import scene_points as compiled_scene_points
+from cloudpose.kernels.segment_cut import backproject_filtered, gather_instances, grid_fps
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -244,9 +262,7 @@ def scene_points(
     Kinv = _inverse(np.ascontiguousarray(Kw, dtype=np.float64).tobytes())
     xs, fs = _ziggurat()
     if compiled:
-        from cloudpose.kernels.scene_pass import scene_points as kernel
-
-        return kernel(
+        return compiled_scene_points(
             clean,
             index,
             visible,
@@ -316,8 +332,6 @@ def _inverse(K: bytes) -> np.ndarray:
 def _ziggurat() -> tuple[np.ndarray, np.ndarray]:
     global _ZIGGURAT
     if _ZIGGURAT is None:
-        from cloudpose.kernels.scene_pass import ziggurat_tables
-
         _ZIGGURAT = ziggurat_tables()
     return _ZIGGURAT
 
@@ -327,7 +341,6 @@ _ZIGGURAT: tuple[np.ndarray, np.ndarray] | None = None
 
 def _stream_words(key: int, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """The numpy twin of :func:`cloudpose.kernels.scene_pass.stream_word` (uint64 arrays)."""
-    from cloudpose.kernels.scene_pass import DRAW_WORDS
 
     c = np.asarray(i, dtype=np.uint64) * np.uint64(DRAW_WORDS) + (
         np.asarray(j, dtype=np.uint64) + np.uint64(1)
@@ -352,8 +365,6 @@ def standard_normals(key: int, n: int, compiled: bool) -> np.ndarray:
 
     xs, fs = _ziggurat()
     if compiled:
-        from cloudpose.kernels.scene_pass import normal_draws
-
         return normal_draws(np.uint64(key), n, xs, fs)
     scale = 1.0 / 9007199254740992.0
     out = np.empty(n)
@@ -422,8 +433,6 @@ def cut_segments(frame, n_fps: int, outlier_radius: float, rng: np.random.Genera
     Returns:
         One :class:`~cloudpose.data.segments.Segment` per instance, in ``cls_ids`` order.
     """
-    from cloudpose.data.segments import Segment, farthest_point_sampling, instance_streams
-    from cloudpose.kernels.backend import enabled
 
     cls_ids = np.asarray(frame.cls_ids, dtype=np.int64)
     n = len(cls_ids)
@@ -436,8 +445,6 @@ def cut_segments(frame, n_fps: int, outlier_radius: float, rng: np.random.Genera
     lut[cls_ids] = np.arange(n)
     compiled = enabled()
     if compiled:
-        from cloudpose.kernels.segment_cut import backproject_filtered, gather_instances, grid_fps
-
         sel, offsets = gather_instances(depth, np.asarray(frame.label), lut, n)
     else:
         inst = lut[np.asarray(frame.label).ravel()]
@@ -552,7 +559,6 @@ class OnlineSynth:
         (on the ring of pixels around the objects only where only the objects' readings are
         needed: the version-2 sensor, :func:`add_sensor_noise_v2_objects`).
         """
-        from cloudpose.data.ycb import Frame
 
         poses = scene.poses()
         if self.settings.online_version >= 2:
@@ -651,12 +657,9 @@ class OnlineSynth:
         ``(depth, index, visible, box)``, or None when no object is in the image. One compiled
         pass (:func:`cloudpose.kernels.scene_pass.raster_scene`); an object reaching behind the
         camera is drawn by version 2's z-buffer, which casts its rays."""
-        from cloudpose.kernels.backend import enabled
 
         cls_ids = np.asarray(scene.cls_ids, dtype=np.int64)
         if enabled():
-            from cloudpose.kernels.scene_pass import raster_scene
-
             V, F, vstart, fstart, slot = self._meshes()
             H, W = self.shape
             status, box, depth, index, visible = raster_scene(
@@ -682,11 +685,8 @@ class OnlineSynth:
         """``depth`` (changed in place) with the background's depth on the ring of pixels
         around the objects (:func:`~cloudpose.data.synth.sensor.object_ring`; found by
         :func:`cloudpose.kernels.scene_pass.ring_pixels` where the kernels are enabled)."""
-        from cloudpose.kernels.backend import enabled
 
         if enabled():
-            from cloudpose.kernels.scene_pass import ring_pixels
-
             ring_v, ring_u = ring_pixels(index)
         else:
             ring_v, ring_u = np.nonzero(object_ring(index >= 0))
@@ -699,8 +699,6 @@ class OnlineSynth:
         """:meth:`scene_segments` of version 3 (see the module doc): the compiled passes of
         :mod:`cloudpose.kernels.scene_pass` where the kernels are enabled, else their numpy
         twins (the same segments to float rounding)."""
-        from cloudpose.data.segments import Segment, farthest_point_sampling, instance_streams
-        from cloudpose.kernels.backend import enabled
 
         poses = scene.poses()
         drawn = self._raster_v3(scene, poses)
@@ -741,8 +739,6 @@ class OnlineSynth:
             samples = []
             for f, ((pts, _), (a, b)) in enumerate(zip(cut, spans, strict=True)):
                 if compiled:
-                    from cloudpose.kernels.scene_pass import fps_soa
-
                     if soa[f] is None:  # every point's coordinates, x, y and z rows, float32
                         soa[f] = np.ascontiguousarray(pts.T, dtype=np.float32)
                     xyz = soa[f]
@@ -833,7 +829,7 @@ class OnlineChunks(torch.utils.data.Dataset):
         seed: the run's seed.
         chunk_size: segments per chunk.
         n_chunks: chunks in the run.
-        store: a :class:`~cloudpose.data.synth.store.ChunkStore` root: a chunk stored there is
+        store: a :class:`~cloudpose.data.synth.chunks.ChunkStore` root: a chunk stored there is
             read instead of made, and a chunk made is stored (None: neither).
     """
 
@@ -902,7 +898,7 @@ class OnlineStream:
         workers: synthesis processes (0: in the training process); while the stream is open,
             this process trains with ``torch.get_num_threads() - workers`` threads (at least 1).
         spacing: steps between two uses of a segment (D).
-        store: root of a :class:`~cloudpose.data.synth.store.ChunkStore` to read chunks from
+        store: root of a :class:`~cloudpose.data.synth.chunks.ChunkStore` to read chunks from
             and keep them in (speed only: the same batches; None: synthesize every chunk).
     """
 
@@ -975,7 +971,7 @@ def store_chunks(
 ) -> int:
     """Make and keep the chunks ``0 .. n_chunks - 1`` of ``seed`` that ``store`` lacks, in
     ``workers`` processes (default: every core), so that runs of this seed read them
-    (:mod:`cloudpose.data.synth.store`). Returns how many were made."""
+    (:mod:`cloudpose.data.synth.chunks`). Returns how many were made."""
     from tqdm.auto import tqdm
 
     chunks = OnlineChunks(settings, seed, chunk_size, n_chunks, store)

@@ -18,6 +18,8 @@ from cloudpose.data.synth.surfaces import (
     load_packaged_models,
     surface_arrays,
 )
+from cloudpose.kernels.backend import enabled
+from cloudpose.kernels.raster import rasterize_mesh
 
 if TYPE_CHECKING:  # Open3D is imported where it casts rays: the compiled raster needs none
     import open3d as o3d
@@ -282,7 +284,6 @@ class Renderer:
             (:class:`Rendering` over the box, box (v0, v1, u0, u1)), or None when no object
             projects into the image.
         """
-        from cloudpose.kernels.backend import enabled
 
         K, shape, cls_ids, poses = _check_inputs(K, shape, cls_ids, poses)
         _check_labels(cls_ids)
@@ -322,7 +323,6 @@ class Renderer:
         )
         if not compiled:
             return self.render_instanced(K, shape, cls_ids, poses, wins, box, nthreads), box
-        from cloudpose.kernels.raster import rasterize_mesh
 
         bv0, bv1, bu0, bu1 = box
         depth = np.full((bv1 - bv0, bu1 - bu0), np.inf)

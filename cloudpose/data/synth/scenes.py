@@ -22,6 +22,18 @@ from scipy.spatial.transform import Rotation
 
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.synth.resting import RestingPoses
+from cloudpose.kernels.backend import enabled
+from cloudpose.kernels.placement import (
+    close_cells,
+    column_means,
+    contact_cells,
+    count_in_image,
+    hull_margin,
+    placed_cells,
+    raster_cells,
+    slide_steps,
+    top_cells,
+)
 
 N_OBJECTS = (3, 8)
 """Objects per table scene (inclusive)."""
@@ -190,11 +202,9 @@ def _in_image_fraction(points_cam: np.ndarray, K: np.ndarray, shape: tuple[int, 
     """Share of the (P, 3) camera-frame points in front of the camera that project into the
     image; the compiled :func:`cloudpose.kernels.placement.count_in_image` where the kernels
     are enabled (the same test), else :func:`_in_image_fraction_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _in_image_fraction_numpy(points_cam, K, shape)
-    from cloudpose.kernels.placement import count_in_image
 
     uvw = points_cam @ K.T
     return count_in_image(points_cam, uvw, shape[0], shape[1]) / len(points_cam)
@@ -219,11 +229,9 @@ def _raster_cells(points_xy: np.ndarray, fill: bool) -> np.ndarray:
     filled when ``fill`` (a footprint), kept otherwise (a top surface may be a ring). The
     compiled :func:`cloudpose.kernels.placement.raster_cells` where the kernels are enabled
     (the same cells), else :func:`_raster_cells_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _raster_cells_numpy(points_xy, fill)
-    from cloudpose.kernels.placement import raster_cells
 
     return raster_cells(np.ascontiguousarray(points_xy, dtype=np.float64), _GRID, fill)
 
@@ -246,11 +254,9 @@ def _close_numpy(img: np.ndarray, fill: bool) -> np.ndarray:
 def _close(img: np.ndarray, fill: bool) -> np.ndarray:
     """:func:`_close_numpy` by the compiled :func:`cloudpose.kernels.placement.close_cells`
     where the kernels are enabled (the same raster)."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _close_numpy(img, fill)
-    from cloudpose.kernels.placement import close_cells
 
     return close_cells(img, fill)
 
@@ -263,11 +269,9 @@ def _slide(
     it first touches ``occupied``; None if none is. The compiled
     :func:`cloudpose.kernels.placement.slide_steps` where the kernels are enabled (the same
     step), else this numpy loop."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _slide_numpy(cells, occupied, anchor, step)
-    from cloudpose.kernels.placement import slide_steps
 
     k = slide_steps(cells, occupied, anchor, step, int(_START / _GRID), _GRID, _GRID_HALF)
     return None if k < 0 else anchor + step * (k * _GRID)
@@ -314,11 +318,9 @@ def _contact_cells(bottom: np.ndarray, origin: np.ndarray, top_keys: np.ndarray)
     are cells of a support's top (their keys, :func:`_cell_keys`, sorted: ``top_keys``), in
     raster order; the compiled :func:`cloudpose.kernels.placement.contact_cells` where the
     kernels are enabled (the same cells), else :func:`_contact_cells_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _contact_cells_numpy(bottom, origin, top_keys)
-    from cloudpose.kernels.placement import contact_cells
 
     return contact_cells(
         np.ascontiguousarray(bottom, dtype=np.float64),
@@ -342,11 +344,8 @@ def _supports(contact: np.ndarray, xy_com: np.ndarray) -> bool:
     :func:`cloudpose.kernels.placement.hull_margin` where the kernels are enabled and its
     margin is farther than 1e-9 m from :data:`STACK_MARGIN` (qhull's facets give the same
     margin to ~1e-16 m, so the same answer), else :func:`_supports_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if enabled():
-        from cloudpose.kernels.placement import hull_margin
-
         cells = np.ascontiguousarray(contact, dtype=np.int64)
         status, margin = hull_margin(cells, _GRID, float(xy_com[0]), float(xy_com[1]))
         if status == 1:  # no area: qhull raises, or finds a sliver no point is inside by a margin
@@ -369,11 +368,9 @@ def _column_means(points: np.ndarray) -> np.ndarray:
     """(C,) ``np.mean(points, axis=0)`` of (P, C) float64 points: the compiled
     :func:`cloudpose.kernels.placement.column_means` where the kernels are enabled (the same
     sums in the same order), else :func:`_column_means_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _column_means_numpy(points)
-    from cloudpose.kernels.placement import column_means
 
     return column_means(np.ascontiguousarray(points, dtype=np.float64))
 
@@ -516,11 +513,9 @@ def _placed_cells(
     and whether they are all on the grid and free of ``occupied``; the compiled
     :func:`cloudpose.kernels.placement.placed_cells` where the kernels are enabled (the same
     indices and answer), else :func:`_placed_cells_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _placed_cells_numpy(cells, occupied, xy)
-    from cloudpose.kernels.placement import placed_cells
 
     return placed_cells(cells, occupied, np.asarray(xy, dtype=np.float64), _GRID, _GRID_HALF)
 
@@ -539,11 +534,9 @@ def _top_cells(world: np.ndarray) -> tuple[np.ndarray, float]:
     of the points within :data:`STACK_CONTACT` of the highest, and that height, metres; the
     compiled :func:`cloudpose.kernels.placement.top_cells` where the kernels are enabled (the
     same cells), else :func:`_top_cells_numpy`."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return _top_cells_numpy(world)
-    from cloudpose.kernels.placement import top_cells
 
     cells, z = top_cells(np.ascontiguousarray(world, dtype=np.float64), STACK_CONTACT, _GRID)
     return cells, float(z)

@@ -10,6 +10,13 @@ import numpy as np
 from scipy import ndimage
 
 from cloudpose.data.synth.scenes import MAX_RANGE, Plane
+from cloudpose.kernels.backend import enabled
+from cloudpose.kernels.sensor import (
+    edge_distance_kernel,
+    object_pixel_geometry_kernel,
+    object_readings_kernel,
+    smoothed_at_kernel,
+)
 
 # --------------------------------------------------------------------------- rendering
 
@@ -421,13 +428,10 @@ def correlated_uniform_at(
     Returns:
         (m,) float64 in (0, 1).
     """
-    from cloudpose.kernels.backend import enabled
 
     if sigma <= 0 or not enabled():
         return correlated_uniform(rng, shape, sigma)[v, u]
     from scipy.special import ndtr
-
-    from cloudpose.kernels.sensor import smoothed_at_kernel
 
     z = smoothed_at_kernel(
         rng.standard_normal(shape), _gaussian_weights(sigma), v.astype(np.int64), u.astype(np.int64)
@@ -447,11 +451,9 @@ def edge_distance_compiled(label: np.ndarray) -> np.ndarray:
     """:func:`edge_distance` by the compiled exact transform
     (:func:`cloudpose.kernels.sensor.edge_distance_kernel`) where the kernels are enabled: the
     same values (both exact Euclidean distances)."""
-    from cloudpose.kernels.backend import enabled
 
     if not enabled():
         return edge_distance(label)
-    from cloudpose.kernels.sensor import edge_distance_kernel
 
     return edge_distance_kernel(np.ascontiguousarray(label))
 
@@ -553,7 +555,6 @@ def add_sensor_noise_v2_objects(
     Returns:
         (H, W) float64 noisy depth on object pixels, metres, 0 = no reading or background.
     """
-    from cloudpose.kernels.backend import enabled
 
     dropout = REAL_DROPOUT if dropout is None else dropout
     z_all = np.asarray(depth, dtype=np.float64)
@@ -572,8 +573,6 @@ def add_sensor_noise_v2_objects(
     u_edge = rng.random(m)
     c = lab[v, u]
     if compiled and enabled():
-        from cloudpose.kernels.sensor import object_readings_kernel
-
         mix = rng.random(m)
         field = correlated_uniform_at(rng, (H, W), dropout.blob_sigma, v, u)
         out[v, u] = object_readings_kernel(
@@ -620,14 +619,11 @@ def object_pixel_geometry(
     Returns:
         (m,) float64 jumps, metres, and (m,) float64 cosines in [0, 1].
     """
-    from cloudpose.kernels.backend import enabled
 
     Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
     v = np.asarray(v, dtype=np.int64)
     u = np.asarray(u, dtype=np.int64)
     if enabled():
-        from cloudpose.kernels.sensor import object_pixel_geometry_kernel
-
         return object_pixel_geometry_kernel(pad, lpad, v, u, Kinv)
     H, W = pad.shape[0] - 2, pad.shape[1] - 2
     vp, up = v + 1, u + 1

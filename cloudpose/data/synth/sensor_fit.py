@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import DropoutModel, edge_distance, incidence_cosine
 from cloudpose.data.ycb import Frame
 
@@ -67,8 +68,6 @@ def object_pixels(frames: Sequence[Frame], renderer=None) -> PixelSamples:
             over the packaged models, version-2 surfaces).
     """
     if renderer is None:
-        from cloudpose.data.synth.render import Renderer
-
         renderer = Renderer(surface_version=2)
     parts = []
     for f in frames:

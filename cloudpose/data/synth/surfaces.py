@@ -22,6 +22,7 @@ from pykdtree.kdtree import KDTree
 from scipy import ndimage
 
 from cloudpose.conventions import packaged_classes, resource_path
+from cloudpose.data.ycb import load_model_points
 
 if TYPE_CHECKING:  # Open3D is imported where a surface is built: the packaged ones need none
     import open3d as o3d
@@ -29,7 +30,6 @@ if TYPE_CHECKING:  # Open3D is imported where a surface is built: the packaged o
 
 def load_packaged_models() -> dict[int, np.ndarray]:
     """The 21 packaged YCB-Video model point sets: {class id 1..21: (P, 3) float64 metres}."""
-    from cloudpose.data.ycb import load_model_points
 
     names = packaged_classes()
     return {

@@ -20,6 +20,8 @@ from cloudpose.data.synth.frames import (
     frame_id,
     generate_frame,
 )
+from cloudpose.data.synth.surfaces import surface_settings
+from cloudpose.data.ycb import write_frame
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json
 
 # --------------------------------------------------------------------------- writing
@@ -45,7 +47,6 @@ def _frame_done(root: Path, fid: str) -> bool:
 
 def _write(root: Path, f: SynthFrame) -> None:
     """Write a frame atomically: stage it whole, then rename depth, label and meta (last)."""
-    from cloudpose.data.ycb import write_frame
 
     stage = root / ".staging" / f"{os.getpid()}"
     alone = {"alone_pixels": f.alone_pixels.astype(np.float64).reshape(-1, 1)}
@@ -113,8 +114,6 @@ _LOST = (
 
 
 def _prepare_root(root: Path, seed: int, noise: bool, uniform_rotation: bool, version: int) -> None:
-    from cloudpose.data.synth.surfaces import surface_settings
-
     # Frames depend on the generator and on the rendered surfaces: both versions are recorded,
     # so frames made by another generator or renderer are never mixed on resume.
     settings = {
