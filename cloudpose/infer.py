@@ -18,6 +18,7 @@ import torch
 from cloudpose.config import Config
 from cloudpose.models import build_model
 from cloudpose.models.folded import fold_for_inference
+from cloudpose.models.stored import FORM_KEY, decode
 from cloudpose.refine import Estimates
 from cloudpose.runtime import pick_device
 
@@ -76,7 +77,8 @@ def estimate_poses(model, segs, n_points: int, device="cpu", batch_size: int = 5
 def load_checkpoint(
     path: str | Path, device: str | torch.device = "cpu"
 ) -> tuple[torch.nn.Module, Config]:
-    """Inference model and config from a ``model.pt`` or ``last.pt`` checkpoint.
+    """Inference model and config from a ``model.pt`` or ``last.pt`` checkpoint, or one stored
+    in fewer bytes (``model.f24.pt``, ``model.fp16.pt``: :mod:`cloudpose.models.stored`).
 
     ``device``: where the model goes ("auto": CUDA when available, :func:`pick_device`).
 
@@ -88,12 +90,17 @@ def load_checkpoint(
     device = pick_device(device)
     try:
         # weights_only: a checkpoint holds tensors and plain data; any other pickle is refused
-        state = torch.load(path, map_location=device, weights_only=True)
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # a text file, a torn file, a foreign or unsafe pickle
         reason = " ".join(str(exc).split())[:160] or type(exc).__name__
         raise ValueError(f"{path} is not a cloudpose checkpoint ({reason})") from exc
     if not isinstance(state, dict) or "model" not in state or "config" not in state:
         raise ValueError(f"{path} is not a cloudpose checkpoint (expected keys 'model', 'config')")
+    if FORM_KEY in state:
+        try:
+            state = decode(state)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{path}: a damaged packed checkpoint ({exc})") from exc
     cfg = Config.from_dict(state["config"])
     model = build_model(cfg.model).to(device)
     try:

@@ -17,8 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from cloudpose.archive.checkpoints import FORM_KEY, packed_form, unpacked_name
-from cloudpose.archive.checkpoints import load as load_stored
 from cloudpose.conventions import YCB_INTRINSICS, transform_points
 from cloudpose.data.cache import SegmentSet
 from cloudpose.data.segments import check_depth_scale, extract_segments
@@ -123,35 +121,17 @@ def overlay_path(overlay: str | Path) -> Path:
     return path
 
 
-def _packed(checkpoint: str, form: str) -> ValueError:
-    return ValueError(
-        f"--checkpoint {checkpoint}: a packed form ({form}) of a compact store's checkpoint; "
-        "unpack the store first (cloudpose store-unpack STORE --into FOLDER) and give its "
-        f"{unpacked_name(Path(checkpoint).name)}"
-    )
-
-
 def load_model_for(checkpoint: str, device: str = "auto"):
-    """(model, config) from a ``model.pt``, a run folder, an MLflow run id, a run name or a
-    shipped network's name.
+    """(model, config) from a ``model.pt`` (or a compact store's ``model.f24.pt``), a run
+    folder, an MLflow run id, a run name or a shipped network's name.
 
     Raises:
-        ValueError: a packed checkpoint of a compact store (``model.f24.pt``; by its name or
-            content), or a name that is none of these; each naming ``--checkpoint``.
+        ValueError: a name that is none of these, naming ``--checkpoint``.
         FileNotFoundError: a ``.pt`` file that does not exist.
     """
     path = Path(checkpoint)
-    form = packed_form(path.name)
-    if form is not None:
-        raise _packed(checkpoint, form)
     if path.is_file():
-        try:
-            return load_checkpoint(path, device)
-        except ValueError:
-            stored = load_stored(path)
-            if stored is not None and FORM_KEY in stored:
-                raise _packed(checkpoint, stored[FORM_KEY].get("form", "?")) from None
-            raise
+        return load_checkpoint(path, device)
     if path.suffix == ".pt":
         raise FileNotFoundError(f"--checkpoint {checkpoint}: no such file")
     if path.exists() and not is_run_folder(path):

@@ -107,14 +107,14 @@ def smoke_store(tmp_path, monkeypatch) -> Path:
 
 def test_ship_refuses_to_replace_the_shipped_network_without_force(package_copy, smoke_store):
     before = _digests(package_copy)
-    res = cli("ship", "--run", SMOKE, "--no-half", "--no-progress")
+    res = cli("ship", "--run", SMOKE, "--no-reduce")
     line = one_line_error(res, str(package_copy), "--force", "shared-0/cpu-online/seed1", SMOKE)
     assert "preset smoke" in line and "real_icp/ads_auc 0.000" in line
     assert _digests(package_copy) == before
 
 
 def test_ship_with_force_names_the_run_then_replaces_the_network(package_copy, smoke_store):
-    res = cli("ship", "--run", SMOKE, "--force", "--no-half", "--no-progress")
+    res = cli("ship", "--run", SMOKE, "--force", "--no-reduce")
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     assert lines[0].startswith(f"shipping {SMOKE} (preset smoke, not the default cpu-online)")
@@ -134,14 +134,14 @@ def test_ship_with_force_names_the_run_then_replaces_the_network(package_copy, s
 
 def test_ship_into_a_new_folder_names_the_file_after_the_run(package_copy, smoke_store, tmp_path):
     out = tmp_path / "shipped"
-    res = cli("ship", "--run", SMOKE, "--out", str(out), "--no-half", "--no-progress")
+    res = cli("ship", "--run", SMOKE, "--out", str(out), "--no-reduce")
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in out.iterdir()) == [
         "shared-0_smoke_seed1.json",
         "shared-0_smoke_seed1.pt",
     ]
     assert "replacing" not in res.output and shipped(folder=out).info["run_name"] == SMOKE
-    again = cli("ship", "--run", SMOKE, "--out", str(out), "--no-half", "--no-progress")
+    again = cli("ship", "--run", SMOKE, "--out", str(out), "--no-reduce")
     one_line_error(again, str(out), "--force", SMOKE)
 
 
@@ -260,20 +260,31 @@ def test_predict_names_an_unknown_run_as_checkpoint(tmp_path):
 
 
 @pytest.mark.parametrize("form", ["float24", "float16"])
-def test_predict_recognises_a_packed_checkpoint_by_name_and_content(form, tmp_path):
-    from cloudpose.archive.checkpoints import REDUCED, encode
+def test_predict_reads_a_packed_checkpoint_by_name_and_content(form, tmp_path):
+    """A compact store's ``model.f24.pt`` (or one renamed) is a checkpoint every reader loads:
+    the poses are those of its unpacked float32 weights."""
+    from cloudpose.models.stored import REDUCED, decode, encode
 
     ckpt = torch.load(_smoke_checkpoint(tmp_path / "model.pt"), weights_only=True)
     packed = tmp_path / f"model{REDUCED[form]}"
     torch.save(encode(ckpt, form), packed)
-    res = _predict("--label", str(DEMO / "label.png"), "--checkpoint", str(packed))
-    line = one_line_error(res, f"--checkpoint {packed}", f"a packed form ({form})", "store-unpack")
-    assert "model.pt" in line and "size mismatch" not in line
-    if form == "float24":  # renamed: its content says what it is
-        renamed = tmp_path / "renamed.pt"
-        packed.rename(renamed)
-        res = _predict("--label", str(DEMO / "label.png"), "--checkpoint", str(renamed))
-        one_line_error(res, f"--checkpoint {renamed}", "a packed form (float24)")
+    unpacked = tmp_path / "unpacked.pt"
+    torch.save(decode(torch.load(packed, weights_only=True)), unpacked)
+    renamed = tmp_path / "renamed.pt"
+    renamed.write_bytes(packed.read_bytes())
+    outputs = []
+    for path in (unpacked, packed, renamed):
+        res = _predict(
+            "--label",
+            str(DEMO / "label.png"),
+            "--checkpoint",
+            str(path),
+            "--overlay",
+            str(tmp_path / f"{path.stem}.png"),
+        )
+        assert res.exit_code == 0, res.output
+        outputs.append([line for line in res.output.splitlines() if "overlay" not in line])
+    assert outputs[0] and outputs[0] == outputs[1] == outputs[2]
 
 
 def test_a_same_size_shipped_file_with_another_checksum_names_the_checksum(package_copy):

@@ -20,6 +20,7 @@ import torch
 from cloudpose.archive import checkpoints
 from cloudpose.archive.compact import INDEX, METRICS_FILE, RUN_FILE, RUNS
 from cloudpose.archive.pack import pack_store, unpack_store
+from cloudpose.models.stored import FLOAT24
 from cloudpose.store import tracking
 from cloudpose.store.liveness import KILLED_TAG
 from cloudpose.store.rekey import rekey_runs
@@ -207,11 +208,11 @@ def test_a_damaged_float24_checkpoint_that_its_index_row_matches_is_one_line(
     packed = tmp_path / "packed"
     pack_store(project, packed)
     ckpt = {"model": {"w": torch.linspace(-1, 1, 64)}, "config": {}}
-    good = checkpoints.to_bytes(checkpoints.encode(ckpt, checkpoints.FLOAT24))
+    good = checkpoints.to_bytes(checkpoints.encode(ckpt, FLOAT24))
     if damage == "truncated":
         data = good[: len(good) // 2]
     else:  # a float24 entry whose tensor is not three byte planes
-        bad = {**ckpt, checkpoints.FORM_KEY: {"form": checkpoints.FLOAT24, "keys": ["w"]}}
+        bad = {**ckpt, checkpoints.FORM_KEY: {"form": FLOAT24, "keys": ["w"]}}
         data = checkpoints.to_bytes(bad)
     rid = next((packed / RUNS).iterdir()).name
     rel = f"{RUNS}/{rid}/artifacts/model.f24.pt"

@@ -5,23 +5,17 @@ compact form (:mod:`cloudpose.archive.compact`) stores a kept checkpoint ``NAME.
 
 - **as it is** when its bytes are a shipped network's (``resources/pretrained/*.pt``: git
   stores the two as one blob), or when it is not a cloudpose checkpoint;
-- else in the first of these forms under which no pose of the check set (:class:`PoseCheck`:
-  the 61 packaged real development frames' segments) moves by more than
+- else in the first form of :data:`~cloudpose.models.stored.REDUCED` (``NAME.fp16.pt``, float16;
+  ``NAME.f24.pt``, float24: :mod:`cloudpose.models.stored`) under which no pose of the check set
+  (:class:`PoseCheck`: the 61 packaged real development frames' segments) moves by more than
   :data:`TOLERANCE_DEG` degrees (geodesic angle) or :data:`TOLERANCE_MM` millimetres from the
-  float32 network's:
-
-  - ``NAME.fp16.pt``, :data:`FLOAT16`: every float32 tensor of the network's state as float16;
-  - ``NAME.f24.pt``, :data:`FLOAT24`: every float32 tensor rounded to its three high bytes
-    (sign, exponent and 15 of the 23 mantissa bits, to nearest), stored as three byte planes
-    (uint8, ``(3, *shape)``: the plane of the sign and exponent compresses well);
-
+  float32 network's (:func:`choose_form`, the rule ``cloudpose ship`` follows too, so a shipped
+  network and its run's packed checkpoint are the same bytes);
 - else as it is (float32).
 
-State dict keys, integer buffers, float tensors of other dtypes and every other entry of the
-checkpoint (its config) are kept; the packed file names the form and the tensors it changed
-(:data:`FORM_KEY`). Beside a checkpoint that was checked goes its record, ``NAME.precision.json``:
-the form, the largest pose change each form tried gave, the check set, the original's SHA-256
-and the digest of the float32 state that unpacking gives (:func:`state_digest`).
+Beside a checkpoint that was checked goes its record, ``NAME.precision.json``: the form, the
+largest pose change each form tried gave, the check set, the original's SHA-256 and the digest
+of the float32 state that unpacking gives (:func:`state_digest`).
 
 Unpacking (:func:`unpack_checkpoint`) writes ``NAME.pt`` back in float32, the same keys and
 dtypes as the original, the values as rounded, so every reader (``evaluate --run``,
@@ -34,7 +28,6 @@ so the packed file holds the same tensors.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import shutil
 import tempfile
@@ -47,25 +40,22 @@ from typing import Any
 import numpy as np
 import torch
 
-from cloudpose.archive.ship import HALF_TOLERANCE_DEG, pose_difference
 from cloudpose.conventions import resource_path
 from cloudpose.files import CorruptFileError, why
-
-FLOAT16 = "float16"
-FLOAT24 = "float24"
-FLOAT32 = "float32"
-
-REDUCED = {FLOAT16: ".fp16.pt", FLOAT24: ".f24.pt"}
-"""Form -> the ending of a packed checkpoint's name (``model.pt`` -> ``model.fp16.pt``), in
-the order they are tried (fewest bytes first)."""
+from cloudpose.models.stored import (
+    FLOAT32,
+    FORM_KEY,
+    REDUCED,
+    decode,
+    encode,
+    round_trip,
+    to_bytes,
+)
 
 RECORD_SUFFIX = ".precision.json"
 """Ending of a checkpoint's record (``model.pt`` -> ``model.precision.json``)."""
 
-FORM_KEY = "cloudpose_stored_as"
-"""Entry of a packed checkpoint: ``{"form": FORM, "keys": [state keys changed]}``."""
-
-TOLERANCE_DEG = HALF_TOLERANCE_DEG
+TOLERANCE_DEG = 0.01
 """Largest rotation change (degrees, geodesic) a form may give a pose of the check set."""
 
 TOLERANCE_MM = 0.01
@@ -106,87 +96,6 @@ def shipped_digests(folder: Path | None = None) -> set[str]:
 # -- forms ---------------------------------------------------------------------------------
 
 
-def _float24(t: torch.Tensor) -> torch.Tensor:
-    """A float32 tensor's three high bytes, rounded to nearest: uint8 ``(3, *shape)``."""
-    u = t.detach().contiguous().cpu().numpy().view(np.uint32).astype(np.uint64)
-    finite = np.isfinite(t.detach().cpu().numpy())
-    top = np.where(finite, (u + 0x80) >> 8, u >> 8)  # a carry into the exponent is right
-    planes = np.stack([(top >> 16) & 0xFF, (top >> 8) & 0xFF, top & 0xFF]).astype(np.uint8)
-    return torch.from_numpy(np.ascontiguousarray(planes))
-
-
-def _from_float24(planes: torch.Tensor) -> torch.Tensor:
-    """The float32 tensor of :func:`_float24`'s byte planes."""
-    p = planes.numpy().astype(np.uint32)
-    u = (p[0] << 24) | (p[1] << 16) | (p[2] << 8)
-    return torch.from_numpy(np.ascontiguousarray(u.view(np.float32)))
-
-
-def encode(ckpt: Mapping[str, Any], form: str) -> dict[str, Any]:
-    """The packed checkpoint of ``ckpt`` (keys ``model``, ``config``, ...) in ``form``: each
-    float32 tensor of its ``model`` state in float16 or as float24 byte planes, the rest as it
-    is, and :data:`FORM_KEY` naming the tensors changed."""
-    if form not in REDUCED:
-        raise ValueError(f"unknown checkpoint form {form!r}; expected one of {list(REDUCED)}")
-    model, changed = {}, []
-    for key, value in ckpt["model"].items():
-        if isinstance(value, torch.Tensor) and value.dtype == torch.float32:
-            model[key] = value.half() if form == FLOAT16 else _float24(value)
-            changed.append(key)
-        else:
-            model[key] = value
-    out = {k: (model if k == "model" else v) for k, v in ckpt.items()}
-    out[FORM_KEY] = {"form": form, "keys": changed}
-    return out
-
-
-def decode(packed: Mapping[str, Any]) -> dict[str, Any]:
-    """The float32 checkpoint of a packed one (:func:`encode`): the same keys and dtypes as
-    the original, the values as the form rounded them."""
-    meta = packed[FORM_KEY]
-    form, changed = meta["form"], set(meta["keys"])
-    if form not in REDUCED:
-        raise ValueError(f"unknown checkpoint form {form!r}; expected one of {list(REDUCED)}")
-    absent = sorted(changed - set(packed["model"]))
-    if absent:
-        raise ValueError(f"{FORM_KEY} names state tensors that it lacks: {absent[:3]}")
-    model = {}
-    for key, value in packed["model"].items():
-        if key in changed:
-            _check_stored(key, value, form)
-            value = value.float() if form == FLOAT16 else _from_float24(value)
-        model[key] = value
-    return {k: (model if k == "model" else v) for k, v in packed.items() if k != FORM_KEY}
-
-
-def _check_stored(key: str, value: Any, form: str) -> None:
-    """``ValueError`` unless ``value`` is a tensor as :func:`encode` stores one in ``form``:
-    float16, or float24's uint8 byte planes ``(3, *shape)``."""
-    if form == FLOAT16:
-        ok = isinstance(value, torch.Tensor) and value.dtype == torch.float16
-        expected = "a float16 tensor"
-    else:
-        ok = (
-            isinstance(value, torch.Tensor)
-            and value.dtype == torch.uint8
-            and value.dim() >= 1
-            and value.shape[0] == 3
-        )
-        expected = "uint8 byte planes (3, *shape)"
-    if not ok:
-        got = (
-            f"{value.dtype} {tuple(value.shape)}"
-            if isinstance(value, torch.Tensor)
-            else type(value).__name__
-        )
-        raise ValueError(f"state tensor {key!r} is {got}, not {form}'s {expected}")
-
-
-def round_trip(ckpt: Mapping[str, Any], form: str) -> dict[str, Any]:
-    """``ckpt`` as unpacking its ``form`` gives it back (float32, rounded)."""
-    return decode(encode(ckpt, form))
-
-
 def state_digest(ckpt: Mapping[str, Any]) -> str:
     """SHA-256 of a checkpoint's values: every state tensor's key, dtype, shape and bytes, and
     the other entries as sorted JSON (the same for the same values, whatever file holds
@@ -203,14 +112,6 @@ def state_digest(ckpt: Mapping[str, Any]) -> str:
     rest = {k: v for k, v in ckpt.items() if k not in ("model", FORM_KEY)}
     h.update(json.dumps(rest, sort_keys=True, default=repr).encode())
     return h.hexdigest()
-
-
-def to_bytes(obj: Mapping[str, Any]) -> bytes:
-    """``torch.save`` of ``obj`` as bytes (the same bytes for the same values, whatever the
-    file's name: torch names the archive's root after a file, ``archive`` in memory)."""
-    buf = io.BytesIO()
-    torch.save(dict(obj), buf)
-    return buf.getvalue()
 
 
 def load(path: Path) -> dict[str, Any] | None:
@@ -276,6 +177,19 @@ class PoseCheck:
             net, cfg = load_checkpoint(path)
         segs = self.segment_set(cfg)
         return estimate_poses(net, segs, cfg.train.n_points), np.asarray(segs.valid, bool)
+
+
+def pose_difference(a, b, valid: np.ndarray) -> tuple[float, float]:
+    """Largest rotation (degrees) and translation (mm) difference between two
+    :class:`~cloudpose.refine.Estimates` over the ``valid`` rows."""
+    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
+    from cloudpose.geometry.rigid import rotation_error_deg
+
+    if not np.any(valid):
+        return 0.0, 0.0
+    rot = rotation_error_deg(a.R[valid], b.R[valid])
+    dt = 1000 * np.linalg.norm(a.t[valid] - b.t[valid], axis=1)
+    return float(rot.max()), float(dt.max())
 
 
 def within(change: tuple[float, float]) -> bool:

@@ -56,19 +56,21 @@ def ship(
             help="Replace the network that --name answers to in --out (its files are removed).",
         ),
     ] = False,
-    half: Annotated[
+    reduce: Annotated[
         bool,
         typer.Option(
-            "--half/--no-half", help="Half precision if every pose stays within 0.01 deg."
+            "--reduce/--no-reduce",
+            help="Float16, else float24 (3 bytes a weight), if every pose of the real "
+            "development frames stays within 0.01 deg and 0.01 mm of float32's.",
         ),
     ] = True,
-    progress: ProgressOpt = True,
 ) -> None:
     """Package a finished run's network as a shipped one, VARIANT_PRESET_seedS.pt in --out
     (weights, config and a record of the run, its data key and metrics, with a checksum), from
     this folder's MLflow store. Names the run's preset and metrics first; a network the name
     answers to there already (the package's own, by default) is replaced only with --force,
     and its files are then removed."""
+    from cloudpose.archive.checkpoints import PoseCheck
     from cloudpose.archive.ship import check_replace
     from cloudpose.archive.ship import ship as write
     from cloudpose.data.keys import DataKey
@@ -110,20 +112,10 @@ def ship(
             fingerprint=record.data.tags.get("config", cfg.fingerprint()),
             metrics=record.data.metrics,
             command=recorded_command(ctx),
-            check_segments=_check_segments(cfg, progress) if half else [],
-            half=half,
+            check=PoseCheck(project_dir=Path.cwd()) if reduce else None,
             name=name,
             force=force,
         )
     typer.echo(f"wrote {path} and {path.with_suffix('.json')}")
     if replaced is not None and replaced.stem != stem:
         typer.echo(f"removed {replaced.with_suffix('.pt')} and {replaced}")
-
-
-def _check_segments(cfg, progress: bool) -> list:
-    """The segment sets half precision is checked on: the packaged real development frames."""
-    from cloudpose.data.dataset import folder_segments
-    from cloudpose.data.layout import open_dataset, real_dev_root
-
-    segs = folder_segments(open_dataset(real_dev_root()), "all", cfg.data, Path.cwd(), progress)
-    return [("real development frames", segs)]

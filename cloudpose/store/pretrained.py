@@ -1,16 +1,17 @@
-"""The shipped network: a trained shared-0 of the default preset inside the package, so a fresh
-clone predicts and evaluates without training.
+"""The shipped network: a trained shared-0 inside the package, so a fresh clone predicts and
+evaluates without training.
 
 ``pretrained`` names it wherever a checkpoint or run is asked for (``cloudpose predict
 --checkpoint pretrained``, ``cloudpose evaluate --run pretrained --real``). The package holds
-the weights (``resources/pretrained/STEM.pt``: the network's state in half precision, when
-that keeps every pose of the real development frames and of the synthetic test frames within
-:data:`cloudpose.archive.ship.HALF_TOLERANCE_DEG`, and its resolved config) and a record beside them
-(``STEM.json``: the MLflow run it was taken from, its data key and config fingerprint, the
-metrics that run logged, the weights' SHA-256, the command that made both and the name it
-answers to). STEM is what the file holds, ``variant_preset_seedS`` (:func:`file_stem`).
-``cloudpose ship --run RUN`` writes the pair from a finished run (:func:`cloudpose.archive.ship.ship`), and writes
-over the network a name answers to only when asked (``--force``).
+the weights (``resources/pretrained/STEM.pt``: the network's state and its resolved config, in
+the fewest bytes that keep every pose of the real development frames where float32 puts it,
+:mod:`cloudpose.models.stored`) and a record beside them (``STEM.json``: the MLflow run it was
+taken from, so its preset and recipe, its data key and config fingerprint, the metrics that
+run logged, the weights' form and SHA-256, the command that made both and the name it answers
+to). STEM is what the file holds, ``variant_preset_seedS`` (:func:`file_stem`).
+``cloudpose ship --run RUN`` writes the pair from a finished run
+(:func:`cloudpose.archive.ship.ship`), and writes over the network a name answers to only when
+asked (``--force``).
 """
 
 from __future__ import annotations

@@ -16,10 +16,11 @@ import torch
 
 from cloudpose.archive import checkpoints
 from cloudpose.archive import pack as store_archive
-from cloudpose.archive.checkpoints import FLOAT16, FLOAT24, FLOAT32, FORM_KEY, PoseCheck
+from cloudpose.archive.checkpoints import FLOAT32, FORM_KEY, PoseCheck
 from cloudpose.archive.compact import INDEX, RUNS
 from cloudpose.archive.pack import pack_store, unpack_store
 from cloudpose.data.segment_set import SegmentSet
+from cloudpose.models.stored import FLOAT16, FLOAT24
 from cloudpose.store import tracking
 from tests.store.segments import segment_set
 

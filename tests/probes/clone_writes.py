@@ -42,7 +42,7 @@ PROBES: dict[str, tuple[list[str], dict[str, str]]] = {
     "occlusion-report": (["make", "occlusion-report"], {}),
     "report": (["cloudpose", "report"], {}),
     "real-report": (["cloudpose", "real-report"], {}),
-    "ship-smoke": (["cloudpose", "ship", "--run", "shared-0/smoke/seed1", "--no-progress"], {}),
+    "ship-smoke": (["cloudpose", "ship", "--run", "shared-0/smoke/seed1"], {}),
     "predict": (
         [
             "cloudpose",
