@@ -38,13 +38,12 @@ KEPT_LAZY = {
     #   store.runs: the pipeline or store.pretrained at their tops load torch, numba and scipy
     #   (0.4 s -> 7.7 s to start on a busy 2-core machine).
     # - `store-pack` and `store-unpack` import archive.pack -> archive.compact ->
-    #   archive.checkpoints -> archive.ship, store.instances: infer and data/ at the top
-    #   add numba and scipy, geometry adds roma and sympy (1.6-1.7x the CPU time to start).
+    #   archive.checkpoints, store.instances: infer and data/ at the top add numba and
+    #   scipy, geometry adds roma and sympy (1.6-1.7x the CPU time to start).
     ("cloudpose/store/runs.py", "cloudpose.store.pretrained"): 2,
     ("cloudpose/suite/cluster.py", "cloudpose.suite"): 1,  # the pipeline
-    ("cloudpose/archive/ship.py", "cloudpose.infer"): 1,
-    ("cloudpose/archive/ship.py", "cloudpose.geometry.rigid"): 1,
     ("cloudpose/archive/checkpoints.py", "cloudpose.infer"): 1,
+    ("cloudpose/archive/checkpoints.py", "cloudpose.geometry.rigid"): 1,
     ("cloudpose/archive/checkpoints.py", "cloudpose.data.dataset"): 1,
     ("cloudpose/archive/checkpoints.py", "cloudpose.data.layout"): 1,
     ("cloudpose/archive/checkpoints.py", "cloudpose.data.segments"): 1,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -108,7 +109,7 @@ def smoke_store(tmp_path, monkeypatch) -> Path:
 def test_ship_refuses_to_replace_the_shipped_network_without_force(package_copy, smoke_store):
     before = _digests(package_copy)
     res = cli("ship", "--run", SMOKE, "--no-reduce")
-    line = one_line_error(res, str(package_copy), "--force", "shared-0/cpu-online/seed1", SMOKE)
+    line = one_line_error(res, str(package_copy), "--force", "shared-0/gpu/seed1", SMOKE)
     assert "preset smoke" in line and "real_icp/ads_auc 0.000" in line
     assert _digests(package_copy) == before
 
@@ -120,7 +121,7 @@ def test_ship_with_force_names_the_run_then_replaces_the_network(package_copy, s
     assert lines[0].startswith(f"shipping {SMOKE} (preset smoke, not the default cpu-online)")
     assert "test/ads_auc 0.000" in lines[0] and "real_icp/ads_auc 0.000" in lines[0]
     assert lines[1] == f"as 'pretrained': {package_copy / 'shared-0_smoke_seed1.pt'}"
-    assert lines[2].startswith("replacing shared-0/cpu-online/seed1 (preset cpu-online)")
+    assert lines[2].startswith("replacing shared-0/gpu/seed1 (preset gpu, not the default")
     assert f"removed {package_copy / DEFAULT_STEM}.pt" in res.output
     assert sorted(p.name for p in package_copy.iterdir()) == [
         "shared-0_smoke_seed1.json",
@@ -150,6 +151,10 @@ def test_the_shipped_name_follows_the_record_that_names_it(package_copy, tmp_pat
     are one line naming both."""
     folder = tmp_path / "two"
     shutil.copytree(package_copy, folder)
+    default = folder / f"{DEFAULT_STEM}.json"
+    info = json.loads(default.read_text())
+    info.pop(SHIPPED_AS, None)  # the package's stem answers to the name without a record's word
+    default.write_text(json.dumps(info, indent=1) + "\n")
     for suffix in (".pt", ".json"):
         shutil.copy(folder / f"{DEFAULT_STEM}{suffix}", folder / f"other{suffix}")
     record = folder / "other.json"

@@ -28,7 +28,7 @@ from cloudpose.registry import DEFAULT_PRESET
 PRETRAINED = "pretrained"
 """The name of the shipped network wherever a checkpoint or run is asked for."""
 
-SHIPPED = {PRETRAINED: "shared-0_cpu-online_seed1"}
+SHIPPED = {PRETRAINED: "shared-0_gpu_seed1"}
 """Name -> the stem of its files under ``resources/pretrained`` when no record there names
 it (``shipped_as``): the network the package ships."""
 
