@@ -34,7 +34,7 @@ install: ## system libraries (libusb for Open3D, tcmalloc), .venv, the package i
 demo: ## (DRY=1: its plan) plumbing check of the main job on the smoke preset: synth -> prepare -> train (seconds) -> evaluate; its numbers are near zero by design
 	$(CLI) run --variant $(VARIANT) --preset smoke --seed $(SEED) $(if $(DRY),--dry-run)
 
-showcase: ## the shipped network (shared-0, cpu-online) beside FPFH + RANSAC on the 61 real frames and 40 synthetic test frames, with the paper's ICP and the wide refinement, + an overlay picture (no training)
+showcase: ## the shipped network (shared-0 of the gpu preset) beside FPFH + RANSAC on the 61 real frames and 40 synthetic test frames, with the paper's ICP and the wide refinement, + an overlay picture (no training)
 	$(CLI) showcase --out runs/showcase
 
 test: ## the tests without the slow-marked ones (~4 min on 2 cores): the everyday loop
