@@ -165,12 +165,11 @@ def _render(clone: Path, store: Path, monkeypatch, *args: str):
     return res, changed
 
 
-def test_occlusion_report_of_a_smaller_sweep_leaves_the_committed_reports(
-    clean_clone, same_store, monkeypatch
-):
-    res, changed = _render(
-        clean_clone,
-        same_store,
+def _occlusion_report(clone: Path, store: Path, monkeypatch, *extra: str):
+    """:func:`_render` of ``occlusion-report`` of the preset's 3 seeds, with ``extra`` options."""
+    return _render(
+        clone,
+        store,
         monkeypatch,
         "occlusion-report",
         "--preset",
@@ -178,7 +177,14 @@ def test_occlusion_report_of_a_smaller_sweep_leaves_the_committed_reports(
         "--seeds",
         "3",
         "--no-progress",
+        *extra,
     )
+
+
+def test_occlusion_report_of_a_smaller_sweep_leaves_the_committed_reports(
+    clean_clone, same_store, monkeypatch
+):
+    res, changed = _occlusion_report(clean_clone, same_store, monkeypatch)
     assert changed == []
     assert f"rendering into runs/reports/{PRESET}/ and leaving reports/{PRESET}/" in res.output
     written = clean_clone / "runs" / "reports" / PRESET
@@ -190,18 +196,8 @@ def test_occlusion_report_over_the_committed_reports_writes_its_own_files_only(
 ):
     """Named by the user, the committed folder is written, with a warning: the occlusion plot
     and its table, and none of the tables, claims or index beside them."""
-    res, changed = _render(
-        clean_clone,
-        same_store,
-        monkeypatch,
-        "occlusion-report",
-        "--preset",
-        PRESET,
-        "--seeds",
-        "3",
-        "--no-progress",
-        "--out",
-        f"reports/{PRESET}",
+    res, changed = _occlusion_report(
+        clean_clone, same_store, monkeypatch, "--out", f"reports/{PRESET}"
     )
     assert f"warning: replacing reports/{PRESET}/ by --out" in res.output
     assert changed == [f"reports/{PRESET}/occlusion.csv", f"reports/{PRESET}/occlusion.png"]
