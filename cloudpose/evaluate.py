@@ -29,7 +29,14 @@ from cloudpose.data.keys import DataKey, same_data
 from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.data.mask_sources import mask_source_label
 from cloudpose.failures import DiskFullError, disk_full
-from cloudpose.methods import Network, check_ensemble, load_network, score
+from cloudpose.methods import (
+    Network,
+    check_ensemble,
+    load_network,
+    score,
+    summary_metrics,
+    video_metrics,
+)
 from cloudpose.refine import ICPSettings, schedule_for
 from cloudpose.store import instances, runs, tracking
 from cloudpose.store.headline import headline
@@ -42,8 +49,6 @@ from cloudpose.store.metric_names import (
     detail_table,
     own_test_name,
     split_detail,
-    summary_metrics,
-    video_metrics,
     write_detail,
 )
 from cloudpose.store.pretrained import is_pretrained

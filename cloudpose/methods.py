@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -42,11 +43,13 @@ from cloudpose.config import Config
 from cloudpose.failures import sigterm_as_interrupt
 from cloudpose.files import CorruptFileError, atomic_write, read_npz
 from cloudpose.geometry.symmetry import rotation_errors_modulo_symmetry
-from cloudpose.metrics import pose_errors
+from cloudpose.metrics import flatten_summary, pose_errors, summarize
 from cloudpose.refine import Estimates, ICPSettings, refine_ensemble, segment_views
 from cloudpose.store import runs
+from cloudpose.store.metric_names import ERROR_COLUMNS, METHODS, method_prefixes
 from cloudpose.store.pretrained import shipped
 from cloudpose.store.runs import local_checkpoint
+from cloudpose.store.tracking import metric_key
 
 NETWORK = "network"
 BASELINE_LABELS = {"fpfh": "FPFH + RANSAC", "ppf": "point-pair features"}
@@ -586,3 +589,37 @@ def score(
     if len(ests) > 1:
         table["ensemble_member"] = np.where(segs.valid, pick, -1)
     return Scored(table, ms, pick, est)
+
+
+# -- an instance table as MLflow metrics ------------------------------------------------------
+
+
+def _by_method(df: pd.DataFrame, name: str) -> Iterator[tuple[str, pd.DataFrame]]:
+    """``(metric prefix, table with the method's error columns unprefixed)`` per method."""
+    prefixes = method_prefixes(name)
+    for method in METHODS:
+        if f"{method}_ads" not in df:
+            continue
+        yield prefixes[method], df.rename(columns={f"{method}_{k}": k for k in ERROR_COLUMNS})
+
+
+def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
+    """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
+    out: dict[str, float] = {}
+    for prefix, sub in _by_method(df, name):
+        for key, value in flatten_summary(summarize(sub)).items():
+            out[metric_key(prefix, key)] = float(value)
+    return out
+
+
+def video_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
+    """Pooled metrics of each video (the ``SEQ`` of ``SEQ/FRAME``), per method, as
+    ``{name}/video/{SEQ}/{key}``: consecutive frames of a video show one scene, so a set of a
+    few videos is a few scenes and is read per video as well as pooled."""
+    out: dict[str, float] = {}
+    video = df["frame_id"].astype(str).str.split("/").str[0]
+    for prefix, sub in _by_method(df, name):
+        for seq, part in sub.groupby(video.to_numpy()):
+            for key, value in summarize(part, by_class=False)["pooled"].items():
+                out[metric_key(prefix, f"video/{seq}/{key}")] = float(value)
+    return out

@@ -60,7 +60,6 @@ a 1,000-point query gains nothing from a second thread, and OpenMP's spinning fo
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import warnings
 from collections.abc import Sequence
@@ -69,6 +68,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from threadpoolctl import ThreadpoolController
 from tqdm.auto import tqdm
 
 from cloudpose import kernels
@@ -370,7 +370,7 @@ def _index_of(model_points: np.ndarray | ModelIndex) -> ModelIndex:
     return ModelIndex.of(X)
 
 
-_controller = None
+_controller: ThreadpoolController | None = None
 
 
 def _single_threaded():
@@ -381,14 +381,9 @@ def _single_threaded():
     (or torch's own thread pool) held one of the two cores.
     """
     global _controller
-    if _controller is None:
-        try:
-            from threadpoolctl import ThreadpoolController
-        except ImportError:  # optional: without it, the libraries keep their own settings
-            _controller = False
-        else:
-            _controller = ThreadpoolController()
-    return _controller.limit(limits=1) if _controller else contextlib.nullcontext()
+    if _controller is None:  # made once: it lists the process's loaded thread pools
+        _controller = ThreadpoolController()
+    return _controller.limit(limits=1)
 
 
 def icp_refine(

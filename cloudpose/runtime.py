@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import platform
 import subprocess
 import sys
 import warnings
@@ -124,8 +125,6 @@ def tune_glibc_malloc() -> bool:
     if active_allocator() != "glibc":
         return False
     try:
-        import ctypes
-
         libc = ctypes.CDLL("libc.so.6")
         ok = libc.mallopt(_M_MMAP_THRESHOLD, _GLIBC_MMAP_MAX) == 1
         return libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30) == 1 and ok
@@ -200,7 +199,6 @@ def cpu_features(cpuinfo: str | None = None) -> dict:
         torch's own kernels dispatch to), ``bf16_hardware`` (avx512_bf16 or AMX: bfloat16
         products run natively rather than emulated) and ``amx`` (AMX tiles with bf16).
     """
-    import platform
 
     import torch
 

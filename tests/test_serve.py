@@ -68,11 +68,11 @@ def test_a_served_store_is_served_from_its_folder(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
     from cloudpose.cli import app, serve
-    from cloudpose.suite import cluster
+    from cloudpose.store import tracking
 
     calls = []
     monkeypatch.setattr(serve, "_serve_until_interrupted", lambda *a: calls.append(a))
-    monkeypatch.setattr(cluster, "check_port_free", lambda host, port: None)
+    monkeypatch.setattr(tracking, "check_port_free", lambda host, port: None)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///store/mlflow.db")  # relative
     store = tmp_path / "store"
     store.mkdir()

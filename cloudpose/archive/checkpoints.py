@@ -41,7 +41,12 @@ import numpy as np
 import torch
 
 from cloudpose.conventions import resource_path
+from cloudpose.data.dataset import folder_segments
+from cloudpose.data.layout import open_dataset, real_dev_root
+from cloudpose.data.segments import SegmentWarning
 from cloudpose.files import CorruptFileError, why
+from cloudpose.geometry.rigid import rotation_error_deg
+from cloudpose.infer import estimate_poses, load_checkpoint
 from cloudpose.models.stored import (
     FLOAT32,
     FORM_KEY,
@@ -153,11 +158,6 @@ class PoseCheck:
         if self.segments is not None:
             return self.segments
         if cfg.data not in self._sets:
-            # lazy: data loads numba and scipy; store-pack and -unpack start without them
-            from cloudpose.data.dataset import folder_segments
-            from cloudpose.data.layout import open_dataset, real_dev_root
-            from cloudpose.data.segments import SegmentWarning
-
             with warnings.catch_warnings():  # instances without points: misses, not checked
                 warnings.simplefilter("ignore", SegmentWarning)
                 self._sets[cfg.data] = folder_segments(
@@ -168,8 +168,6 @@ class PoseCheck:
     def poses(self, ckpt: Mapping[str, Any]) -> tuple[Any, np.ndarray]:
         """(:class:`~cloudpose.infer.Estimates`, valid rows) of ``ckpt``'s network on the set,
         loaded as every reader loads a checkpoint (:func:`cloudpose.infer.load_checkpoint`)."""
-        # lazy: infer loads numba and scipy; store-pack and -unpack start without them
-        from cloudpose.infer import estimate_poses, load_checkpoint
 
         with tempfile.TemporaryDirectory(prefix="cloudpose-check-") as tmp:
             path = Path(tmp) / "model.pt"
@@ -182,8 +180,6 @@ class PoseCheck:
 def pose_difference(a, b, valid: np.ndarray) -> tuple[float, float]:
     """Largest rotation (degrees) and translation (mm) difference between two
     :class:`~cloudpose.refine.Estimates` over the ``valid`` rows."""
-    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
-    from cloudpose.geometry.rigid import rotation_error_deg
 
     if not np.any(valid):
         return 0.0, 0.0

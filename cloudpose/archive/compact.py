@@ -39,6 +39,7 @@ import logging
 import os
 import shutil
 import sqlite3
+import tempfile
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -350,7 +351,6 @@ def write_compact(
     Everything is written into a hidden folder beside ``out`` first (removed whatever
     happens), then moved in file by file where it changed.
     """
-    import tempfile
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

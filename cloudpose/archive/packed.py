@@ -35,6 +35,8 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from cloudpose.store import instances
 from cloudpose.store.instances import QUATERNIONS_KEY
@@ -116,7 +118,6 @@ def _lists(col, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _list_array(values: np.ndarray, null: np.ndarray):
     """A fixed-size list column of (M, k) ``values`` (their dtype), null where ``null``."""
-    import pyarrow as pa
 
     v = np.where(null[:, None], 0, values).astype(values.dtype)
     return pa.FixedSizeListArray.from_arrays(
@@ -134,7 +135,6 @@ def _width(col) -> int:
 def same_column(a, b) -> bool:
     """Whether two columns hold the same values of the same type (floats bit for bit, so NaN
     equals NaN)."""
-    import pyarrow as pa
 
     a = a.combine_chunks() if hasattr(a, "combine_chunks") else a
     b = b.combine_chunks() if hasattr(b, "combine_chunks") else b
@@ -223,7 +223,6 @@ def reduce(table):
     packed table keeps: quaternions and translations on their grids (a column whose rows do
     not all fit stays as it is), every other column as it is. Reducing twice changes nothing
     more."""
-    import pyarrow as pa
 
     quats = _quaternion_names(table)
     cols = []
@@ -285,7 +284,6 @@ def shared_name(shared) -> str:
 def encode(reduced, shared=None, shared_ref: str = ""):
     """The packed form of a reduced table (:func:`reduce`), given the shared table of its rows
     (or None): an Arrow table whose metadata holds its :class:`Layout`."""
-    import pyarrow as pa
 
     quats = _quaternion_names(reduced)
     names = reduced.column_names
@@ -372,7 +370,6 @@ def layout_of(table) -> Layout | None:
 def decode(packed, shared=None):
     """The reduced table a packed one stands for (the evaluation's form, as Arrow); ``shared``
     is the table its layout names (None when it names none)."""
-    import pyarrow as pa
 
     layout = layout_of(packed)
     if layout is None:
@@ -422,6 +419,5 @@ def write(table, path) -> None:
 
 def read(path):
     """A packed or shared table as Arrow (its metadata kept)."""
-    import pyarrow.parquet as pq
 
     return pq.read_table(str(path))

@@ -73,8 +73,7 @@ def mlflow_server(
     """An MLflow tracking server (SQL backend, artifacts served through it) for several
     machines; clients set MLFLOW_TRACKING_URI=http://HOST:PORT."""
 
-    from cloudpose.store.tracking import server_command
-    from cloudpose.suite.cluster import check_port_free
+    from cloudpose.store.tracking import check_port_free, server_command
 
     check_port_free(host, port)
     server = server_command(backend, artifacts, host, port)
@@ -115,9 +114,7 @@ def mlflow_ui(
     uri = tracking.tracking_uri()
     remote = tracking.is_remote(uri)
     if serve and not remote:
-        from cloudpose.suite.cluster import check_port_free
-
-        check_port_free(host, port)
+        tracking.check_port_free(host, port)
     base = uri.rstrip("/") if remote else f"http://{host}:{port}"
     typer.echo(f"preparing the views of {uri} ...")
     prepared = ui.prepare_ui(tracking.setup())

@@ -46,6 +46,9 @@ from cloudpose.data.segments import ALONE_SURFACE_VERSION, Segment, SegmentWarni
 from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import CorruptFileError, atomic_text, read_json, read_npz, why
+import multiprocessing as mp
+from PIL import Image
+from tqdm import tqdm
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -149,7 +152,6 @@ def _png_digest(path: Path) -> str:
     Raises:
         CorruptFileError: the file is empty, truncated or not a PNG (named, with what to do).
     """
-    from PIL import Image
 
     try:
         im = Image.open(path)
@@ -278,7 +280,6 @@ def _run(jobs: list, ds: Dataset, workers: int):
         _worker["ds"] = ds
         yield from map(_extract, jobs)
         return
-    import multiprocessing as mp
 
     with mp.get_context("spawn").Pool(workers, _init_worker, (str(ds.root),)) as pool:
         yield from pool.imap(_extract, jobs, chunksize=4)
@@ -362,7 +363,6 @@ def prepare(
     frames = _split_frames(ds, split)
     jobs = [(fid, settings) for fid in frames]
     workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
-    from tqdm import tqdm
 
     segments: list[Segment] = []
     n_bad = 0

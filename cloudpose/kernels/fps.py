@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import fpsample
 import numpy as np
 
 from cloudpose.kernels.backend import enabled, njit
@@ -33,7 +34,6 @@ def farthest_order(points: np.ndarray, k: int, start: int) -> np.ndarray:
     """
     if enabled() and np.isfinite(points).all():
         return fps_order(points, k, start)
-    import fpsample
 
     # fps_sampling honours start_idx exactly (the bucket/kd variants in 1.0.2 do not)
     return np.asarray(fpsample.fps_sampling(points, k, start_idx=start), dtype=np.int64)

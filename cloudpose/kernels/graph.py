@@ -8,6 +8,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from pykdtree.kdtree import KDTree as _PyKDTree
 
 from cloudpose.kernels.backend import njit
 from cloudpose.kernels.kdtree import KDTree, _d2, _nearest_call, build_kdtree
@@ -87,7 +88,6 @@ def build_nn_index(points: np.ndarray, n_neighbours: int = 32, leaf_size: int = 
         n_neighbours: neighbours listed per point where there is no Delaunay graph.
         leaf_size: most points per k-d tree leaf.
     """
-    from pykdtree.kdtree import KDTree as _PyKDTree
 
     tree = build_kdtree(points, leaf_size)
     P = len(tree.points)

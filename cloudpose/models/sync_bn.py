@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import torch
+import torch.distributed as dist
 from torch import nn
 
 __all__ = [
@@ -27,7 +28,6 @@ __all__ = [
 
 def all_reduce_sum(t: torch.Tensor, group: Any) -> torch.Tensor:
     """Sum ``t`` over the processes of ``group``, in place; returns ``t``."""
-    import torch.distributed as dist
 
     dist.all_reduce(t, group=group)
     return t

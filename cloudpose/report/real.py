@@ -31,6 +31,7 @@ import pandas as pd
 from cloudpose.baselines import load_settings
 from cloudpose.baselines.base import settings_fingerprint
 from cloudpose.data.keys import canonical_key
+from cloudpose.methods import summary_metrics, video_metrics
 from cloudpose.report.committed import refuse_empty, report_folder
 from cloudpose.report.formats import write_text
 from cloudpose.report.stats import auc_of_rows, share_below
@@ -41,8 +42,6 @@ from cloudpose.store.metric_names import (
     OWN_TEST,
     REAL_DEV,
     method_prefixes,
-    summary_metrics,
-    video_metrics,
 )
 from cloudpose.store.runs import is_preset_config
 

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 import warnings
 from collections import defaultdict
@@ -721,7 +722,6 @@ def _project_folder(client) -> Path | None:
 
 def ui_command(backend: str, host: str = "127.0.0.1", port: int = 5000) -> list[str]:
     """argv of the MLflow UI on ``backend`` (this interpreter's MLflow, one worker)."""
-    import sys
 
     return [
         sys.executable,

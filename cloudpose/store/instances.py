@@ -22,6 +22,7 @@ Parquet one first.
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import tempfile
 from collections.abc import Iterator
@@ -29,8 +30,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import torch
 
 from cloudpose.files import CorruptFileError, why
+from cloudpose.geometry.rotations import normalize_quat, rotmat_to_unitquat, unitquat_to_rotmat
 from cloudpose.store.tracking import download_artifact, metric_key
 
 INSTANCE_COLUMNS = ("frame_id", "instance", "cls_id", "miss", "net_ads")
@@ -95,7 +100,6 @@ def to_arrow(df: pd.DataFrame):
     """``df`` as an Arrow table: floats float32, integers int32 where they fit, columns of
     space-joined numbers fixed-size float32 lists (null for an empty cell), text as strings;
     no pandas metadata (the bytes depend on the data alone)."""
-    import pyarrow as pa
 
     arrays, names = [], []
     for col in df.columns:
@@ -125,11 +129,6 @@ def _rotmat_to_quat32(R: np.ndarray) -> np.ndarray:
     of their nearest rotations (``U V^T`` of the SVD, in float64: a float32 network's matrix
     is orthonormal to ~1e-6 only, and the quaternion of the matrix as it is may be off by as
     much)."""
-    import torch
-
-    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
-    from cloudpose.geometry.rotations import rotmat_to_unitquat
-
     U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
     d = np.sign(np.linalg.det(U @ Vt))  # -1 for a reflection: the nearest rotation flips
     U[..., :, 2] *= d[..., None]
@@ -139,11 +138,6 @@ def _rotmat_to_quat32(R: np.ndarray) -> np.ndarray:
 
 def _quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """(M, 4) quaternions XYZW (normalised here, in float64) -> (M, 3, 3) float64 rotations."""
-    import torch
-
-    # lazy: geometry loads roma and with it sympy; store-pack and -unpack start without them
-    from cloudpose.geometry.rotations import normalize_quat, unitquat_to_rotmat
-
     q64 = torch.from_numpy(np.asarray(q, dtype=np.float64))
     return unitquat_to_rotmat(normalize_quat(q64)).numpy()
 
@@ -160,7 +154,6 @@ def _quaternion_column(col):
     """A rotation column (fixed-size lists of 9 float32, R row-major, null for a miss) as
     fixed-size lists of 4 float32 (XYZW), or None when some row is not a rotation to float32
     precision (:data:`ROTATION_TOLERANCE_DEG`)."""
-    import pyarrow as pa
 
     col = col.combine_chunks() if hasattr(col, "combine_chunks") else col
     null = col.is_null().to_numpy(zero_copy_only=False)
@@ -183,7 +176,6 @@ def _quaternion_column(col):
 def _with_quaternions(table) -> tuple[object, dict[str, str]]:
     """``table`` with each rotation column ``X_R`` (9 float32 a row) that holds rotations
     replaced in place by ``X_q`` (:func:`_quaternion_column`); and the names replaced."""
-    import pyarrow as pa
 
     names = list(table.column_names)
     replaced = {}
@@ -207,7 +199,6 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
     """Write an instance table to ``path`` as Parquet (:func:`to_arrow`, rotations as
     quaternions; :func:`write_arrow`). The same table gives the same bytes (with one pyarrow
     version)."""
-    import json
 
     table, replaced = _with_quaternions(to_arrow(df))
     if replaced:
@@ -225,8 +216,6 @@ def write_arrow(table, path: str | Path, *, compression: tuple[str, int] = _COMP
     (quaternion columns named in its metadata, :data:`QUATERNIONS_KEY`) and the compact store's
     packed tables (:func:`cloudpose.archive.packed.write`, brotli) alike. The same table gives
     the same bytes (with one pyarrow version)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
 
     meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
     table = table.replace_schema_metadata(None)
@@ -288,9 +277,6 @@ def from_arrow(table) -> pd.DataFrame:
     """The DataFrame ``pd.read_csv`` gives for the same table written as CSV: floats float64,
     integers int64, list columns as space-joined numbers (NaN for a null), each quaternion
     column (:data:`QUATERNIONS_KEY`) as its rotation column."""
-    import json
-
-    import pyarrow as pa
 
     meta = table.schema.metadata or {}
     quats = json.loads(meta.get(QUATERNIONS_KEY.encode(), b"{}"))
@@ -324,7 +310,6 @@ def read_table(path: str | Path) -> pd.DataFrame:
     path = Path(path)
     if path.suffix != ".parquet":
         return pd.read_csv(path)
-    import pyarrow.parquet as pq
 
     return from_arrow(pq.read_table(str(path)))
 
@@ -332,7 +317,6 @@ def read_table(path: str | Path) -> pd.DataFrame:
 def same_table(a: str | Path, b: str | Path) -> bool:
     """Whether two Parquet files hold the same table (values and column types), whatever
     pyarrow version wrote each."""
-    import pyarrow.parquet as pq
 
     try:
         return pq.read_table(str(a)).equals(pq.read_table(str(b)))

@@ -17,15 +17,18 @@ class-mean summaries (:func:`split_detail`). Runs logged before keep the detail 
 run.
 
 This module imports without torch, so the reports read these names at the top of their
-modules; :func:`summary_metrics` and :func:`video_metrics` import the metrics (and torch) when
-called.
+modules; an instance table's summaries under these names are
+:func:`cloudpose.methods.summary_metrics` and :func:`cloudpose.methods.video_metrics`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import math
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import pandas as pd
 
 from cloudpose.data.keys import DataKey
 from cloudpose.data.mask_sources import mask_source_label
@@ -84,41 +87,6 @@ def data_evaluation_name(root: str | Path, frames: str, data_key: DataKey) -> st
     return metric_key(f"{Path(root).resolve().name}-{frames}-{data_key[:10]}")
 
 
-def _by_method(df: pd.DataFrame, name: str) -> Iterator[tuple[str, pd.DataFrame]]:
-    """``(metric prefix, table with the method's error columns unprefixed)`` per method."""
-    prefixes = method_prefixes(name)
-    for method in METHODS:
-        if f"{method}_ads" not in df:
-            continue
-        yield prefixes[method], df.rename(columns={f"{method}_{k}": k for k in ERROR_COLUMNS})
-
-
-def summary_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
-    """MLflow metrics of a per-instance table: pooled, class-mean and per-class, per method."""
-    from cloudpose.metrics import flatten_summary, summarize  # lazy: loads torch
-
-    out: dict[str, float] = {}
-    for prefix, sub in _by_method(df, name):
-        for key, value in flatten_summary(summarize(sub)).items():
-            out[metric_key(prefix, key)] = float(value)
-    return out
-
-
-def video_metrics(df: pd.DataFrame, name: str) -> dict[str, float]:
-    """Pooled metrics of each video (the ``SEQ`` of ``SEQ/FRAME``), per method, as
-    ``{name}/video/{SEQ}/{key}``: consecutive frames of a video show one scene, so a set of a
-    few videos is a few scenes and is read per video as well as pooled."""
-    from cloudpose.metrics import summarize  # lazy: loads torch
-
-    out: dict[str, float] = {}
-    video = df["frame_id"].astype(str).str.split("/").str[0]
-    for prefix, sub in _by_method(df, name):
-        for seq, part in sub.groupby(video.to_numpy()):
-            for key, value in summarize(part, by_class=False)["pooled"].items():
-                out[metric_key(prefix, f"video/{seq}/{key}")] = float(value)
-    return out
-
-
 def detail_kind(key: str) -> str | None:
     """``class`` or ``video`` for a detail key (``test_icp/class/025_mug/ads_auc``,
     ``real/video/0000/count``), else None (``test/class_mean/ads_auc`` is a summary)."""
@@ -157,7 +125,6 @@ def detail_table(metrics: dict[str, float], kind: str) -> pd.DataFrame:
     """The detail keys of ``kind`` among ``metrics`` as a table: columns ``prefix``, ``kind``
     (the class or video) and one per key, in the order first logged; a row per (prefix, class
     or video). :func:`detail_metrics` gives the keys back."""
-    import pandas as pd
 
     rows: dict[tuple[str, str], dict[str, float]] = {}
     keys: dict[str, None] = {}
@@ -177,7 +144,6 @@ def detail_table(metrics: dict[str, float], kind: str) -> pd.DataFrame:
 def detail_metrics(table: pd.DataFrame, kind: str) -> dict[str, float]:
     """The metric keys of a detail table (:func:`detail_table`), finite values only (as an
     evaluation logs its metrics)."""
-    import math
 
     out: dict[str, float] = {}
     stats = [c for c in table.columns if c not in ("prefix", kind)]
@@ -200,7 +166,6 @@ def write_detail(table: pd.DataFrame, path: str | Path) -> Path:
 def read_detail(path: str | Path, kind: str) -> pd.DataFrame:
     """A detail table as :func:`write_detail` wrote it (prefix, class and video as text: video
     ``0000`` stays ``0000``)."""
-    import pandas as pd
 
     return pd.read_csv(
         path, dtype={"prefix": str, kind: str}, keep_default_na=False, na_values=[""]
@@ -229,7 +194,6 @@ class DetailReader:
         return float(self._tables[(name, kind)].get(key, float("nan")))
 
     def _read(self, name: str, kind: str) -> dict[str, float]:
-        import tempfile
 
         rel = detail_artifact(name, kind)
         store = getattr(self.client, "tracking_uri", None)

@@ -34,6 +34,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
+
 from cloudpose.data.cache import cache_key
 from cloudpose.data.dataset import data_fingerprint, dataset_root, prepare_data
 from cloudpose.data.keys import DataKey, same_data, same_data_keys
@@ -197,8 +200,6 @@ def compare_test_segments(run_id: str, project_dir: Path | None = None) -> Segme
     Raises:
         ValueError: the run has no preset or no test evaluation.
     """
-    import numpy as np
-    import pandas as pd
 
     project_dir = Path(project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)

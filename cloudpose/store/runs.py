@@ -42,10 +42,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from filelock import FileLock, Timeout
+
 from cloudpose.data.keys import DataKey
 from cloudpose.files import atomic_text
 from cloudpose.registry import resolve
 from cloudpose.store import tracking
+from cloudpose.store.pretrained import is_pretrained, shipped
 
 if TYPE_CHECKING:
     from cloudpose.config import Config
@@ -299,7 +302,6 @@ def lock_path(folder: Path) -> Path:
 def folder_locked(folder: Path | None) -> bool:
     """Whether a process on this machine holds the lock of run folder ``folder`` (it trains);
     False for no folder, one that does not exist, or one without a lock file."""
-    from filelock import FileLock, Timeout
 
     if folder is None or not Path(folder).is_dir():
         return False
@@ -321,7 +323,6 @@ def run_lock(folder: Path) -> Iterator[None]:
     machine. Another process of the same run waits, with a warning, until the first one ends
     (it then finds the run finished, or resumes it); a process that dies releases its lock.
     """
-    from filelock import FileLock, Timeout
 
     path = lock_path(folder)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -585,9 +586,6 @@ def client_for(names: list[str], project_dir: Path | None = None):
     """The MLflow client that :func:`local_checkpoint` needs to resolve ``names``, on the store
     of ``project_dir`` (:func:`cloudpose.store.tracking.setup`); None when every name is a
     shipped network, so that no store is opened, nor created in the working folder."""
-    # lazy: pretrained loads torch and infer; tracking commands start without them
-    from cloudpose.store.pretrained import is_pretrained
-
     if all(is_pretrained(n) for n in names):
         return None
     return tracking.setup(project_dir)
@@ -598,9 +596,6 @@ def local_checkpoint(client, run: str) -> Iterator[tuple[str, Path]]:
     """:func:`resolve_run` whose downloaded checkpoint (a run whose folder is not on this
     machine) lives in a temporary folder for the block only: read it inside the block.
     ``pretrained`` (:mod:`cloudpose.store.pretrained`) gives run id None and the shipped weights."""
-    # lazy: pretrained loads torch and infer; tracking commands start without them
-    from cloudpose.store.pretrained import is_pretrained, shipped
-
     if is_pretrained(run):  # the network the package ships: no MLflow run
         yield None, shipped(run).path
         return

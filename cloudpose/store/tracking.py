@@ -21,15 +21,23 @@
 
 from __future__ import annotations
 
+import errno
 import functools
+import logging
+import math
 import os
 import re
 import shlex
+import socket
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
+from urllib.parse import unquote, urlparse
+
+from filelock import FileLock
 
 from cloudpose.data.keys import same_data_keys
 
@@ -78,6 +86,35 @@ class ServerCommand(NamedTuple):
     argv: list[str]
     env: dict[str, str]
     backend: str
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise ValueError unless a server can listen on ``host:port`` (the tracking server's port,
+    checked before it is announced: the MLflow server itself ends quietly when it is taken).
+
+    The test binds as the server does (``SO_REUSEADDR``: a port left in TIME_WAIT is free).
+    """
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+    except socket.gaierror:
+        raise ValueError(f"--host {host!r}: not an address or a known host name") from None
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+            s.listen()
+        except OSError as exc:
+            why = (
+                "it is in use (an MLflow server started before?): stop that server or"
+                if exc.errno == errno.EADDRINUSE
+                else f"{exc.strerror or exc}:"
+            )
+            raise ValueError(
+                f"cannot listen on {host}:{port}; {why} choose another port "
+                "(--port, or MLFLOW_PORT=... with make)"
+            ) from None
 
 
 def server_command(
@@ -151,7 +188,6 @@ def setup(project_dir: Path | None = None):
     ``MLFLOW_TRACKING_URI`` into the environment, which would then pin every later project
     folder of the same process to this one's store.
     """
-    import logging
 
     import mlflow
 
@@ -168,7 +204,6 @@ def setup(project_dir: Path | None = None):
     # migration; two processes doing that at once leave a store that no command can open again
     # (alembic's `_alembic_tmp_* already exists`). One process at a time, then every later one
     # finds the schema current and only reads it.
-    from filelock import FileLock
 
     db.parent.mkdir(parents=True, exist_ok=True)
     with FileLock(str(db) + ".lock"):
@@ -377,7 +412,6 @@ def store_folder(uri: str | None = None) -> Path | None:
 def is_relative_address(uri: str) -> bool:
     """Whether an artifact address is a relative path (no scheme, not absolute), such as
     ``mlartifacts/GROUP/RUN/artifacts`` of a packed or unpacked store."""
-    from urllib.parse import urlparse
 
     return bool(uri) and not urlparse(uri).scheme and not Path(uri).is_absolute()
 
@@ -399,7 +433,6 @@ def local_artifact(uri: str, rel: str, tracking: str | None = None) -> Path | No
     it is, a relative address under the folder of the SQLite store ``tracking`` names (default
     :func:`tracking_uri`: :func:`artifact_address`); None for a remote one (``s3://``,
     ``mlflow-artifacts:``)."""
-    from urllib.parse import unquote, urlparse
 
     uri = artifact_address(uri, tracking)
     if uri.startswith("file:"):
@@ -446,8 +479,6 @@ def store_path(value: str, tracking: str | None = None) -> Path:
 def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:
     """MLflow ``Metric`` entities of ``metrics`` at ``step``, stamped now (for ``log_batch``);
     ``finite_only`` leaves out NaN and infinite values."""
-    import math
-    import time
 
     from mlflow.entities import Metric
 

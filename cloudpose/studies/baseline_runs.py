@@ -43,11 +43,18 @@ from cloudpose.data.dataset import folder_segments, prepare_data
 from cloudpose.data.keys import DataKey
 from cloudpose.data.layout import describe_split, open_dataset, real_dev_root
 from cloudpose.evaluate import log_evaluation
-from cloudpose.methods import Baseline, Estimated, EstimateProgress, score
+from cloudpose.methods import (
+    Baseline,
+    Estimated,
+    EstimateProgress,
+    score,
+    summary_metrics,
+    video_metrics,
+)
 from cloudpose.refine import ICPSettings
 from cloudpose.registry import DEFAULT_PRESET, resolve
 from cloudpose.store import instances, runs, tracking
-from cloudpose.store.metric_names import data_evaluation_name, summary_metrics, video_metrics
+from cloudpose.store.metric_names import data_evaluation_name
 from cloudpose.store.runs import run_folder
 from cloudpose.train.loop import split_frames
 

@@ -23,6 +23,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import lzma
+import tarfile
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -507,7 +510,6 @@ def pack_results(run_dir: Path, archive: Path) -> int:
     ``archive``, written atomically and byte-identical for identical files (sorted members, no
     times or owners); ``--results`` reads it back (:func:`results_folder`). Returns the number
     of files; ``FileNotFoundError`` without a ``sweep.json``."""
-    import tarfile
 
     run_dir, archive = Path(run_dir), Path(archive)
     if not (run_dir / "sweep.json").is_file():
@@ -533,9 +535,6 @@ def results_folder(path: Path) -> Iterator[Path]:
     unpacked into a temporary folder removed afterwards. ``ValueError`` naming the archive and
     the member when one lies outside :data:`RESULT_PARTS` or outside the folder (nothing is
     unpacked then), or when the archive cannot be read."""
-    import lzma
-    import tarfile
-    import tempfile
 
     path = Path(path)
     if path.is_dir():

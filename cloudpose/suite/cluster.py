@@ -23,7 +23,6 @@ line naming the address and what to do.
 
 from __future__ import annotations
 
-import errno
 import os
 import socket
 import time
@@ -35,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 from cloudpose import runtime
 from cloudpose.store import tracking
 from cloudpose.store.runs import TEST_KEY
+from cloudpose.suite import pipeline
 
 if TYPE_CHECKING:
     from cloudpose.config import Config
@@ -156,35 +156,6 @@ def check_cluster(options: RayOptions) -> None:
             time.sleep(1.0)
 
 
-def check_port_free(host: str, port: int) -> None:
-    """Raise ValueError unless a server can listen on ``host:port`` (the tracking server's port,
-    checked before it is announced: the MLflow server itself ends quietly when it is taken).
-
-    The test binds as the server does (``SO_REUSEADDR``: a port left in TIME_WAIT is free).
-    """
-    try:
-        family, kind, proto, _, addr = socket.getaddrinfo(
-            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
-        )[0]
-    except socket.gaierror:
-        raise ValueError(f"--host {host!r}: not an address or a known host name") from None
-    with socket.socket(family, kind, proto) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(addr)
-            s.listen()
-        except OSError as exc:
-            why = (
-                "it is in use (an MLflow server started before?): stop that server or"
-                if exc.errno == errno.EADDRINUSE
-                else f"{exc.strerror or exc}:"
-            )
-            raise ValueError(
-                f"cannot listen on {host}:{port}; {why} choose another port "
-                "(--port, or MLFLOW_PORT=... with make)"
-            ) from None
-
-
 def _connect_error(ray, address: str | None, exc: BaseException) -> str:
     """One line on why ``ray.init`` failed: a refused authentication token, else its cause."""
     chain: list[BaseException] = []
@@ -211,9 +182,6 @@ def _connect_error(ray, address: str | None, exc: BaseException) -> str:
 
 def _train_and_evaluate(cfg: Config, project_dir: str, group: str, threads: int) -> dict:
     """A task's body, on a worker: train and evaluate ``cfg`` (resuming what there is)."""
-    # lazy: the pipeline loads torch; `mlflow-server` imports this module for a port check
-    from cloudpose.suite import pipeline
-
     runtime.configure_threads(threads)
     t0 = time.monotonic()
     result = pipeline.train_and_evaluate(

@@ -24,11 +24,14 @@ from __future__ import annotations
 import contextlib
 import datetime
 import os
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import torch
+import torch.distributed as dist
 
 __all__ = ["SINGLE", "World", "from_env", "relaunch_under_torchrun"]
 
@@ -79,7 +82,6 @@ class World:
         """The mean over processes of each of ``values`` (one all-reduce); as is for one."""
         if not self.distributed:
             return values
-        import torch.distributed as dist
 
         t = torch.tensor(values, dtype=torch.float64)
         dist.all_reduce(t, group=self.stats_group)
@@ -89,7 +91,6 @@ class World:
         """Rank 0's ``obj`` on every process (pickled); ``obj`` itself for one process."""
         if not self.distributed:
             return obj
-        import torch.distributed as dist
 
         box = [obj]
         dist.broadcast_object_list(box, src=0)
@@ -99,7 +100,6 @@ class World:
         """``fn()`` on rank 0 first, then on the others (e.g. data made once, then read)."""
         if not self.distributed:
             return fn()
-        import torch.distributed as dist
 
         if self.is_main:
             out = fn()
@@ -137,7 +137,6 @@ def from_env(timeout_min: float = 60.0) -> Iterator[World]:
     if size <= 1:
         yield SINGLE
         return
-    import torch.distributed as dist
 
     backend = "cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo"
     dist.init_process_group(backend, timeout=datetime.timedelta(minutes=timeout_min))
@@ -161,8 +160,6 @@ def relaunch_under_torchrun(args: list[str], nproc: int) -> int:
             "--preset", "smoke"]``).
         nproc: processes to start.
     """
-    import subprocess
-    import sys
 
     args = list(args)
     if "--nproc" in args:

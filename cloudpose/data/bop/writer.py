@@ -26,6 +26,8 @@ from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
+import warnings
+from tqdm import tqdm
 
 if TYPE_CHECKING:  # Open3D is imported where a frame is rendered, not to read this module
     from cloudpose.data.synth.render import Renderer
@@ -107,7 +109,6 @@ def check_export_units(src, frame_ids: list[str], models: dict[int, np.ndarray])
     """The depth unit check (:func:`cloudpose.data.segment_set.check_units`) of the frames an
     export is about to write, on :data:`EXPORT_UNIT_FRAMES` frames of each scene, before any file
     is written: depth in another unit than the source says stops the export in one line."""
-    import warnings
 
     by_scene: dict[str, list[str]] = {}
     for fid in frame_ids:
@@ -238,7 +239,6 @@ def export_bop(
             and images by numbers); depth that looks like another unit than the source's
             ``factor_depth`` (:func:`check_export_units`).
     """
-    from tqdm import tqdm
 
     src = YCBVideo(source)
     out = Path(out)

@@ -126,6 +126,9 @@ from cloudpose.kernels.scene_pass import (
 )
 from cloudpose.kernels.scene_pass import scene_points as compiled_scene_points
 from cloudpose.kernels.segment_cut import backproject_filtered, gather_instances, grid_fps
+import math
+from threadpoolctl import threadpool_limits
+from tqdm.auto import tqdm
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -361,7 +364,6 @@ def standard_normals(key: int, n: int, compiled: bool) -> np.ndarray:
     """(n,) float32 standard normals: draws 0 .. n - 1 of the counter stream ``key`` by the
     256-layer ziggurat (:func:`cloudpose.kernels.scene_pass.normal_draw`), compiled or by its
     numpy twin (the same draws)."""
-    import math
 
     xs, fs = _ziggurat()
     if compiled:
@@ -867,7 +869,6 @@ class OnlineChunks(torch.utils.data.Dataset):
 
 
 def _worker_init(_: int) -> None:
-    from threadpoolctl import threadpool_limits
 
     torch.set_num_threads(1)
     threadpool_limits(1)
@@ -972,7 +973,6 @@ def store_chunks(
     """Make and keep the chunks ``0 .. n_chunks - 1`` of ``seed`` that ``store`` lacks, in
     ``workers`` processes (default: every core), so that runs of this seed read them
     (:mod:`cloudpose.data.synth.chunks`). Returns how many were made."""
-    from tqdm.auto import tqdm
 
     chunks = OnlineChunks(settings, seed, chunk_size, n_chunks, store)
     assert chunks.store is not None

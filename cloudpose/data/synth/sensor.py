@@ -17,6 +17,7 @@ from cloudpose.kernels.sensor import (
     object_readings_kernel,
     smoothed_at_kernel,
 )
+from scipy.special import ndtr
 
 # --------------------------------------------------------------------------- rendering
 
@@ -385,7 +386,6 @@ def correlated_uniform(
     """
     if sigma <= 0:
         return rng.random(shape)
-    from scipy.special import ndtr
 
     return ndtr(correlated_normal(rng, shape, sigma))
 
@@ -431,7 +431,6 @@ def correlated_uniform_at(
 
     if sigma <= 0 or not enabled():
         return correlated_uniform(rng, shape, sigma)[v, u]
-    from scipy.special import ndtr
 
     z = smoothed_at_kernel(
         rng.standard_normal(shape), _gaussian_weights(sigma), v.astype(np.int64), u.astype(np.int64)

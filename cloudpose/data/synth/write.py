@@ -23,6 +23,8 @@ from cloudpose.data.synth.frames import (
 from cloudpose.data.synth.surfaces import surface_settings
 from cloudpose.data.ycb import write_frame
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json
+import multiprocessing as mp
+from tqdm import tqdm
 
 # --------------------------------------------------------------------------- writing
 
@@ -208,7 +210,6 @@ def synthesize(
     todo = [(s, i) for s, i in wanted if not _frame_done(root, frame_id(s, i))]
     jobs = [(str(root), s, i, seed, noise, uniform_rotation, version) for s, i in todo]
     workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
-    from tqdm import tqdm
 
     bar = tqdm(total=len(jobs), desc="synth", unit="frame", disable=not progress or not jobs)
     if workers <= 1:
@@ -217,7 +218,6 @@ def synthesize(
             _write(Path(root_s), generate_frame(s, i, seed, noise, uniform_rotation, gen, version))
             bar.update()
     else:
-        import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, initializer=_init_worker, initargs=(version,)) as pool:
