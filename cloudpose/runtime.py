@@ -199,7 +199,6 @@ def cpu_features(cpuinfo: str | None = None) -> dict:
         torch's own kernels dispatch to), ``bf16_hardware`` (avx512_bf16 or AMX: bfloat16
         products run natively rather than emulated) and ``amx`` (AMX tiles with bf16).
     """
-
     import torch
 
     if cpuinfo is None:

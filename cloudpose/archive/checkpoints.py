@@ -168,7 +168,6 @@ class PoseCheck:
     def poses(self, ckpt: Mapping[str, Any]) -> tuple[Any, np.ndarray]:
         """(:class:`~cloudpose.infer.Estimates`, valid rows) of ``ckpt``'s network on the set,
         loaded as every reader loads a checkpoint (:func:`cloudpose.infer.load_checkpoint`)."""
-
         with tempfile.TemporaryDirectory(prefix="cloudpose-check-") as tmp:
             path = Path(tmp) / "model.pt"
             path.write_bytes(to_bytes(ckpt))
@@ -180,7 +179,6 @@ class PoseCheck:
 def pose_difference(a, b, valid: np.ndarray) -> tuple[float, float]:
     """Largest rotation (degrees) and translation (mm) difference between two
     :class:`~cloudpose.refine.Estimates` over the ``valid`` rows."""
-
     if not np.any(valid):
         return 0.0, 0.0
     rot = rotation_error_deg(a.R[valid], b.R[valid])

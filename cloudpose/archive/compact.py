@@ -351,7 +351,6 @@ def write_compact(
     Everything is written into a hidden folder beside ``out`` first (removed whatever
     happens), then moved in file by file where it changed.
     """
-
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", dir=out.parent))

@@ -118,7 +118,6 @@ def _lists(col, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _list_array(values: np.ndarray, null: np.ndarray):
     """A fixed-size list column of (M, k) ``values`` (their dtype), null where ``null``."""
-
     v = np.where(null[:, None], 0, values).astype(values.dtype)
     return pa.FixedSizeListArray.from_arrays(
         pa.array(v.ravel()), values.shape[1], mask=pa.array(null)
@@ -135,7 +134,6 @@ def _width(col) -> int:
 def same_column(a, b) -> bool:
     """Whether two columns hold the same values of the same type (floats bit for bit, so NaN
     equals NaN)."""
-
     a = a.combine_chunks() if hasattr(a, "combine_chunks") else a
     b = b.combine_chunks() if hasattr(b, "combine_chunks") else b
     if a.type != b.type or len(a) != len(b) or a.null_count != b.null_count:
@@ -223,7 +221,6 @@ def reduce(table):
     packed table keeps: quaternions and translations on their grids (a column whose rows do
     not all fit stays as it is), every other column as it is. Reducing twice changes nothing
     more."""
-
     quats = _quaternion_names(table)
     cols = []
     for f, col in zip(table.schema, table.columns, strict=True):
@@ -284,7 +281,6 @@ def shared_name(shared) -> str:
 def encode(reduced, shared=None, shared_ref: str = ""):
     """The packed form of a reduced table (:func:`reduce`), given the shared table of its rows
     (or None): an Arrow table whose metadata holds its :class:`Layout`."""
-
     quats = _quaternion_names(reduced)
     names = reduced.column_names
     from_shared = ()
@@ -370,7 +366,6 @@ def layout_of(table) -> Layout | None:
 def decode(packed, shared=None):
     """The reduced table a packed one stands for (the evaluation's form, as Arrow); ``shared``
     is the table its layout names (None when it names none)."""
-
     layout = layout_of(packed)
     if layout is None:
         return packed
@@ -419,5 +414,4 @@ def write(table, path) -> None:
 
 def read(path):
     """A packed or shared table as Arrow (its metadata kept)."""
-
     return pq.read_table(str(path))

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing as mp
 import os
 import warnings
 import zlib
@@ -36,6 +37,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from PIL import Image
+from tqdm import tqdm
 
 from cloudpose.config import DataConfig
 from cloudpose.data.keys import DataKey
@@ -46,9 +49,6 @@ from cloudpose.data.segments import ALONE_SURFACE_VERSION, Segment, SegmentWarni
 from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import CorruptFileError, atomic_text, read_json, read_npz, why
-import multiprocessing as mp
-from PIL import Image
-from tqdm import tqdm
 
 if TYPE_CHECKING:
     from cloudpose.config import DataConfig
@@ -152,7 +152,6 @@ def _png_digest(path: Path) -> str:
     Raises:
         CorruptFileError: the file is empty, truncated or not a PNG (named, with what to do).
     """
-
     try:
         im = Image.open(path)
         im.load()

@@ -18,7 +18,14 @@ from cloudpose.conventions import resource_path
 from cloudpose.data.bop import BOPYcbv, is_bop_root
 from cloudpose.data.ycb import YCBVideo
 
-__all__ = ["Dataset", "as_dataset", "describe_split", "detect_layout", "open_dataset", "real_dev_root"]
+__all__ = [
+    "Dataset",
+    "as_dataset",
+    "describe_split",
+    "detect_layout",
+    "open_dataset",
+    "real_dev_root",
+]
 
 Dataset = YCBVideo | BOPYcbv
 """An opened dataset of either layout: what the data stages read frames, models and frame

@@ -88,7 +88,6 @@ def build_nn_index(points: np.ndarray, n_neighbours: int = 32, leaf_size: int = 
         n_neighbours: neighbours listed per point where there is no Delaunay graph.
         leaf_size: most points per k-d tree leaf.
     """
-
     tree = build_kdtree(points, leaf_size)
     P = len(tree.points)
     graph = _delaunay_graph(tree.points)

@@ -28,7 +28,6 @@ __all__ = [
 
 def all_reduce_sum(t: torch.Tensor, group: Any) -> torch.Tensor:
     """Sum ``t`` over the processes of ``group``, in place; returns ``t``."""
-
     dist.all_reduce(t, group=group)
     return t
 

@@ -209,7 +209,6 @@ def committed_pairs(
     (``reports/PRESET/mlflow-store/runs/*/run.json``): training runs of the preset's own config
     and baseline runs on ``split``, trained on ``data_key`` (or the same data under another key)
     where one is given. None when the checkout commits no compact store of it."""
-
     folder = Path(project_dir) / "reports" / preset / COMPACT / "runs"
     if not folder.is_dir():
         return None

@@ -529,7 +529,6 @@ def report_folder(
     ``default``; a folder that keeps the results its report was rendered from
     (:data:`PACKED_RESULTS`) is rendered over only by results holding each of those files,
     else into ``runs/reports/PRESET`` (:func:`cloudpose.report.committed.guarded_folder`)."""
-
     target = Path(out_dir) if out_dir is not None else Path(default)
     packed = target / PACKED_RESULTS
     if not packed.is_file():

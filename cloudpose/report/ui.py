@@ -722,7 +722,6 @@ def _project_folder(client) -> Path | None:
 
 def ui_command(backend: str, host: str = "127.0.0.1", port: int = 5000) -> list[str]:
     """argv of the MLflow UI on ``backend`` (this interpreter's MLflow, one worker)."""
-
     return [
         sys.executable,
         "-m",

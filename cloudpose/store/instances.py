@@ -100,7 +100,6 @@ def to_arrow(df: pd.DataFrame):
     """``df`` as an Arrow table: floats float32, integers int32 where they fit, columns of
     space-joined numbers fixed-size float32 lists (null for an empty cell), text as strings;
     no pandas metadata (the bytes depend on the data alone)."""
-
     arrays, names = [], []
     for col in df.columns:
         s = df[col]
@@ -154,7 +153,6 @@ def _quaternion_column(col):
     """A rotation column (fixed-size lists of 9 float32, R row-major, null for a miss) as
     fixed-size lists of 4 float32 (XYZW), or None when some row is not a rotation to float32
     precision (:data:`ROTATION_TOLERANCE_DEG`)."""
-
     col = col.combine_chunks() if hasattr(col, "combine_chunks") else col
     null = col.is_null().to_numpy(zero_copy_only=False)
     R = np.zeros((len(col), 3, 3), dtype=np.float64)
@@ -176,7 +174,6 @@ def _quaternion_column(col):
 def _with_quaternions(table) -> tuple[object, dict[str, str]]:
     """``table`` with each rotation column ``X_R`` (9 float32 a row) that holds rotations
     replaced in place by ``X_q`` (:func:`_quaternion_column`); and the names replaced."""
-
     names = list(table.column_names)
     replaced = {}
     for i, f in enumerate(table.schema):
@@ -199,7 +196,6 @@ def write_table(df: pd.DataFrame, path: str | Path) -> Path:
     """Write an instance table to ``path`` as Parquet (:func:`to_arrow`, rotations as
     quaternions; :func:`write_arrow`). The same table gives the same bytes (with one pyarrow
     version)."""
-
     table, replaced = _with_quaternions(to_arrow(df))
     if replaced:
         table = table.replace_schema_metadata(
@@ -216,7 +212,6 @@ def write_arrow(table, path: str | Path, *, compression: tuple[str, int] = _COMP
     (quaternion columns named in its metadata, :data:`QUATERNIONS_KEY`) and the compact store's
     packed tables (:func:`cloudpose.archive.packed.write`, brotli) alike. The same table gives
     the same bytes (with one pyarrow version)."""
-
     meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
     table = table.replace_schema_metadata(None)
 
@@ -317,7 +312,6 @@ def read_table(path: str | Path) -> pd.DataFrame:
 def same_table(a: str | Path, b: str | Path) -> bool:
     """Whether two Parquet files hold the same table (values and column types), whatever
     pyarrow version wrote each."""
-
     try:
         return pq.read_table(str(a)).equals(pq.read_table(str(b)))
     except (OSError, ValueError):

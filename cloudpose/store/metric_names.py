@@ -125,7 +125,6 @@ def detail_table(metrics: dict[str, float], kind: str) -> pd.DataFrame:
     """The detail keys of ``kind`` among ``metrics`` as a table: columns ``prefix``, ``kind``
     (the class or video) and one per key, in the order first logged; a row per (prefix, class
     or video). :func:`detail_metrics` gives the keys back."""
-
     rows: dict[tuple[str, str], dict[str, float]] = {}
     keys: dict[str, None] = {}
     for key, value in metrics.items():
@@ -144,7 +143,6 @@ def detail_table(metrics: dict[str, float], kind: str) -> pd.DataFrame:
 def detail_metrics(table: pd.DataFrame, kind: str) -> dict[str, float]:
     """The metric keys of a detail table (:func:`detail_table`), finite values only (as an
     evaluation logs its metrics)."""
-
     out: dict[str, float] = {}
     stats = [c for c in table.columns if c not in ("prefix", kind)]
     for row in table.itertuples(index=False):
@@ -166,7 +164,6 @@ def write_detail(table: pd.DataFrame, path: str | Path) -> Path:
 def read_detail(path: str | Path, kind: str) -> pd.DataFrame:
     """A detail table as :func:`write_detail` wrote it (prefix, class and video as text: video
     ``0000`` stays ``0000``)."""
-
     return pd.read_csv(
         path, dtype={"prefix": str, kind: str}, keep_default_na=False, na_values=[""]
     )
@@ -194,7 +191,6 @@ class DetailReader:
         return float(self._tables[(name, kind)].get(key, float("nan")))
 
     def _read(self, name: str, kind: str) -> dict[str, float]:
-
         rel = detail_artifact(name, kind)
         store = getattr(self.client, "tracking_uri", None)
         local = tracking.local_artifact(self.artifact_uri or "", rel, store)

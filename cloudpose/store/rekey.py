@@ -200,7 +200,6 @@ def compare_test_segments(run_id: str, project_dir: Path | None = None) -> Segme
     Raises:
         ValueError: the run has no preset or no test evaluation.
     """
-
     project_dir = Path(project_dir or Path.cwd()).resolve()
     client = tracking.setup(project_dir)
     run = client.get_run(run_id)

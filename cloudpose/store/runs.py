@@ -302,7 +302,6 @@ def lock_path(folder: Path) -> Path:
 def folder_locked(folder: Path | None) -> bool:
     """Whether a process on this machine holds the lock of run folder ``folder`` (it trains);
     False for no folder, one that does not exist, or one without a lock file."""
-
     if folder is None or not Path(folder).is_dir():
         return False
     path = lock_path(folder)
@@ -323,7 +322,6 @@ def run_lock(folder: Path) -> Iterator[None]:
     machine. Another process of the same run waits, with a warning, until the first one ends
     (it then finds the run finished, or resumes it); a process that dies releases its lock.
     """
-
     path = lock_path(folder)
     path.parent.mkdir(parents=True, exist_ok=True)
     lock = FileLock(str(path))

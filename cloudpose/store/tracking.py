@@ -188,7 +188,6 @@ def setup(project_dir: Path | None = None):
     ``MLFLOW_TRACKING_URI`` into the environment, which would then pin every later project
     folder of the same process to this one's store.
     """
-
     import mlflow
 
     # Alembic prints every schema migration of a new SQLite store at INFO.
@@ -412,7 +411,6 @@ def store_folder(uri: str | None = None) -> Path | None:
 def is_relative_address(uri: str) -> bool:
     """Whether an artifact address is a relative path (no scheme, not absolute), such as
     ``mlartifacts/GROUP/RUN/artifacts`` of a packed or unpacked store."""
-
     return bool(uri) and not urlparse(uri).scheme and not Path(uri).is_absolute()
 
 
@@ -433,7 +431,6 @@ def local_artifact(uri: str, rel: str, tracking: str | None = None) -> Path | No
     it is, a relative address under the folder of the SQLite store ``tracking`` names (default
     :func:`tracking_uri`: :func:`artifact_address`); None for a remote one (``s3://``,
     ``mlflow-artifacts:``)."""
-
     uri = artifact_address(uri, tracking)
     if uri.startswith("file:"):
         return Path(unquote(urlparse(uri).path)) / rel
@@ -479,7 +476,6 @@ def store_path(value: str, tracking: str | None = None) -> Path:
 def metric_batch(metrics: dict[str, float], step: int = 0, finite_only: bool = False) -> list:
     """MLflow ``Metric`` entities of ``metrics`` at ``step``, stamped now (for ``log_batch``);
     ``finite_only`` leaves out NaN and infinite values."""
-
     from mlflow.entities import Metric
 
     now = int(time.time() * 1000)

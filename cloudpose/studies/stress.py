@@ -510,7 +510,6 @@ def pack_results(run_dir: Path, archive: Path) -> int:
     ``archive``, written atomically and byte-identical for identical files (sorted members, no
     times or owners); ``--results`` reads it back (:func:`results_folder`). Returns the number
     of files; ``FileNotFoundError`` without a ``sweep.json``."""
-
     run_dir, archive = Path(run_dir), Path(archive)
     if not (run_dir / "sweep.json").is_file():
         raise FileNotFoundError(f"{run_dir}: no sweep.json (not the results of `cloudpose stress`)")
@@ -535,7 +534,6 @@ def results_folder(path: Path) -> Iterator[Path]:
     unpacked into a temporary folder removed afterwards. ``ValueError`` naming the archive and
     the member when one lies outside :data:`RESULT_PARTS` or outside the folder (nothing is
     unpacked then), or when the archive cannot be read."""
-
     path = Path(path)
     if path.is_dir():
         yield path

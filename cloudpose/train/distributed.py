@@ -160,7 +160,6 @@ def relaunch_under_torchrun(args: list[str], nproc: int) -> int:
             "--preset", "smoke"]``).
         nproc: processes to start.
     """
-
     args = list(args)
     if "--nproc" in args:
         i = args.index("--nproc")

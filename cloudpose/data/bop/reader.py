@@ -27,7 +27,6 @@ from cloudpose.data.ycb import (
     _check_poses,
     _open_png,
     _warn_no_depth,
-    load_classes,
     read_color_png,
     read_depth_png,
 )

@@ -4,12 +4,14 @@
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from PIL import Image
+from tqdm import tqdm
 
 from cloudpose.data.bop.format import (
     DEPTH_SCALE,
@@ -26,8 +28,6 @@ from cloudpose.data.synth.render import Renderer
 from cloudpose.data.ycb import YCBVideo
 from cloudpose.files import atomic_text, atomic_write
 from cloudpose.geometry.symmetry import flip_rotation, symmetries_for
-import warnings
-from tqdm import tqdm
 
 if TYPE_CHECKING:  # Open3D is imported where a frame is rendered, not to read this module
     from cloudpose.data.synth.render import Renderer
@@ -109,7 +109,6 @@ def check_export_units(src, frame_ids: list[str], models: dict[int, np.ndarray])
     """The depth unit check (:func:`cloudpose.data.segment_set.check_units`) of the frames an
     export is about to write, on :data:`EXPORT_UNIT_FRAMES` frames of each scene, before any file
     is written: depth in another unit than the source says stops the export in one line."""
-
     by_scene: dict[str, list[str]] = {}
     for fid in frame_ids:
         by_scene.setdefault(fid.split("/", 1)[0], []).append(fid)
@@ -239,7 +238,6 @@ def export_bop(
             and images by numbers); depth that looks like another unit than the source's
             ``factor_depth`` (:func:`check_export_units`).
     """
-
     src = YCBVideo(source)
     out = Path(out)
     if out.exists() and any(out.iterdir()):

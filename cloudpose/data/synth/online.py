@@ -73,6 +73,7 @@ process (:class:`OnlineStream` has worker processes make them ahead of the train
 from __future__ import annotations
 
 import functools
+import math
 import os
 import warnings
 from dataclasses import dataclass
@@ -80,6 +81,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
+from tqdm.auto import tqdm
 
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import (
@@ -126,9 +129,6 @@ from cloudpose.kernels.scene_pass import (
 )
 from cloudpose.kernels.scene_pass import scene_points as compiled_scene_points
 from cloudpose.kernels.segment_cut import backproject_filtered, gather_instances, grid_fps
-import math
-from threadpoolctl import threadpool_limits
-from tqdm.auto import tqdm
 
 ONLINE_STREAM = 2
 """Second word of every on-line random stream; frames use 0 (train) and 1 (test), so on-line
@@ -364,7 +364,6 @@ def standard_normals(key: int, n: int, compiled: bool) -> np.ndarray:
     """(n,) float32 standard normals: draws 0 .. n - 1 of the counter stream ``key`` by the
     256-layer ziggurat (:func:`cloudpose.kernels.scene_pass.normal_draw`), compiled or by its
     numpy twin (the same draws)."""
-
     xs, fs = _ziggurat()
     if compiled:
         return normal_draws(np.uint64(key), n, xs, fs)
@@ -747,7 +746,9 @@ class OnlineSynth:
                     first = int(streams[i].integers(b - a))  # farthest_point_sampling's draw
                     k = min(n_fps, b - a)
                     order = fps_soa(xyz[0, a:b], xyz[1, a:b], xyz[2, a:b], k, first)
-                    samples.append(xyz[:, a:b][:, np.resize(order, n_fps) if k < n_fps else order].T)
+                    samples.append(
+                        xyz[:, a:b][:, np.resize(order, n_fps) if k < n_fps else order].T
+                    )
                 else:
                     p32 = pts[a:b].astype(np.float32)
                     samples.append(p32[farthest_point_sampling(p32, n_fps, streams[i])])
@@ -869,7 +870,6 @@ class OnlineChunks(torch.utils.data.Dataset):
 
 
 def _worker_init(_: int) -> None:
-
     torch.set_num_threads(1)
     threadpool_limits(1)
 
@@ -973,7 +973,6 @@ def store_chunks(
     """Make and keep the chunks ``0 .. n_chunks - 1`` of ``seed`` that ``store`` lacks, in
     ``workers`` processes (default: every core), so that runs of this seed read them
     (:mod:`cloudpose.data.synth.chunks`). Returns how many were made."""
-
     chunks = OnlineChunks(settings, seed, chunk_size, n_chunks, store)
     assert chunks.store is not None
     missing = [j for j in range(n_chunks) if not chunks.store.path(seed, j).is_file()]

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.special import ndtr
 
 from cloudpose.data.synth.scenes import MAX_RANGE, Plane
 from cloudpose.kernels.backend import enabled
@@ -17,7 +18,6 @@ from cloudpose.kernels.sensor import (
     object_readings_kernel,
     smoothed_at_kernel,
 )
-from scipy.special import ndtr
 
 # --------------------------------------------------------------------------- rendering
 

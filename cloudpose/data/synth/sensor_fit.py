@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.optimize import minimize
 
 from cloudpose.data.synth.render import Renderer
 from cloudpose.data.synth.sensor import DropoutModel, edge_distance, incidence_cosine
 from cloudpose.data.ycb import Frame
-from scipy.optimize import minimize
 
 __all__ = ["PixelSamples", "fit_dropout", "object_pixels"]
 
@@ -97,7 +97,6 @@ def fit_dropout(samples: PixelSamples) -> DropoutModel:
     Args:
         samples: :func:`object_pixels` of real frames.
     """
-
     # the likelihood over bins of (class, edge distance, cosine to 0.01): same optimum to
     # within the binning, ~100x fewer terms than pixels
     classes, idx = np.unique(samples.cls, return_inverse=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 import os
 import shutil
 import time
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+from tqdm import tqdm
 
 from cloudpose.config import GENERATOR_VERSION, check_synth_version
 from cloudpose.conventions import YCB_INTRINSICS, packaged_classes, resource_path
@@ -23,8 +25,6 @@ from cloudpose.data.synth.frames import (
 from cloudpose.data.synth.surfaces import surface_settings
 from cloudpose.data.ycb import write_frame
 from cloudpose.files import CorruptFileError, atomic_text, atomic_write, read_json
-import multiprocessing as mp
-from tqdm import tqdm
 
 # --------------------------------------------------------------------------- writing
 
@@ -218,7 +218,6 @@ def synthesize(
             _write(Path(root_s), generate_frame(s, i, seed, noise, uniform_rotation, gen, version))
             bar.update()
     else:
-
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, initializer=_init_worker, initargs=(version,)) as pool:
             for _ in pool.imap_unordered(_work, jobs):
