@@ -20,6 +20,10 @@ The kinds:
   starts from when nothing estimated the pose).
 - :func:`combine`: several methods' estimates as one; per object the refinement that agrees
   best with the depth is kept.
+
+An instance table's summaries, as the metrics an evaluation logs under its name
+(:mod:`cloudpose.store.metric_names`): :func:`summary_metrics` (pooled, class mean, per class)
+and :func:`video_metrics` (per video).
 """
 
 from __future__ import annotations
