@@ -7,7 +7,9 @@ real development frames.
 The runs are the finished shared-0 runs of each ``--preset`` whose config differs from the
 preset's own at most in :data:`AXES`, with synthesis version 3 (the version that has these
 settings). For each setting and each seed that also has a run without any (``none``: the same
-scenes and initial weights; only the masks or the depth differ), the difference of
+scenes and initial weights; the masks or the depth differ, and so do the random draws after
+them in a scene, its noise and FPS starts, for both branches: a translation-only setting's
+rotation branch is another draw, not the plain run's), the difference of
 every figure, without and with ICP, with the two-level bootstrap interval of the paper's claims
 (:func:`cloudpose.report.stats.bootstrap_difference`: seeds and instances redrawn together)::
 
