@@ -17,9 +17,10 @@ from pathlib import Path
 
 import torch
 
-from cloudpose.archive.checkpoints import FLOAT32, PoseCheck, choose_form, encode, to_bytes
+from cloudpose.archive.checkpoints import PoseCheck, choose_form
 from cloudpose.data.keys import DataKey
 from cloudpose.files import atomic_text, atomic_write
+from cloudpose.models.stored import FLOAT32, encode, to_bytes
 from cloudpose.store.pretrained import (
     HEADLINE,
     PRETRAINED,

@@ -7,14 +7,13 @@ real frames' own level marked, drawn from a sweep's result folder only.
 from __future__ import annotations
 
 import json
+import tarfile
 from collections.abc import Callable
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
-import tarfile
-
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd

@@ -203,7 +203,6 @@ def setup(project_dir: Path | None = None):
     # migration; two processes doing that at once leave a store that no command can open again
     # (alembic's `_alembic_tmp_* already exists`). One process at a time, then every later one
     # finds the schema current and only reads it.
-
     db.parent.mkdir(parents=True, exist_ok=True)
     with FileLock(str(db) + ".lock"):
         try:
