@@ -84,7 +84,7 @@ def test_code_digest_follows_the_code_not_its_prose(tmp_path):
 
     def digest(text: str) -> str:
         f.write_text(text)
-        return chunks_module._digest_files([f], tmp_path, code=True)
+        return chunks_module._digest_code([f])
 
     base = digest('"""Module."""\n\ndef g(x):\n    """Twice x."""\n    return 2 * x\n')
     # prose: docstrings, comments, blank lines, formatting
@@ -94,6 +94,42 @@ def test_code_digest_follows_the_code_not_its_prose(tmp_path):
     assert digest("def g(x):\n    return 2 * x\n") == base
     assert digest("def g(x):\n    return 3 * x\n") != base  # code
     assert digest('def g(x):\n    return "2 * x"\n') != base  # a string that is not a docstring
+
+
+def test_code_digest_keeps_its_key_when_code_moves(tmp_path):
+    """A restructuring keeps the chunk stores: an import moved into or out of a function, a
+    definition moved to another module, modules renamed or reordered; what the code does
+    (an alias, another library's function, a changed body) changes the key."""
+
+    def digest(**modules: str) -> str:
+        paths = []
+        for name, text in modules.items():
+            p = tmp_path / name / "m.py"  # one folder a call: nothing left from the last
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text(text)
+            paths.append(p)
+        for q in tmp_path.rglob("*.py"):
+            if q not in paths:
+                q.unlink()
+        return chunks_module._digest_code(paths)
+
+    g = "def g(x):\n    return sqrt(x)\n"
+    h = "def h(x):\n    return 2 * x\n"
+    top = "from numpy import sqrt\nfrom cloudpose.data import k\n\n"
+    base = digest(a=top + g + "\n" + h)
+    inner = 'def g(x):\n    """Root."""\n    from numpy import sqrt\n\n    return sqrt(x)\n'
+    assert digest(a="from cloudpose.data import k\n" + inner + h) == base  # import moved in
+    # g moved to its own module, which the other imports it from (relatively)
+    assert digest(a=top + h + "from .b import g\n", b="from numpy import sqrt\n" + g) == base
+    assert digest(z=top + h + "\n" + g) == base  # renamed, reordered
+    assert digest(a="from numpy import sqrt as sqrt\nfrom cloudpose.x import k\n" + g + h) == base
+    assert digest(a=top.replace("numpy", "math") + g + h) != base  # another library's sqrt
+    assert digest(a=top.replace("sqrt\n", "sqrt as s\n") + g + h) != base  # an alias
+    assert digest(a=top + g + h.replace("2 *", "3 *")) != base  # a body
+    assert digest(a=top + g) != base  # a definition gone
+
+
+def test_code_digest_of_the_package():
     assert len(chunks_module.code_digest()) == 32
     sources = chunks_module._synthesis_sources(Path(chunks_module.__file__).resolve().parents[2])
     names = {p.name for p in sources}

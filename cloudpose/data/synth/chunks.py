@@ -15,8 +15,9 @@ it has without the store (tested).
 The key of a store folder covers everything a chunk depends on: the synthesis settings, the
 chunk size, the code of the modules that could make it (``cloudpose/data``,
 ``cloudpose/kernels``, ``cloudpose/geometry``, ``conventions.py``, this module aside; as syntax
-trees, so an edit of a docstring or comment keeps the key), the packaged model points and
-surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
+trees without their prose and layout, so an edit of a docstring or comment, an import moved into
+or out of a function and a definition moved to another module keep the key), the packaged model
+points and surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
 synthesizes afresh into a new folder; nothing stale is read. What the key does not cover: the
 CPU. Compiled kernels can round differently on another instruction set, as synthesis without a
 store would; a store carried to another machine gives that machine's runs the chunks of the
@@ -209,10 +210,36 @@ class OnlineSettings:
         )
 
 
-def _code_of(path: Path) -> bytes:
-    """A module's code without its docstrings and comments (its syntax tree, dumped): edits
-    of the prose keep a store's key, edits of the code change it."""
+class _Imports(ast.NodeTransformer):
+    """Takes every import statement out of a syntax tree, at any depth, into :attr:`names`:
+    one line per name bound from another library (``from M import N as A``). Imports of the
+    package's own modules are left out: their code is in the digest wherever it lives, so a
+    definition moved to another module, and the import that follows it, keep the key."""
+
+    def __init__(self) -> None:
+        self.names: set[str] = set()
+
+    def visit_Import(self, node: ast.Import) -> None:
+        for a in node.names:
+            if a.name.split(".")[0] != "cloudpose":
+                self.names.add(f"import {a.name} as {a.asname or a.name}")
+
+    def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+        module = node.module or ""
+        if node.level == 0 and module.split(".")[0] != "cloudpose":
+            for a in node.names:
+                self.names.add(f"from {module} import {a.name} as {a.asname or a.name}")
+
+
+def _code_of(path: Path) -> tuple[set[str], set[str]]:
+    """A module's code without its prose and its layout: ``(imports, statements)``, the names
+    it imports (:class:`_Imports`) and each top-level statement's syntax tree dumped, with
+    docstrings, comments, import statements and ``__all__`` left out. Edits of the prose, an
+    import moved into or out of a function and a definition moved to another module keep
+    what this gives for the modules together; edits of the code change it."""
     tree = ast.parse(path.read_bytes(), filename=str(path))
+    imports = _Imports()
+    tree = imports.visit(tree)
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if (
@@ -222,15 +249,40 @@ def _code_of(path: Path) -> bytes:
             and isinstance(body[0].value, ast.Constant)
             and isinstance(body[0].value.value, str)
         ):
-            node.body = body[1:] or [ast.Pass()]
-    return ast.dump(tree).encode()
+            node.body = body = body[1:]
+        if isinstance(body, list) and not body and not isinstance(node, ast.Module):
+            node.body = [ast.Pass()]  # a block that held only imports or a docstring
+    statements = {
+        ast.dump(stmt)
+        for stmt in tree.body
+        if not (
+            isinstance(stmt, ast.Assign)
+            and any(isinstance(t, ast.Name) and t.id == "__all__" for t in stmt.targets)
+        )
+    }
+    return imports.names, statements
 
 
-def _digest_files(paths: list[Path], base: Path, code: bool = False) -> str:
+def _digest_code(paths: list[Path]) -> str:
+    """Digest of modules' code together (:func:`_code_of`): not of their names or order."""
+    names: set[str] = set()
+    statements: set[str] = set()
+    for p in paths:
+        i, s = _code_of(p)
+        names |= i
+        statements |= s
+    h = hashlib.blake2b(digest_size=16)
+    for line in sorted(names) + sorted(statements):
+        h.update(line.encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _digest_files(paths: list[Path], base: Path) -> str:
     h = hashlib.blake2b(digest_size=16)
     for p in sorted(paths):
         h.update(str(p.relative_to(base)).encode())
-        h.update(_code_of(p) if code else p.read_bytes())
+        h.update(p.read_bytes())
     return h.hexdigest()
 
 
@@ -261,7 +313,7 @@ def code_digest() -> str:
     package = Path(__file__).resolve().parents[2]
     resources = resource_path()
     h = hashlib.blake2b(digest_size=16)
-    h.update(_digest_files(_synthesis_sources(package), package, code=True).encode())
+    h.update(_digest_code(_synthesis_sources(package)).encode())
     h.update(_digest_files(_files_under(resources, _RESOURCE_PARTS, None), resources).encode())
     for lib in _LIBRARIES:
         try:
