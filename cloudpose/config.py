@@ -72,9 +72,19 @@ the error message). Each is 0 by default, and a field at 0 is left out of a chun
 (:func:`cloudpose.data.synth.chunks.store_settings`), so keys made before it existed stay."""
 
 
-BLEED_BRANCHES = ("both", "translation")
+BLEED_BRANCHES = ("both", "translation", "translation-paired")
 """Which branch trains on bleeding masks (``DataConfig.online_bleed_branch``): both, or the
-translation branch only (the rotation branch on the rendered masks of the same segments)."""
+translation branch only (the rotation branch on the rendered masks of the same segments);
+"translation-paired" as "translation" with the rendered form drawn as a run without bleeding
+draws it (:data:`PAIRED_BRANCH`)."""
+
+PAIRED_BRANCH = "translation-paired"
+"""The bleed branch whose rotation branch trains on a plain run's segments: the rendered form's
+noise, FPS starts and augmentation are the draws of a run without bleeding at the same seed,
+the bleeding masks and their form's draws come from a stream of their own
+(:meth:`cloudpose.data.synth.online.OnlineSynth.scene_segments`,
+:func:`cloudpose.train.augment.augment_forms`). A translation-only run then differs from its
+plain pair in the translation branch alone (rotation weights equal on one device: tested)."""
 
 
 def check_online_version(version: int) -> int:
@@ -357,7 +367,9 @@ class DataConfig:
             (:data:`BLEED_BRANCHES`): "both", every segment cut from them; "translation",
             each segment cut twice, from the rendered masks for the rotation branch and from
             the bleeding ones for the translation branch (the two forms of one object in one
-            scene; needs a variant whose branches share no layer, ``model.shared_layers=0``).
+            scene; needs a variant whose branches share no layer, ``model.shared_layers=0``);
+            "translation-paired", as "translation" with the rendered form's draws those of a
+            run without bleeding (:data:`PAIRED_BRANCH`).
         online_smooth: with "online" version 3, each object's depth readings replaced by their
             Gaussian average over the object's own readings (sigma in pixels; 0 keeps the
             sensor's independent per-pixel noise). Real depth errors are correlated over ~2
@@ -573,9 +585,10 @@ class Config:
     icp: ICPConfig = field(default_factory=ICPConfig)
 
     def __post_init__(self) -> None:
-        if self.data.online_bleed_branch == "translation" and self.model.shared_layers != 0:
+        branch = self.data.online_bleed_branch
+        if branch != "both" and self.model.shared_layers != 0:
             raise ValueError(
-                "data.online_bleed_branch='translation' trains each branch on its own form of "
+                f"data.online_bleed_branch={branch!r} trains each branch on its own form of "
                 "a segment: it needs branches that share no layer (model.shared_layers=0), got "
                 f"model.shared_layers={self.model.shared_layers!r} (variant {self.variant!r})"
             )

@@ -472,6 +472,37 @@ def test_a_translation_bleeding_segment_comes_in_both_forms():
     np.testing.assert_array_equal(again.points, b.points)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_paired_bleeding_segment_keeps_the_plain_runs_rendered_form(compiled, monkeypatch):
+    """``data.online_bleed_branch = "translation-paired"``: the rendered form of each segment
+    is, to the bit, the segment a run without bleeding draws at the same seed and step (the
+    bleeding's draws come from a stream of their own), so a translation-only run's rotation
+    branch trains on the plain run's segments; "translation" draws the bleeding first, from
+    the scene's stream, and its rendered form is another draw."""
+    from cloudpose.data.synth import online as online_module
+
+    monkeypatch.setattr(online_module, "enabled", lambda: compiled)  # the numpy twins too
+    n = 64
+
+    def bleeding(branch: str) -> OnlineSettings:
+        return OnlineSettings(
+            2, n_points=n, online_version=3, online_bleed=1.0, online_bleed_branch=branch
+        )
+
+    plain = OnlineSynth(OnlineSettings(2, n_points=n, online_version=3)).batch(0, 3, 24)
+    paired = OnlineSynth(bleeding("translation-paired")).batch(0, 3, 24)
+    assert paired.points.shape == (24, 2 * n, 3)
+    np.testing.assert_array_equal(paired.points[:, :n], plain.points)
+    for name in ("cls_id", "R", "t", "count"):
+        np.testing.assert_array_equal(getattr(paired, name), getattr(plain, name))
+    unpaired = OnlineSynth(bleeding("translation")).batch(0, 3, 24)
+    assert not np.array_equal(unpaired.points[:, :n], plain.points)
+    synth = OnlineSynth(bleeding("translation-paired"))
+    rendered = replace(paired, points=np.ascontiguousarray(paired.points[:, :n]))
+    bled = replace(paired, points=np.ascontiguousarray(paired.points[:, n:]))
+    assert _off_model(synth, bled) > _off_model(synth, rendered)  # the second form bleeds
+
+
 def test_smoothed_readings_stay_on_their_rays_and_lose_independent_noise():
     """:func:`smooth_readings`: one object's readings averaged over its own pixels; each point
     keeps its pixel's ray; independent noise shrinks; sigma 0 changes nothing."""

@@ -42,6 +42,40 @@ def augment(
     return points, R, t
 
 
+def augment_forms(
+    points: torch.Tensor,
+    trans_points: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    cfg: Config,
+    epoch: int,
+    batch: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Segments in two forms augmented as a pair (``data.online_bleed_branch =
+    "translation-paired"``): the rotation branch's form exactly as :func:`augment` augments a
+    batch of one form (the same draws), the translation branch's rolled by the same angles,
+    its depth noise drawn after the first form's.
+
+    Args:
+        points, trans_points: (B, n, 3) the two forms of the same segments; R, t their poses.
+
+    Returns:
+        ``(points, trans_points, R, t)`` augmented.
+    """
+    train = cfg.train
+    if train.augment_roll_deg > 0:  # one stream drawn twice: the same angles for both forms
+        g = seeds.generator(cfg.seed, "roll", epoch, batch, streams=train.seed_streams)
+        rolled, R2, t2 = roll_about_optical_axis(points, R, t, train.augment_roll_deg, g)
+        g = seeds.generator(cfg.seed, "roll", epoch, batch, streams=train.seed_streams)
+        trans_points, _, _ = roll_about_optical_axis(trans_points, R, t, train.augment_roll_deg, g)
+        points, R, t = rolled, R2, t2
+    if train.augment_depth_noise_mm > 0:  # augment's draws, then the second form's
+        g = seeds.generator(cfg.seed, "depth_noise", epoch, batch, streams=train.seed_streams)
+        points = jitter_along_rays(points, train.augment_depth_noise_mm / 1000, g)
+        trans_points = jitter_along_rays(trans_points, train.augment_depth_noise_mm / 1000, g)
+    return points, trans_points, R, t
+
+
 def roll_about_optical_axis(
     points: torch.Tensor,
     R: torch.Tensor,

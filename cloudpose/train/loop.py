@@ -56,7 +56,7 @@ import torch
 from tqdm.auto import tqdm
 
 from cloudpose import runtime
-from cloudpose.config import Config
+from cloudpose.config import PAIRED_BRANCH, Config
 from cloudpose.data.batches import Batchable, split_forms
 from cloudpose.data.dataset import Prepared
 from cloudpose.data.keys import DataKey
@@ -71,7 +71,7 @@ from cloudpose.models.sync_bn import local_batch_stats, sync_batch_stats
 from cloudpose.registry import groups_of
 from cloudpose.store import runs, tracking
 from cloudpose.train import seeds
-from cloudpose.train.augment import augment
+from cloudpose.train.augment import augment, augment_forms
 from cloudpose.train.distributed import SINGLE, World
 from cloudpose.train.step import Batch, StepLoss, train_step
 from cloudpose.train.validation import batch_stats_rotation_error, recalibrate_bn, validate
@@ -727,9 +727,17 @@ class Trainer:
             group["lr"] = lr_at(
                 cfg, position.epoch * self.n_batches + position.batch, self.total_steps
             )
-        points, R, t = augment(batch.points, batch.R, batch.t, cfg, position.epoch, position.batch)
-        batch = batch._replace(points=points, R=R, t=t)
-        if cfg.data.online_bleed_branch == "translation":  # augmented together: one roll
+        branch, at = cfg.data.online_bleed_branch, (position.epoch, position.batch)
+        if branch == PAIRED_BRANCH:  # the first form augmented as a run of one form's batch
+            points, trans_points = split_forms(batch.points, cfg.train.n_points)
+            points, trans_points, R, t = augment_forms(
+                points.contiguous(), trans_points.contiguous(), batch.R, batch.t, cfg, *at
+            )
+            batch = batch._replace(points=points, R=R, t=t, trans_points=trans_points)
+        else:
+            points, R, t = augment(batch.points, batch.R, batch.t, cfg, *at)
+            batch = batch._replace(points=points, R=R, t=t)
+        if branch == "translation":  # augmented together: one roll, one noise draw
             points, trans_points = split_forms(points, cfg.train.n_points)
             batch = batch._replace(points=points, trans_points=trans_points)
         if self.world.distributed:  # this process's share of the global batch

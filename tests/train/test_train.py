@@ -253,6 +253,62 @@ def test_depth_noise_moves_points_along_their_rays_at_a_level_drawn_per_segment(
     assert level.max() < 0.0035 and level.min() < 0.0005 and level.max() > 0.0025
 
 
+def test_a_pair_of_forms_augments_its_first_form_as_a_batch_of_one_form():
+    """:func:`augment_forms` (``data.online_bleed_branch = "translation-paired"``): the first
+    form and the poses exactly as :func:`augment` gives them for that form alone; the second
+    form turned by the same angles and moved by depth noise of its own."""
+    from cloudpose.train.augment import augment, augment_forms
+
+    cfg = resolve("shared-0", "cpu-online", seed=3)
+    assert cfg.train.augment_roll_deg > 0 and cfg.train.augment_depth_noise_mm > 0
+    g = torch.Generator().manual_seed(0)
+    pts = torch.randn(16, 64, 3, generator=g) * 0.03 + torch.tensor([0.1, -0.05, 0.9])
+    other = pts + 0.002 * torch.randn(pts.shape, generator=g)
+    R = torch.linalg.qr(torch.randn(16, 3, 3, generator=g))[0]
+    t = torch.randn(16, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, 0.9])
+    alone = augment(pts, R, t, cfg, 2, 5)
+    first, second, R2, t2 = augment_forms(pts, other, R, t, cfg, 2, 5)
+    for a, b in zip(alone, (first, R2, t2), strict=True):
+        assert torch.equal(a, b)
+    # the same roll: the second form's turn about the optical axis is the first's
+    Q = R2 @ R.transpose(1, 2)
+    rolled_only = torch.einsum("bij,bnj->bni", Q, other)
+    d = second - rolled_only
+    ray = rolled_only / rolled_only.norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(d, (d * ray).sum(-1, keepdim=True) * ray, atol=1e-6, rtol=0)
+    assert not torch.equal(second - rolled_only, first - torch.einsum("bij,bnj->bni", Q, pts))
+
+
+@pytest.mark.slow
+def test_a_paired_bleeding_run_trains_the_plain_runs_rotation_branch(
+    tmp_path, smoke_data, monkeypatch
+):
+    """shared-0 on line (version 3) with ``data.online_bleed_branch = "translation-paired"``
+    and the same run without bleeding: after a few steps the rotation networks are the same
+    numbers (the rotation branch's segments, augmentation and updates are the plain run's),
+    the translation networks are not. With "translation" the rotation branch is another draw."""
+    online = {"train_source": "online", "online_version": 3, "synth_version": 2}
+    aug = {"augment_roll_deg": 15.0, "augment_depth_noise_mm": 3.0}
+    weights = {}
+    for name, extra in (
+        ("plain", {}),
+        ("paired", {"online_bleed": 1.0, "online_bleed_branch": "translation-paired"}),
+        ("unpaired", {"online_bleed": 1.0, "online_bleed_branch": "translation"}),
+    ):
+        cfg = resolve("shared-0", "smoke", 1, overrides={"data": online | extra, "train": aug})
+        proj = make_project(tmp_path / name, smoke_data, monkeypatch)
+        with pytest.raises(TrainingInterrupted) as stop:
+            train_run(cfg, project_dir=proj, progress=False, max_steps=4)
+        weights[name] = torch.load(stop.value.args[0] / "last.pt", weights_only=True)["model"]
+    plain, paired, unpaired = weights["plain"], weights["paired"], weights["unpaired"]
+    rot = [k for k in plain if k.startswith("rotation_net.")]
+    trans = [k for k in plain if k.startswith("translation_net.") and plain[k].is_floating_point()]
+    assert rot and trans
+    assert all(torch.equal(plain[k], paired[k]) for k in rot)
+    assert any(not torch.equal(plain[k], paired[k]) for k in trans)
+    assert any(not torch.equal(plain[k], unpaired[k]) for k in rot if plain[k].is_floating_point())
+
+
 def _steps(run_id: str, proj: Path, key: str = "train/loss") -> list[int]:
     from cloudpose.store import tracking
 

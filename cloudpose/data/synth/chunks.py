@@ -114,7 +114,8 @@ class OnlineSettings:
         online_bleed_branch: which branch's segments bleed (``data.online_bleed_branch``):
             "both", or "translation": each segment is cut from the rendered masks and from the
             bleeding ones, its ``n_points`` rows of the first form then those of the second
-            (:attr:`forms`).
+            (:attr:`forms`); "translation-paired" likewise, the first form drawn as without
+            bleeding (:data:`~cloudpose.config.PAIRED_BRANCH`).
         online_smooth: version 3's depth readings averaged over each object's own
             (``data.online_smooth``: the Gaussian's sigma, pixels).
         online_noise_corr: version 3's axial noise off depth edges correlated over pixels
@@ -137,7 +138,7 @@ class OnlineSettings:
     def forms(self) -> int:
         """Forms of each segment side by side along its points: 2 with the translation branch
         alone on bleeding masks (rendered, then bleeding), else 1."""
-        return 2 if self.online_bleed_branch == "translation" else 1
+        return 1 if self.online_bleed_branch == "both" else 2
 
     @property
     def cuts_from_scene(self) -> bool:
@@ -158,9 +159,9 @@ class OnlineSettings:
             )
         if self.forms == 2 and not (self.online_bleed and self.cuts_from_scene):
             raise ValueError(
-                "on-line segments in two forms (bleed branch 'translation') need bleeding "
-                "masks of version 3's path (online_bleed > 0, online_version 3, synth_version "
-                f">= 2 or no noise); got online_bleed={self.online_bleed}, online_version="
+                f"on-line segments in two forms (bleed branch {self.online_bleed_branch!r}) need "
+                "bleeding masks of version 3's path (online_bleed > 0, online_version 3, "
+                f"synth_version >= 2 or no noise); got online_bleed={self.online_bleed}, online_version="
                 f"{self.online_version}, synth_version={self.synth_version}, noise={self.noise}"
             )
         if self.online_scenes not in ONLINE_SCENES:
@@ -380,7 +381,7 @@ class ChunkStore:
         finite float32 points (twice that in two forms), int64 classes, float32 rotations and
         translations."""
         n, k = self.settings["chunk_size"], self.settings["synth"]["n_points"]
-        if self.settings["synth"].get("online_bleed_branch") == "translation":
+        if self.settings["synth"].get("online_bleed_branch", "both") != "both":
             k *= 2  # the rendered form's points, then the bleeding form's
         expected = {
             "points": ((n, k, 3), np.float32),

@@ -84,6 +84,7 @@ import torch
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from cloudpose.config import PAIRED_BRANCH
 from cloudpose.conventions import IMAGE_SHAPE, YCB_INTRINSICS
 from cloudpose.data.segments import (
     Segment,
@@ -153,8 +154,8 @@ class SegmentBatch:
 
     Attributes:
         points: (B, n, 3) float32 camera-frame points, metres, FPS order; (B, 2n, 3) for
-            segments in two forms (``data.online_bleed_branch = "translation"``): the rendered
-            masks' n points, then the bleeding masks'.
+            segments in two forms (``data.online_bleed_branch`` "translation" or
+            "translation-paired"): the rendered masks' n points, then the bleeding masks'.
         cls_id: (B,) int64 1-based class ids.
         R: (B, 3, 3) float32 rotations model->camera.
         t: (B, 3) float32 translations, metres.
@@ -714,19 +715,27 @@ class OnlineSynth:
         clean = self._with_ring_v3(depth, index, Kw, scene) if self.settings.noise else depth
         settings = self.settings
         forms = [(index, visible)]  # each form's masks and pixels per instance
+        form_rngs = [rng]  # and the stream of its draws
         if settings.online_bleed:  # the ring's depth is the background's: grow into it
-            bled = bleed_masks(index, len(cls_ids), settings.online_bleed, rng)
+            # paired: the bleeding's draws from a stream of their own, so the rendered form's
+            # are those of a run without bleeding (spawning leaves rng's draws as they are)
+            bleed_rng = rng.spawn(1)[0] if settings.online_bleed_branch == PAIRED_BRANCH else rng
+            bled = bleed_masks(index, len(cls_ids), settings.online_bleed, bleed_rng)
             counts = np.bincount(bled[bled >= 0], minlength=len(cls_ids)).astype(np.int64)
             if settings.forms == 1:
                 forms = [(bled, counts)]
             else:  # the rendered masks for the rotation branch, the bleeding for translation
                 forms.append((bled, counts))
+                form_rngs.append(bleed_rng)
         cut = [
-            self._form_points(clean, masks, counts, Kw, cls_ids, rng, compiled)
-            for masks, counts in forms
+            self._form_points(clean, masks, counts, Kw, cls_ids, r, compiled)
+            for (masks, counts), r in zip(forms, form_rngs, strict=True)
         ]
         n_fps = settings.n_points
         streams = instance_streams(rng, cls_ids)  # the FPS starts, as the segment path draws
+        form_streams = [streams] + [
+            streams if r is rng else instance_streams(r, cls_ids) for r in form_rngs[1:]
+        ]
         keep = []
         soa: list = [None] * len(cut)
         for i, c in enumerate(cls_ids.tolist()):
@@ -743,7 +752,7 @@ class OnlineSynth:
                     if soa[f] is None:  # every point's coordinates, x, y and z rows, float32
                         soa[f] = np.ascontiguousarray(pts.T, dtype=np.float32)
                     xyz = soa[f]
-                    first = int(streams[i].integers(b - a))  # farthest_point_sampling's draw
+                    first = int(form_streams[f][i].integers(b - a))  # the FPS start
                     k = min(n_fps, b - a)
                     order = fps_soa(xyz[0, a:b], xyz[1, a:b], xyz[2, a:b], k, first)
                     samples.append(
@@ -751,7 +760,7 @@ class OnlineSynth:
                     )
                 else:
                     p32 = pts[a:b].astype(np.float32)
-                    samples.append(p32[farthest_point_sampling(p32, n_fps, streams[i])])
+                    samples.append(p32[farthest_point_sampling(p32, n_fps, form_streams[f][i])])
             sample = samples[0] if len(samples) == 1 else np.concatenate(samples)
             R = poses[i, :, :3].astype(np.float32)
             t = poses[i, :, 3].astype(np.float32)
