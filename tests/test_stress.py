@@ -241,6 +241,18 @@ def test_conditions_hold_the_identity_once():
     assert len(conds) == n_levels - len(pt.PERTURBATIONS) + 1
 
 
+def test_a_network_named_by_its_run_is_the_same_method_wherever_it_was_downloaded():
+    """A sweep resumed (or a second source swept) with a run's checkpoint downloaded to another
+    temporary folder adds to the same results; another run, or another checkpoint file of a
+    network not named by a run, is another method."""
+    a = {"checkpoint": "/tmp/cloudpose-checkpoint-1/model.pt", "limit": None, "run_id": "ab12"}
+    b = {**a, "checkpoint": "/tmp/cloudpose-checkpoint-2/model.pt", "ends_only": True}
+    assert st._same(a) == st._same(b)
+    assert st._same(a) != st._same({**a, "run_id": "cd34"})
+    plain = {"checkpoint": "runs/x/model.pt", "limit": None}
+    assert st._same(plain) != st._same({**plain, "checkpoint": "runs/y/model.pt"})
+
+
 def _sweep_results(root):
     """A sweep's result files for one real object pose whose segments hold far more points off
     the model than the synthetic ones, and the synthetic frames' cache beside them."""

@@ -118,15 +118,17 @@ def test_markdown_names_runs_and_intervals(synthesis):
     )
 
 
-def _sweep(folder: Path, checkpoint: str, trans_m: dict[float, float]) -> Path:
-    """A `cloudpose stress` results folder: the network of ``checkpoint`` under dilation, every
-    instance's translation off by ``trans_m[level]``."""
+def _sweep(folder: Path, checkpoint: str, trans_m: dict[float, float], run_id: str = "") -> Path:
+    """A `cloudpose stress` results folder: the network of ``checkpoint`` (of MLflow run
+    ``run_id``, where given) under dilation, every instance's translation off by
+    ``trans_m[level]``."""
     from cloudpose.studies.stress import result_path
 
     folder.mkdir(parents=True)
+    method = {"checkpoint": checkpoint, "limit": None} | ({"run_id": run_id} if run_id else {})
     meta = {
         "sources": {"real": "x"},
-        "methods": {"net-seed1": {"checkpoint": checkpoint, "limit": None}},
+        "methods": {"net-seed1": method},
         "perturbations": {"dilate": sorted(trans_m)},
     }
     (folder / "sweep.json").write_text(json.dumps(meta))
@@ -151,6 +153,11 @@ def test_stress_sweeps_are_matched_to_runs_by_their_folder(synthesis, tmp_path):
     other = _sweep(tmp_path / "other", "runs/shared-0/p/seed1-cccc/model.pt", {0: 0.004})
     with pytest.raises(ValueError, match="none of the runs found"):
         synthesis.stress_rows([other], folders, "dilate")
+    # a run's checkpoint downloaded to a temporary folder: matched by the run id kept
+    folders["f00d"] = ("p", "bleed 1", 2)
+    copy = _sweep(tmp_path / "copy", "/tmp/cloudpose-x/model.pt", {0: 0.004}, run_id="f00d")
+    rows = synthesis.stress_rows([copy], folders, "dilate")
+    assert set(zip(rows["setting"], rows["seed"], strict=True)) == {("bleed 1", 2)}
 
 
 def test_stress_summaries_read_back_from_their_csv(synthesis, tmp_path):

@@ -291,21 +291,22 @@ def _network_methods(runs: list[str], project: Path):
     from cloudpose.studies.stress import SweepMethod
 
     named = [r for r in runs if not _is_checkpoint(r)]
-    resolved: dict[str, Path] = {}
+    resolved: dict[str, tuple[str | None, Path]] = {}
     if named:
         from cloudpose.store.pretrained import is_pretrained, shipped
         from cloudpose.store.runs import client_for, resolve_run
 
         client = client_for(named, project)
         resolved = {
-            r: shipped(r).path if is_pretrained(r) else resolve_run(client, r)[1] for r in named
+            r: (None, shipped(r).path) if is_pretrained(r) else resolve_run(client, r)
+            for r in named
         }
-    paths = [resolved.get(r, Path(r)) for r in runs]
     out: list[SweepMethod] = []
-    for path in paths:
+    for run in runs:
+        run_id, path = resolved.get(run, (None, Path(run)))
         _, cfg = load_checkpoint(path, "cpu")
         name = f"net-seed{cfg.seed}"
         if any(m.name == name for m in out):
             name += f"-{len(out)}"
-        out.append(SweepMethod(name, Path(path)))
+        out.append(SweepMethod(name, Path(path), run_id=run_id))
     return out

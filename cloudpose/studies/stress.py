@@ -80,6 +80,9 @@ class SweepMethod:
     """Evenly spaced instances of the sweep's own it runs on (None: all)."""
     ends_only: bool = False
     """Only at the identity and at each perturbation's farthest level (a costly method)."""
+    run_id: str | None = None
+    """The MLflow run whose checkpoint it is, where the network was named by its run (kept in
+    ``sweep.json``, so results stay traceable when the checkpoint was a downloaded copy)."""
 
     def runs_at(self, p: Perturbation, level: float) -> bool:
         """Whether this method is computed at ``level`` of ``p``."""
@@ -273,7 +276,8 @@ def run_sweep(
         "sources": {s: src.described for s, src in opened.items()},
         "methods": {m.name: {"checkpoint": str(m.checkpoint or ""), "limit": m.limit,
                              **({"members": [str(p) for p in m.members]} if m.members else {}),
-                             **({"ends_only": True} if m.ends_only else {})}
+                             **({"ends_only": True} if m.ends_only else {}),
+                             **({"run_id": m.run_id} if m.run_id else {})}
                     for m in methods},
         "perturbations": {p.name: list(p.levels) for p in perts},
         "icp_radius": icp_radius,
@@ -345,10 +349,12 @@ def check_icp_radius(out_dir: Path, meta: dict, icp_radius: float) -> None:
 
 
 def _same(entry):
-    """What of a sweep.json entry decides its result files (not where a method runs)."""
-    return (
-        {k: v for k, v in entry.items() if k != "ends_only"} if isinstance(entry, dict) else entry
-    )
+    """What of a sweep.json entry decides its result files: not where a method runs, nor where
+    the checkpoint of a network named by its MLflow run was downloaded to (its run decides)."""
+    if not isinstance(entry, dict):
+        return entry
+    drop = {"ends_only", "checkpoint"} if entry.get("run_id") else {"ends_only"}
+    return {k: v for k, v in entry.items() if k not in drop}
 
 
 def _write_csv(path: Path, df: pd.DataFrame) -> None:

@@ -19,7 +19,8 @@ every figure, without and with ICP, with the two-level bootstrap interval of the
 Run it in the project folder that holds the runs (the MLflow store of ``MLFLOW_TRACKING_URI``
 or ``./mlruns``). Writes the Markdown and a CSV beside it (one row per preset, setting, set,
 stage and figure). Each ``--stress DIR`` is the results folder of a ``cloudpose stress`` sweep
-of one of these runs (``--run runs/shared-0/...``; the run is found by its folder name); the
+of one of these runs (``--run`` its folder, run id or name; the run is found by the run id the
+sweep keeps, else by its folder name); the
 Markdown then lists the ``--perturbation`` (default ``dilate``) curve of each setting against
 ``none``,
 ``*_stress.csv`` holds its summaries and ``*_stress.png`` plots them. ``--stress-csv FILE``
@@ -84,7 +85,7 @@ def setting(data) -> str:
 
 def synthesis_runs(client, preset: str, folders: dict[str, tuple] | None = None):
     """setting -> seed -> the newest finished shared-0 run of ``preset`` with that setting;
-    each chosen run's folder name (tag ``run_dir``) -> (preset, setting, seed) goes into
+    each chosen run's id and folder name (tag ``run_dir``) -> (preset, setting, seed) go into
     ``folders`` when given."""
     out: dict[str, dict[int, RunRecord]] = {}
     for run in tracking.find_runs(client, variant="shared-0", preset=preset):  # newest first
@@ -104,8 +105,10 @@ def synthesis_runs(client, preset: str, folders: dict[str, tuple] | None = None)
         by_seed = out.setdefault(label, {})
         if seed not in by_seed:
             by_seed[seed] = _record(run, ("shared-0", seed), preset, tags.get("data", ""), client)
-            if folders is not None and tags.get("run_dir"):
-                folders[Path(tags["run_dir"]).name] = (preset, label, seed)
+            if folders is not None:
+                folders[run.info.run_id] = (preset, label, seed)
+                if tags.get("run_dir"):
+                    folders[Path(tags["run_dir"]).name] = (preset, label, seed)
     return out
 
 
@@ -222,7 +225,8 @@ STRESS_FIGURES = (  # stress summary column, stage, scale, heading
 def stress_rows(sweeps: list[Path], folders: dict[str, tuple], perturbation: str) -> pd.DataFrame:
     """The summaries of ``perturbation`` in each ``cloudpose stress`` results folder, one per
     (source, level, stage) and network, with the (preset, setting, seed) of the run whose
-    checkpoint the sweep evaluated (matched by the run's folder name)."""
+    checkpoint the sweep evaluated (matched by the run id the sweep kept, else by the run's
+    folder name)."""
     frames = []
     for folder in sweeps:
         sweep = json.loads((folder / "sweep.json").read_text())
@@ -231,7 +235,7 @@ def stress_rows(sweeps: list[Path], folders: dict[str, tuple], perturbation: str
             checkpoint = spec.get("checkpoint")
             if not checkpoint:
                 continue
-            key = folders.get(Path(checkpoint).parent.name)
+            key = folders.get(spec.get("run_id", "")) or folders.get(Path(checkpoint).parent.name)
             if key is None:
                 raise ValueError(
                     f"{folder}/sweep.json: method {method} evaluated {checkpoint}, which is "
