@@ -404,6 +404,9 @@ def test_stress_command_end_to_end(smoke_project, tmp_path):
         "--only", "cut", "--results", str(results), "--out", str(tmp_path / "rep"),
         "--no-progress",
     ]  # fmt: skip
+    res = cli(*args, "--dry-run")
+    assert res.exit_code == 0 and "stress plan" in res.output, res.output
+    assert not (results / "sweep.json").exists()  # a plan commits the folder to nothing
     res = cli(*args)
     assert res.exit_code == 0, res.output
     assert "stress plan" in res.output

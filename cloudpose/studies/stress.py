@@ -296,7 +296,6 @@ def run_sweep(
                 )
         for key in ("sources", "methods", "perturbations"):
             meta[key] = {**old.get(key, {}), **meta[key]}
-    atomic_write(meta_path, lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
     models = {
         s: len({int(src.frames[f].frame.cls_ids[i]) for f, i in src.instances})
         for s, src in opened.items()
@@ -305,8 +304,9 @@ def run_sweep(
         out_dir, {s: len(src.instances) for s, src in opened.items()}, perts, methods, models
     )
     echo("stress plan:\n" + plan.describe(methods))
-    if dry_run:
+    if dry_run:  # the plan only: no sweep.json that a later call with other runs would meet
         return plan
+    atomic_write(meta_path, lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=1)))
     n_fps, radius = cfg.data.n_fps, cfg.data.outlier_radius
     for s, src in opened.items():
         cache: dict = {}
