@@ -730,7 +730,7 @@ class Trainer:
         branch, at = cfg.data.online_bleed_branch, (position.epoch, position.batch)
         if branch == PAIRED_BRANCH:  # the first form augmented as a run of one form's batch
             points, trans_points = split_forms(batch.points, cfg.train.n_points)
-            points, trans_points, R, t = augment_forms(
+            points, trans_points, R, t = augment_forms(  # contiguous, as a plain batch is
                 points.contiguous(), trans_points.contiguous(), batch.R, batch.t, cfg, *at
             )
             batch = batch._replace(points=points, R=R, t=t, trans_points=trans_points)

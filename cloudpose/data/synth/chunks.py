@@ -17,11 +17,11 @@ chunk size, the code of the modules that could make it (``cloudpose/data``,
 ``cloudpose/kernels``, ``cloudpose/geometry``, ``conventions.py``, this module aside; as syntax
 trees without their prose and layout, so an edit of a docstring or comment, an import moved into
 or out of a function and a definition moved to another module keep the key), the packaged model
-points and surfaces, and the versions of the numeric libraries. Edit the sensor model and the next run
-synthesizes afresh into a new folder; nothing stale is read. What the key does not cover: the
-CPU. Compiled kernels can round differently on another instruction set, as synthesis without a
-store would; a store carried to another machine gives that machine's runs the chunks of the
-machine that made them.
+points and surfaces, and the versions of the numeric libraries. Edit the sensor model and the
+next run synthesizes afresh into a new folder; nothing stale is read. What the key does not
+cover: the CPU. Compiled kernels can round differently on another instruction set, as synthesis
+without a store would; a store carried to another machine gives that machine's runs the chunks
+of the machine that made them.
 
 Layout: ``ROOT/KEY/settings.json`` (the key's parts, readable) and
 ``ROOT/KEY/seed-S/chunk-JJJJJJ.npz`` (points, cls_id, R, t, and where = (S, J): a file copied
@@ -161,8 +161,9 @@ class OnlineSettings:
             raise ValueError(
                 f"on-line segments in two forms (bleed branch {self.online_bleed_branch!r}) need "
                 "bleeding masks of version 3's path (online_bleed > 0, online_version 3, "
-                f"synth_version >= 2 or no noise); got online_bleed={self.online_bleed}, online_version="
-                f"{self.online_version}, synth_version={self.synth_version}, noise={self.noise}"
+                f"synth_version >= 2 or no noise); got online_bleed={self.online_bleed}, "
+                f"online_version={self.online_version}, synth_version={self.synth_version}, "
+                f"noise={self.noise}"
             )
         if self.online_scenes not in ONLINE_SCENES:
             raise ValueError(
