@@ -18,6 +18,9 @@ load). Figures (JSON keys):
 - ``online_v3_supply_ratio``: on-line synthesis version 3 (two worker processes) at reuse 1
   against training consumption, version 1 beside it, stage times of versions 1, 2 and 3
   (``benchmarks.bench_online``)
+- ``stored_in_process_speedup``: a ``cpu-online-4x`` on-line loop on a full chunk store with
+  the chunks read in the training process (every thread trains) against the preset's one
+  synthesis worker, alone and two side by side (``benchmarks.bench_stored``)
 - ``cpu_variant_wall_s``: wall time of one ``cpu``-preset variant, train + evaluate. Not run by
   default (it takes minutes): read from the MLflow store (start to end of the newest finished
   ``cpu`` run; training and evaluation log into the same run), else null with a note;
@@ -73,6 +76,7 @@ FIGURES = (
     "online_supply_ratio",
     "online_v2_supply_ratio",
     "online_v3_supply_ratio",
+    "stored_in_process_speedup",
     "cpu_variant_wall_s",
     "ray_executor_wall_s",
 )
@@ -86,6 +90,7 @@ GROUPS = {
     "baselines": ("baseline_fpfh_ms_per_object", "baseline_ppf_ms_per_object"),
     "data": ("synth_frames_per_s", "prepare_frames_per_s"),
     "online": ("online_supply_ratio", "online_v2_supply_ratio", "online_v3_supply_ratio"),
+    "stored": ("stored_in_process_speedup",),
     "cpu_variant": ("cpu_variant_wall_s",),
     "cluster": ("ray_executor_wall_s",),
 }
@@ -181,6 +186,12 @@ def _online(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
     return bench_online.run(quick=quick)
 
 
+def _stored(quick: bool, _args: argparse.Namespace) -> dict[str, Any]:
+    from benchmarks import bench_stored
+
+    return bench_stored.run(quick=quick)
+
+
 def _cpu_variant(quick: bool, args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, "cpu_variant", False):
         return {"cpu_variant_wall_s": cpu_variant_run(args.variant, args.seed)}
@@ -201,6 +212,7 @@ RUNNERS: dict[str, Callable[[bool, argparse.Namespace], dict[str, Any]]] = {
     "baselines": _baselines,
     "data": _data,
     "online": _online,
+    "stored": _stored,
     "cpu_variant": _cpu_variant,
     "cluster": _cluster,
 }

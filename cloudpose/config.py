@@ -254,7 +254,8 @@ class TrainConfig:
         threads: intra-op CPU threads of training (``torch.set_num_threads``), whatever the
             machine has. CPU kernels split their sums by thread (BatchNorm statistics, the
             reduction dimension of a GEMM), so the thread count changes a run's numbers: it is
-            a setting, part of the run's identity, not the machine's core count.
+            a setting, part of the run's identity, not the machine's core count. An on-line
+            run leaves ``data.online_workers`` of them to its synthesis processes.
         seed_streams: how the random streams of training (initial weights, batch order,
             augmentations, BatchNorm re-estimation, probe) are seeded
             (:data:`SEED_STREAMS`, :mod:`cloudpose.train.seeds`): "purpose", one stream per
@@ -347,7 +348,9 @@ class DataConfig:
             ``train.batch_size``): synthesis per step is ``batch_size / online_reuse``
             segments. Use it with ``train.augment_roll_deg`` so the uses differ.
         online_workers: with "online", synthesis processes beside training (0 = in the training
-            process); changes speed only, never the numbers.
+            process). The segments are the same for any count, but training runs on
+            ``train.threads - online_workers`` threads (at least 1) while they do, so the count
+            is part of a run's numbers (0 with a full chunk store: ``cpu-online-4x-2t``).
         online_scenes: with "online" and ``classes``, what the synthesized scenes hold
             (:data:`ONLINE_SCENES`): "all", objects of every class,
             the others as occluders, as in the test frames; "classes", the kept classes only

@@ -262,6 +262,7 @@ PRESET_FINGERPRINTS = {
     "online": ("b7a924ca3b84b65e", "66b2722a2266fa5b"),
     "cpu-online": ("541c58429a09604b", "aa68bfa81e905d74"),
     "cpu-online-4x": ("1a9737c49051fa74", "3381f449b8c5b563"),
+    "cpu-online-4x-2t": ("ec6711806bd723a1", "f34c064faaca6326"),
     "gpu": ("f21fd55a7d85d916", "b3230d247b40347d"),
     "cpu-paper": ("44912df2a29512f6", "acec99161b886f06"),
     "paper": ("fd061ca528aaa89b", "dc8ea5e7633f61b4"),

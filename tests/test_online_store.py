@@ -169,6 +169,31 @@ def test_a_stream_reads_stored_chunks_and_yields_the_same_batches(tmp_path, monk
         stream.close()
 
 
+def test_training_keeps_the_threads_its_synthesis_workers_leave(tmp_path):
+    """A stream with workers trains on threads - workers (the count is part of the numbers);
+    without workers (chunks read in process: ``cpu-online-4x-2t``) on every thread."""
+    args = {"seed": 1, "batch_size": 8, "reuse": 2, "total_steps": 2, "spacing": 2}
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        for workers, training in ((1, 1), (0, 2), (3, 1)):
+            stream = OnlineStream(KW, workers=workers, store=tmp_path, **args)
+            assert torch.get_num_threads() == training, workers
+            stream.close()
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_the_in_process_preset_reads_the_4x_chunks_as_another_run():
+    names = [f"c{i}" for i in range(21)]
+    four, both = (resolve("shared-0", p, seed=4) for p in ("cpu-online-4x", "cpu-online-4x-2t"))
+    assert online_chunks(four, names) == online_chunks(both, names)
+    assert (four.data.online_workers, both.data.online_workers) == (1, 0)
+    assert four.train.threads == both.train.threads == 2
+    assert four.fingerprint() != both.fingerprint()
+
+
 def test_store_root_follows_the_environment(tmp_path, monkeypatch):
     monkeypatch.delenv(ONLINE_STORE_ENV, raising=False)
     assert online_store_root(tmp_path) == tmp_path / "data" / "cache" / "online"
