@@ -325,6 +325,9 @@ def plan_configs(
                 done.info.run_id if done is not None else None,
             )
         )
+    plan.notes += chunk_lines(
+        [c for c, r in zip(todo, plan.runs, strict=True) if r.status != "finished"], project_dir
+    )
     measured = _measured_run_s(client, preset, variants)
     if measured is not None:
         plan.per_run_s = measured[0]
@@ -334,6 +337,46 @@ def plan_configs(
     elif todo:
         plan.per_run_s, plan.per_run_source = estimate_run_s(todo[0])
     return plan
+
+
+def chunk_lines(todo: list[Config], project_dir: Path) -> list[str]:
+    """What the chunk store holds for the on-line runs in ``todo``, a line per seed: a seed
+    whose chunks are all stored trains without synthesis; the chunks it lacks are made by the
+    run's synthesis workers, or between its steps with ``data.online_workers = 0``."""
+    from cloudpose.conventions import packaged_classes
+    from cloudpose.data.synth.chunks import ChunkStore
+    from cloudpose.train.loop import online_chunks, online_store_root
+
+    root = online_store_root(project_dir)
+    online = [c for c in todo if c.data.train_source == "online" and not c.data.root]
+    if root is None or not online:
+        return []
+    out: list[str] = []
+    seen: set[tuple] = set()
+    for cfg in online:
+        settings, chunk_size, n_chunks = online_chunks(cfg, packaged_classes())
+        store = ChunkStore(root, settings, chunk_size)
+        key = (store.key, cfg.seed, n_chunks, cfg.data.online_workers)
+        if key in seen:
+            continue
+        seen.add(key)
+        folder = store.path(cfg.seed, 0).parent
+        names = folder.glob("chunk-*.npz") if folder.is_dir() else ()
+        stored = sum(1 for f in names if f.stem[6:].isdigit() and int(f.stem[6:]) < n_chunks)
+        line = f"chunks: seed {cfg.seed}: {stored:,} of {n_chunks:,} stored"
+        if stored >= n_chunks:
+            line += " (read, none synthesized)"
+        elif cfg.data.online_workers == 0:
+            line += (
+                " (the rest synthesized in the training process, between its steps: "
+                f"cloudpose prepare --preset {cfg.preset} --seeds N fills seeds 1..N on every "
+                "core first)"
+            )
+        else:
+            n = cfg.data.online_workers
+            line += f" (the rest synthesized by the run's {n} worker{'s' if n > 1 else ''})"
+        out.append(line)
+    return out
 
 
 def finished_run_any_data(client, cfg: Config):

@@ -249,3 +249,37 @@ def test_seed_list():
     assert plans.seed_list([3, 1, 3]) == [1, 3]
     with pytest.raises(ValueError, match="seeds"):
         plans.seed_list(0)
+
+
+def test_a_plan_says_what_the_chunk_store_holds_for_each_seed(tmp_path, monkeypatch):
+    from cloudpose.conventions import packaged_classes
+    from cloudpose.data.synth.chunks import ChunkStore
+    from cloudpose.suite.plan import chunk_lines
+    from cloudpose.train.loop import ONLINE_STORE_ENV, online_chunks
+
+    monkeypatch.setenv(ONLINE_STORE_ENV, str(tmp_path / "store"))
+    online = {"data": {"train_source": "online", "online_epoch_segments": 64}}
+    todo = [resolve("shared-0", "smoke", seed=s, overrides=online) for s in (1, 2, 3)]
+    settings, chunk_size, n_chunks = online_chunks(todo[0], packaged_classes())
+    store = ChunkStore(tmp_path / "store", settings, chunk_size)
+    for j in range(n_chunks + 2):  # chunks past the run's are not its own
+        store.path(1, j).parent.mkdir(parents=True, exist_ok=True)
+        store.path(1, j).write_bytes(b"")
+    store.path(2, 0).parent.mkdir(parents=True)
+    store.path(2, 0).write_bytes(b"")
+    lines = chunk_lines([*todo, todo[0]], tmp_path)
+    assert lines == [
+        f"chunks: seed 1: {n_chunks:,} of {n_chunks:,} stored (read, none synthesized)",
+        f"chunks: seed 2: 1 of {n_chunks:,} stored (the rest synthesized by the run's 1 worker)",
+        f"chunks: seed 3: 0 of {n_chunks:,} stored (the rest synthesized by the run's 1 worker)",
+    ]
+    in_process = resolve(
+        "shared-0",
+        "smoke",
+        seed=2,
+        overrides={**online, "data": {**online["data"], "online_workers": 0}},
+    )
+    assert "in the training process" in chunk_lines([in_process], tmp_path)[0]
+    assert chunk_lines([resolve("shared-0", "smoke")], tmp_path) == []  # rendered frames
+    monkeypatch.setenv(ONLINE_STORE_ENV, "0")
+    assert chunk_lines(todo, tmp_path) == []
