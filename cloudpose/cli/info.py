@@ -34,8 +34,10 @@ def presets() -> None:
     """Print the presets (cloudpose/resources/registry/presets.toml) with what each is for."""
     from cloudpose.registry import presets as registered
 
-    for name, why in registered().items():
-        typer.echo(f"{name:<14} {why}")
+    found = registered()
+    width = max(map(len, found), default=0)
+    for name, why in found.items():
+        typer.echo(f"{name:<{width}}  {why}")
 
 
 @app.command()
