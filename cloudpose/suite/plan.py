@@ -15,8 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cloudpose.config import Config
+from cloudpose.conventions import packaged_classes
 from cloudpose.data.dataset import data_fingerprint, dataset_root, synthetic_root
 from cloudpose.data.keys import DataKey
+from cloudpose.data.synth.chunks import ChunkStore
 from cloudpose.data.synth.frames import frame_id
 from cloudpose.data.synth.write import _frame_done
 from cloudpose.registry import get_group, resolve
@@ -24,6 +26,7 @@ from cloudpose.report import segmentation
 from cloudpose.report.build import default_out_dir
 from cloudpose.store import tracking
 from cloudpose.store.runs import TEST_KEY, finished_run, run_has_config, run_name
+from cloudpose.train.loop import online_chunks, online_store_root
 
 
 def seed_list(seeds: int | Iterable[int]) -> list[int]:
@@ -343,10 +346,6 @@ def chunk_lines(todo: list[Config], project_dir: Path) -> list[str]:
     """What the chunk store holds for the on-line runs in ``todo``, a line per seed: a seed
     whose chunks are all stored trains without synthesis; the chunks it lacks are made by the
     run's synthesis workers, or between its steps with ``data.online_workers = 0``."""
-    from cloudpose.conventions import packaged_classes
-    from cloudpose.data.synth.chunks import ChunkStore
-    from cloudpose.train.loop import online_chunks, online_store_root
-
     root = online_store_root(project_dir)
     online = [c for c in todo if c.data.train_source == "online" and not c.data.root]
     if root is None or not online:
