@@ -47,13 +47,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _setup() -> tuple:
     """``(settings, batch, reuse, train threads)`` of shared-0 at :data:`PRESET`."""
+    from cloudpose.conventions import packaged_classes
     from cloudpose.data.synth.chunks import OnlineSettings
     from cloudpose.registry import resolve
 
     cfg = resolve("shared-0", PRESET)
-    d, t = cfg.data, cfg.train
-    settings = OnlineSettings(d.synth_version, n_points=t.n_points, online_version=d.online_version)
-    return settings, t.batch_size, d.online_reuse, t.threads
+    settings = OnlineSettings.from_config(cfg, packaged_classes())
+    return settings, cfg.train.batch_size, cfg.data.online_reuse, cfg.train.threads
 
 
 def _chunks(steps: int, reuse: int) -> int:

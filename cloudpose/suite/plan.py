@@ -359,9 +359,7 @@ def chunk_lines(todo: list[Config], project_dir: Path) -> list[str]:
         if key in seen:
             continue
         seen.add(key)
-        folder = store.path(cfg.seed, 0).parent
-        names = folder.glob("chunk-*.npz") if folder.is_dir() else ()
-        stored = sum(1 for f in names if f.stem[6:].isdigit() and int(f.stem[6:]) < n_chunks)
+        stored = store.stored(cfg.seed, n_chunks)
         line = f"chunks: seed {cfg.seed}: {stored:,} of {n_chunks:,} stored"
         if stored >= n_chunks:
             line += " (read, none synthesized)"
