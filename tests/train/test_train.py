@@ -280,32 +280,37 @@ def test_a_pair_of_forms_augments_its_first_form_as_a_batch_of_one_form():
 
 
 @pytest.mark.slow
-def test_a_paired_bleeding_run_trains_the_plain_runs_rotation_branch(
+def test_a_translation_only_change_trains_the_plain_runs_rotation_branch(
     tmp_path, smoke_data, monkeypatch
 ):
-    """shared-0 on line (version 3) with ``data.online_bleed_branch = "translation-paired"``
-    and the same run without bleeding: after a few steps the rotation networks are the same
-    numbers (the rotation branch's segments, augmentation and updates are the plain run's),
-    the translation networks are not. With "translation" the rotation branch is another draw."""
+    """shared-0 on line (version 3) with ``data.online_bleed_branch = "translation-paired"``,
+    and ``centre-trimmed-translation`` (a robust centre for the translation residual only),
+    each beside the same run of shared-0 without it: after a few steps the rotation networks
+    are the same numbers (the rotation branch's segments, augmentation and updates are the
+    plain run's), the translation networks are not. With "translation" the rotation branch is
+    another draw."""
     online = {"train_source": "online", "online_version": 3, "synth_version": 2}
     aug = {"augment_roll_deg": 15.0, "augment_depth_noise_mm": 3.0}
     weights = {}
-    for name, extra in (
-        ("plain", {}),
-        ("paired", {"online_bleed": 1.0, "online_bleed_branch": "translation-paired"}),
-        ("unpaired", {"online_bleed": 1.0, "online_bleed_branch": "translation"}),
+    for name, variant, extra in (
+        ("plain", "shared-0", {}),
+        ("paired", "shared-0", {"online_bleed": 1.0, "online_bleed_branch": "translation-paired"}),
+        ("unpaired", "shared-0", {"online_bleed": 1.0, "online_bleed_branch": "translation"}),
+        ("centre", "centre-trimmed-translation", {}),
     ):
-        cfg = resolve("shared-0", "smoke", 1, overrides={"data": online | extra, "train": aug})
+        cfg = resolve(variant, "smoke", 1, overrides={"data": online | extra, "train": aug})
         proj = make_project(tmp_path / name, smoke_data, monkeypatch)
         with pytest.raises(TrainingInterrupted) as stop:
             train_run(cfg, project_dir=proj, progress=False, max_steps=4)
         weights[name] = torch.load(stop.value.args[0] / "last.pt", weights_only=True)["model"]
-    plain, paired, unpaired = weights["plain"], weights["paired"], weights["unpaired"]
+    plain, unpaired = weights["plain"], weights["unpaired"]
     rot = [k for k in plain if k.startswith("rotation_net.")]
     trans = [k for k in plain if k.startswith("translation_net.") and plain[k].is_floating_point()]
     assert rot and trans
-    assert all(torch.equal(plain[k], paired[k]) for k in rot)
-    assert any(not torch.equal(plain[k], paired[k]) for k in trans)
+    for name in ("paired", "centre"):
+        assert weights[name].keys() == plain.keys(), name
+        assert all(torch.equal(plain[k], weights[name][k]) for k in rot), name
+        assert any(not torch.equal(plain[k], weights[name][k]) for k in trans), name
     assert any(not torch.equal(plain[k], unpaired[k]) for k in rot if plain[k].is_floating_point())
 
 
