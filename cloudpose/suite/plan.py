@@ -220,11 +220,15 @@ def estimate_run_s(cfg: Config) -> tuple[float, str]:
     return seconds, source
 
 
-def _measured_run_s(client, preset: str, variants: list[str]) -> tuple[float, int] | None:
-    """Median wall time of the finished runs of ``preset`` in the store (of ``variants`` when
-    they have any), and how many runs it is from. A run that trained some of its steps on
-    another machine (``train.machine_steps``, ``benchmarks/gpu_run.py``) is left out: its wall
-    time here is only part of a run."""
+def _measured_run_s(
+    client, preset: str, variants: list[str], device: str
+) -> tuple[float, int] | None:
+    """Median wall time of the finished runs of ``preset`` in the store that trained on
+    ``device`` (``cpu`` or ``cuda``; of ``variants`` when they have any), and how many runs it is
+    from. A run that trained some of its steps on another machine (``train.machine_steps``,
+    ``benchmarks/gpu_run.py``) or on another device (its ``device`` param, ``cuda, then cpu``
+    for a run resumed on a CPU) is left out: its wall time is not what a run here takes. A run
+    that does not record its device counts."""
     found = [
         r
         for r in tracking.find_runs(client, preset=preset)
@@ -232,6 +236,7 @@ def _measured_run_s(client, preset: str, variants: list[str]) -> tuple[float, in
         and r.info.start_time
         and TEST_KEY in r.data.metrics
         and "train.machine_steps" not in r.data.params
+        and r.data.params.get("device", device).split(":")[0] == device
     ]
     own = [r for r in found if r.data.tags.get("variant") in variants]
     runs = own or found
@@ -239,6 +244,15 @@ def _measured_run_s(client, preset: str, variants: list[str]) -> tuple[float, in
         return None
     seconds = sorted((r.info.end_time - r.info.start_time) / 1000 for r in runs)
     return seconds[len(seconds) // 2], len(seconds)
+
+
+def training_device(cfg: Config) -> str:
+    """The kind of device (``cpu`` or ``cuda``) a run of ``cfg`` would train on here."""
+    import torch
+
+    if cfg.train.device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return cfg.train.device.split(":")[0]
 
 
 def _frames_to_render(cfg: Config, project_dir: Path) -> tuple[str, int, int, bool]:
@@ -331,11 +345,13 @@ def plan_configs(
     plan.notes += chunk_lines(
         [c for c, r in zip(todo, plan.runs, strict=True) if r.status != "finished"], project_dir
     )
-    measured = _measured_run_s(client, preset, variants)
+    device = training_device(todo[0]) if todo else "cpu"
+    measured = _measured_run_s(client, preset, variants, device)
     if measured is not None:
         plan.per_run_s = measured[0]
         plan.per_run_source = (
-            f"median wall time of {measured[1]} finished {preset} run(s) in this MLflow store"
+            f"median wall time of {measured[1]} finished {preset} run(s) on {device} "
+            "in this MLflow store"
         )
     elif todo:
         plan.per_run_s, plan.per_run_source = estimate_run_s(todo[0])

@@ -79,6 +79,23 @@ def test_plan_time_leaves_out_a_run_trained_partly_elsewhere(project):
     assert "from the preset" in plan.per_run_source
 
 
+def test_plan_time_comes_from_runs_on_this_device(project, monkeypatch):
+    """A gpu-preset run that trained on CUDA (or began there) says nothing of a run on a CPU,
+    and the other way round; a run without a device param counts."""
+    client = tracking.setup(project)
+    for seed, device in ((1, "cuda"), (2, "cuda, then cpu")):
+        client.log_param(_finished_run(project, "shared-0", "smoke", seed), "device", device)
+    monkeypatch.setattr(plans, "training_device", lambda cfg: "cpu")
+    plan = plans.plan_runs(["shared-0"], "smoke", [3], title="t", project_dir=project)
+    assert "from the preset" in plan.per_run_source
+    monkeypatch.setattr(plans, "training_device", lambda cfg: "cuda")
+    plan = plans.plan_runs(["shared-0"], "smoke", [3], title="t", project_dir=project)
+    assert "median wall time of 1 finished smoke run(s) on cuda" in plan.per_run_source
+    _finished_run(project, "shared-0", "smoke", 4)
+    plan = plans.plan_runs(["shared-0"], "smoke", [3], title="t", project_dir=project)
+    assert "median wall time of 2 finished smoke run(s) on cuda" in plan.per_run_source
+
+
 def test_estimate_grows_with_the_preset():
     smoke, _ = plans.estimate_run_s(resolve("shared-0", "smoke"))
     cpu, _ = plans.estimate_run_s(resolve("shared-0", "cpu"))
