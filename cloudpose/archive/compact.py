@@ -296,6 +296,19 @@ def _listed(folder: Path) -> list[str]:
     return sorted(out)
 
 
+def held_checkpoints(folder: Path) -> set[str]:
+    """Run ids of the checkpoints (``*.pt``) a compact store in ``folder`` holds (none where
+    there is no such folder)."""
+    runs = Path(folder) / RUNS
+    if not runs.is_dir():
+        return set()
+    return {
+        p.relative_to(runs).parts[0]
+        for p in runs.glob(f"*/artifacts/**/*{CHECKPOINT_SUFFIX}")
+        if p.is_file()
+    }
+
+
 def _same(new: Path, old: Path) -> bool:
     if not old.is_file():
         return False

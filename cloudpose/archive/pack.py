@@ -60,6 +60,7 @@ from cloudpose.archive.compact import (
     RunSource,
     check_compact,
     extract_compact,
+    held_checkpoints,
     write_compact,
 )
 from cloudpose.failures import disk_full, sigterm_as_interrupt
@@ -121,6 +122,8 @@ class PackSummary:
     """(run name, why) of each run left RUNNING by a process that is gone, packed KILLED."""
     running: tuple[tuple[str, str], ...] = ()
     """(run name, what is packed of it) of each run packed RUNNING: its process may live."""
+    held: tuple[str, ...] = ()
+    """Run ids whose checkpoints a compact folder being updated held and keeps, not named."""
 
 
 def _relative(uri: str) -> str | None:
@@ -372,9 +375,33 @@ def _under_artifacts(base: str) -> Callable[[str], str | None]:
     return to
 
 
-def _run_ids(db: Path, names: list[str], store: Path) -> set[str]:
-    """Run ids of ``names`` (``--checkpoint``): each a run id, or a run name (its newest active
-    run), looked up in ``db`` (a copy of the store ``store``, which a message names)."""
+def _checkpoint_runs(
+    copy: Path, store: Path, named: list[str], dropped: list[str], folder: Path | None
+) -> tuple[set[str], set[str]]:
+    """(run ids whose checkpoints to pack, those of them kept only because the compact
+    ``folder`` being updated held them): the runs ``named`` (``--checkpoint``) and the ones
+    ``folder`` holds, less the runs ``dropped`` (``--drop-checkpoint``)."""
+    keep = _run_ids(copy, named, store)
+    drop = _run_ids(copy, dropped, store, "--drop-checkpoint")
+    if keep & drop:
+        raise ValueError(
+            f"--checkpoint and --drop-checkpoint both name run {sorted(keep & drop)[0]}; "
+            "nothing packed"
+        )
+    if folder is None or not folder.is_dir():
+        return keep, set()
+    con = sqlite3.connect(copy)
+    try:
+        known = {r for (r,) in con.execute("SELECT run_uuid FROM runs")}
+    finally:
+        con.close()
+    held = (held_checkpoints(folder) & known) - keep - drop
+    return keep | held, held
+
+
+def _run_ids(db: Path, names: list[str], store: Path, option: str = "--checkpoint") -> set[str]:
+    """Run ids of ``names`` (given with ``option``): each a run id, or a run name (its newest
+    active run), looked up in ``db`` (a copy of the store ``store``, which a message names)."""
     con = sqlite3.connect(db)
     try:
         ids = set()
@@ -398,7 +425,7 @@ def _run_ids(db: Path, names: list[str], store: Path) -> set[str]:
                 ]
                 given = f"e.g. {', '.join(some)}" if some else "it holds no run"
                 raise ValueError(
-                    f"--checkpoint {name!r}: no run of {store} has that id or name (expected a "
+                    f"{option} {name!r}: no run of {store} has that id or name (expected a "
                     f"run id or a run name: {given}); nothing packed"
                 )
             ids.add(row[0])
@@ -518,6 +545,7 @@ def pack_store(
     checkpoints: Sequence[str] = (),
     force: bool = False,
     reduce_checkpoints: bool = True,
+    drop_checkpoints: Sequence[str] = (),
 ) -> PackSummary:
     """Pack the store of ``project_dir`` into ``out``: a ``.tar.xz`` archive written
     atomically, or under any other name a folder in the compact form
@@ -530,7 +558,10 @@ def pack_store(
             :func:`store_database`).
         out: the archive or compact folder to write.
         checkpoints: runs (ids or names; a name means its newest active run) whose ``*.pt``
-            files are packed; every other run's are left out.
+            files are packed; every other run's are left out, but where a compact folder is
+            updated, the runs whose checkpoints it holds keep them.
+        drop_checkpoints: runs (ids or names) whose checkpoints an updated compact folder holds
+            and leaves out now: the one way a repack drops a checkpoint the folder held.
         force: replace (update, for a compact folder) ``out`` if it exists (else
             ``FileExistsError``).
         reduce_checkpoints: in a compact folder, store a kept checkpoint in fewer bytes where
@@ -563,7 +594,9 @@ def pack_store(
         finally:
             src.close()
             dst.close()
-        keep = _run_ids(copy, list(checkpoints), db)
+        keep, held = _checkpoint_runs(
+            copy, db, list(checkpoints), list(drop_checkpoints), out if compact else None
+        )
         plan, moved = _artifact_plan(copy, project)
         runs = _rewrite(
             copy,
@@ -589,6 +622,7 @@ def pack_store(
                 c.checked,
                 killed,
                 running,
+                tuple(sorted(held)),
             )
 
         def write(path: Path) -> None:

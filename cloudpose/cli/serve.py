@@ -221,6 +221,14 @@ def store_pack(
         bool,
         typer.Option("--force", help="Replace an existing archive, or update a compact folder."),
     ] = False,
+    drop_checkpoint: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Run (id or name) whose checkpoints the compact folder being updated holds "
+            "and leaves out now (repeatable); without it an update keeps every checkpoint the "
+            "folder held."
+        ),
+    ] = None,
     full_precision: Annotated[
         bool,
         typer.Option(
@@ -231,8 +239,8 @@ def store_pack(
     ] = False,
 ) -> None:
     """Pack this folder's MLflow store (mlflow.db and mlartifacts/) with artifact addresses
-    and run folders relative to the folder, checkpoints only of the runs named, runs left
-    RUNNING by a process that is gone recorded KILLED (its run folder's lock released, or a
+    and run folders relative to the folder, checkpoints only of the runs named (and those a
+    compact folder being updated held), runs left RUNNING by a process that is gone recorded KILLED (its run folder's lock released, or a
     later run of its config, or 6 h without a log) and each other RUNNING run named, packed
     as it stands: as a compact folder that git stores run by run (one folder per run, the
     database as text, instance tables packed, checkpoints in fewer bytes where the poses do
@@ -240,8 +248,18 @@ def store_pack(
     from cloudpose.archive.pack import is_archive_name, pack_store
 
     s = pack_store(
-        Path.cwd(), out, checkpoint or [], force=force, reduce_checkpoints=not full_precision
+        Path.cwd(),
+        out,
+        checkpoint or [],
+        force=force,
+        reduce_checkpoints=not full_precision,
+        drop_checkpoints=drop_checkpoint or [],
     )
+    if s.held:
+        typer.echo(
+            f"kept the checkpoints of {len(s.held)} run(s) the folder held "
+            f"({', '.join(r[:8] for r in s.held)}; --drop-checkpoint RUN leaves one out)"
+        )
     for name, why in s.killed:
         typer.echo(f"recorded KILLED: {name} ({why})")
     for name, what in s.running:

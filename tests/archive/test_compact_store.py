@@ -185,6 +185,26 @@ def test_a_repack_rewrites_only_what_changed_and_a_new_run_adds_its_own_files(pr
     assert unpack_store(out, tmp_path / "again") == 3
 
 
+def test_an_update_keeps_the_checkpoints_the_folder_held_unless_one_is_dropped(project, tmp_path):
+    """Repacking a compact folder without naming its checkpoints again keeps them (a repack
+    that adds a run must not lose the shipped network's); --drop-checkpoint is how one goes."""
+    out = tmp_path / COMPACT
+    pack_store(project, out, checkpoints=["shared-0/p/seed2"])
+    seed2 = {p.parts[-3] for p in out.rglob("*.pt")}
+    assert len(seed2) == 1
+    s = pack_store(project, out, force=True)
+    assert (s.checkpoints_kept, s.held) == (1, tuple(seed2))
+    assert {p.parts[-3] for p in out.rglob("*.pt")} == seed2
+    with pytest.raises(ValueError, match="--drop-checkpoint 'shared-0/p/seed9': no run"):
+        pack_store(project, out, force=True, drop_checkpoints=["shared-0/p/seed9"])
+    with pytest.raises(ValueError, match="both name run"):
+        pack_store(project, out, ["shared-0/p/seed2"], True, drop_checkpoints=["shared-0/p/seed2"])
+    assert {p.parts[-3] for p in out.rglob("*.pt")} == seed2  # a refused call changes nothing
+    s = pack_store(project, out, force=True, drop_checkpoints=["shared-0/p/seed2"])
+    assert (s.checkpoints_kept, s.held) == (0, ())
+    assert not list(out.rglob("*.pt"))
+
+
 @pytest.mark.parametrize("damage", ["missing", "damaged"])
 def test_a_missing_or_damaged_file_is_named_in_one_line_and_nothing_is_unpacked(
     project, tmp_path, monkeypatch, damage
