@@ -299,13 +299,10 @@ def _listed(folder: Path) -> list[str]:
 def held_checkpoints(folder: Path) -> set[str]:
     """Run ids of the checkpoints (``*.pt``) a compact store in ``folder`` holds (none where
     there is no such folder)."""
-    runs = Path(folder) / RUNS
-    if not runs.is_dir():
-        return set()
     return {
-        p.relative_to(runs).parts[0]
-        for p in runs.glob(f"*/artifacts/**/*{CHECKPOINT_SUFFIX}")
-        if p.is_file()
+        rel.split("/")[1]
+        for rel in _listed(Path(folder))
+        if rel.startswith(f"{RUNS}/") and rel.endswith(CHECKPOINT_SUFFIX)
     }
 
 

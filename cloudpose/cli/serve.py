@@ -240,11 +240,12 @@ def store_pack(
 ) -> None:
     """Pack this folder's MLflow store (mlflow.db and mlartifacts/) with artifact addresses
     and run folders relative to the folder, checkpoints only of the runs named (and those a
-    compact folder being updated held), runs left RUNNING by a process that is gone recorded KILLED (its run folder's lock released, or a
-    later run of its config, or 6 h without a log) and each other RUNNING run named, packed
-    as it stands: as a compact folder that git stores run by run (one folder per run, the
-    database as text, instance tables packed, checkpoints in fewer bytes where the poses do
-    not move; a repack rewrites only what changed), or as one .tar.xz."""
+    compact folder being updated held), runs left RUNNING by a process that is gone recorded
+    KILLED (its run folder's lock released, or a later run of its config, or 6 h without a
+    log) and each other RUNNING run named, packed as it stands: as a compact folder that git
+    stores run by run (one folder per run, the database as text, instance tables packed,
+    checkpoints in fewer bytes where the poses do not move; a repack rewrites only what
+    changed), or as one .tar.xz."""
     from cloudpose.archive.pack import is_archive_name, pack_store
 
     s = pack_store(

@@ -14,6 +14,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cloudpose import runtime
 from cloudpose.config import Config
 from cloudpose.conventions import packaged_classes
 from cloudpose.data.dataset import data_fingerprint, dataset_root, synthetic_root
@@ -247,12 +248,12 @@ def _measured_run_s(
 
 
 def training_device(cfg: Config) -> str:
-    """The kind of device (``cpu`` or ``cuda``) a run of ``cfg`` would train on here."""
-    import torch
-
-    if cfg.train.device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return cfg.train.device.split(":")[0]
+    """The kind of device (``cpu`` or ``cuda``) a run of ``cfg`` would train on here
+    (:func:`cloudpose.runtime.pick_device`)."""
+    try:
+        return runtime.pick_device(cfg.train.device).type
+    except ValueError:  # CUDA named where there is none: the run stops; its plan still shows
+        return cfg.train.device.split(":")[0]
 
 
 def _frames_to_render(cfg: Config, project_dir: Path) -> tuple[str, int, int, bool]:
